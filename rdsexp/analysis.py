@@ -1,0 +1,84 @@
+"""Exact mean-square analysis of the ideal closed loop and empirical rates from Monte Carlo.
+
+The ideal closed loop is x_{k+1} = Acl(xi_k) x_k + B(xi_k) d_k with Acl = A + B F (eq. closed-loop)
+and full state feedback; its second moments depend on the distribution of xi only through Gbar.
+"""
+from __future__ import annotations
+
+import numpy as np
+from scipy import stats
+
+from .systems import AffineRandomSystem, MomentModel
+
+
+def second_moment_operator(system: AffineRandomSystem, dist: MomentModel | None, F) -> np.ndarray:
+    """E[Acl (x) Acl], shape (n^2, n^2): row-major vec(X_{k+1}) = this @ vec(X_k) for d = 0."""
+    Abar, Bbar = system.moment_factors(dist)
+    Acl = Abar + Bbar @ system.check_gain(F)                 # (nbar, n, n)
+    n = system.n
+    return np.einsum("rij,rkl->ikjl", Acl, Acl).reshape(n * n, n * n)
+
+
+def ms_rate(system: AffineRandomSystem, dist: MomentModel | None, F) -> float:
+    """Exact mean-square decay rate sqrt(rho(E[Acl (x) Acl])) of the ideal closed loop.
+
+    This is the smallest lambda of eq. (exp-def) for the gain F (>= 1: not mean-square stable).
+    `dist` None uses the system's own xi_dist.
+    """
+    return float(np.sqrt(np.abs(np.linalg.eigvals(second_moment_operator(system, dist, F))).max()))
+
+
+def second_moments(system: AffineRandomSystem, dist: MomentModel | None, F, x0, d) -> tuple[np.ndarray, np.ndarray]:
+    """Exact E[x_k] (K+1, n) and E[x_k x_k^T] (K+1, n, n) of the ideal closed loop with input d.
+
+    x_{k+1} = (A(xi_k) + B(xi_k) F) x_k + B(xi_k) d_k, x_0 deterministic, d: (K+1, m) deterministic
+    (the last row is unused). Since xi_k is independent of x_k,
+        X_{k+1} = sum_r T_r [[X_k, m_k], [m_k^T, 1]] T_r^T,  T_r = [Abar_r + Bbar_r F, Bbar_r d_k].
+    """
+    dist = system.check_distribution(dist)
+    F = system.check_gain(F)
+    x0 = np.asarray(x0, dtype=float)
+    d = np.atleast_2d(np.asarray(d, dtype=float))
+    if x0.shape != (system.n,):
+        raise ValueError(f"x0: shape {x0.shape}, expected ({system.n},)")
+    if d.ndim != 2 or d.shape[1] != system.m:
+        raise ValueError(f"d: shape {d.shape}, expected (K+1, m = {system.m})")
+    Abar, Bbar = system.moment_factors(dist)
+    Acl_bar = Abar + Bbar @ F
+    A_mu, B_mu, _, _ = system.at(dist.mean)
+    Acl_mu = A_mu + B_mu @ F
+    K = d.shape[0] - 1
+    mean = np.empty((K + 1, system.n))
+    second = np.empty((K + 1, system.n, system.n))
+    mean[0], second[0] = x0, np.outer(x0, x0)
+    for k in range(K):                                          # a recursion in time, not over samples
+        T = np.concatenate([Acl_bar, (Bbar @ d[k])[:, :, None]], axis=2)       # (nbar, n, n+1)
+        Z = np.block([[second[k], mean[k][:, None]], [mean[k][None, :], np.ones((1, 1))]])
+        second[k + 1] = np.einsum("rij,jl,rkl->ik", T, Z, T)
+        mean[k + 1] = Acl_mu @ mean[k] + B_mu @ d[k]
+    return mean, second
+
+
+def empirical_rate(q: np.ndarray, k_from: int, k_to: int, level: float = 0.95) -> tuple[float, float, float]:
+    """Rate (sqrt(E||q_to||^2) / sqrt(E||q_from||^2))^(1/(k_to-k_from)) from sample paths, with a CI.
+
+    q: (K+1, P, n) trajectories. The expectation is the sample mean over the P paths (as in the
+    paper, which used k = 60 -> 80); the interval is the delta-method interval for the log ratio of
+    the two correlated means. Returns (rate, low, high); NaN when a path is not finite at either step.
+    """
+    a = np.sum(q[k_to] ** 2, axis=-1)
+    b = np.sum(q[k_from] ** 2, axis=-1)
+    if not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))) or a.mean() <= 0 or b.mean() <= 0:
+        return float("nan"), float("nan"), float("nan")
+    P, span = a.size, 2.0 * (k_to - k_from)
+    log_ratio = np.log(a.mean()) - np.log(b.mean())
+    # gradient of log(mean a) - log(mean b) applied to the per-path pairs
+    g = a / a.mean() - b / b.mean()
+    se = np.std(g, ddof=1) / np.sqrt(P) if P > 1 else np.inf
+    z = stats.norm.ppf(0.5 + level / 2)
+    return tuple(float(np.exp(v / span)) for v in (log_ratio, log_ratio - z * se, log_ratio + z * se))
+
+
+def rms(q: np.ndarray) -> np.ndarray:
+    """sqrt(E||q_k||^2) over paths: q (K+1, P, n) -> (K+1,)."""
+    return np.sqrt(np.mean(np.sum(q ** 2, axis=-1), axis=1))

@@ -1,0 +1,178 @@
+"""Monte Carlo of the plant with the EnKF as observer (paper Sec. IV, Fig. wcontroller), batched over paths.
+
+One step k, for all P paths at once:
+    u_k = F x_{k|k-1} + d_k                  control input decision, eq. (sf-enkf), plus external input
+    y_k = C(s_k) q_k + D(s_k) u_k            plant output
+    psi_{k|k} = filter(psi_{k|k-1}, u_k, y_k)        output prediction + filtering
+    q_{k+1} = A(s_k) q_k + B(s_k) u_k,  psi_{k+1|k} = predict(psi_{k|k}, u_k)
+F = 0 gives the open loop (and, with an M-sequence as d, the identification run).
+
+Randomness: path j of a run with root SeedSequence `seed` draws its plant coefficients from
+SeedSequence(entropy, spawn_key=seed.spawn_key + (PLANT, j)) and its EnKF noise from
+(..., (ENKF, j)). Results therefore do not depend on how paths are batched or chunked.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .enkf import EnKF, check_covariance, ensemble_mean, sqrtm_psd
+from .systems import AffineRandomSystem, _finite_array
+
+PLANT, ENKF = 0, 1            # SeedSequence spawn-key slots per purpose
+DIVERGENCE_BOUND = 1e8        # |q| or |ensemble mean| beyond this marks a path diverged
+
+
+def path_generators(seed, purpose: int, paths) -> list[np.random.Generator]:
+    """One independent Generator per path index in `paths` for `purpose` (PLANT or ENKF)."""
+    root = seed if isinstance(seed, np.random.SeedSequence) else np.random.SeedSequence(seed)
+    return [np.random.default_rng(np.random.SeedSequence(root.entropy, spawn_key=root.spawn_key + (purpose, int(j))))
+            for j in paths]
+
+
+@dataclass
+class Trajectories:
+    """Monte Carlo result; arrays are (K+1, P, dim) over steps k = 0..K and paths.
+
+    q: plant state, y: output, u: input applied to the plant (F x_{k|k-1} + d_k),
+    psi_pred_* / psi_filt_*: ensemble mean and spread (std over members, ddof 1) of psi_{k|k-1}
+    and psi_{k|k}; split with `x(...)`/`xi(...)`. failed_at (P,): first step whose values are
+    not kept (-1 if none); failure (P,): "" / "diverged" / "singular_innovation". Values of a
+    failed path from failed_at on are NaN. members: filtered ensembles (K+1, P, M, n+p) if kept.
+    """
+
+    q: np.ndarray
+    y: np.ndarray
+    u: np.ndarray
+    psi_pred_mean: np.ndarray
+    psi_pred_std: np.ndarray
+    psi_filt_mean: np.ndarray
+    psi_filt_std: np.ndarray
+    failed_at: np.ndarray
+    failure: np.ndarray
+    n: int
+    members: np.ndarray | None = None
+
+    @property
+    def status(self) -> str:
+        """"ok", "partially_failed" or "failed" (every path)."""
+        bad = self.failed_at >= 0
+        return "ok" if not bad.any() else ("failed" if bad.all() else "partially_failed")
+
+    def x(self, a: np.ndarray) -> np.ndarray:
+        return a[..., :self.n]
+
+    def xi(self, a: np.ndarray) -> np.ndarray:
+        return a[..., self.n:]
+
+
+def check_settings(plant: AffineRandomSystem, enkf: EnKF, F, d, q0, psi0, P0) -> tuple:
+    """Validate and convert the simulation inputs; one-line ValueError naming the argument."""
+    model = enkf.model
+    if plant.xi_dist is None:
+        raise ValueError("plant: needs xi_dist, the distribution its coefficients are drawn from")
+    if (plant.n, plant.m, plant.ny) != (model.n, model.m, model.ny):
+        raise ValueError(f"plant: (n, m, ny) = {(plant.n, plant.m, plant.ny)} does not match the "
+                         f"EnKF model's {(model.n, model.m, model.ny)}")
+    F = np.zeros((model.m, model.n)) if F is None else model.check_gain(F)
+    d = _finite_array("d", np.asarray(d, dtype=float).reshape(len(d), -1), 2)
+    if d.shape[1] != model.m or d.shape[0] < 1:
+        raise ValueError(f"d: shape {d.shape}, expected (K+1, m = {model.m})")
+    q0 = _finite_array("q0", q0, 1)
+    if q0.shape != (plant.n,):
+        raise ValueError(f"q0: length {q0.size}, expected n = {plant.n}")
+    psi0 = _finite_array("psi0", psi0, 1)
+    if psi0.shape != (enkf.dim,):
+        raise ValueError(f"psi0: length {psi0.size}, expected n + p = {enkf.dim}")
+    P0 = check_covariance("P0", 0.0 if P0 is None else P0, enkf.dim)
+    return F, d, q0, psi0, P0
+
+
+def simulate(plant: AffineRandomSystem, enkf: EnKF, *, F=None, d, q0, psi0, P0=None, ensemble_size: int,
+             paths: int, seed, filter_sees_d: bool = True, keep_members: bool = False,
+             block: int = 16, bound: float = DIVERGENCE_BOUND, progress=None) -> Trajectories:
+    """Closed loop (open loop when F is None) of `plant` observed by `enkf`, P = `paths` sample paths.
+
+    d: (K+1, m) external input added on u_k (horizon K = len(d) - 1); q0: (n,) plant initial state;
+    psi0, P0: mean (n+p,) and covariance of the initial ensemble psi_{0|-1} (P0 = 0: every member
+    at psi0, as in the paper). filter_sees_d: the EnKF is told the applied input u_k (True) or only
+    F x_{k|k-1} (False). block: steps of noise drawn per generator call (does not change results).
+    progress: optional callable(k) called once per step (a progress bar's update).
+    """
+    F, d, q0, psi0, P0 = check_settings(plant, enkf, F, d, q0, psi0, P0)
+    M, P, K = int(ensemble_size), int(paths), d.shape[0] - 1
+    if M < 2:
+        raise ValueError(f"ensemble_size: {M}, must be >= 2 (the EnKF needs a sample covariance)")
+    if P < 1:
+        raise ValueError(f"paths: {P}, must be >= 1")
+    model, dim, ny = enkf.model, enkf.dim, enkf.model.ny
+
+    plant_rngs = path_generators(seed, PLANT, range(P))
+    enkf_rngs = path_generators(seed, ENKF, range(P))
+    s = np.stack([plant.xi_dist.sample(g, (K + 1,)) for g in plant_rngs], axis=1)    # (K+1, P, p_plant)
+    A_s, B_s, C_s, D_s = plant.at(s)
+    psi = psi0 + np.stack([g.standard_normal((M, dim)) for g in enkf_rngs]) @ sqrtm_psd(P0)
+
+    nan = lambda *shape: np.full((K + 1, P) + shape, np.nan)
+    out = Trajectories(q=nan(plant.n), y=nan(ny), u=nan(model.m), psi_pred_mean=nan(dim),
+                       psi_pred_std=nan(dim), psi_filt_mean=nan(dim), psi_filt_std=nan(dim),
+                       failed_at=np.full(P, -1), failure=np.full(P, "", dtype=object), n=model.n,
+                       members=nan(M, dim) if keep_members else None)
+    q = np.broadcast_to(q0, (P, plant.n)).copy()
+    alive = np.ones(P, dtype=bool)
+
+    def fail(mask, k, reason):
+        new = mask & alive
+        out.failed_at[new], out.failure[new] = k, reason
+        alive[new] = False
+
+    with np.errstate(all="ignore"):          # failures are detected and recorded below, not warned
+        for k in range(K + 1):
+            if k % block == 0:               # noise for the next `block` steps, per path's own stream
+                noise = np.empty((P, min(block, K + 1 - k), M, ny + dim))
+                for g, buffer in zip(enkf_rngs, noise):
+                    g.standard_normal(out=buffer)
+            e_v, e_w = noise[:, k % block, :, :ny], noise[:, k % block, :, ny:]
+            mean_pred = ensemble_mean(psi)                                          # eq. (state-pred1)
+            # a path whose state or ensemble left the bound (or is not finite) stops here
+            fail(~(np.all(np.abs(q) <= bound, axis=1) & np.all(np.abs(mean_pred) <= bound, axis=1)),
+                 k, "diverged")
+            q[~alive], psi[~alive], mean_pred[~alive] = 0.0, 0.0, 0.0    # no overflow on failed paths
+            u = mean_pred[:, :model.n] @ F.T + d[k]                                 # eq. (sf-enkf) + d_k
+            u_filter = u if filter_sees_d else u - d[k]
+            y = (C_s[k] @ q[..., None])[..., 0] + (D_s[k] @ u[..., None])[..., 0]
+            a = enkf.update(psi, u_filter, y, e_v, psi_mean=mean_pred)
+            fail(~a.ok, k, "singular_innovation")
+            keep = alive[:, None]
+            for name, value in (("q", q), ("y", y), ("u", u), ("psi_pred_mean", a.pred_mean),
+                                ("psi_pred_std", a.pred_std), ("psi_filt_mean", a.filt_mean),
+                                ("psi_filt_std", a.filt_std)):
+                getattr(out, name)[k] = np.where(keep, value, np.nan)
+            if keep_members:
+                out.members[k] = np.where(keep[:, :, None], a.psi, np.nan)
+            if progress is not None:
+                progress(k)
+            if k == K:
+                break
+            q = (A_s[k] @ q[..., None])[..., 0] + (B_s[k] @ u[..., None])[..., 0]
+            psi = enkf.predict(a.psi, u_filter, e_w)
+    return out
+
+
+def simulate_state_feedback(system: AffineRandomSystem, F, *, d, x0, paths: int, seed) -> np.ndarray:
+    """Ideal closed loop x_{k+1} = (A(xi_k) + B(xi_k) F) x_k + B(xi_k) d_k with xi ~ system.xi_dist.
+
+    d: (K+1, m); returns x (K+1, P, n). Per-path streams as in `simulate` (PLANT slot).
+    """
+    F = system.check_gain(F)
+    d = np.asarray(d, dtype=float).reshape(len(d), -1)
+    K = d.shape[0] - 1
+    xi = np.stack([system.xi_dist.sample(g, (K + 1,)) for g in path_generators(seed, PLANT, range(paths))], axis=1)
+    A, B, _, _ = system.at(xi)
+    x = np.empty((K + 1, paths, system.n))
+    x[0] = x0
+    with np.errstate(all="ignore"):
+        for k in range(K):
+            x[k + 1] = ((A[k] + B[k] @ F) @ x[k][..., None])[..., 0] + (B[k] @ d[k])
+    return x
