@@ -49,18 +49,42 @@ class SynthesisResult:
 def synthesize(system: AffineRandomSystem, dist: MomentModel | None, method: str = "proposed",
                **options) -> SynthesisResult:
     """Design F for `system` with xi ~ `dist` by `method` (see METHODS); options go to the method."""
-    if method not in METHODS:
-        raise ValueError(f"method: unknown {method!r}, allowed: {', '.join(METHODS)}")
+    check_options(method, options, system)
     dist = system.check_distribution(dist)
     design = METHODS[method]
-    allowed = set(design.__code__.co_varnames[2:design.__code__.co_argcount + design.__code__.co_kwonlyargcount])
-    unknown = set(options) - allowed
-    if unknown:
-        raise ValueError(f"{method}: unknown option(s) {sorted(unknown)}, allowed: {sorted(allowed)}")
     start = time.perf_counter()
     res = design(system, dist, **options)
     res.seconds = time.perf_counter() - start
     return res
+
+
+def check_options(method: str, options: dict, system: AffineRandomSystem) -> None:
+    """One-line ValueError for an unknown method, an unknown option or a bad pole set."""
+    if method not in METHODS:
+        raise ValueError(f"method: unknown {method!r}, allowed: {', '.join(METHODS)}")
+    code = METHODS[method].__code__
+    allowed = set(code.co_varnames[code.co_argcount:code.co_argcount + code.co_kwonlyargcount])
+    unknown = set(options) - allowed
+    if unknown:
+        raise ValueError(f"{method}: unknown option(s) {sorted(unknown)}, allowed: {sorted(allowed) or 'none'}")
+    if "poles" in options:
+        check_poles(options["poles"], system)
+
+
+def check_poles(poles, system: AffineRandomSystem) -> np.ndarray:
+    """Poles as a complex (n,) array: strictly inside the unit disc, multiplicity at most m."""
+    try:
+        poles = np.asarray(poles, dtype=complex).ravel()
+    except (TypeError, ValueError):
+        raise ValueError(f"poles: {poles!r} is not a list of numbers") from None
+    if poles.shape != (system.n,) or not np.all(np.isfinite(poles)):
+        raise ValueError(f"poles: {poles.size} given, the system has n = {system.n} (finite values)")
+    if np.any(np.abs(poles) >= 1):
+        raise ValueError(f"poles: {np.round(poles.real, 6).tolist()} must lie strictly inside the unit disc")
+    _, counts = np.unique(np.round(poles, 12), return_counts=True)
+    if counts.max() > system.m:
+        raise ValueError(f"poles: multiplicity {counts.max()} exceeds the number of inputs m = {system.m}")
+    return poles
 
 
 # --------------------------------------------------------------------------------------- LMI
@@ -172,14 +196,7 @@ def _designed(method, system, dist, F, **info) -> SynthesisResult:
 
 def pole_placement(system, dist, *, poles=(0.9, 0.8, 0.7, 0.6, 0.5, 0.4)):
     """Place the eigenvalues of A(mean) + B(mean) F at `poles` (complex poles in conjugate pairs)."""
-    poles = np.asarray(poles, dtype=complex)
-    if poles.shape != (system.n,):
-        raise ValueError(f"poles: {poles.size} given, the system has n = {system.n}")
-    if np.any(np.abs(poles) >= 1):
-        raise ValueError(f"poles: {poles.tolist()} must lie strictly inside the unit disc")
-    values, counts = np.unique(np.round(poles, 12), return_counts=True)
-    if counts.max() > system.m:
-        raise ValueError(f"poles: multiplicity {counts.max()} exceeds the number of inputs m = {system.m}")
+    poles = check_poles(poles, system)
     A, B = _mean_model(system, dist)
     placed = scipy.signal.place_poles(A, B, poles.real if np.all(poles.imag == 0) else poles)
     return _designed("pole_placement", system, dist, -placed.gain_matrix, poles=poles.tolist())

@@ -1,0 +1,185 @@
+"""From a composed Hydra config to validated numerics objects, before any compute.
+
+Every check raises `ConfigError` with one line naming the key, the value and what is allowed.
+The numerics' own ValueErrors (shapes, PSD, NaN) are re-raised with the config key in front.
+"""
+from __future__ import annotations
+
+import math
+from contextlib import contextmanager
+from dataclasses import dataclass
+
+import numpy as np
+from omegaconf import DictConfig, ListConfig, OmegaConf
+
+from .enkf import EnKF, check_covariance
+from .modeling import mls_input
+from .synthesis import METHODS, check_options
+from .systems import AffineRandomSystem, MomentModel
+
+TRACKING_LEVELS = ("off", "summary", "full")
+
+
+class ConfigError(ValueError):
+    """A configuration value that rdsexp cannot run with (one line: key, value, what is allowed)."""
+
+
+@contextmanager
+def key(name: str):
+    """Re-raise a ValueError from inside as a ConfigError about config key `name`."""
+    try:
+        yield
+    except ConfigError:
+        raise
+    except (ValueError, TypeError) as err:
+        raise ConfigError(f"{name}: {err}") from None
+
+
+def plain(node):
+    """OmegaConf node -> plain Python containers (resolved)."""
+    return OmegaConf.to_container(node, resolve=True) if isinstance(node, (DictConfig, ListConfig)) else node
+
+
+def _number(value, name: str, *, integer: bool = False, low=None, high=None, low_open=False) -> float | int:
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+    if ok and integer:
+        ok = float(value).is_integer()
+    if ok and low is not None:
+        ok = value > low if low_open else value >= low
+    if ok and high is not None:
+        ok = value <= high
+    if not ok:
+        kind = "an integer" if integer else "a finite number"
+        bounds = "".join([f" {'>' if low_open else '>='} {low}" if low is not None else "",
+                          f" and <= {high}" if high is not None else ""])
+        raise ConfigError(f"{name}: {value!r} is not allowed, expected {kind}{bounds}")
+    return int(value) if integer else float(value)
+
+
+def get(cfg, name: str):
+    """cfg value at dotted `name`, or ConfigError if it is missing."""
+    value = OmegaConf.select(cfg, name, default=KeyError)
+    if value is KeyError:
+        raise ConfigError(f"{name}: missing from the configuration")
+    return plain(value)
+
+
+def system_from(cfg, group: str, xi=None) -> AffineRandomSystem:
+    """An AffineRandomSystem from a config group with lists of basis matrices A, B, C, D."""
+    mats = {}
+    for name in ("A", "B", "C", "D"):
+        value = get(cfg, f"{group}.{name}") if name in ("A", "B") else plain(OmegaConf.select(cfg, f"{group}.{name}"))
+        if value is not None and not isinstance(value, list):
+            raise ConfigError(f"{group}.{name}: expected a list of matrices [{name}0, {name}1, ...], got {value!r}")
+        mats[name] = value
+    with key(group):
+        return AffineRandomSystem(**mats, xi_dist=xi)
+
+
+@dataclass(frozen=True)
+class Experiment:
+    """Everything a run needs, validated: the numerics objects and settings of conf/."""
+
+    plant: AffineRandomSystem
+    model: AffineRandomSystem
+    enkf: EnKF
+    ensemble_size: int
+    q0: np.ndarray
+    psi0: np.ndarray
+    P0: np.ndarray
+    identification_input: np.ndarray      # (K_id + 1, m)
+    K0: int
+    K1: int
+    gain_method: str
+    gain_options: dict
+    paths: int
+    disturbance: np.ndarray               # (K + 1, m)
+    filter_sees_disturbance: bool
+    open_loop: bool
+    rate_window: tuple[int, int]
+    seed: int
+    tracking: str
+    recording: bool
+
+
+def build(cfg) -> Experiment:
+    """Validate the composed job config `cfg` (without the hydra node) and build the Experiment."""
+    seed = _number(get(cfg, "seed"), "seed", integer=True, low=0)
+    xi = get(cfg, "plant.xi")
+    if not isinstance(xi, dict) or set(xi) != {"mean", "cov"}:
+        raise ConfigError(f"plant.xi: {xi!r} is not allowed, expected {{mean: [...], cov: [[...]]}}")
+    with key("plant.xi"):
+        xi_dist = MomentModel(mean=xi["mean"], cov=xi["cov"])
+    plant = system_from(cfg, "plant", xi_dist)
+    model = system_from(cfg, "model")
+    if (plant.n, plant.m, plant.ny) != (model.n, model.m, model.ny):
+        raise ConfigError(f"model: (n, m, ny) = {(model.n, model.m, model.ny)} does not match the plant's "
+                          f"{(plant.n, plant.m, plant.ny)}")
+    with key("plant.q0"):
+        q0 = np.asarray(get(cfg, "plant.q0"), dtype=float)
+        if q0.shape != (plant.n,) or not np.all(np.isfinite(q0)):
+            raise ValueError(f"{get(cfg, 'plant.q0')!r} is not allowed, expected {plant.n} finite numbers")
+
+    dim = model.n + model.p
+    M = _number(get(cfg, "enkf.ensemble_size"), "enkf.ensemble_size", integer=True, low=2)
+    q_scale = _number(get(cfg, "enkf.q_scale"), "enkf.q_scale", low=0)
+    r_scale = _number(get(cfg, "enkf.r_scale"), "enkf.r_scale", low=0)
+    with key("enkf.Q"):
+        Q = q_scale * check_covariance("value", get(cfg, "enkf.Q"), dim)
+    with key("enkf.R"):
+        R = r_scale * check_covariance("value", get(cfg, "enkf.R"), model.ny)
+    enkf = EnKF(model, Q, R)
+    mean = get(cfg, "enkf.initial.mean")
+    with key("enkf.initial.mean"):
+        psi0 = np.zeros(dim) if mean is None else np.asarray(mean, dtype=float)
+        if psi0.shape != (dim,) or not np.all(np.isfinite(psi0)):
+            raise ValueError(f"{mean!r} is not allowed, expected null or {dim} finite numbers (n + p)")
+    with key("enkf.initial.cov"):
+        P0 = check_covariance("value", get(cfg, "enkf.initial.cov"), dim)
+
+    K_id = _number(get(cfg, "identification.horizon"), "identification.horizon", integer=True, low=1)
+    K0 = _number(get(cfg, "identification.K0"), "identification.K0", integer=True, low=0)
+    K1 = _number(get(cfg, "identification.K1"), "identification.K1", integer=True, low=0)
+    if K0 + K1 > K_id:
+        raise ConfigError(f"identification.K1: K0 + K1 = {K0 + K1} is not allowed, must be <= "
+                          f"identification.horizon = {K_id}")
+    reg = _number(get(cfg, "identification.input.register_length"), "identification.input.register_length",
+                  integer=True, low=2, high=32)
+    amp = _number(get(cfg, "identification.input.amplitude"), "identification.input.amplitude", low=0, low_open=True)
+    u_id = mls_input(K_id, model.m, reg, amp)
+
+    method = get(cfg, "gain.method")
+    if method not in METHODS:
+        raise ConfigError(f"gain.method: {method!r} is not allowed, expected one of {', '.join(METHODS)}")
+    options = get(cfg, "gain.options") or {}
+    if not isinstance(options, dict):
+        raise ConfigError(f"gain.options: {options!r} is not allowed, expected a mapping")
+    with key("gain.options"):
+        check_options(method, options, model)
+
+    paths = _number(get(cfg, "closed_loop.paths"), "closed_loop.paths", integer=True, low=1)
+    K = _number(get(cfg, "closed_loop.horizon"), "closed_loop.horizon", integer=True, low=1)
+    amplitude = _number(get(cfg, "closed_loop.disturbance.amplitude"), "closed_loop.disturbance.amplitude")
+    until = _number(get(cfg, "closed_loop.disturbance.until"), "closed_loop.disturbance.until", integer=True, low=0)
+    d = np.zeros((K + 1, model.m))
+    d[:until] = amplitude
+    window = get(cfg, "closed_loop.rate_window")
+    if not (isinstance(window, list) and len(window) == 2 and all(isinstance(k, int) for k in window)
+            and 0 <= window[0] < window[1] <= K):
+        raise ConfigError(f"closed_loop.rate_window: {window!r} is not allowed, expected [k_from, k_to] "
+                          f"with 0 <= k_from < k_to <= closed_loop.horizon = {K}")
+    flags = {}
+    for name in ("closed_loop.filter_sees_disturbance", "closed_loop.open_loop", "tracking.recording"):
+        flags[name] = get(cfg, name)
+        if not isinstance(flags[name], bool):
+            raise ConfigError(f"{name}: {flags[name]!r} is not allowed, expected true or false")
+    level = get(cfg, "tracking.level")
+    if level not in TRACKING_LEVELS:
+        raise ConfigError(f"tracking.level: {level!r} is not allowed, expected one of {', '.join(TRACKING_LEVELS)}")
+
+    return Experiment(plant=plant, model=model, enkf=enkf, ensemble_size=M, q0=q0, psi0=psi0, P0=P0,
+                      identification_input=u_id, K0=K0, K1=K1, gain_method=method, gain_options=options,
+                      paths=paths, disturbance=d,
+                      filter_sees_disturbance=flags["closed_loop.filter_sees_disturbance"],
+                      open_loop=flags["closed_loop.open_loop"], rate_window=tuple(window), seed=seed,
+                      tracking=level, recording=flags["tracking.recording"] and level != "off")

@@ -1,0 +1,118 @@
+"""Run records: provenance, atomic writes of tables and run.json, hashing.
+
+A run directory holds Hydra's `.hydra/`, `run.json` (status, timings, seeds, code version,
+environment, table hashes), parquet tables, `recording.rrd` and, when the working tree was dirty,
+`uncommitted.diff`. Every file is written to a temporary name and renamed, so a killed run leaves
+either a complete file or none; `run.json` says "incomplete" until the last table is in place.
+"""
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import os
+import platform
+import socket
+import subprocess
+import sys
+from importlib import metadata
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+PACKAGES = ("rdsexp", "numpy", "scipy", "cvxpy", "clarabel", "pandas", "pyarrow", "hydra-core",
+            "omegaconf", "rerun-sdk", "matplotlib", "tqdm")
+REPO = Path(__file__).resolve().parent.parent
+
+
+def atomic_write_bytes(path: Path, data: bytes) -> None:
+    """Write `data` to `path` via a temporary file in the same directory and an atomic rename."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    with open(tmp, "wb") as fh:
+        fh.write(data)
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
+
+
+def write_json(path: Path, obj) -> None:
+    atomic_write_bytes(path, (json.dumps(obj, indent=1, sort_keys=False, default=_json_default) + "\n").encode())
+
+
+def _json_default(obj):
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
+
+
+def write_table(path: Path, table: pd.DataFrame) -> str:
+    """Write a parquet table atomically; returns the sha256 of its content (see `table_hash`)."""
+    buffer = io.BytesIO()
+    table.to_parquet(buffer, index=False)
+    atomic_write_bytes(path, buffer.getvalue())
+    return table_hash(table)
+
+
+def table_hash(table: pd.DataFrame) -> str:
+    """sha256 over column names, dtypes and values: equal for equal tables, whatever the file bytes."""
+    h = hashlib.sha256()
+    for name in table.columns:
+        column = table[name]
+        h.update(f"{name}:{column.dtype}".encode())
+        values = column.to_numpy()
+        h.update(values.tobytes() if values.dtype.kind in "biuf" else "\x1f".join(map(str, values)).encode())
+    return h.hexdigest()
+
+
+def config_hash(job_config: dict) -> str:
+    """sha256 of the resolved job config (canonical JSON), the identity of what a run computes."""
+    return hashlib.sha256(json.dumps(job_config, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def _git(*args: str) -> str | None:
+    try:
+        out = subprocess.run(["git", "-C", str(REPO), *args], capture_output=True, text=True, timeout=10)
+    except (OSError, subprocess.TimeoutExpired):
+        return None
+    return out.stdout if out.returncode == 0 else None
+
+
+def code_version() -> dict:
+    """Git commit of the rdsexp source, dirty flag, the uncommitted diff and a version string.
+
+    version = commit, plus "+" and a hash of the diff when dirty, so two runs share a version
+    exactly when they ran the same code (untracked files under outputs/ are ignored by git).
+    """
+    commit = (_git("rev-parse", "HEAD") or "").strip() or None
+    status = _git("status", "--porcelain", "--untracked-files=no")
+    diff = _git("diff", "HEAD") or ""
+    dirty = bool(status and status.strip())
+    version = (commit or "unknown") + ("+" + hashlib.sha256(diff.encode()).hexdigest()[:12] if dirty else "")
+    return {"commit": commit, "dirty": dirty, "version": version, "diff": diff if dirty else ""}
+
+
+def environment() -> dict:
+    """Python, host, package versions and BLAS threading of this process."""
+    versions = {}
+    for name in PACKAGES:
+        try:
+            versions[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            versions[name] = None
+    try:
+        from threadpoolctl import threadpool_info
+        blas = [{k: info.get(k) for k in ("internal_api", "num_threads", "version")} for info in threadpool_info()]
+    except ImportError:
+        blas = None
+    threads = {v: os.environ.get(v) for v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")}
+    return {"python": sys.version.split()[0], "platform": platform.platform(), "host": socket.gethostname(),
+            "cpu_count": os.cpu_count(), "packages": versions, "blas": blas, "thread_env": threads}
+
+
+def read_json(path: Path) -> dict:
+    with open(path) as fh:
+        return json.load(fh)

@@ -1,0 +1,102 @@
+"""EnKF: the batched equations against a per-member reference, and convergence to the Kalman filter."""
+import numpy as np
+import pytest
+
+import rdsexp as rx
+from rdsexp.enkf import EnKF
+
+
+def test_batched_step_equals_per_member_equations():
+    """predict/update on (paths, members) equal eqs. (state-pred2), (output-pred2), (filtering)-(kalman-v)
+    written member by member (the reference loop lives only in this test)."""
+    rng = np.random.default_rng(0)
+    model = rx.paper.model()
+    enkf = EnKF(model, rx.paper.Q, rx.paper.R)
+    P, M = 3, 7
+    psi = rng.normal(size=(P, M, 9))
+    u, y = rng.normal(size=(P, 1)), rng.normal(size=(P, 3))
+    e_w, e_v = rng.normal(size=(P, M, 9)), rng.normal(size=(P, M, 3))
+    pred = enkf.predict(psi, u, e_w)
+    a = enkf.update(pred, u, y, e_v)
+    Qh, Rh = np.sqrt(rx.paper.Q), np.sqrt(rx.paper.R)          # diagonal here
+    for j in range(P):
+        ref = np.empty((M, 9))
+        z = np.empty((M, 3))
+        for i in range(M):
+            x, xi = psi[j, i, :6], psi[j, i, 6:]
+            A, B, C, D = model.at(xi)
+            ref[i] = np.concatenate([A @ x + B @ u[j], xi]) + Qh @ e_w[j, i]
+        for i in range(M):
+            A, B, C, D = model.at(ref[i, 6:])
+            z[i] = C @ ref[i, :6] + D @ u[j] + Rh @ e_v[j, i]
+        np.testing.assert_allclose(pred[j], ref, atol=1e-12)
+        dpsi, dz = ref - ref.mean(0), z - z.mean(0)
+        K = (dpsi.T @ dz / (M - 1)) @ np.linalg.inv(dz.T @ dz / (M - 1))
+        filt = ref + (y[j] - z) @ K.T
+        np.testing.assert_allclose(a.psi[j], filt, atol=1e-10)
+        np.testing.assert_allclose(a.filt_mean[j], filt.mean(0), atol=1e-10)
+        np.testing.assert_allclose(a.filt_std[j], filt.std(0, ddof=1), atol=1e-10)
+        np.testing.assert_allclose(a.pred_std[j], ref.std(0, ddof=1), atol=1e-12)
+    assert a.ok.all()
+
+
+def run_enkf_and_kf(M, paths, seed):
+    """A deterministic linear-Gaussian system (p = 0): EnKF mean and exact KF mean, (K+1, paths, n)."""
+    A = np.array([[0.9, 0.2], [-0.1, 0.8]])
+    C = np.array([[1.0, 0.0]])
+    Q, R = 0.05 * np.eye(2), np.array([[0.1]])
+    system = rx.AffineRandomSystem(A=[A], B=[np.zeros((2, 1))], C=[C])
+    enkf = EnKF(system, Q, R)
+    rng = np.random.default_rng(seed)
+    K, m0, P0 = 30, np.array([1.0, -1.0]), np.eye(2)
+    x = m0 + rng.normal(size=(paths, 2)) @ np.linalg.cholesky(P0).T
+    ens = m0 + rng.normal(size=(paths, M, 2)) @ np.linalg.cholesky(P0).T
+    m, Pk = np.broadcast_to(m0, (paths, 2)).copy(), P0.copy()
+    u = np.zeros((paths, 1))
+    diff = []
+    for k in range(K):
+        y = x @ C.T + rng.normal(size=(paths, 1)) * np.sqrt(R[0, 0])
+        a = enkf.update(ens, u, y, rng.normal(size=(paths, M, 1)))
+        S = C @ Pk @ C.T + R
+        G = Pk @ C.T @ np.linalg.inv(S)
+        m = m + (y - m @ C.T) @ G.T
+        Pk = Pk - G @ C @ Pk
+        diff.append(a.filt_mean - m)
+        ens = enkf.predict(a.psi, u, rng.normal(size=(paths, M, 2)))
+        m, Pk = m @ A.T, A @ Pk @ A.T + Q
+        x = x @ A.T + rng.normal(size=(paths, 2)) @ np.linalg.cholesky(Q).T
+    return np.array(diff), Pk
+
+
+def test_enkf_mean_approaches_kalman_filter():
+    """E||mean_EnKF - mean_KF||^2 shrinks like 1/M (sampling error of an M-member ensemble)."""
+    err = {}
+    for M in (25, 400):
+        diff, _ = run_enkf_and_kf(M, paths=200, seed=M)
+        err[M] = np.mean(np.sum(diff[5:] ** 2, axis=-1))        # after the initial transient
+    # 16x the members: the squared error should drop ~16x; allow a factor 2 either way
+    ratio = err[25] / err[400]
+    assert 8 < ratio < 32, (err, ratio)
+    assert err[400] < 0.01
+
+
+def test_singular_innovation_is_reported_not_raised():
+    model = rx.AffineRandomSystem(A=[np.eye(2)], B=[np.zeros((2, 1))], C=[np.eye(2)])
+    enkf = EnKF(model, np.zeros((2, 2)), np.zeros((2, 2)))
+    psi = np.ones((2, 5, 2))                                      # no spread, no noise: V = 0
+    psi[1] += np.random.default_rng(0).normal(size=(5, 2))
+    a = enkf.update(psi, np.zeros((2, 1)), np.zeros((2, 2)), np.zeros((2, 5, 2)))
+    assert a.ok.tolist() == [False, True]
+    np.testing.assert_array_equal(a.psi[0], psi[0])
+
+
+@pytest.mark.parametrize("Q, R, message", [
+    (np.eye(8), 0.01, "Q: shape"),
+    (-np.eye(9), 0.01, "Q: must be positive semidefinite"),
+    (0.01, np.ones((3, 3)) + np.diag([0, 0, -2.0]), "R: must be positive semidefinite"),
+    (0.01, [[0.1, 0.2], [0.2, 0.1]], "R: shape"),
+    (np.nan, 0.01, "Q: contains NaN"),
+])
+def test_bad_noise_covariances(Q, R, message):
+    with pytest.raises(ValueError, match=message):
+        EnKF(rx.paper.model(), Q, R)
