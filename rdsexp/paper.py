@@ -46,7 +46,7 @@ def plant() -> AffineRandomSystem:
     the model with xi = [0.7 s1, s2, 0.6].
     """
     A0 = _A_KNOWN - 0.6 * _E(3, 4)
-    s = MomentModel(mean=[0.8, 0.2], cov=np.diag([0.2 ** 2, 0.3 ** 2]))
+    s = MomentModel(mean=[0.8, 0.2], cov=np.diag([0.04, 0.09]))             # 0.2^2, 0.3^2
     return AffineRandomSystem(A=[A0, 0.7 * _E(4, 4), _E(6, 4) + _E(6, 6)], B=[_B], C=[_C], xi_dist=s)
 
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import datetime as dt
 import logging
+import os
 import shutil
 import sys
 import time
@@ -240,25 +241,22 @@ def _summary(exp: Experiment, dist, chosen, metrics: pd.DataFrame) -> dict:
 # ------------------------------------------------------------------------------------ recording
 def record(run_dir: Path, outcome: Outcome, exp: Experiment, info: dict) -> dict:
     """Write tables, recording and the final run.json into run_dir; returns the run.json content."""
-    hashes = {}
-    for name, table in outcome.tables.items():
-        hashes[name] = {"file": f"{name}.parquet", "rows": len(table),
-                        "sha256": tracking.write_table(run_dir / f"{name}.parquet", table)}
-    if outcome.members is not None:
-        hashes["members"] = {"file": "members.parquet", "rows": len(outcome.members),
-                             "sha256": tracking.write_table(run_dir / "members.parquet", outcome.members)}
-    start = time.perf_counter()
-    if exp.recording:
-        from .recording import write_recording      # rerun is imported only when recording
-        tmp = run_dir / ".recording.rrd.tmp"
-        trajectories = pd.concat([outcome.tables["identification"], outcome.tables["trajectories"]],
-                                 ignore_index=True)
-        write_recording(tmp, trajectories, recording_id=info["id"], members=outcome.members)
-        tmp.replace(run_dir / "recording.rrd")
-    info.update(status="complete", finished=_now(), summary=outcome.summary, tables=hashes,
-                timings=outcome.timings | {"recording": round(time.perf_counter() - start, 4)})
-    # total compute and tracking time, for the catalog
-    info["seconds"] = round(sum(v for v in info["timings"].values() if isinstance(v, float)), 3)
+    timings = dict(outcome.timings)
+    with _timed(timings, "tables"):
+        frames = dict(outcome.tables) | ({"members": outcome.members} if outcome.members is not None else {})
+        hashes = {name: {"file": f"{name}.parquet", "rows": len(table),
+                         "sha256": tracking.write_table(run_dir / f"{name}.parquet", table)}
+                  for name, table in frames.items()}
+    with _timed(timings, "recording"):
+        if exp.recording:
+            from .recording import write_recording      # rerun is imported only when recording
+            tmp = run_dir / ".recording.rrd.tmp"
+            trajectories = pd.concat([outcome.tables["identification"], outcome.tables["trajectories"]],
+                                     ignore_index=True)
+            write_recording(tmp, trajectories, recording_id=info["id"], members=outcome.members)
+            tmp.replace(run_dir / "recording.rrd")
+    info.update(status="complete", finished=_now(), summary=outcome.summary, tables=hashes, timings=timings,
+                seconds=round(sum(v for v in timings.values() if isinstance(v, float)), 3))
     tracking.write_json(run_dir / "run.json", info)
     return info
 
@@ -294,17 +292,23 @@ def job_config(cfg: DictConfig) -> dict:
 
 
 def execute(cfg: DictConfig, run_dir: Path) -> dict:
-    """Validate, compute and record one run into run_dir; returns run.json's content."""
+    """Validate, compute and record one run into run_dir; returns run.json's content.
+
+    With tracking level "off" nothing is written (Hydra's .hydra/ aside) and the same content
+    is only returned."""
     exp = build(cfg)                                    # ConfigError before any compute
-    job = job_config(cfg)
-    info, diff = run_info(run_dir, job, exp.seed)
-    if diff:
-        tracking.atomic_write_bytes(run_dir / "uncommitted.diff", diff.encode())
-    tracking.write_json(run_dir / "run.json", info)     # "incomplete" until the end
     if exp.tracking == "off":
         outcome = run_experiment(exp)
-        return info | {"status": "complete", "summary": outcome.summary, "timings": outcome.timings}
-    return record(run_dir, run_experiment(exp), exp, info)
+        return {"id": run_dir.name, "status": "complete", "summary": outcome.summary, "timings": outcome.timings}
+    timings = {}
+    with _timed(timings, "provenance"):
+        info, diff = run_info(run_dir, job_config(cfg), exp.seed)
+        if diff:
+            tracking.atomic_write_bytes(run_dir / "uncommitted.diff", diff.encode())
+        tracking.write_json(run_dir / "run.json", info)     # "incomplete" until the end
+    outcome = run_experiment(exp)
+    outcome.timings |= timings
+    return record(run_dir, outcome, exp, info)
 
 
 @hydra.main(config_path=CONF_DIR, config_name="config", version_base="1.3")
@@ -344,11 +348,40 @@ def _failed(run_dir: Path, cfg: DictConfig, status: str, message: str, trace: st
     return info
 
 
+_SWEEP_BARS: dict[int, tqdm] = {}      # the sweep's progress bar, in the process that launched it
+
+
+def sweep_size(config: DictConfig) -> int:
+    """Number of jobs of a multirun: the sweeper's params, overridden key by key on the command line."""
+    from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    params = {k: f"{k}={v}" for k, v in (OmegaConf.select(config, "hydra.sweeper.params") or {}).items()}
+    parser = OverridesParser.create()
+    for override in parser.parse_overrides(list(config.hydra.overrides.task)):
+        params[override.get_key_element()] = override.input_line
+    batches = BasicSweeper.split_arguments(parser.parse_overrides(list(params.values())), max_batch_size=None)
+    return len(batches[0])
+
+
 class SweepSummary(Callback):
-    """Hydra callback: rebuild the sweep's summary table once every job has returned."""
+    """Hydra callback: a progress bar over the sweep's jobs and its summary table once all have returned.
+
+    Each job also rebuilds the summary when it ends, so a sweep that is killed still has one."""
+
+    def on_multirun_start(self, config: DictConfig, **kwargs) -> None:
+        _SWEEP_BARS[os.getpid()] = tqdm(total=sweep_size(config), desc="sweep", unit="job", disable=None,
+                                        file=sys.stderr)
+
+    def on_job_end(self, config: DictConfig, job_return, **kwargs) -> None:
+        bar = _SWEEP_BARS.get(os.getpid())      # None in launcher worker processes
+        if bar is not None:
+            bar.update(1)
 
     def on_multirun_end(self, config: DictConfig, **kwargs) -> None:
         from .runs import write_sweep_summary
+        bar = _SWEEP_BARS.pop(os.getpid(), None)
+        if bar is not None:
+            bar.close()
         path = write_sweep_summary(Path(config.hydra.sweep.dir))
         print(f"sweep summary: {path}")
 

@@ -1,0 +1,145 @@
+"""Runner, configs, sweeps, recordings and the run catalog, end to end."""
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+from hydra import compose, initialize_config_dir
+from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
+from hydra.core.override_parser.overrides_parser import OverridesParser
+
+import rdsexp as rx
+from rdsexp import runner
+from rdsexp.config import build, system_from
+from rdsexp.recording import read_recording
+from conftest import REPO, SMALL, rdsexp
+
+SWEEPS = sorted(p.stem for p in (REPO / "conf" / "sweep").glob("*.yaml"))
+GROUPS = {g: sorted(p.stem for p in (REPO / "conf" / g).glob("*.yaml"))
+          for g in ("plant", "model", "enkf", "identification", "gain", "closed_loop", "tracking")}
+
+
+@pytest.fixture(autouse=True)
+def hydra_context():
+    with initialize_config_dir(config_dir=runner.CONF_DIR, version_base="1.3"):
+        yield
+
+
+@pytest.mark.parametrize("group, option", [(g, o) for g, opts in GROUPS.items() for o in opts])
+def test_every_config_option_composes_and_validates(group, option):
+    build(compose("config", overrides=[f"{group}={option}"]))
+
+
+def sweep_points(sweep):
+    top = compose("config", overrides=[f"+sweep={sweep}"], return_hydra_config=True)
+    args = [f"{k}={v}" for k, v in top.hydra.sweeper.params.items()]
+    return BasicSweeper.split_arguments(OverridesParser.create().parse_overrides(args), max_batch_size=None)[0]
+
+
+@pytest.mark.parametrize("sweep", SWEEPS)
+def test_every_sweep_point_composes_and_validates(sweep):
+    points = sweep_points(sweep)
+    assert len(points) >= 3
+    for overrides in points:
+        build(compose("config", overrides=[f"+sweep={sweep}", *overrides]))
+
+
+def test_yaml_plant_and_model_are_the_papers():
+    cfg = compose("config")
+    exp = build(cfg)
+    for got, want in ((exp.plant, rx.paper.plant()), (exp.model, rx.paper.model())):
+        for name in "ABCD":
+            np.testing.assert_array_equal(getattr(got, name), getattr(want, name))
+    np.testing.assert_array_equal(exp.plant.xi_dist.cov, rx.paper.plant().xi_dist.cov)
+    np.testing.assert_array_equal(exp.enkf.Q, rx.paper.Q)
+    np.testing.assert_array_equal(exp.disturbance, rx.paper.disturbance())
+
+
+def test_run_directory_contents(small_run):
+    info = json.loads((small_run / "run.json").read_text())
+    assert info["status"] == "complete"
+    assert set(info["tables"]) == set(runner.TABLES)
+    for key in ("config_hash", "code", "seed", "environment", "timings", "summary"):
+        assert info[key]
+    assert info["seed"]["root"] == 0 and info["environment"]["packages"]["rerun-sdk"].startswith("0.41")
+    traj = pd.read_parquet(small_run / "trajectories.parquet")
+    assert set(traj["experiment"]) == {"closed_loop", "open_loop"}
+    assert len(traj) == 2 * 31 * 4 and {"q[5]", "x_pred_mean[0]", "xi_filt_std[2]", "u[0]"} <= set(traj.columns)
+    gains = pd.read_parquet(small_run / "gains.parquet")
+    assert set(gains["method"]) == set(rx.synthesis.METHODS) and gains["selected"].sum() == 1
+
+
+def test_recording_equals_parquet_tables(small_run):
+    """The .rrd read back with Rerun's own reader equals the identification + trajectory tables."""
+    stored = pd.concat([pd.read_parquet(small_run / "identification.parquet"),
+                        pd.read_parquet(small_run / "trajectories.parquet")], ignore_index=True)
+    recorded = read_recording(small_run / "recording.rrd")
+    pd.testing.assert_frame_equal(recorded, stored, check_dtype=False)
+
+
+def test_verify_passes_on_fresh_run_and_fails_on_tampered_table(small_run, tmp_path):
+    proc = rdsexp("verify", str(small_run), cwd=tmp_path, module="rdsexp.runs")
+    assert "verify: identical" in proc.stdout
+    tampered = tmp_path / "tampered"
+    shutil.copytree(small_run, tampered)
+    table = pd.read_parquet(tampered / "metrics.parquet")
+    table.loc[0, "rate"] += 1e-9
+    table.to_parquet(tampered / "metrics.parquet", index=False)
+    proc = rdsexp("verify", str(tampered), cwd=tmp_path, module="rdsexp.runs", check=False)
+    assert proc.returncode == 1
+    assert "metrics" in proc.stdout and "rate: max |difference| 1e-09, first at row 0" in proc.stdout
+
+
+def test_same_config_and_seed_give_identical_tables(small_run, tmp_path):
+    rdsexp(*SMALL, cwd=tmp_path)
+    (again,) = (tmp_path / "outputs" / "runs").iterdir()
+    a, b = (json.loads((d / "run.json").read_text()) for d in (small_run, again))
+    assert a["config_hash"] == b["config_hash"]
+    assert {k: v["sha256"] for k, v in a["tables"].items()} == {k: v["sha256"] for k, v in b["tables"].items()}
+
+
+def test_catalog_lists_runs(small_run, tmp_path):
+    proc = rdsexp("list", str(small_run.parent), cwd=tmp_path, module="rdsexp.runs")
+    assert small_run.name in proc.stdout and "complete" in proc.stdout
+
+
+def sweep_tables(sweep_dir: Path):
+    summary = pd.read_parquet(sweep_dir / "summary.parquet")
+    return summary, {int(j): json.loads((sweep_dir / str(j) / "run.json").read_text())["tables"]
+                     for j in summary["job"]}
+
+
+@pytest.mark.parametrize("launcher", [[], ["hydra/launcher=joblib", "hydra.launcher.n_jobs=2"],
+                                      ["hydra/launcher=submitit_local", "hydra.launcher.timeout_min=60"]],
+                         ids=["basic", "joblib", "submitit_local"])
+def test_sweep_end_to_end_is_launcher_independent(tmp_path, launcher):
+    """+sweep=NAME with command-line overrides; every launcher gives the same tables (table hashes)."""
+    rdsexp("+sweep=gain_methods", "seed=0", "tracking.recording=false", *SMALL, *launcher, cwd=tmp_path)
+    (sweep_dir,) = (tmp_path / "outputs" / "sweeps").iterdir()
+    summary, tables = sweep_tables(sweep_dir)
+    assert list(summary["job"]) == [0, 1, 2, 3, 4]
+    assert set(summary["status"]) == {"complete"}
+    assert set(summary["method"]) == set(rx.synthesis.METHODS)
+    hashes = {j: {k: v["sha256"] for k, v in t.items()} for j, t in tables.items()}
+    reference = tmp_path.parent / "sweep_reference.json"
+    if reference.exists():
+        assert hashes == {int(k): v for k, v in json.loads(reference.read_text()).items()}
+    else:
+        reference.write_text(json.dumps(hashes))
+
+
+@pytest.mark.parametrize("override, message", [
+    ("enkf.ensemble_size=1", "enkf.ensemble_size: 1 is not allowed, expected an integer >= 2"),
+    ("identification.K1=95", "identification.K1: K0 + K1 = 115 is not allowed"),
+    ("gain.method=magic", "gain.method: 'magic' is not allowed"),
+    ("enkf.R=-1", "enkf.R: value: must be positive semidefinite"),
+    ("closed_loop.paths=0", "closed_loop.paths: 0 is not allowed"),
+])
+def test_bad_config_fails_with_one_line_and_no_run_directory(tmp_path, override, message):
+    proc = rdsexp(override, cwd=tmp_path, check=False)
+    assert proc.returncode == 2
+    assert proc.stderr.strip().splitlines()[-1] == f"rdsexp: config error: {message}" or message in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+    assert not list((tmp_path / "outputs" / "runs").glob("*")) if (tmp_path / "outputs").exists() else True
