@@ -82,6 +82,7 @@ class Experiment:
 
     plant: AffineRandomSystem
     model: AffineRandomSystem
+    reported: MomentModel | None          # moments of xi a paper reports for the model, if any
     enkf: EnKF
     ensemble_size: int
     q0: np.ndarray
@@ -112,6 +113,12 @@ def build(cfg) -> Experiment:
         xi_dist = MomentModel(mean=xi["mean"], cov=xi["cov"])
     plant = system_from(cfg, "plant", xi_dist)
     model = system_from(cfg, "model")
+    reported = plain(OmegaConf.select(cfg, "model.reported"))
+    if reported is not None:
+        if not isinstance(reported, dict) or set(reported) != {"mean", "cov"}:
+            raise ConfigError(f"model.reported: {reported!r} is not allowed, expected null or {{mean, cov}}")
+        with key("model.reported"):
+            reported = model.check_distribution(MomentModel(mean=reported["mean"], cov=reported["cov"]))
     if (plant.n, plant.m, plant.ny) != (model.n, model.m, model.ny):
         raise ConfigError(f"model: (n, m, ny) = {(model.n, model.m, model.ny)} does not match the plant's "
                           f"{(plant.n, plant.m, plant.ny)}")
@@ -177,7 +184,7 @@ def build(cfg) -> Experiment:
     if level not in TRACKING_LEVELS:
         raise ConfigError(f"tracking.level: {level!r} is not allowed, expected one of {', '.join(TRACKING_LEVELS)}")
 
-    return Experiment(plant=plant, model=model, enkf=enkf, ensemble_size=M, q0=q0, psi0=psi0, P0=P0,
+    return Experiment(plant=plant, model=model, reported=reported, enkf=enkf, ensemble_size=M, q0=q0, psi0=psi0, P0=P0,
                       identification_input=u_id, K0=K0, K1=K1, gain_method=method, gain_options=options,
                       paths=paths, disturbance=d,
                       filter_sees_disturbance=flags["closed_loop.filter_sees_disturbance"],

@@ -110,6 +110,13 @@ def _lmi_problem(n: int, m: int, nbar: int):
     diag = cp.bmat([[X if i == j else Z for j in range(nbar)] for i in range(nbar)])
     lmi = cp.bmat([[lam2 * X - t * np.eye(n), H.T], [H, diag]])
     problem = cp.Problem(cp.Maximize(t), [lmi >> 0, cp.trace(X) == 1])
+    # compile now: cvxpy's first solve canonicalises with the parameter values in place, later ones
+    # go through the cached parametrised program, and the two differ in the last bits; compiling
+    # here sends every real solve through the same path, so results do not depend on call history
+    lam2.value = 1.0
+    for r in range(nbar):
+        Abar[r].value, Bbar[r].value = np.eye(n), np.zeros((n, m))
+    problem.solve(solver=cp.CLARABEL)
     return problem, lam2, Abar, Bbar, X, Y, t
 
 
