@@ -1,0 +1,194 @@
+"""Report layer: stored runs -> figures and tables, with lineage. Never simulates.
+
+A `Run` is a stored run directory; tables are read from parquet and checked against the hashes
+in run.json. Figures are saved as PNG and PDF (deterministic bytes) with a JSON beside them that
+names the runs, the hashes of the tables drawn from, the script and the code version.
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from functools import cached_property
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import pandas as pd  # noqa: E402
+from omegaconf import OmegaConf  # noqa: E402
+
+from . import tracking  # noqa: E402
+
+COLUMN_WIDTH, PAGE_WIDTH = 3.5, 7.16        # IEEE column and page widths, inches
+STYLE = {"font.size": 8, "axes.titlesize": 8, "axes.labelsize": 8, "legend.fontsize": 7, "xtick.labelsize": 7,
+         "ytick.labelsize": 7, "lines.linewidth": 1.0, "figure.dpi": 100, "savefig.dpi": 300,
+         "axes.prop_cycle": matplotlib.cycler(color=["black", "0.45", "0.7"], linestyle=["-", "--", ":"]),
+         "pdf.fonttype": 42}
+
+
+matplotlib.rcParams.update(STYLE)
+
+
+class LineageError(RuntimeError):
+    """Runs that must not be mixed (different code versions) or tables that changed after the run."""
+
+
+@dataclass
+class Run:
+    """A stored run directory: run.json, its composed config and its tables (read on demand)."""
+
+    dir: Path
+    used: dict = field(default_factory=dict)           # table name -> sha256, for lineage
+
+    @cached_property
+    def info(self) -> dict:
+        return tracking.read_json(self.dir / "run.json")
+
+    @cached_property
+    def config(self):
+        return OmegaConf.load(self.dir / ".hydra" / "config.yaml")
+
+    @property
+    def id(self) -> str:
+        return self.info["id"]
+
+    @property
+    def code(self) -> str:
+        return self.info["code"]["version"]
+
+    def get(self, key: str):
+        """Config value at a dotted key."""
+        return OmegaConf.select(self.config, key)
+
+    def table(self, name: str, columns: list[str] | None = None) -> pd.DataFrame:
+        """A stored table (optionally some columns), verified against run.json's hash on first use."""
+        meta = self.info["tables"][name]
+        if name not in self.used:
+            full = pd.read_parquet(self.dir / meta["file"])
+            if tracking.table_hash(full) != meta["sha256"]:
+                raise LineageError(f"{self.dir / meta['file']}: content does not match the hash in run.json")
+            self.used[name] = meta["sha256"]
+            return full if columns is None else full[columns]
+        return pd.read_parquet(self.dir / meta["file"], columns=columns)
+
+
+def load_runs(root: Path, sweep: str | None = None) -> list[Run]:
+    """Complete runs under root (optionally of one sweep name), the latest sweep of that name only."""
+    runs = [Run(p.parent) for p in sorted(Path(root).rglob("run.json"))]
+    runs = [r for r in runs if r.info.get("status") == "complete" and r.info.get("tables")]
+    if sweep is not None:
+        runs = [r for r in runs if (r.info.get("sweep") or {}).get("name") == sweep]
+        if runs:
+            latest = max(r.info["sweep"]["dir"] for r in runs)
+            runs = [r for r in runs if r.info["sweep"]["dir"] == latest]
+    return runs
+
+
+def check_versions(runs: list[Run], allow_mixed: bool = False) -> str:
+    """The one code version of `runs`; LineageError if they differ (unless allowed)."""
+    versions = sorted({r.code for r in runs})
+    if len(versions) > 1 and not allow_mixed:
+        raise LineageError(f"runs from {len(versions)} code versions {versions}: re-run them or pass --allow-mixed")
+    return versions[0] if len(versions) == 1 else "mixed:" + ",".join(versions)
+
+
+def select(runs: list[Run], **where) -> list[Run]:
+    """Runs whose config matches every `key=value` (dots in keys written as __)."""
+    return [r for r in runs if all(r.get(k.replace("__", ".")) == v for k, v in where.items())]
+
+
+def lineage(runs: list[Run], script: str, **extra) -> dict:
+    """What an output was drawn from: run ids, table hashes used, script, code version."""
+    return {"script": script, "code_version": check_versions(runs, allow_mixed=True),
+            "runs": [{"id": r.id, "dir": str(r.dir), "tables": dict(sorted(r.used.items()))} for r in runs], **extra}
+
+
+def save_figure(fig, out_dir: Path, name: str, runs: list[Run], script: str) -> list[Path]:
+    """PNG + PDF (byte-identical on re-runs) and name.json with the lineage."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    paths = [out_dir / f"{name}.png", out_dir / f"{name}.pdf"]
+    fig.savefig(paths[0], metadata={"Software": None})
+    fig.savefig(paths[1], metadata={"CreationDate": None, "ModDate": None, "Producer": None, "Creator": None})
+    plt.close(fig)
+    tracking.write_json(out_dir / f"{name}.json", lineage(runs, script, outputs=[p.name for p in paths]))
+    return paths
+
+
+def figure(width: float, height: float, nrows: int = 1, ncols: int = 1, **kw):
+    """A figure in the report's style (IEEE sizes in inches, grayscale-readable)."""
+    return plt.subplots(nrows, ncols, figsize=(width, height), layout="constrained", **kw)
+
+
+def rms_with_band(q: np.ndarray, level_z: float = 1.96) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """sqrt(E||q_k||^2) over paths with a 95% band: q (K+1, P, n) -> 3 x (K+1,).
+
+    The band is the delta-method interval of log E||q_k||^2 (se / mean), so it stays positive on a
+    log axis."""
+    sq = np.sum(q ** 2, axis=-1)
+    mean = sq.mean(axis=1)
+    rel = sq.std(axis=1, ddof=1) / np.sqrt(sq.shape[1]) / mean
+    return np.sqrt(mean), np.sqrt(mean * np.exp(-level_z * rel)), np.sqrt(mean * np.exp(level_z * rel))
+
+
+def trajectory_array(table: pd.DataFrame, experiment: str, quantity: str) -> np.ndarray:
+    """(K+1, P, dim) array of QUANTITY[i] columns of one experiment of a trajectories table."""
+    rows = table[table["experiment"] == experiment]
+    cols = sorted((c for c in table.columns if c.startswith(quantity + "[")), key=lambda c: int(c[len(quantity) + 1:-1]))
+    steps, paths = rows["k"].nunique(), rows["path"].nunique()
+    return rows[cols].to_numpy().reshape(steps, paths, len(cols))
+
+
+def seed_interval(values, level: float = 0.95) -> tuple[float, float, float, int]:
+    """Mean and t-interval of the mean over seeds (NaN-free values), and the count."""
+    from scipy import stats
+    v = np.asarray([x for x in values if np.isfinite(x)], dtype=float)
+    if v.size == 0:
+        return np.nan, np.nan, np.nan, 0
+    if v.size == 1:
+        return float(v[0]), np.nan, np.nan, 1
+    half = stats.t.ppf(0.5 + level / 2, v.size - 1) * v.std(ddof=1) / np.sqrt(v.size)
+    return float(v.mean()), float(v.mean() - half), float(v.mean() + half), int(v.size)
+
+
+def write_table(frame: pd.DataFrame, out_dir: Path, name: str, runs: list[Run], script: str) -> None:
+    """A report table as CSV and markdown, with its lineage JSON."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    tracking.atomic_write_bytes(out_dir / f"{name}.csv", frame.to_csv(index=False).encode())
+    tracking.atomic_write_bytes(out_dir / f"{name}.md", _markdown(frame).encode())
+    tracking.write_json(out_dir / f"{name}.json", lineage(runs, script, outputs=[f"{name}.csv", f"{name}.md"]))
+
+
+def _markdown(frame: pd.DataFrame) -> str:
+    cell = lambda v: "" if v is None or (isinstance(v, float) and np.isnan(v)) else (f"{v:.6g}" if isinstance(v, float) else str(v))
+    lines = ["| " + " | ".join(frame.columns) + " |", "|" + "---|" * len(frame.columns)]
+    lines += ["| " + " | ".join(cell(v) for v in row) + " |" for row in frame.itertuples(index=False)]
+    return "\n".join(lines) + "\n"
+
+
+REFERENCE = tracking.REPO / "experiments" / "reference.yaml"
+PAPER_SWEEP = "paper"
+
+
+def reference() -> dict:
+    """The paper's reported numbers (experiments/reference.yaml)."""
+    return OmegaConf.to_container(OmegaConf.load(REFERENCE))
+
+
+def arguments(description: str, argv=None):
+    """Common options of the report scripts: --root, --out, --allow-mixed."""
+    import argparse
+    parser = argparse.ArgumentParser(description=description)
+    parser.add_argument("--root", type=Path, default=Path("outputs"), help="where the runs are (default outputs/)")
+    parser.add_argument("--out", type=Path, default=Path("outputs/report"), help="where to write (outputs/report/)")
+    parser.add_argument("--allow-mixed", action="store_true", help="allow runs made by different code versions")
+    return parser.parse_args(argv)
+
+
+def first_seed(runs: list[Run], method: str = "proposed") -> Run:
+    """The run of `method` with the smallest seed: the stand-in for the paper's single run."""
+    chosen = sorted(select(runs, gain__method=method), key=lambda r: r.get("seed"))
+    if not chosen:
+        raise LineageError(f"no stored run with gain.method = {method}")
+    return chosen[0]
