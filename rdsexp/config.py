@@ -64,6 +64,14 @@ def get(cfg, name: str):
     return plain(value)
 
 
+def _covariance(cfg, name: str, dim: int) -> np.ndarray:
+    """A PSD (dim, dim) matrix from a scalar, a diagonal or a matrix at config key `name`."""
+    try:
+        return check_covariance(name, get(cfg, name), dim)
+    except (ValueError, TypeError) as err:
+        raise ConfigError(str(err)) from None
+
+
 def system_from(cfg, group: str, xi=None) -> AffineRandomSystem:
     """An AffineRandomSystem from a config group with lists of basis matrices A, B, C, D."""
     mats = {}
@@ -131,18 +139,15 @@ def build(cfg) -> Experiment:
     M = _number(get(cfg, "enkf.ensemble_size"), "enkf.ensemble_size", integer=True, low=2)
     q_scale = _number(get(cfg, "enkf.q_scale"), "enkf.q_scale", low=0)
     r_scale = _number(get(cfg, "enkf.r_scale"), "enkf.r_scale", low=0)
-    with key("enkf.Q"):
-        Q = q_scale * check_covariance("value", get(cfg, "enkf.Q"), dim)
-    with key("enkf.R"):
-        R = r_scale * check_covariance("value", get(cfg, "enkf.R"), model.ny)
+    Q = q_scale * _covariance(cfg, "enkf.Q", dim)
+    R = r_scale * _covariance(cfg, "enkf.R", model.ny)
     enkf = EnKF(model, Q, R)
     mean = get(cfg, "enkf.initial.mean")
     with key("enkf.initial.mean"):
         psi0 = np.zeros(dim) if mean is None else np.asarray(mean, dtype=float)
         if psi0.shape != (dim,) or not np.all(np.isfinite(psi0)):
             raise ValueError(f"{mean!r} is not allowed, expected null or {dim} finite numbers (n + p)")
-    with key("enkf.initial.cov"):
-        P0 = check_covariance("value", get(cfg, "enkf.initial.cov"), dim)
+    P0 = _covariance(cfg, "enkf.initial.cov", dim)
 
     K_id = _number(get(cfg, "identification.horizon"), "identification.horizon", integer=True, low=1)
     K0 = _number(get(cfg, "identification.K0"), "identification.K0", integer=True, low=0)

@@ -309,12 +309,39 @@ def execute(cfg: DictConfig, run_dir: Path) -> dict:
     timings = {}
     with _timed(timings, "provenance"):
         info, diff = run_info(run_dir, job_config(cfg), exp.seed)
+        previous = reusable_run(cfg, info)
+        if previous is not None:
+            return reuse(previous, run_dir, info)
         if diff:
             tracking.atomic_write_bytes(run_dir / "uncommitted.diff", diff.encode())
         tracking.write_json(run_dir / "run.json", info)     # "incomplete" until the end
     outcome = run_experiment(exp)
     outcome.timings |= timings
     return record(run_dir, outcome, exp, info)
+
+
+def reusable_run(cfg: DictConfig, info: dict) -> Path | None:
+    """In a sweep with `reuse: true`, a complete run of the same config hash and code version under
+    the sweeps' root (a relaunched sweep skips the jobs a killed one completed)."""
+    if not cfg.get("reuse") or info["sweep"] is None:
+        return None
+    from .runs import find_complete
+    return find_complete(Path(info["sweep"]["dir"]).parent, info["config_hash"], info["code"]["version"])
+
+
+def reuse(previous: Path, run_dir: Path, info: dict) -> dict:
+    """Record run_dir as a copy of a complete previous run (files hard-linked where possible)."""
+    old = tracking.read_json(previous / "run.json")
+    for name in [meta["file"] for meta in old["tables"].values()] + ["recording.rrd", "uncommitted.diff"]:
+        if (previous / name).exists() and not (run_dir / name).exists():
+            try:
+                os.link(previous / name, run_dir / name)
+            except OSError:
+                shutil.copy2(previous / name, run_dir / name)
+    info.update(status="complete", finished=_now(), reused_from=old["id"],
+                **{k: old[k] for k in ("summary", "tables", "timings", "seconds") if k in old})
+    tracking.write_json(run_dir / "run.json", info)
+    return info
 
 
 @hydra.main(config_path=CONF_DIR, config_name="config", version_base="1.3")
@@ -357,26 +384,39 @@ def _failed(run_dir: Path, cfg: DictConfig, status: str, message: str, trace: st
 _SWEEP_BARS: dict[int, tqdm] = {}      # the sweep's progress bar, in the process that launched it
 
 
-def sweep_size(config: DictConfig) -> int:
-    """Number of jobs of a multirun: the sweeper's params, overridden key by key on the command line."""
+def sweep_points(config: DictConfig) -> list[list[str]]:
+    """The overrides of every job of a multirun: the sweeper's params, overridden key by key on the
+    command line (as Hydra's basic sweeper combines them)."""
     from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
     from hydra.core.override_parser.overrides_parser import OverridesParser
     params = {k: f"{k}={v}" for k, v in (OmegaConf.select(config, "hydra.sweeper.params") or {}).items()}
     parser = OverridesParser.create()
     for override in parser.parse_overrides(list(config.hydra.overrides.task)):
         params[override.get_key_element()] = override.input_line
-    batches = BasicSweeper.split_arguments(parser.parse_overrides(list(params.values())), max_batch_size=None)
-    return len(batches[0])
+    return BasicSweeper.split_arguments(parser.parse_overrides(list(params.values())), max_batch_size=None)[0]
+
+
+def validate_sweep(points: list[list[str]]) -> None:
+    """Compose and validate every job's config before the first job runs; exit 2 on the first bad one."""
+    from hydra import compose
+    for overrides in points:
+        try:
+            build(compose(config_name="config", overrides=overrides))
+        except ConfigError as err:
+            print(f"rdsexp: config error in sweep job {' '.join(overrides)}: {err}", file=sys.stderr)
+            sys.exit(2)
 
 
 class SweepSummary(Callback):
-    """Hydra callback: a progress bar over the sweep's jobs and its summary table once all have returned.
+    """Hydra callback: validates every job's config before the first runs, shows a progress bar over
+    the jobs and writes the summary table once all have returned.
 
     Each job also rebuilds the summary when it ends, so a sweep that is killed still has one."""
 
     def on_multirun_start(self, config: DictConfig, **kwargs) -> None:
-        _SWEEP_BARS[os.getpid()] = tqdm(total=sweep_size(config), desc="sweep", unit="job", disable=None,
-                                        file=sys.stderr)
+        points = sweep_points(config)
+        validate_sweep(points)
+        _SWEEP_BARS[os.getpid()] = tqdm(total=len(points), desc="sweep", unit="job", disable=None, file=sys.stderr)
 
     def on_job_end(self, config: DictConfig, job_return, **kwargs) -> None:
         bar = _SWEEP_BARS.get(os.getpid())      # None in launcher worker processes

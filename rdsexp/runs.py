@@ -24,6 +24,16 @@ def find_runs(root: Path) -> list[Path]:
     return sorted(runs, key=lambda p: tracking.read_json(p / "run.json").get("created", ""))
 
 
+def find_complete(root: Path, config_hash: str, version: str) -> Path | None:
+    """A complete, not itself reused, run under root with this config hash and code version."""
+    for run_dir in find_runs(root):
+        info = tracking.read_json(run_dir / "run.json")
+        if (info.get("status") == "complete" and info.get("config_hash") == config_hash
+                and (info.get("code") or {}).get("version") == version and not info.get("reused_from")):
+            return run_dir
+    return None
+
+
 def resolve(run: str, root: Path = DEFAULT_ROOT) -> Path:
     """A run directory from a path or an id; SystemExit with one line if there is none."""
     path = Path(run)

@@ -17,11 +17,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .enkf import EnKF, check_covariance, ensemble_mean, sqrtm_psd
+from .enkf import EnKF, check_covariance, component_major, ensemble_mean, sqrtm_psd
 from .systems import AffineRandomSystem, _finite_array
 
 PLANT, ENKF = 0, 1            # SeedSequence spawn-key slots per purpose
-DIVERGENCE_BOUND = 1e8        # |q| or |ensemble mean| beyond this marks a path diverged
+DIVERGENCE_BOUND = 1e6        # |q| or |ensemble mean| beyond this marks a path diverged
 
 
 def path_generators(seed, purpose: int, paths) -> list[np.random.Generator]:
@@ -112,7 +112,9 @@ def simulate(plant: AffineRandomSystem, enkf: EnKF, *, F=None, d, q0, psi0, P0=N
     enkf_rngs = path_generators(seed, ENKF, range(P))
     s = np.stack([plant.xi_dist.sample(g, (K + 1,)) for g in plant_rngs], axis=1)    # (K+1, P, p_plant)
     A_s, B_s, C_s, D_s = plant.at(s)
-    psi = psi0 + np.stack([g.standard_normal((M, dim)) for g in enkf_rngs]) @ sqrtm_psd(P0)
+    # ensembles psi_{k|k-1}, psi_{k|k} and the EnKF's scratch, reused at every step (see EnKF._predict)
+    psi, filtered, work = (component_major((P, M, c)) for c in (dim, dim, dim + ny + 1))
+    psi[...] = psi0 + np.stack([g.standard_normal((M, dim)) for g in enkf_rngs]) @ sqrtm_psd(P0)
 
     nan = lambda *shape: np.full((K + 1, P) + shape, np.nan)
     out = Trajectories(q=nan(plant.n), y=nan(ny), u=nan(model.m), psi_pred_mean=nan(dim),
@@ -121,6 +123,7 @@ def simulate(plant: AffineRandomSystem, enkf: EnKF, *, F=None, d, q0, psi0, P0=N
                        members=nan(M, dim) if keep_members else None)
     q = np.broadcast_to(q0, (P, plant.n)).copy()
     alive = np.ones(P, dtype=bool)
+    noise = np.empty((P, min(block, K + 1), M, ny + dim))       # refilled every `block` steps
 
     def fail(mask, k, reason):
         new = mask & alive
@@ -130,19 +133,20 @@ def simulate(plant: AffineRandomSystem, enkf: EnKF, *, F=None, d, q0, psi0, P0=N
     with np.errstate(all="ignore"):          # failures are detected and recorded below, not warned
         for k in range(K + 1):
             if k % block == 0:               # noise for the next `block` steps, per path's own stream
-                noise = np.empty((P, min(block, K + 1 - k), M, ny + dim))
                 for g, buffer in zip(enkf_rngs, noise):
-                    g.standard_normal(out=buffer)
+                    g.standard_normal(out=buffer[:K + 1 - k])
             e_v, e_w = noise[:, k % block, :, :ny], noise[:, k % block, :, ny:]
             mean_pred = ensemble_mean(psi)                                          # eq. (state-pred1)
             # a path whose state or ensemble left the bound (or is not finite) stops here
             fail(~(np.all(np.abs(q) <= bound, axis=1) & np.all(np.abs(mean_pred) <= bound, axis=1)),
                  k, "diverged")
             q[~alive], psi[~alive], mean_pred[~alive] = 0.0, 0.0, 0.0    # no overflow on failed paths
-            u = mean_pred[:, :model.n] @ F.T + d[k]                                 # eq. (sf-enkf) + d_k
+            # eq. (sf-enkf) + d_k, one product per path: the rounding of a single (P, n) @ (n, m)
+            # product depends on P (paths=1 gave other last bits)
+            u = (F @ mean_pred[:, :model.n, None])[..., 0] + d[k]
             u_filter = u if filter_sees_d else u - d[k]
             y = (C_s[k] @ q[..., None])[..., 0] + (D_s[k] @ u[..., None])[..., 0]
-            a = enkf.update(psi, u_filter, y, e_v, psi_mean=mean_pred)
+            a = enkf._update(psi, u_filter, y, e_v, mean_pred, out=filtered, work=work)
             fail(~a.ok, k, "singular_innovation")
             keep = alive[:, None]
             for name, value in (("q", q), ("y", y), ("u", u), ("psi_pred_mean", a.pred_mean),
@@ -156,7 +160,7 @@ def simulate(plant: AffineRandomSystem, enkf: EnKF, *, F=None, d, q0, psi0, P0=N
             if k == K:
                 break
             q = (A_s[k] @ q[..., None])[..., 0] + (B_s[k] @ u[..., None])[..., 0]
-            psi = enkf.predict(a.psi, u_filter, e_w)
+            enkf._predict(filtered, u_filter, e_w, out=psi)
     return out
 
 

@@ -67,8 +67,15 @@ def check_options(method: str, options: dict, system: AffineRandomSystem) -> Non
     unknown = set(options) - allowed
     if unknown:
         raise ValueError(f"{method}: unknown option(s) {sorted(unknown)}, allowed: {sorted(allowed) or 'none'}")
-    if "poles" in options:
-        check_poles(options["poles"], system)
+    for name, value in options.items():
+        if name == "poles":
+            check_poles(value, system)
+        elif name in POSITIVE_OPTIONS and not (isinstance(value, (int, float)) and not isinstance(value, bool)
+                                               and np.isfinite(value) and value > 0):
+            raise ValueError(f"{name}: {value!r} is not allowed, expected a number > 0")
+
+
+POSITIVE_OPTIONS = ("tol", "max_iter", "x_cond_limit", "state_weight", "input_weight")
 
 
 def check_poles(poles, system: AffineRandomSystem) -> np.ndarray:
@@ -211,8 +218,6 @@ def pole_placement(system, dist, *, poles=(0.9, 0.8, 0.7, 0.6, 0.5, 0.4)):
 
 def lqr_mean(system, dist, *, state_weight: float = 1.0, input_weight: float = 1.0):
     """Discrete LQR on the mean model with weights state_weight I_n, input_weight I_m (F = -K)."""
-    if state_weight <= 0 or input_weight <= 0:
-        raise ValueError(f"lqr_mean: weights must be positive, got {state_weight}, {input_weight}")
     A, B = _mean_model(system, dist)
     Rw = input_weight * np.eye(system.m)
     P = scipy.linalg.solve_discrete_are(A, B, state_weight * np.eye(system.n), Rw)

@@ -220,17 +220,25 @@ def _coefficients(xi: np.ndarray, p: int) -> np.ndarray:
 def affine_apply(basis: np.ndarray, xi: np.ndarray, v: np.ndarray) -> np.ndarray:
     """M(xi) v batched: basis[0] @ v + sum_j xi[..., j-1] basis[j] @ v.
 
-    basis (p+1, r, s), xi (..., p), v (..., s) broadcastable against xi -> (..., r).
-    All active (non-zero) basis matrices act in one matrix product; in the paper's model only 4 of
-    the 16 basis matrices of A, B, C, D are non-zero.
+    basis (p+1, r, s), xi (..., p), v (..., s) broadcastable against xi -> (..., r); when v is
+    broadcast against xi and M(xi) = basis[0] is constant, a read-only broadcast view.
+    basis[0] and only the non-zero rows of basis[1:] (in the paper's model 3 rows of A's, none of
+    B's, C's or D's) are stacked into one matrix, so a single matrix product gives basis[0] v and
+    every non-zero row i of basis[j] v, which is then weighted by xi_j and added to row i.
+    The product is one BLAS call over all leading axes; its result is stored component-major (a view
+    of an (r + rows, ...) array, like the EnKF's ensembles), so the row updates run over contiguous memory.
     """
-    active = [a for a in range(basis.shape[0]) if np.any(basis[a])]
-    r = basis.shape[1]
-    if not active:
-        return np.zeros(np.broadcast_shapes(xi.shape[:-1], v.shape[:-1]) + (r,))
-    Mv = v @ np.concatenate([basis[a].T for a in active], axis=1)        # (..., len(active) r)
-    out = Mv[..., :r] if active[0] == 0 else xi[..., active[0] - 1:active[0]] * Mv[..., :r]
-    out = np.broadcast_to(out, np.broadcast_shapes(out.shape, xi.shape[:-1] + (r,))).copy()
-    for i, a in enumerate(active[1:], start=1):
-        out += xi[..., a - 1:a] * Mv[..., i * r:(i + 1) * r]
+    r, v = basis.shape[1], np.asarray(v)
+    shape = np.broadcast_shapes(xi.shape[:-1], v.shape[:-1]) + (r,)
+    j, i = np.nonzero(np.any(basis[1:] != 0, axis=2))             # row i of basis[j + 1] is non-zero
+    G = np.concatenate([basis[0], basis[j + 1, i]])                 # (r + rows, s)
+    Gv = np.moveaxis(np.tensordot(G, v, axes=(1, -1)), 0, -1)      # (..., r + rows)
+    if Gv.shape[:-1] != shape[:-1]:                                 # v broadcast along axes of xi
+        if not len(i):
+            return np.broadcast_to(Gv, shape)                       # M(xi) = basis[0] for every xi
+        Gv = np.broadcast_to(Gv, shape[:-1] + Gv.shape[-1:]).copy()
+    out = Gv[..., :r]
+    for row, (jk, ik) in enumerate(zip(j, i), start=r):
+        Gv[..., row] *= xi[..., jk]                                 # in place: no temporary
+        out[..., ik] += Gv[..., row]
     return out

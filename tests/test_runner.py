@@ -134,7 +134,7 @@ def test_sweep_end_to_end_is_launcher_independent(tmp_path, launcher):
     ("enkf.ensemble_size=1", "enkf.ensemble_size: 1 is not allowed, expected an integer >= 2"),
     ("identification.K1=95", "identification.K1: K0 + K1 = 115 is not allowed"),
     ("gain.method=magic", "gain.method: 'magic' is not allowed"),
-    ("enkf.R=-1", "enkf.R: value: must be positive semidefinite"),
+    ("enkf.R=-1", "enkf.R: must be positive semidefinite"),
     ("closed_loop.paths=0", "closed_loop.paths: 0 is not allowed"),
 ])
 def test_bad_config_fails_with_one_line_and_no_run_directory(tmp_path, override, message):

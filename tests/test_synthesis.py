@@ -82,7 +82,7 @@ def test_not_ms_stabilizable_is_a_status():
     ("pole_placement", {"poles": (0.9, 0.8)}, "poles: 2 given"),
     ("pole_placement", {"poles": (1.2, 0.8, 0.7, 0.6, 0.5, 0.4)}, "inside the unit disc"),
     ("pole_placement", {"poles": (0.5, 0.5, 0.7, 0.6, 0.5, 0.4)}, "multiplicity 3 exceeds"),
-    ("lqr_mean", {"input_weight": 0}, "weights must be positive"),
+    ("lqr_mean", {"input_weight": 0}, "input_weight: 0 is not allowed"),
 ])
 def test_bad_synthesis_arguments(model, method, options, message):
     with pytest.raises(ValueError, match=message):
