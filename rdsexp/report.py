@@ -100,9 +100,10 @@ def select(runs: list[Run], **where) -> list[Run]:
 
 
 def lineage(runs: list[Run], script: str, **extra) -> dict:
-    """What an output was drawn from: run ids, table hashes used, script, code version."""
-    return {"script": script, "code_version": check_versions(runs, allow_mixed=True),
-            "runs": [{"id": r.id, "dir": str(r.dir), "tables": dict(sorted(r.used.items()))} for r in runs], **extra}
+    """What an output was drawn from: the runs whose tables it read (ids, table hashes), script, code version."""
+    used = [r for r in runs if r.used]
+    return {"script": script, "code_version": check_versions(used, allow_mixed=True),
+            "runs": [{"id": r.id, "dir": str(r.dir), "tables": dict(sorted(r.used.items()))} for r in used], **extra}
 
 
 def save_figure(fig, out_dir: Path, name: str, runs: list[Run], script: str) -> list[Path]:
