@@ -40,8 +40,7 @@ def draw(run: report.Run, experiment: str, all_runs: list[report.Run]):
 
 def main(argv=None):
     args = report.arguments(__doc__.splitlines()[0], argv)
-    runs = report.select(report.load_runs(args.root, report.PAPER_SWEEP), gain__method="proposed")
-    report.check_versions(runs, args.allow_mixed)
+    runs = report.select(report.paper_runs(args), gain__method="proposed")
     run = report.first_seed(runs)
     return [report.save_figure(draw(run, experiment, runs), args.out, name, runs, __file__)
             for experiment, name in (("closed_loop", "decay_proposed"), ("open_loop", "decay_open"))]

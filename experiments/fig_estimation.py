@@ -40,8 +40,7 @@ def draw(run: report.Run):
 
 def main(argv=None):
     args = report.arguments(__doc__.splitlines()[0], argv)
-    runs = report.load_runs(args.root, report.PAPER_SWEEP)
-    report.check_versions(runs, args.allow_mixed)
+    runs = report.paper_runs(args)
     run = report.first_seed(runs)
     return report.save_figure(draw(run), args.out, NAME, [run], __file__)
 

@@ -54,8 +54,7 @@ def draw(runs: list[report.Run], summary: pd.DataFrame):
 
 def main(argv=None):
     args = report.arguments(__doc__.splitlines()[0], argv)
-    runs = report.load_runs(args.root, report.PAPER_SWEEP)
-    report.check_versions(runs, args.allow_mixed)
+    runs = report.paper_runs(args)
     summary = table(runs)
     report.write_table(summary, args.out, NAME, runs, __file__)
     return report.save_figure(draw(runs, summary), args.out, NAME, runs, __file__)

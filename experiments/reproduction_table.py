@@ -216,8 +216,7 @@ def build(runs: list[report.Run]) -> pd.DataFrame:
 
 def main(argv=None):
     args = report.arguments(__doc__.splitlines()[0], argv)
-    runs = report.load_runs(args.root, report.PAPER_SWEEP)
-    report.check_versions(runs, args.allow_mixed)
+    runs = report.paper_runs(args)
     table = build(runs)
     report.write_table(table, args.out, NAME, runs, __file__)
     return table

@@ -187,6 +187,13 @@ def arguments(description: str, argv=None):
     return parser.parse_args(argv)
 
 
+def paper_runs(args) -> list[Run]:
+    """The latest stored `paper` sweep under args.root, refused if of mixed code versions."""
+    runs = load_runs(args.root, PAPER_SWEEP)
+    check_versions(runs, args.allow_mixed)
+    return runs
+
+
 def first_seed(runs: list[Run], method: str = "proposed") -> Run:
     """The run of `method` with the smallest seed: the stand-in for the paper's single run."""
     chosen = sorted(select(runs, gain__method=method), key=lambda r: r.get("seed"))

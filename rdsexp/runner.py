@@ -438,8 +438,8 @@ def print_summary(info: dict, run_dir: Path) -> None:
     fmt = lambda v: "n/a" if v is None else (f"{v:.4f}" if isinstance(v, float) else str(v))
     interval = lambda r: f"{r[0]:.4f} [{r[1]:.4f}, {r[2]:.4f}]" if r else "n/a"
     lines = [f"rdsexp run {info.get('id')}: {info.get('status')}",
-             f"  modeled xi mean {np.round(s.get('xi_mean', []), 4).tolist()}  (paper {paper.xi_mean.tolist()}), "
-             f"nbar {s.get('nbar')} (paper {paper.nbar_proposed})",
+             f"  modeling {s.get('modeling_status')}: xi mean {np.round(s.get('xi_mean', []), 4).tolist()}  "
+             f"(paper {paper.xi_mean.tolist()}), nbar {s.get('nbar')} (paper {paper.nbar_proposed})",
              f"  gain {s.get('gain_method')}: {s.get('synthesis_status')}, lambda {fmt(s.get('lam'))} "
              f"(paper {paper.lam_proposed}), exact rate on the true plant {fmt(s.get('rate_plant'))}",
              f"  closed loop rate k=60..80: {interval(s.get('closed_loop_rate'))} (paper {paper.rate_k60_k80}), "
