@@ -134,7 +134,8 @@ def row_for(key: str, paper, s: Sources):
     if path in ("modeling.K0", "modeling.K1", "modeling.horizon"):
         return compare_setting(paper, s.setting(f"identification.{path.split('.')[1]}"))
     if path == "modeling.xi_mean":
-        return compare_stochastic(paper, s.modeled("mean", i[0]), one_path)
+        return compare_stochastic(paper, s.modeled("mean", i[0]),
+                                  f"{one_path}; rdsexp's seeds scatter around the true {s.true_xi(i[0])[0]:.4g}")
     if path == "modeling.xi_cov":
         return compare_stochastic(paper, s.modeled("cov", *i), one_path)
     if path == "synthesis_proposed.nbar":

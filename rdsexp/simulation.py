@@ -13,9 +13,11 @@ SeedSequence(entropy, spawn_key=seed.spawn_key + (PLANT, j)) and its EnKF noise 
 """
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from .enkf import EnKF, check_covariance, component_major, ensemble_mean, sqrtm_psd
 from .systems import AffineRandomSystem, _finite_array
@@ -123,18 +125,32 @@ def simulate(plant: AffineRandomSystem, enkf: EnKF, *, F=None, d, q0, psi0, P0=N
                        members=nan(M, dim) if keep_members else None)
     q = np.broadcast_to(q0, (P, plant.n)).copy()
     alive = np.ones(P, dtype=bool)
-    noise = np.empty((P, min(block, K + 1), M, ny + dim))       # refilled every `block` steps
+    # EnKF noise, `block` steps at a time from each path's own stream, drawn by a helper thread
+    # into one of two buffers while this thread filters with the other (numpy's generators release
+    # the GIL); each stream is still consumed in order, so results do not depend on the threading
+    buffers = np.empty((2, P, min(block, K + 1), M, ny + dim))
+
+    def draw(k0: int) -> np.ndarray:
+        noise = buffers[(k0 // block) % 2]
+        for g, buffer in zip(enkf_rngs, noise):
+            g.standard_normal(out=buffer[:K + 1 - k0])
+        return noise
 
     def fail(mask, k, reason):
         new = mask & alive
         out.failed_at[new], out.failure[new] = k, reason
         alive[new] = False
 
-    with np.errstate(all="ignore"):          # failures are detected and recorded below, not warned
+    # BLAS on one thread: the products here are small (9 x 300 per path), and a second BLAS thread
+    # only competes with the noise-drawing thread for the other core
+    with np.errstate(all="ignore"), ThreadPoolExecutor(max_workers=1) as drawer, \
+            threadpool_limits(limits=1, user_api="blas"):
+        pending = drawer.submit(draw, 0)
         for k in range(K + 1):
-            if k % block == 0:               # noise for the next `block` steps, per path's own stream
-                for g, buffer in zip(enkf_rngs, noise):
-                    g.standard_normal(out=buffer[:K + 1 - k])
+            if k % block == 0:
+                noise = pending.result()
+                if k + block <= K:
+                    pending = drawer.submit(draw, k + block)
             e_v, e_w = noise[:, k % block, :, :ny], noise[:, k % block, :, ny:]
             mean_pred = ensemble_mean(psi)                                          # eq. (state-pred1)
             # a path whose state or ensemble left the bound (or is not finite) stops here
