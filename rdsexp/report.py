@@ -6,7 +6,6 @@ names the runs, the hashes of the tables drawn from, the script and the code ver
 """
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path

@@ -108,6 +108,8 @@ def simulate(plant: AffineRandomSystem, enkf: EnKF, *, F=None, d, q0, psi0, P0=N
         raise ValueError(f"ensemble_size: {M}, must be >= 2 (the EnKF needs a sample covariance)")
     if P < 1:
         raise ValueError(f"paths: {P}, must be >= 1")
+    if block < 1:
+        raise ValueError(f"block: {block}, must be >= 1")
     model, dim, ny = enkf.model, enkf.dim, enkf.model.ny
 
     plant_rngs = path_generators(seed, PLANT, range(P))
@@ -185,10 +187,12 @@ def simulate_state_feedback(system: AffineRandomSystem, F, *, d, x0, paths: int,
 
     d: (K+1, m); returns x (K+1, P, n). Per-path streams as in `simulate` (PLANT slot).
     """
-    F = system.check_gain(F)
+    F, dist = system.check_gain(F), system.check_distribution(None)
     d = np.asarray(d, dtype=float).reshape(len(d), -1)
+    if d.shape[1] != system.m or paths < 1:
+        raise ValueError(f"d: shape {d.shape}, expected (K+1, m = {system.m}); paths: {paths}, must be >= 1")
     K = d.shape[0] - 1
-    xi = np.stack([system.xi_dist.sample(g, (K + 1,)) for g in path_generators(seed, PLANT, range(paths))], axis=1)
+    xi = np.stack([dist.sample(g, (K + 1,)) for g in path_generators(seed, PLANT, range(paths))], axis=1)
     A, B, _, _ = system.at(xi)
     x = np.empty((K + 1, paths, system.n))
     x[0] = x0

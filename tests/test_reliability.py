@@ -51,7 +51,7 @@ BAD_CONFIGS = [
     ("tracking.level=loud", "tracking.level: 'loud' is not allowed, expected one of off, summary, full"),
     ("seed=-3", "seed: -3 is not allowed, expected an integer >= 0"),
     ("plant.q0=[1,1,1]", "plant.q0: [1, 1, 1] is not allowed, expected 6 finite numbers"),
-    (f"plant.A=[[[1,2],[3]]]", "plant: A: expected a list of numeric matrices"),
+    ("plant.A=[[[1,2],[3]]]", "plant: A: expected a list of numeric matrices"),
     (f"plant.A=[[{ROW6},{ROW6}]]", "plant: A: basis matrices must be square"),
     ("plant.xi.cov=[[0.04,0],[0,-0.09]]", "plant.xi: cov: must be positive semidefinite"),
     ("plant.xi.mean=[0.8]", "plant.xi: cov: shape (2, 2) does not match mean of length 1"),

@@ -1,7 +1,6 @@
 """Report scripts on small stored sweeps made here: figures with finite data, a row per reference
 number, lineage hashes that match the tables, identical re-runs, and the code-version check."""
 import json
-import subprocess
 import sys
 from pathlib import Path
 

@@ -12,7 +12,7 @@ from hydra.core.override_parser.overrides_parser import OverridesParser
 
 import rdsexp as rx
 from rdsexp import runner
-from rdsexp.config import build, system_from
+from rdsexp.config import build
 from rdsexp.recording import read_recording
 from conftest import REPO, SMALL, rdsexp
 
