@@ -18,16 +18,15 @@ from . import tracking
 DEFAULT_ROOT = Path("outputs")
 
 
-def find_runs(root: Path) -> list[Path]:
-    """Run directories (holding run.json) under root, oldest first."""
-    runs = [p.parent for p in Path(root).rglob("run.json")]
-    return sorted(runs, key=lambda p: tracking.read_json(p / "run.json").get("created", ""))
+def find_runs(root: Path) -> list[tuple[Path, dict]]:
+    """(run directory, its run.json) for every run under root, oldest first; each file read once."""
+    runs = [(p.parent, tracking.read_json(p)) for p in Path(root).rglob("run.json")]
+    return sorted(runs, key=lambda run: run[1].get("created", ""))
 
 
 def find_complete(root: Path, config_hash: str, version: str) -> Path | None:
     """A complete, not itself reused, run under root with this config hash and code version."""
-    for run_dir in find_runs(root):
-        info = tracking.read_json(run_dir / "run.json")
+    for run_dir, info in find_runs(root):
         if (info.get("status") == "complete" and info.get("config_hash") == config_hash
                 and (info.get("code") or {}).get("version") == version and not info.get("reused_from")):
             return run_dir
@@ -39,8 +38,7 @@ def resolve(run: str, root: Path = DEFAULT_ROOT) -> Path:
     path = Path(run)
     if (path / "run.json").exists():
         return path
-    matches = [p for p in find_runs(root) if tracking.read_json(p / "run.json").get("id") == run
-               or p.name == run]
+    matches = [p for p, info in find_runs(root) if info.get("id") == run or p.name == run]
     if len(matches) != 1:
         sys.exit(f"rdsexp.runs: {'no' if not matches else 'more than one'} run {run!r} under {root}")
     return matches[0]
@@ -49,8 +47,7 @@ def resolve(run: str, root: Path = DEFAULT_ROOT) -> Path:
 def catalog(root: Path) -> pd.DataFrame:
     """One row per run: id, sweep, overrides, seed, status, key metrics, time."""
     rows = []
-    for run_dir in find_runs(root):
-        info = tracking.read_json(run_dir / "run.json")
+    for run_dir, info in find_runs(root):
         s = info.get("summary") or {}
         rate = s.get("closed_loop_rate") or [np.nan]
         rows.append({"id": info.get("id"), "sweep": (info.get("sweep") or {}).get("name"),
