@@ -19,8 +19,8 @@ import time
 import numpy as np
 
 import rdsexp as rx
-from rdsexp.enkf import EnKF
-from rdsexp.simulation import simulate
+from rdsexp.numerics.enkf import EnKF
+from rdsexp.numerics.simulation import simulate
 
 MATLAB_SECONDS_PER_PATH = (0.38, 0.51)      # paper Sec. V-B: one path, k = 0..100
 

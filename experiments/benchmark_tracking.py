@@ -17,10 +17,10 @@ import tempfile
 import time
 from pathlib import Path
 
-from hydra import compose, initialize_config_dir
+from hydra import compose, initialize_config_module
 
-from rdsexp import runner
-from rdsexp.config import build
+from rdsexp.experiment import cli, pipeline
+from rdsexp.experiment.config import build
 
 COMPUTE = ("identification", "modeling", "synthesis", "closed_loop", "open_loop", "metrics")
 TRACKING = ("provenance", "tables", "recording")
@@ -29,23 +29,24 @@ TINY = ["closed_loop.paths=2", "enkf.ensemble_size=10", "closed_loop.horizon=20"
 
 
 def tracking_overhead(repeats: int) -> None:
-    with initialize_config_dir(config_dir=runner.CONF_DIR, version_base="1.3"):
+    with initialize_config_module(config_module="rdsexp.conf", version_base="1.3"):
         cfg = compose("config")
     best = None
     for _ in range(repeats):
         with tempfile.TemporaryDirectory() as tmp:
-            info = runner.execute(cfg, Path(tmp))
+            info = cli.execute(cfg, Path(tmp))
         t = info["timings"]
         compute, track = sum(t[k] for k in COMPUTE if k in t), sum(t[k] for k in TRACKING)
         if best is None or compute + track < best[0] + best[1]:
             best = (compute, track, t)
     compute, track, t = best
-    print(f"default run, compute             {compute:8.3f} s  ({', '.join(f'{k} {t[k]:.3f}' for k in COMPUTE if k in t)})")
+    stages = ", ".join(f"{k} {t[k]:.3f}" for k in COMPUTE if k in t)
+    print(f"default run, compute             {compute:8.3f} s  ({stages})")
     print(f"default run, tracking            {track:8.3f} s  ({', '.join(f'{k} {t[k]:.3f}' for k in TRACKING)})")
     print(f"tracking / compute               {track / compute:8.1%}   (target <= 15%)")
     off = build(cfg)
     start = time.perf_counter()
-    runner.run_experiment(off)
+    pipeline.run_experiment(off)
     print(f"same run with tracking off       {time.perf_counter() - start:8.3f} s  (wall, in-process)")
 
 

@@ -1,4 +1,4 @@
-"""Paper vs rdsexp: one row per number in experiments/reference.yaml, with a verdict.
+"""Paper vs rdsexp: one row per number in rdsexp/paper/reference.yaml, with a verdict.
 
 Settings come from the stored runs' configs, deterministic results from the gains designed on the
 paper's reported moments (gains.distribution = reported), stochastic ones from the proposed-gain

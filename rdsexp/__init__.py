@@ -1,8 +1,27 @@
-"""rdsexp: EnKF distribution modeling and mean-square stabilization of linear random systems."""
-from . import paper
-from .analysis import empirical_rate, ms_rate, second_moments
-from .synthesis import SynthesisResult, synthesize
-from .systems import AffineRandomSystem, MomentModel
+"""rdsexp: EnKF distribution modeling and mean-square stabilization of linear random systems.
 
-__all__ = ["AffineRandomSystem", "MomentModel", "SynthesisResult", "empirical_rate", "ms_rate", "paper",
-           "second_moments", "synthesize"]
+`import rdsexp as rx` gives the numerics API (layer 1 of docs/design.md); the experiment layer
+(`rdsexp.experiment`) and the report layer (`rdsexp.report`) are imported on their own.
+"""
+from . import paper
+from .numerics import (
+                       AffineRandomSystem,
+                       MomentModel,
+                       SynthesisResult,
+                       analysis,
+                       empirical_rate,
+                       enkf,
+                       modeling,
+                       ms_rate,
+                       second_moments,
+                       simulation,
+                       synthesis,
+                       synthesize,
+                       systems,
+)
+
+__version__ = "0.2.0"
+
+__all__ = ["AffineRandomSystem", "MomentModel", "SynthesisResult", "__version__", "analysis", "empirical_rate",
+           "enkf", "modeling", "ms_rate", "paper", "second_moments", "simulation", "synthesis", "synthesize",
+           "systems"]

@@ -1,4 +1,4 @@
 """`python -m rdsexp [overrides]`: run the paper's experiment (or a sweep with +sweep=NAME)."""
-from .runner import main
+from .experiment.cli import main
 
 main()

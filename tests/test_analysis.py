@@ -3,8 +3,8 @@ import numpy as np
 import pytest
 
 import rdsexp as rx
-from rdsexp.analysis import empirical_rate, second_moments
-from rdsexp.simulation import simulate_state_feedback
+from rdsexp.numerics.analysis import empirical_rate, second_moments
+from rdsexp.numerics.simulation import simulate_state_feedback
 
 
 def test_ms_rate_scalar_closed_form():

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 import rdsexp as rx
-from rdsexp.enkf import EnKF
+from rdsexp.numerics.enkf import EnKF
 
 
 def test_batched_step_equals_per_member_equations():
@@ -54,7 +54,7 @@ def run_enkf_and_kf(M, paths, seed):
     m, Pk = np.broadcast_to(m0, (paths, 2)).copy(), P0.copy()
     u = np.zeros((paths, 1))
     diff = []
-    for k in range(K):
+    for _ in range(K):
         y = x @ C.T + rng.normal(size=(paths, 1)) * np.sqrt(R[0, 0])
         a = enkf.update(ens, u, y, rng.normal(size=(paths, M, 1)))
         S = C @ Pk @ C.T + R

@@ -5,7 +5,7 @@ import pandas as pd
 import pytest
 import rerun as rr
 
-from rdsexp.recording import read_recording, write_recording
+from rdsexp.experiment.recording import read_recording, write_recording
 
 COLUMNS = ["q[0]", "q[1]", "u[0]", "x_pred_mean[0]", "xi_filt_std[1]"]
 

@@ -9,14 +9,13 @@ import time
 import numpy as np
 import pandas as pd
 import pytest
-from hydra import compose, initialize_config_dir
+from conftest import SMALL, rdsexp
+from hydra import compose, initialize_config_module
 
 import rdsexp as rx
-from rdsexp import runner
-from rdsexp.config import ConfigError, build
-from rdsexp.enkf import EnKF
-from rdsexp.simulation import simulate
-from conftest import SMALL, rdsexp
+from rdsexp.experiment.config import ConfigError, build
+from rdsexp.numerics.enkf import EnKF
+from rdsexp.numerics.simulation import simulate
 
 ROW6 = "[0,0,0,0,0,0]"
 BAD_CONFIGS = [
@@ -63,7 +62,7 @@ BAD_CONFIGS = [
 
 @pytest.fixture(autouse=True)
 def hydra_context():
-    with initialize_config_dir(config_dir=runner.CONF_DIR, version_base="1.3"):
+    with initialize_config_module(config_module="rdsexp.conf", version_base="1.3"):
         yield
 
 

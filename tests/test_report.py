@@ -7,9 +7,10 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
-
-from rdsexp import report, tracking
 from conftest import REPO, SMALL, rdsexp
+
+from rdsexp import report
+from rdsexp.experiment import records
 
 sys.path.insert(0, str(REPO / "experiments"))
 import fig_decay  # noqa: E402
@@ -82,7 +83,7 @@ def test_lineage_hashes_match_the_tables(written):
         for run in lineage["runs"]:
             assert run["tables"]
             for name, sha in run["tables"].items():
-                assert tracking.table_hash(pd.read_parquet(Path(run["dir"]) / f"{name}.parquet")) == sha
+                assert records.table_hash(pd.read_parquet(Path(run["dir"]) / f"{name}.parquet")) == sha
 
 
 def test_rerun_rewrites_identical_files_without_simulating(root, written, tmp_path):

@@ -6,15 +6,15 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
-from hydra import compose, initialize_config_dir
+from conftest import REPO, SMALL, rdsexp
+from hydra import compose, initialize_config_module
 from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
 from hydra.core.override_parser.overrides_parser import OverridesParser
 
 import rdsexp as rx
-from rdsexp import runner
-from rdsexp.config import build
-from rdsexp.recording import read_recording
-from conftest import REPO, SMALL, rdsexp
+from rdsexp.experiment import pipeline
+from rdsexp.experiment.config import build
+from rdsexp.experiment.recording import read_recording
 
 SWEEPS = sorted(p.stem for p in (REPO / "conf" / "sweep").glob("*.yaml"))
 GROUPS = {g: sorted(p.stem for p in (REPO / "conf" / g).glob("*.yaml"))
@@ -23,7 +23,7 @@ GROUPS = {g: sorted(p.stem for p in (REPO / "conf" / g).glob("*.yaml"))
 
 @pytest.fixture(autouse=True)
 def hydra_context():
-    with initialize_config_dir(config_dir=runner.CONF_DIR, version_base="1.3"):
+    with initialize_config_module(config_module="rdsexp.conf", version_base="1.3"):
         yield
 
 
@@ -60,7 +60,7 @@ def test_yaml_plant_and_model_are_the_papers():
 def test_run_directory_contents(small_run):
     info = json.loads((small_run / "run.json").read_text())
     assert info["status"] == "complete"
-    assert set(info["tables"]) == set(runner.TABLES)
+    assert set(info["tables"]) == set(pipeline.TABLES)
     for key in ("config_hash", "code", "seed", "environment", "timings", "summary"):
         assert info[key]
     assert info["seed"]["root"] == 0 and info["environment"]["packages"]["rerun-sdk"].startswith("0.41")

@@ -5,10 +5,10 @@ import numpy as np
 import pytest
 
 import rdsexp as rx
-from rdsexp.analysis import empirical_rate
-from rdsexp.enkf import EnKF
-from rdsexp.modeling import mls_input, model_distribution
-from rdsexp.simulation import simulate
+from rdsexp.numerics.analysis import empirical_rate
+from rdsexp.numerics.enkf import EnKF
+from rdsexp.numerics.modeling import mls_input, model_distribution
+from rdsexp.numerics.simulation import simulate
 
 paper = rx.paper
 ARRAYS = ("q", "y", "u", "psi_pred_mean", "psi_pred_std", "psi_filt_mean", "psi_filt_std", "failed_at")

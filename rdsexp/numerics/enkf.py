@@ -84,7 +84,7 @@ class EnKF:
         return self._predict(psi, u, e_w, out=component_major(e_w.shape))
 
     def update(self, psi: np.ndarray, u: np.ndarray, y: np.ndarray, e_v: np.ndarray,
-               psi_mean: np.ndarray | None = None) -> "Analysis":
+               psi_mean: np.ndarray | None = None) -> Analysis:
         """Output prediction and filtering, eqs. (output-pred2), (filtering)-(kalman-v).
 
         psi: (..., M, n+p) predicted ensemble psi_{k|k-1}, u: (..., m) input at k, y: (..., ny)
@@ -111,7 +111,7 @@ class EnKF:
         return out
 
     def _update(self, psi: np.ndarray, u: np.ndarray, y: np.ndarray, e_v: np.ndarray,
-                psi_mean: np.ndarray | None, out: np.ndarray, work: np.ndarray) -> "Analysis":
+                psi_mean: np.ndarray | None, out: np.ndarray, work: np.ndarray) -> Analysis:
         """`update` with the filtered ensemble written into `out` (..., M, n+p) and `work`
         (..., M, n+p+ny+1) as scratch, both component-major; neither may overlap psi."""
         d, ny, M = self.dim, self.model.ny, psi.shape[-2]

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .systems import AffineRandomSystem, MomentModel
+from ..numerics.systems import AffineRandomSystem, MomentModel
 
 n, m, ny = 6, 1, 3
 

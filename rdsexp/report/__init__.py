@@ -18,7 +18,7 @@ import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 from omegaconf import OmegaConf  # noqa: E402
 
-from . import tracking  # noqa: E402
+from ..experiment import records  # noqa: E402
 
 COLUMN_WIDTH, PAGE_WIDTH = 3.5, 7.16        # IEEE column and page widths, inches
 STYLE = {"font.size": 8, "axes.titlesize": 8, "axes.labelsize": 8, "legend.fontsize": 7, "xtick.labelsize": 7,
@@ -43,7 +43,7 @@ class Run:
 
     @cached_property
     def info(self) -> dict:
-        return tracking.read_json(self.dir / "run.json")
+        return records.read_json(self.dir / "run.json")
 
     @cached_property
     def config(self):
@@ -66,7 +66,7 @@ class Run:
         meta = self.info["tables"][name]
         if name not in self.used:
             full = pd.read_parquet(self.dir / meta["file"])
-            if tracking.table_hash(full) != meta["sha256"]:
+            if records.table_hash(full) != meta["sha256"]:
                 raise LineageError(f"{self.dir / meta['file']}: content does not match the hash in run.json")
             self.used[name] = meta["sha256"]
             return full if columns is None else full[columns]
@@ -112,7 +112,7 @@ def save_figure(fig, out_dir: Path, name: str, runs: list[Run], script: str) -> 
     fig.savefig(paths[0], metadata={"Software": None})
     fig.savefig(paths[1], metadata={"CreationDate": None, "ModDate": None, "Producer": None, "Creator": None})
     plt.close(fig)
-    tracking.write_json(out_dir / f"{name}.json", lineage(runs, script, outputs=[p.name for p in paths]))
+    records.write_json(out_dir / f"{name}.json", lineage(runs, script, outputs=[p.name for p in paths]))
     return paths
 
 
@@ -135,7 +135,8 @@ def rms_with_band(q: np.ndarray, level_z: float = 1.96) -> tuple[np.ndarray, np.
 def trajectory_array(table: pd.DataFrame, experiment: str, quantity: str) -> np.ndarray:
     """(K+1, P, dim) array of QUANTITY[i] columns of one experiment of a trajectories table."""
     rows = table[table["experiment"] == experiment]
-    cols = sorted((c for c in table.columns if c.startswith(quantity + "[")), key=lambda c: int(c[len(quantity) + 1:-1]))
+    cols = sorted((c for c in table.columns if c.startswith(quantity + "[")),
+                  key=lambda c: int(c[len(quantity) + 1:-1]))
     steps, paths = rows["k"].nunique(), rows["path"].nunique()
     return rows[cols].to_numpy().reshape(steps, paths, len(cols))
 
@@ -155,24 +156,27 @@ def seed_interval(values, level: float = 0.95) -> tuple[float, float, float, int
 def write_table(frame: pd.DataFrame, out_dir: Path, name: str, runs: list[Run], script: str) -> None:
     """A report table as CSV and markdown, with its lineage JSON."""
     out_dir.mkdir(parents=True, exist_ok=True)
-    tracking.atomic_write_bytes(out_dir / f"{name}.csv", frame.to_csv(index=False).encode())
-    tracking.atomic_write_bytes(out_dir / f"{name}.md", _markdown(frame).encode())
-    tracking.write_json(out_dir / f"{name}.json", lineage(runs, script, outputs=[f"{name}.csv", f"{name}.md"]))
+    records.atomic_write_bytes(out_dir / f"{name}.csv", frame.to_csv(index=False).encode())
+    records.atomic_write_bytes(out_dir / f"{name}.md", _markdown(frame).encode())
+    records.write_json(out_dir / f"{name}.json", lineage(runs, script, outputs=[f"{name}.csv", f"{name}.md"]))
 
 
 def _markdown(frame: pd.DataFrame) -> str:
-    cell = lambda v: "" if v is None or (isinstance(v, float) and np.isnan(v)) else (f"{v:.6g}" if isinstance(v, float) else str(v))
+    def cell(v) -> str:
+        if v is None or (isinstance(v, float) and np.isnan(v)):
+            return ""
+        return f"{v:.6g}" if isinstance(v, float) else str(v)
     lines = ["| " + " | ".join(frame.columns) + " |", "|" + "---|" * len(frame.columns)]
     lines += ["| " + " | ".join(cell(v) for v in row) + " |" for row in frame.itertuples(index=False)]
     return "\n".join(lines) + "\n"
 
 
-REFERENCE = tracking.REPO / "experiments" / "reference.yaml"
+REFERENCE = Path(__file__).resolve().parents[1] / "paper" / "reference.yaml"
 PAPER_SWEEP = "paper"
 
 
 def reference() -> dict:
-    """The paper's reported numbers (experiments/reference.yaml)."""
+    """The paper's reported numbers (rdsexp/paper/reference.yaml)."""
     return OmegaConf.to_container(OmegaConf.load(REFERENCE))
 
 

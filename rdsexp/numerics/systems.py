@@ -73,7 +73,7 @@ class MomentModel:
         object.__setattr__(self, "cov", (cov + cov.T) / 2)
 
     @classmethod
-    def from_samples(cls, xis) -> "MomentModel":
+    def from_samples(cls, xis) -> MomentModel:
         """Empirical moments of samples xis (N, p), rows = samples.
 
         The covariance is normalised by 1/N (not 1/(N-1)), so that the second moment
@@ -87,7 +87,7 @@ class MomentModel:
         return cls(mean=mean, cov=dev.T @ dev / xis.shape[0])
 
     @classmethod
-    def deterministic(cls, mean) -> "MomentModel":
+    def deterministic(cls, mean) -> MomentModel:
         """xi fixed to `mean` (covariance discarded): the LTI special case."""
         mean = np.atleast_1d(np.asarray(mean, dtype=float))
         return cls(mean=mean, cov=np.zeros((mean.size, mean.size)))

@@ -12,10 +12,10 @@ from dataclasses import dataclass
 import numpy as np
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
-from .enkf import EnKF, check_covariance
-from .modeling import mls_input
-from .synthesis import METHODS, check_options
-from .systems import AffineRandomSystem, MomentModel
+from ..numerics.enkf import EnKF, check_covariance
+from ..numerics.modeling import mls_input
+from ..numerics.synthesis import METHODS, check_options
+from ..numerics.systems import AffineRandomSystem, MomentModel
 
 TRACKING_LEVELS = ("off", "summary", "full")
 

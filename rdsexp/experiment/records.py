@@ -1,4 +1,4 @@
-"""Run records: provenance, atomic writes of tables and run.json, hashing.
+"""Run records: the run directory, run.json and its provenance, atomic writes of tables, hashing.
 
 A run directory holds Hydra's `.hydra/`, `run.json` (status, timings, seeds, code version,
 environment, table hashes), parquet tables, `recording.rrd` and, when the working tree was dirty,
@@ -7,11 +7,13 @@ either a complete file or none; `run.json` says "incomplete" until the last tabl
 """
 from __future__ import annotations
 
+import datetime as dt
 import hashlib
 import io
 import json
 import os
 import platform
+import shutil
 import socket
 import subprocess
 import sys
@@ -21,9 +23,12 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from .. import __version__
+
 PACKAGES = ("rdsexp", "numpy", "scipy", "cvxpy", "clarabel", "pandas", "pyarrow", "hydra-core",
             "omegaconf", "rerun-sdk", "matplotlib", "tqdm")
-REPO = Path(__file__).resolve().parent.parent
+PACKAGE = Path(__file__).resolve().parents[1]
+REPO = PACKAGE.parent          # the repository root when rdsexp runs from a checkout
 
 
 def atomic_write_bytes(path: Path, data: bytes) -> None:
@@ -86,7 +91,11 @@ def code_version() -> dict:
 
     version = commit, plus "+" and a hash of the diff when dirty, so two runs share a version
     exactly when they ran the same code (untracked files under outputs/ are ignored by git).
+    An installed copy (not a checkout, e.g. `pip install .`) has version "rdsexp==<__version__>".
     """
+    top = (_git("rev-parse", "--show-toplevel") or "").strip()
+    if not top or Path(top).resolve() != REPO:        # installed: the enclosing repository, if any, is not ours
+        return {"commit": None, "dirty": False, "version": f"rdsexp=={__version__}", "diff": ""}
     commit = (_git("rev-parse", "HEAD") or "").strip() or None
     status = _git("status", "--porcelain", "--untracked-files=no")
     diff = _git("diff", "HEAD") or ""
@@ -116,3 +125,16 @@ def environment() -> dict:
 def read_json(path: Path) -> dict:
     with open(path) as fh:
         return json.load(fh)
+
+
+def now() -> str:
+    """UTC time stamp of run.json, to the millisecond."""
+    return dt.datetime.now(dt.UTC).isoformat(timespec="milliseconds")
+
+
+def link_or_copy(source: Path, target: Path) -> None:
+    """Hard-link source to target (a reused run shares its files), copying where links are not possible."""
+    try:
+        os.link(source, target)
+    except OSError:
+        shutil.copy2(source, target)

@@ -1,0 +1,6 @@
+"""Experiment layer: Hydra config -> validated Experiment -> stage pipeline -> run directory.
+
+config (validation), pipeline (stages -> tables, no I/O), records (run.json, provenance, atomic
+writes), recording (Rerun), runs (catalog, verify), sweep (Hydra callback), cli (entry point).
+The only layer that knows about Hydra, Rerun, parquet and provenance.
+"""

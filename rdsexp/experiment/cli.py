@@ -1,0 +1,194 @@
+"""`rdsexp` / `python -m rdsexp`: the Hydra entry point and the run directory it records into.
+
+One run: validate the config (exit 2 on a bad value, no run directory), write run.json as
+"incomplete", compute the stage pipeline, write tables, recording and the final run.json.
+In a sweep a job that fails is recorded with its status and the sweep goes on.
+"""
+from __future__ import annotations
+
+import logging
+import shutil
+import signal
+import sys
+import traceback
+import uuid
+from pathlib import Path
+
+import hydra
+import numpy as np
+import pandas as pd
+from hydra.core.hydra_config import HydraConfig
+from hydra.types import RunMode
+from omegaconf import DictConfig, OmegaConf
+
+from .. import paper
+from . import records
+from .config import ConfigError, Experiment, build
+from .pipeline import SPAWN_KEYS, Outcome, run_experiment, timed
+
+log = logging.getLogger("rdsexp")
+CONF_PACKAGE = "pkg://rdsexp.conf"        # conf/ of the repository, shipped as the package rdsexp.conf
+
+if not OmegaConf.has_resolver("uid"):
+    # unique run directories even for runs started in the same microsecond; cached so that every
+    # job of one sweep resolves the same sweep directory
+    OmegaConf.register_new_resolver("uid", lambda: uuid.uuid4().hex[:8], use_cache=True)
+
+
+def record(run_dir: Path, outcome: Outcome, exp: Experiment, info: dict) -> dict:
+    """Write tables, recording and the final run.json into run_dir; returns the run.json content."""
+    timings = dict(outcome.timings)
+    with timed(timings, "tables"):
+        frames = dict(outcome.tables) | ({"members": outcome.members} if outcome.members is not None else {})
+        hashes = {name: {"file": f"{name}.parquet", "rows": len(table),
+                         "sha256": records.write_table(run_dir / f"{name}.parquet", table)}
+                  for name, table in frames.items()}
+    with timed(timings, "recording"):
+        if exp.recording:
+            from .recording import write_recording  # rerun is imported only when recording
+            tmp = run_dir / ".recording.rrd.tmp"
+            trajectories = pd.concat([outcome.tables["identification"], outcome.tables["trajectories"]],
+                                     ignore_index=True)
+            write_recording(tmp, trajectories, recording_id=info["id"], members=outcome.members)
+            tmp.replace(run_dir / "recording.rrd")
+    info.update(status="complete", finished=records.now(), summary=outcome.summary, tables=hashes, timings=timings,
+                seconds=round(sum(v for v in timings.values() if isinstance(v, float)), 3))
+    records.write_json(run_dir / "run.json", info)
+    return info
+
+
+def run_info(run_dir: Path, job_config: dict, seed: int) -> tuple[dict, str]:
+    """The provenance part of run.json, known before any compute, and the uncommitted diff."""
+    code = records.code_version()
+    hc = HydraConfig.get() if HydraConfig.initialized() else None
+    multirun = hc is not None and hc.mode == RunMode.MULTIRUN
+    return {
+        "id": run_dir.name if not multirun else f"{Path(hc.sweep.dir).name}/{run_dir.name}",
+        "status": "incomplete", "created": records.now(),
+        "command": " ".join(["python -m rdsexp", *(hc.overrides.task if hc else [])]),
+        "overrides": list(hc.overrides.task) if hc else [],
+        "sweep": {"dir": str(Path(hc.sweep.dir).resolve()), "job": int(hc.job.num),
+                  "name": hc.runtime.choices.get("sweep")} if multirun else None,
+        "config_hash": records.config_hash(job_config),
+        "code": {k: v for k, v in code.items() if k != "diff"}
+        | {"diff_file": "uncommitted.diff" if code["dirty"] else None},
+        "seed": {"root": seed, "spawn_keys": {k: list(v) for k, v in SPAWN_KEYS.items()},
+                 "per_path": "SeedSequence(seed, spawn_key=(*spawn_key, purpose, path)), purpose 0 plant, 1 EnKF"},
+        "environment": records.environment(),
+    }, code["diff"]
+
+
+def job_config(cfg: DictConfig) -> dict:
+    """The resolved job config without the hydra node (what the run computes from)."""
+    return OmegaConf.to_container(cfg, resolve=True)
+
+
+def execute(cfg: DictConfig, run_dir: Path) -> dict:
+    """Validate, compute and record one run into run_dir; returns run.json's content.
+
+    With tracking level "off" nothing is written (Hydra's .hydra/ aside) and the same content
+    is only returned."""
+    exp = build(cfg)                                    # ConfigError before any compute
+    if exp.tracking == "off":
+        outcome = run_experiment(exp)
+        return {"id": run_dir.name, "status": "complete", "summary": outcome.summary, "timings": outcome.timings}
+    timings = {}
+    with timed(timings, "provenance"):
+        info, diff = run_info(run_dir, job_config(cfg), exp.seed)
+        previous = reusable_run(cfg, info)
+        if previous is not None:
+            return reuse(previous, run_dir, info)
+        if diff:
+            records.atomic_write_bytes(run_dir / "uncommitted.diff", diff.encode())
+        records.write_json(run_dir / "run.json", info)     # "incomplete" until the end
+    outcome = run_experiment(exp)
+    outcome.timings |= timings
+    return record(run_dir, outcome, exp, info)
+
+
+def reusable_run(cfg: DictConfig, info: dict) -> Path | None:
+    """In a sweep with `reuse: true`, a complete run of the same config hash and code version under
+    the sweeps' root (a relaunched sweep skips the jobs a killed one completed)."""
+    if not cfg.get("reuse") or info["sweep"] is None:
+        return None
+    from .runs import find_complete
+    return find_complete(Path(info["sweep"]["dir"]).parent, info["config_hash"], info["code"]["version"])
+
+
+def reuse(previous: Path, run_dir: Path, info: dict) -> dict:
+    """Record run_dir as a copy of a complete previous run (files hard-linked where possible)."""
+    old = records.read_json(previous / "run.json")
+    for name in [meta["file"] for meta in old["tables"].values()] + ["recording.rrd", "uncommitted.diff"]:
+        if (previous / name).exists() and not (run_dir / name).exists():
+            records.link_or_copy(previous / name, run_dir / name)
+    log.info("reused the complete run %s (same config hash and code version)", old["id"])
+    info.update(status="complete", finished=records.now(), reused_from=old["id"],
+                **{k: old[k] for k in ("summary", "tables", "timings", "seconds") if k in old})
+    records.write_json(run_dir / "run.json", info)
+    return info
+
+
+@hydra.main(config_path=CONF_PACKAGE, config_name="config", version_base="1.3")
+def hydra_main(cfg: DictConfig) -> dict | None:
+    hc = HydraConfig.get()
+    run_dir = Path(hc.runtime.output_dir)
+    multirun = hc.mode == RunMode.MULTIRUN
+    try:
+        info = execute(cfg, run_dir)
+    except ConfigError as err:
+        if not multirun:                                  # nothing that could pass for a result
+            shutil.rmtree(run_dir, ignore_errors=True)
+            print(f"rdsexp: config error: {err}", file=sys.stderr)
+            sys.exit(2)
+        info = _failed(run_dir, cfg, "config_error", str(err))
+    except Exception as err:                              # a sweep goes on; a single run reports and fails
+        if not multirun:
+            _failed(run_dir, cfg, "error", f"{type(err).__name__}: {err}", traceback.format_exc())
+            raise
+        log.exception("job %s failed", hc.job.num)
+        info = _failed(run_dir, cfg, "error", f"{type(err).__name__}: {err}", traceback.format_exc())
+    if multirun:
+        from .runs import write_sweep_summary
+        write_sweep_summary(Path(hc.sweep.dir))
+    else:
+        print_summary(info, run_dir)
+    return info
+
+
+def main() -> None:
+    """Console entry point `rdsexp` (and `python -m rdsexp`)."""
+    # Ctrl-C stops a run or sweep even when the launching process ignored SIGINT (a child inherits
+    # an ignored SIGINT): Python's default handler raises KeyboardInterrupt, which ends the run
+    # with run.json still "incomplete" and every finished file complete
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    hydra_main()
+
+
+def _failed(run_dir: Path, cfg: DictConfig, status: str, message: str, trace: str | None = None) -> dict:
+    """Record a run that could not finish (keeps whatever provenance run.json already had)."""
+    path = run_dir / "run.json"
+    info = records.read_json(path) if path.exists() else {"id": run_dir.name, "created": records.now(),
+                                                            "config_hash": records.config_hash(job_config(cfg))}
+    info.update(status=status, error=message, traceback=trace, finished=records.now())
+    records.write_json(path, info)
+    return info
+
+
+def print_summary(info: dict, run_dir: Path) -> None:
+    """A few lines: the key numbers beside the paper's, the run directory and how to view it."""
+    s = info.get("summary", {})
+    fmt = lambda v: "n/a" if v is None else (f"{v:.4f}" if isinstance(v, float) else str(v))
+    interval = lambda r: f"{r[0]:.4f} [{r[1]:.4f}, {r[2]:.4f}]" if r else "n/a"
+    lines = [f"rdsexp run {info.get('id')}: {info.get('status')}",
+             f"  modeling {s.get('modeling_status')}: xi mean {np.round(s.get('xi_mean', []), 4).tolist()}  "
+             f"(paper {paper.xi_mean.tolist()}), nbar {s.get('nbar')} (paper {paper.nbar_proposed})",
+             f"  gain {s.get('gain_method')}: {s.get('synthesis_status')}, lambda {fmt(s.get('lam'))} "
+             f"(paper {paper.lam_proposed}), exact rate on the true plant {fmt(s.get('rate_plant'))}",
+             f"  closed loop rate k=60..80: {interval(s.get('closed_loop_rate'))} (paper {paper.rate_k60_k80}), "
+             f"{s.get('closed_loop_status')}"]
+    if "open_loop_rate" in s:
+        lines.append(f"  open loop rate k=60..80:   {interval(s.get('open_loop_rate'))}, {s.get('open_loop_status')}")
+    lines.append(f"  run directory: {run_dir}")
+    if (run_dir / "recording.rrd").exists():
+        lines.append(f"  view: rerun {run_dir / 'recording.rrd'}")
+    print("\n".join(lines))

@@ -1,0 +1,230 @@
+"""The stage pipeline: a validated Experiment computed into tables, without touching the file system.
+
+Stages (docs/design.md): identification -> modeling -> synthesis -> closed loop (and open loop) ->
+metrics. Seeds: the identification run uses SeedSequence(seed, spawn_key=(0,)), the closed and open
+loops SeedSequence(seed, spawn_key=(1,)) (the same plant samples, as in the paper's Figs.
+decay_proposed and decay_open); inside each, path j has its own plant and EnKF streams.
+"""
+from __future__ import annotations
+
+import logging
+import sys
+import time
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+
+import numpy as np
+import pandas as pd
+from tqdm import tqdm
+from tqdm.contrib.logging import logging_redirect_tqdm
+
+from ..numerics.analysis import empirical_rate, ms_rate, second_moments
+from ..numerics.modeling import model_distribution
+from ..numerics.simulation import Trajectories, simulate
+from ..numerics.synthesis import METHODS, SynthesisResult, synthesize
+from .config import Experiment
+
+log = logging.getLogger("rdsexp")
+SPAWN_KEYS = {"identification": (0,), "closed_loop": (1,), "open_loop": (1,)}
+TABLES = ("trajectories", "identification", "paths", "model", "gains", "metrics", "exact")
+
+
+@dataclass
+class Outcome:
+    """What a run computed: tables by name, a flat summary of key numbers, seconds per stage."""
+
+    tables: dict[str, pd.DataFrame]
+    summary: dict
+    timings: dict = field(default_factory=dict)
+    members: pd.DataFrame | None = None
+
+
+@contextmanager
+def timed(timings: dict, stage: str):
+    """Time the block into timings[stage] and log the stage with its seconds (rdsexp.log)."""
+    start = time.perf_counter()
+    log.info("%s ...", stage)
+    yield
+    timings[stage] = round(time.perf_counter() - start, 4)
+    log.info("%s done in %.3f s", stage, timings[stage])
+
+
+def _progress(desc: str, total: int):
+    """A tqdm bar (silent when not on a terminal) and its per-step callback."""
+    bar = tqdm(total=total, desc=desc, disable=None, leave=False, file=sys.stderr)
+    return bar, lambda k: bar.update(1)
+
+
+def run_experiment(exp: Experiment) -> Outcome:
+    """Compute every stage of the experiment; numerical failures become statuses in the tables."""
+    timings, summary = {}, {}
+    root = lambda stage: np.random.SeedSequence(exp.seed, spawn_key=SPAWN_KEYS[stage])
+    sim = dict(q0=exp.q0, psi0=exp.psi0, P0=exp.P0, ensemble_size=exp.ensemble_size)
+    keep = exp.tracking == "full"
+
+    with timed(timings, "identification"):
+        ident = simulate(exp.plant, exp.enkf, d=exp.identification_input, paths=1, seed=root("identification"),
+                         filter_sees_d=True, keep_members=keep, **sim)
+    with timed(timings, "modeling"):
+        xi = ident.xi(ident.psi_filt_mean)[:, 0]
+        if ident.status != "ok" or not np.all(np.isfinite(xi[exp.K0:exp.K0 + exp.K1 + 1])):
+            dist = None
+            summary["modeling_status"] = f"identification {ident.failure[0]} at k = {ident.failed_at[0]}"
+        else:
+            dist = model_distribution(xi, exp.K0, exp.K1)
+            summary["modeling_status"] = "ok"
+    with timed(timings, "synthesis"):
+        # every method on the identified moments (the selected one with its configured options) and,
+        # when the config gives them, on the moments a paper reports
+        designs = {}
+        for source, moments in (("identified", dist), ("reported", exp.reported)):
+            for method in METHODS if moments is not None else ():
+                options = exp.gain_options if method == exp.gain_method else {}
+                designs[source, method] = (moments, synthesize(exp.model, moments, method, **options))
+        chosen = designs.get(("identified", exp.gain_method), (None, None))[1]
+
+    loops = {}
+    if chosen is not None and chosen.F is not None:
+        settings = dict(d=exp.disturbance, paths=exp.paths, filter_sees_d=exp.filter_sees_disturbance,
+                        keep_members=keep, **sim)
+        runs = [("closed_loop", chosen.F)] + ([("open_loop", None)] if exp.open_loop else [])
+        for name, F in runs:
+            with timed(timings, name):
+                bar, step = _progress(name.replace("_", " "), exp.disturbance.shape[0])
+                with bar, logging_redirect_tqdm():
+                    loops[name] = simulate(exp.plant, exp.enkf, F=F, seed=root(name), progress=step, **settings)
+
+    with timed(timings, "metrics"):
+        tables = {
+            "trajectories": pd.concat([trajectory_table(name, tr) for name, tr in loops.items()],
+                                      ignore_index=True) if loops else trajectory_table("closed_loop", None, exp),
+            "identification": trajectory_table("identification", ident),
+            "paths": path_table({"identification": ident, **loops}),
+            "model": model_table(exp, dist),
+            "gains": gains_table(exp, designs),
+            "metrics": metrics_table(exp, loops),
+            "exact": exact_table(exp, chosen),
+        }
+    summary.update(_summary(exp, dist, chosen, tables["metrics"]))
+    timings["synthesis_by_method"] = {f"{source}/{method}": round(res.seconds, 4)
+                                      for (source, method), (_, res) in designs.items()}
+    members = None
+    if keep:
+        members = pd.concat([members_table(name, tr, exp) for name, tr in {"identification": ident, **loops}.items()],
+                            ignore_index=True)
+    return Outcome(tables=tables, summary=summary, timings=timings, members=members)
+
+
+# ------------------------------------------------------------------------------------ tables
+def _columns(name: str, values: np.ndarray) -> dict:
+    """{"name[i]": values[..., i].ravel()} for the last axis of values."""
+    return {f"{name}[{i}]": values[..., i].ravel() for i in range(values.shape[-1])}
+
+
+def trajectory_table(experiment: str, tr: Trajectories | None, exp: Experiment | None = None) -> pd.DataFrame:
+    """One row per (k, path): plant q, y, u and EnKF mean/spread of x and xi before/after filtering."""
+    if tr is None:                       # no gain to simulate: an empty table with the usual columns
+        n, p, ny, m = exp.model.n, exp.model.p, exp.model.ny, exp.model.m
+        shape = lambda d: np.zeros((0, 0, d))
+        tr = Trajectories(q=shape(n), y=shape(ny), u=shape(m), psi_pred_mean=shape(n + p),
+                          psi_pred_std=shape(n + p), psi_filt_mean=shape(n + p), psi_filt_std=shape(n + p),
+                          failed_at=np.zeros(0, int), failure=np.zeros(0, object), n=n)
+    steps, P = tr.q.shape[:2]
+    cols = {"experiment": np.full(steps * P, experiment), "k": np.repeat(np.arange(steps), P),
+            "path": np.tile(np.arange(P), steps)}
+    cols.update(_columns("q", tr.q) | _columns("y", tr.y) | _columns("u", tr.u))
+    for stage in ("pred", "filt"):
+        for stat in ("mean", "std"):
+            psi = getattr(tr, f"psi_{stage}_{stat}")
+            cols.update(_columns(f"x_{stage}_{stat}", tr.x(psi)) | _columns(f"xi_{stage}_{stat}", tr.xi(psi)))
+    return pd.DataFrame(cols)
+
+
+def members_table(experiment: str, tr: Trajectories, exp: Experiment) -> pd.DataFrame:
+    """Every filtered ensemble member: one row per (k, path, member) (tracking level `full`)."""
+    steps, P, M, _ = tr.members.shape
+    cols = {"experiment": np.full(steps * P * M, experiment), "k": np.repeat(np.arange(steps), P * M),
+            "path": np.tile(np.repeat(np.arange(P), M), steps), "member": np.tile(np.arange(M), steps * P)}
+    cols.update(_columns("x_filt", tr.x(tr.members)) | _columns("xi_filt", tr.xi(tr.members)))
+    return pd.DataFrame(cols)
+
+
+def path_table(runs: dict[str, Trajectories]) -> pd.DataFrame:
+    """Per path: the step it failed at (-1: never) and why."""
+    return pd.DataFrame([{"experiment": name, "path": j, "failed_at": int(tr.failed_at[j]),
+                          "failure": str(tr.failure[j])}
+                         for name, tr in runs.items() for j in range(tr.failed_at.size)])
+
+
+def model_table(exp: Experiment, dist) -> pd.DataFrame:
+    """The modeled distribution: mean, cov, second moment and Gbar as (quantity, row, col, value)."""
+    rows = []
+    if dist is not None:
+        for name, value in (("mean", dist.mean[:, None]), ("cov", dist.cov), ("second_moment", dist.second_moment),
+                            ("Gbar", exp.model.Gbar(dist))):
+            rows += [{"quantity": name, "row": i, "col": j, "value": float(v)}
+                     for (i, j), v in np.ndenumerate(value)]
+    return pd.DataFrame(rows, columns=["quantity", "row", "col", "value"])
+
+
+def gains_table(exp: Experiment, designs: dict) -> pd.DataFrame:
+    """Per (distribution, method): status, lam (design), bracket, nbar, exact rates on the design
+    moments and on the true plant, F. designs: {(source, method): (moments, SynthesisResult)}.
+
+    Only reproducible numbers go into tables; synthesis times are in run.json's timings."""
+    rows = []
+    for (source, method), (moments, res) in designs.items():
+        found = res.F is not None
+        F = res.F if found else np.full((exp.model.m, exp.model.n), np.nan)
+        rows.append({"distribution": source, "method": method,
+                     "selected": source == "identified" and method == exp.gain_method,
+                     "status": res.status, "lam": res.lam, "lam_lower": res.lam_lower,
+                     "lower_certified": res.lower_certified, "nbar": res.nbar,
+                     "rate_model": ms_rate(exp.model, moments, F) if found else np.nan,
+                     "rate_plant": ms_rate(exp.plant, None, F) if found else np.nan,
+                     **{f"F[{i}]": v for i, v in enumerate(F.ravel())}})
+    return pd.DataFrame(rows)
+
+
+def metrics_table(exp: Experiment, loops: dict[str, Trajectories]) -> pd.DataFrame:
+    """Per loop: empirical rate over rate_window with its 95% interval, failures, estimation error."""
+    k_from, k_to = exp.rate_window
+    rows = []
+    for name, tr in loops.items():
+        rate, low, high = empirical_rate(tr.q, k_from, k_to)
+        err = tr.x(tr.psi_pred_mean) - tr.q
+        rows.append({"experiment": name, "status": tr.status, "rate": rate, "rate_low": low, "rate_high": high,
+                     "k_from": k_from, "k_to": k_to, "paths": tr.q.shape[1],
+                     "failed_fraction": float(np.mean(tr.failed_at >= 0)),
+                     "x_error_rms": float(np.sqrt(np.nanmean(np.sum(err ** 2, axis=-1)))),
+                     "q_rms_final": float(np.sqrt(np.mean(np.sum(tr.q[-1] ** 2, axis=-1))))})
+    return pd.DataFrame(rows, columns=["experiment", "status", "rate", "rate_low", "rate_high", "k_from", "k_to",
+                                       "paths", "failed_fraction", "x_error_rms", "q_rms_final"])
+
+
+def exact_table(exp: Experiment, chosen: SynthesisResult | None) -> pd.DataFrame:
+    """sqrt(E||q_k||^2) of the ideal loops (state feedback, true plant distribution), exactly."""
+    frames = []
+    gains = ([("closed_loop", chosen.F)] if chosen is not None and chosen.F is not None else []) + \
+        [("open_loop", np.zeros((exp.plant.m, exp.plant.n)))]
+    for name, F in gains:
+        with np.errstate(all="ignore"):
+            _, second = second_moments(exp.plant, None, F, exp.q0, exp.disturbance)
+        frames.append(pd.DataFrame({"experiment": name, "k": np.arange(second.shape[0]),
+                                    "rms": np.sqrt(np.trace(second, axis1=1, axis2=2))}))
+    return pd.concat(frames, ignore_index=True)
+
+
+def _summary(exp: Experiment, dist, chosen, metrics: pd.DataFrame) -> dict:
+    s = {"gain_method": exp.gain_method}
+    if dist is not None:
+        s.update(nbar=int(exp.model.Gbar(dist).shape[0]), xi_mean=dist.mean.tolist())
+    if chosen is not None:
+        s.update(synthesis_status=chosen.status, lam=chosen.lam,
+                 rate_plant=ms_rate(exp.plant, None, chosen.F) if chosen.F is not None else None)
+    for row in metrics.itertuples():
+        s[f"{row.experiment}_status"] = row.status
+        s[f"{row.experiment}_rate"] = [row.rate, row.rate_low, row.rate_high]
+    return s
+
+

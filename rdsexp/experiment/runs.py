@@ -1,0 +1,154 @@
+"""Run catalog: `rdsexp-runs list [DIR] | show RUN | verify RUN`.
+
+A run is a directory with a run.json (see `rdsexp.experiment.records`); RUN is its path or its id
+(a directory name under outputs/, or SWEEP/JOB for a sweep job).
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+from omegaconf import OmegaConf
+
+from . import records
+
+DEFAULT_ROOT = Path("outputs")
+__all__ = ["DEFAULT_ROOT", "catalog", "cli", "compare_tables", "find_complete", "find_runs", "main", "resolve",
+           "verify", "write_sweep_summary"]
+
+
+def find_runs(root: Path) -> list[tuple[Path, dict]]:
+    """(run directory, its run.json) for every run under root, oldest first; each file read once."""
+    runs = [(p.parent, records.read_json(p)) for p in Path(root).rglob("run.json")]
+    return sorted(runs, key=lambda run: run[1].get("created", ""))
+
+
+def find_complete(root: Path, config_hash: str, version: str) -> Path | None:
+    """A complete, not itself reused, run under root with this config hash and code version."""
+    for run_dir, info in find_runs(root):
+        if (info.get("status") == "complete" and info.get("config_hash") == config_hash
+                and (info.get("code") or {}).get("version") == version and not info.get("reused_from")):
+            return run_dir
+    return None
+
+
+def resolve(run: str, root: Path = DEFAULT_ROOT) -> Path:
+    """A run directory from a path or an id; SystemExit with one line if there is none."""
+    path = Path(run)
+    if (path / "run.json").exists():
+        return path
+    matches = [p for p, info in find_runs(root) if info.get("id") == run or p.name == run]
+    if len(matches) != 1:
+        sys.exit(f"rdsexp.runs: {'no' if not matches else 'more than one'} run {run!r} under {root}")
+    return matches[0]
+
+
+def catalog(root: Path) -> pd.DataFrame:
+    """One row per run: id, sweep, overrides, seed, status, key metrics, time."""
+    rows = []
+    for run_dir, info in find_runs(root):
+        s = info.get("summary") or {}
+        rate = s.get("closed_loop_rate") or [np.nan]
+        rows.append({"id": info.get("id"), "sweep": (info.get("sweep") or {}).get("name"),
+                     "overrides": " ".join(o for o in info.get("overrides", []) if not o.startswith("+sweep=")),
+                     "seed": (info.get("seed") or {}).get("root"), "status": info.get("status"),
+                     "method": s.get("gain_method"), "synthesis": s.get("synthesis_status"),
+                     "lam": s.get("lam"), "rate": rate[0], "loop": s.get("closed_loop_status"),
+                     "seconds": info.get("seconds"),
+                     "created": info.get("created"), "config_hash": (info.get("config_hash") or "")[:12],
+                     "code": ((info.get("code") or {}).get("version") or "")[:12], "dir": str(run_dir)})
+    return pd.DataFrame(rows)
+
+
+def write_sweep_summary(sweep_dir: Path) -> Path:
+    """Rebuild <sweep>/summary.parquet (and .csv) from the jobs' run.json files on disk."""
+    table = catalog(sweep_dir)
+    if len(table):
+        table.insert(0, "job", [int(Path(d).name) if Path(d).name.isdigit() else -1 for d in table["dir"]])
+        table = table.sort_values("job", ignore_index=True)
+    path = Path(sweep_dir) / "summary.parquet"
+    records.write_table(path, table)
+    records.atomic_write_bytes(path.with_suffix(".csv"), table.to_csv(index=False).encode())
+    return path
+
+
+def compare_tables(stored: pd.DataFrame, fresh: pd.DataFrame) -> list[str]:
+    """Differences between two versions of a table, column by column; [] when identical."""
+    problems = []
+    if list(stored.columns) != list(fresh.columns) or len(stored) != len(fresh):
+        return [f"shape/columns differ: {stored.shape} {list(stored.columns)[:5]}... vs "
+                f"{fresh.shape} {list(fresh.columns)[:5]}..."]
+    for name in stored.columns:
+        a, b = stored[name].to_numpy(), fresh[name].to_numpy()
+        if a.dtype.kind in "biuf" and b.dtype.kind in "biuf":
+            a, b = a.astype(float), b.astype(float)
+            same = (a == b) | (np.isnan(a) & np.isnan(b))
+            if not same.all():
+                first = int(np.argmax(~same))
+                diff = np.nanmax(np.abs(a - b)) if np.isfinite(a - b).any() else np.inf
+                problems.append(f"{name}: max |difference| {diff:.3g}, first at row {first}")
+        elif not np.array_equal(a.astype(str), b.astype(str)):
+            problems.append(f"{name}: values differ, first at row {int(np.argmax(a.astype(str) != b.astype(str)))}")
+    return problems
+
+
+def verify(run_dir: Path) -> bool:
+    """Re-execute a stored run from its recorded config and seed; compare every table."""
+    from .config import build
+    from .pipeline import run_experiment
+    info = records.read_json(run_dir / "run.json")
+    cfg = OmegaConf.load(run_dir / ".hydra" / "config.yaml")
+    code = records.code_version()["version"]
+    if code != (info.get("code") or {}).get("version"):
+        print(f"note: the run was made with code {info.get('code', {}).get('version')}, this is {code}")
+    outcome = run_experiment(build(cfg))
+    ok = True
+    for name, meta in (info.get("tables") or {}).items():
+        fresh = outcome.members if name == "members" else outcome.tables.get(name)
+        stored = pd.read_parquet(run_dir / meta["file"])
+        problems = compare_tables(stored, fresh) if fresh is not None else ["not produced by the re-run"]
+        if records.table_hash(stored) != meta["sha256"]:
+            problems.insert(0, "stored file does not match the hash in run.json (modified after the run)")
+        print(f"{name:15s} {'identical' if not problems else 'DIFFERS'}")
+        for p in problems:
+            print(f"    {p}")
+        ok &= not problems
+    print("verify:", "identical" if ok else "differences found")
+    return ok
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog="rdsexp-runs", description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+    p_list = sub.add_parser("list", help="table of runs under DIR (default outputs/)")
+    p_list.add_argument("dir", nargs="?", default=str(DEFAULT_ROOT))
+    for name, text in (("show", "run.json and metrics of one run"), ("verify", "re-run and compare tables")):
+        p = sub.add_parser(name, help=text)
+        p.add_argument("run")
+        p.add_argument("--root", default=str(DEFAULT_ROOT))
+    args = parser.parse_args(argv)
+    if args.command == "list":
+        table = catalog(Path(args.dir))
+        cols = ["id", "sweep", "overrides", "seed", "status", "method", "synthesis", "lam", "rate", "loop", "seconds"]
+        print(table[cols].to_string(index=False) if len(table) else f"no runs under {args.dir}")
+        return 0
+    run_dir = resolve(args.run, Path(args.root))
+    if args.command == "show":
+        info = records.read_json(run_dir / "run.json")
+        print(OmegaConf.to_yaml({k: v for k, v in info.items() if k not in ("environment", "traceback")}))
+        if (run_dir / "metrics.parquet").exists():
+            print(pd.read_parquet(run_dir / "metrics.parquet").to_string(index=False))
+        return 0
+    return 0 if verify(run_dir) else 1
+
+
+def cli() -> None:
+    """Console entry point `rdsexp-runs`."""
+    sys.exit(main())
+
+
+if __name__ == "__main__":
+    cli()

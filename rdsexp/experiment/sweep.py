@@ -1,0 +1,63 @@
+"""The sweep callback: every job's config validated before the first runs, a progress bar over the
+jobs, and the sweep's summary table written once all have returned."""
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+
+from hydra.experimental.callback import Callback
+from omegaconf import DictConfig, OmegaConf
+from tqdm import tqdm
+
+from .config import ConfigError, build
+from .runs import write_sweep_summary
+
+_SWEEP_BARS: dict[int, tqdm] = {}      # the sweep's progress bar, in the process that launched it
+
+
+def sweep_points(config: DictConfig) -> list[list[str]]:
+    """The overrides of every job of a multirun: the sweeper's params, overridden key by key on the
+    command line (as Hydra's basic sweeper combines them)."""
+    from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    params = {k: f"{k}={v}" for k, v in (OmegaConf.select(config, "hydra.sweeper.params") or {}).items()}
+    parser = OverridesParser.create()
+    for override in parser.parse_overrides(list(config.hydra.overrides.task)):
+        params[override.get_key_element()] = override.input_line
+    return BasicSweeper.split_arguments(parser.parse_overrides(list(params.values())), max_batch_size=None)[0]
+
+
+def validate_sweep(points: list[list[str]]) -> None:
+    """Compose and validate every job's config before the first job runs; exit 2 on the first bad one."""
+    from hydra import compose
+    for overrides in points:
+        try:
+            build(compose(config_name="config", overrides=overrides))
+        except ConfigError as err:
+            print(f"rdsexp: config error in sweep job {' '.join(overrides)}: {err}", file=sys.stderr)
+            sys.exit(2)
+
+
+class SweepSummary(Callback):
+    """Hydra callback: validates every job's config before the first runs, shows a progress bar over
+    the jobs and writes the summary table once all have returned.
+
+    Each job also rebuilds the summary when it ends, so a sweep that is killed still has one."""
+
+    def on_multirun_start(self, config: DictConfig, **kwargs) -> None:
+        points = sweep_points(config)
+        validate_sweep(points)
+        _SWEEP_BARS[os.getpid()] = tqdm(total=len(points), desc="sweep", unit="job", disable=None, file=sys.stderr)
+
+    def on_job_end(self, config: DictConfig, job_return, **kwargs) -> None:
+        bar = _SWEEP_BARS.get(os.getpid())      # None in launcher worker processes
+        if bar is not None:
+            bar.update(1)
+
+    def on_multirun_end(self, config: DictConfig, **kwargs) -> None:
+        bar = _SWEEP_BARS.pop(os.getpid(), None)
+        if bar is not None:
+            bar.close()
+        path = write_sweep_summary(Path(config.hydra.sweep.dir))
+        print(f"sweep summary: {path}")
