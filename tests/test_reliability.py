@@ -146,8 +146,11 @@ def test_killed_sweep_resumes_and_keeps_every_result(tmp_path, sig):
     """Kill a sweep after its first jobs, relaunch the same command: completed jobs are reused
     (same config hash and code version), the rest run, the summary has every job."""
     args = ["+sweep=seeds", "seed=range(0,6)", *SMALL, "closed_loop.paths=40", "tracking.recording=false"]
+    # the child inherits an ignored SIGINT (as under a test runner started in the background):
+    # rdsexp's entry point must still stop on it
     proc = subprocess.Popen([sys.executable, "-m", "rdsexp", *args], cwd=tmp_path,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
     wait_for(lambda: len(complete_jobs(tmp_path)) >= 2)
     proc.send_signal(sig)
     proc.wait(timeout=60)
