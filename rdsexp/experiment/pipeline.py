@@ -19,9 +19,10 @@ from tqdm import tqdm
 from tqdm.contrib.logging import logging_redirect_tqdm
 
 from ..numerics.analysis import empirical_rate, ms_rate, second_moments
-from ..numerics.modeling import model_distribution
+from ..numerics.modeling import model_distribution, nominal_gain, one_line
 from ..numerics.simulation import Trajectories, simulate
 from ..numerics.synthesis import METHODS, SynthesisResult, synthesize
+from ..numerics.systems import MomentModel
 from .config import Experiment
 
 log = logging.getLogger("rdsexp")
@@ -63,8 +64,10 @@ def run_experiment(exp: Experiment) -> Outcome:
     keep = exp.tracking == "full"
 
     with timed(timings, "identification"):
-        ident = simulate(exp.plant, exp.enkf, d=exp.identification_input, paths=1, seed=root("identification"),
-                         filter_sees_d=True, keep_members=keep, **sim)
+        F_id, summary["identification_feedback"] = identification_feedback(exp)
+        # the identification input is added on top of the feedback; the EnKF is told the applied input
+        ident = simulate(exp.plant, exp.enkf, F=F_id, d=exp.identification_input, paths=1,
+                         seed=root("identification"), filter_sees_d=True, keep_members=keep, **sim)
     with timed(timings, "modeling"):
         xi = ident.xi(ident.psi_filt_mean)[:, 0]
         if ident.status != "ok" or not np.all(np.isfinite(xi[exp.K0:exp.K0 + exp.K1 + 1])):
@@ -75,12 +78,13 @@ def run_experiment(exp: Experiment) -> Outcome:
             summary["modeling_status"] = "ok"
     with timed(timings, "synthesis"):
         # every method on the identified moments (the selected one with its configured options) and,
-        # when the config gives them, on the moments a paper reports
+        # when the config gives them, on the moments a paper reports; a design that cannot be applied
+        # or fails is a status in the gains table, never the end of the run
         designs = {}
         for source, moments in (("identified", dist), ("reported", exp.reported)):
             for method in METHODS if moments is not None else ():
-                options = exp.gain_options if method == exp.gain_method else {}
-                designs[source, method] = (moments, synthesize(exp.model, moments, method, **options))
+                options = exp.design_options.get(method, exp.gain_options if method == exp.gain_method else {})
+                designs[source, method] = (moments, safe_synthesize(exp.model, moments, method, options))
         chosen = designs.get(("identified", exp.gain_method), (None, None))[1]
 
     loops = {}
@@ -105,7 +109,7 @@ def run_experiment(exp: Experiment) -> Outcome:
             "metrics": metrics_table(exp, loops),
             "exact": exact_table(exp, chosen),
         }
-    summary.update(_summary(exp, dist, chosen, tables["metrics"]))
+    summary.update(_summary(exp, dist, chosen, tables))
     timings["synthesis_by_method"] = {f"{source}/{method}": round(res.seconds, 4)
                                       for (source, method), (_, res) in designs.items()}
     members = None
@@ -113,6 +117,63 @@ def run_experiment(exp: Experiment) -> Outcome:
         members = pd.concat([members_table(name, tr, exp) for name, tr in {"identification": ident, **loops}.items()],
                             ignore_index=True)
     return Outcome(tables=tables, summary=summary, timings=timings, members=members)
+
+
+def safe_synthesize(model, moments, method: str, options: dict) -> SynthesisResult:
+    """`synthesize`, with every way a design can fail on this system as a status, never an exception.
+
+    not_applicable: pole placement without poles in the config. failed: <reason>: the method raised
+    (e.g. a Riccati equation without a solution) or returned a gain that is not finite."""
+    if method == "pole_placement" and options.get("poles") is None:
+        return SynthesisResult(method, None, float("nan"), "not_applicable", nbar=0,
+                               info={"reason": "no poles in the config (plant.poles or gain.options.poles)"})
+    start = time.perf_counter()
+    try:
+        with np.errstate(all="ignore"):
+            res = synthesize(model, moments, method, **options)
+    except Exception as err:                      # noqa: BLE001 -- any failure of one design is its status
+        log.warning("design %s failed: %s", method, one_line(err))
+        res = SynthesisResult(method, None, float("nan"), f"failed: {one_line(err)}", nbar=0)
+    if res.F is not None and not np.all(np.isfinite(res.F)):
+        res = SynthesisResult(method, None, float("nan"), "failed: the gain is not finite", nbar=res.nbar)
+    res.seconds = res.seconds or time.perf_counter() - start
+    return res
+
+
+def identification_feedback(exp: Experiment) -> tuple[np.ndarray | None, dict]:
+    """The gain of the identification run (None: open loop) and what was decided, for the summary.
+
+    auto: open loop when the plant at the nominal guess xi_guess (prior knowledge, by default the mean
+    of the plant's distribution) is mean-square stable in open loop, else nominal: a stabilizing
+    gain designed on the plant at xi_guess (`nominal_gain`)."""
+    mode = exp.identification_feedback
+    info = {"mode": mode}
+    if mode == "none":
+        return None, info
+    if mode == "given":
+        return exp.identification_gain, info | {"used": "given"}
+    guess = MomentModel.deterministic(exp.xi_guess)
+    with np.errstate(all="ignore"):
+        info["open_loop_rate_at_guess"] = safe_rate(exp.plant, guess, np.zeros((exp.plant.m, exp.plant.n)))
+    if mode == "auto" and info["open_loop_rate_at_guess"] < 1:
+        return None, info | {"used": "open_loop"}
+    res = nominal_gain(exp.plant, exp.xi_guess)
+    info |= {"used": "nominal", "method": res.method, "status": res.status, "rate_at_guess": res.lam}
+    if res.F is None or not np.all(np.isfinite(res.F)) or not res.lam < 1:
+        info["used"] = "open_loop (no stabilizing nominal gain)"
+        return None, info
+    with np.errstate(all="ignore"):
+        info["rate_plant"] = safe_rate(exp.plant, None, res.F)
+    return res.F, info
+
+
+def safe_rate(system, dist, F) -> float:
+    """ms_rate, NaN where it cannot be computed (a gain so large that the operator is not finite)."""
+    try:
+        with np.errstate(all="ignore"):
+            return ms_rate(system, dist, F)
+    except (ValueError, np.linalg.LinAlgError):
+        return float("nan")
 
 
 # ------------------------------------------------------------------------------------ tables
@@ -180,8 +241,8 @@ def gains_table(exp: Experiment, designs: dict) -> pd.DataFrame:
                      "selected": source == "identified" and method == exp.gain_method,
                      "status": res.status, "lam": res.lam, "lam_lower": res.lam_lower,
                      "lower_certified": res.lower_certified, "nbar": res.nbar,
-                     "rate_model": ms_rate(exp.model, moments, F) if found else np.nan,
-                     "rate_plant": ms_rate(exp.plant, None, F) if found else np.nan,
+                     "rate_model": safe_rate(exp.model, moments, F) if found else np.nan,
+                     "rate_plant": safe_rate(exp.plant, None, F) if found else np.nan,
                      **{f"F[{i}]": v for i, v in enumerate(F.ravel())}})
     return pd.DataFrame(rows)
 
@@ -215,16 +276,27 @@ def exact_table(exp: Experiment, chosen: SynthesisResult | None) -> pd.DataFrame
     return pd.concat(frames, ignore_index=True)
 
 
-def _summary(exp: Experiment, dist, chosen, metrics: pd.DataFrame) -> dict:
-    s = {"gain_method": exp.gain_method}
+def _summary(exp: Experiment, dist, chosen, tables: dict) -> dict:
+    """Key numbers of the run (run.json `summary`); what print_summary shows."""
+    s = {"plant": exp.plant_name, "model": exp.model_name, "gain_method": exp.gain_method,
+         "rate_window": list(exp.rate_window)}
     if dist is not None:
         s.update(nbar=int(exp.model.Gbar(dist).shape[0]), xi_mean=dist.mean.tolist())
     if chosen is not None:
         s.update(synthesis_status=chosen.status, lam=chosen.lam,
-                 rate_plant=ms_rate(exp.plant, None, chosen.F) if chosen.F is not None else None)
-    for row in metrics.itertuples():
+                 rate_plant=safe_rate(exp.plant, None, chosen.F) if chosen.F is not None else None)
+    gains = tables["gains"]
+    s["designs"] = {row.method: row.status for row in gains.itertuples() if row.distribution == "identified"}
+    paths = tables["paths"]
+    for row in tables["metrics"].itertuples():
         s[f"{row.experiment}_status"] = row.status
         s[f"{row.experiment}_rate"] = [row.rate, row.rate_low, row.rate_high]
+        failed = paths[(paths["experiment"] == row.experiment) & (paths["failed_at"] >= 0)]["failed_at"]
+        if len(failed):
+            s[f"{row.experiment}_failed"] = {"fraction": row.failed_fraction, "first_k": int(failed.min()),
+                                             "median_k": float(failed.median())}
+    if exp.reference is not None:
+        s["reference"] = exp.reference
     return s
 
 

@@ -187,7 +187,9 @@ def simulate_state_feedback(system: AffineRandomSystem, F, *, d, x0, paths: int,
 
     d: (K+1, m); returns x (K+1, P, n). Per-path streams as in `simulate` (PLANT slot).
     """
-    F, dist = system.check_gain(F), system.check_distribution(None)
+    F = system.check_gain(F)
+    system.check_distribution(None)
+    dist = system.xi_dist                                   # the family itself samples, not its moments
     d = np.asarray(d, dtype=float).reshape(len(d), -1)
     if d.shape[1] != system.m or paths < 1:
         raise ValueError(f"d: shape {d.shape}, expected (K+1, m = {system.m}); paths: {paths}, must be >= 1")
