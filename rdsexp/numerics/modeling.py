@@ -52,7 +52,7 @@ def nominal_gain(model, xi_guess) -> SynthesisResult:
     Theorem 2 at the guess if the Riccati equation has no solution. Returns the first design whose
     exact rate at the guess is < 1, else the last one tried (status says why); never raises.
     """
-    from .synthesis import synthesize                  # synthesis imports systems only; no cycle
+    from .synthesis import synthesize  # synthesis imports systems only; no cycle
     guess = MomentModel.deterministic(xi_guess)
     result = None
     for method in ("lqr_mean", "proposed"):
