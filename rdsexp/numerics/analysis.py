@@ -6,26 +6,86 @@ and full state feedback; its second moments depend on the distribution of xi onl
 from __future__ import annotations
 
 import numpy as np
+import scipy.linalg
+import scipy.sparse.linalg
 from scipy import stats
 
 from .systems import AffineRandomSystem, MomentModel
 
 
 def second_moment_operator(system: AffineRandomSystem, dist: MomentModel | None, F) -> np.ndarray:
-    """E[Acl (x) Acl], shape (n^2, n^2): row-major vec(X_{k+1}) = this @ vec(X_k) for d = 0."""
+    """E[Acl (x) Acl], shape (n^2, n^2): row-major vec(X_{k+1}) = this @ vec(X_k) for d = 0.
+
+    Dense: for small n and for checks; `ms_rate` never forms it for n > DENSE_MAX_N."""
     Abar, Bbar = system.moment_factors(dist)
     Acl = Abar + Bbar @ system.check_gain(F)                 # (nbar, n, n)
     n = system.n
     return np.einsum("rij,rkl->ikjl", Acl, Acl).reshape(n * n, n * n)
 
 
+DENSE_MAX_N = 8      # up to n^2 = 64 the dense eigenvalue problem is as fast as an Arnoldi iteration
+
+
+def perron(Acl: np.ndarray, *, adjoint: bool = False, v0: np.ndarray | None = None) -> tuple[float, np.ndarray]:
+    """Spectral radius rho and a Perron eigenvector V (n, n) of T(X) = sum_r Acl_r X Acl_r^T.
+
+    Acl: (nbar, n, n). adjoint=True uses T*(P) = sum_r Acl_r^T P Acl_r (same spectrum). T maps the
+    PSD cone into itself, so rho is an eigenvalue with a PSD eigenvector (Krein-Rutman); V is
+    returned symmetrised with a nonnegative trace (PSD up to rounding). For n > DENSE_MAX_N an
+    Arnoldi iteration (ARPACK, tolerance 0 = working precision, started from v0 if given) applies T
+    as nbar pairs of n x n products, O(nbar n^3) per step, instead of an O(n^6) dense eigensolve;
+    there the closed loop is first balanced (a diagonal similarity, which leaves the spectrum
+    unchanged) so that gains with large entries do not cost accuracy. (The dense eigensolver
+    balances the n^2 x n^2 matrix itself.)
+    """
+    Acl = np.asarray(Acl, dtype=float)
+    n = Acl.shape[1]
+    if adjoint:
+        Acl = Acl.transpose(0, 2, 1)
+    scale = np.ones(n)
+    if n > DENSE_MAX_N and np.all(np.isfinite(Acl)):
+        _, (scale, _) = scipy.linalg.matrix_balance(np.abs(Acl).sum(axis=0), permute=False, separate=True)
+        Acl = Acl * scale[None, None, :] / scale[None, :, None]         # D^-1 Acl D
+    w = V = None
+    if n > DENSE_MAX_N:
+        AclT = np.ascontiguousarray(Acl.transpose(0, 2, 1))
+        op = scipy.sparse.linalg.LinearOperator(
+            (n * n, n * n), dtype=float, matvec=lambda x: (Acl @ x.reshape(n, n) @ AclT).sum(axis=0).ravel())
+        start = None if v0 is None else (np.asarray(v0, dtype=float) / np.outer(scale, scale)).ravel()
+        try:
+            w, V = scipy.sparse.linalg.eigs(op, k=2, which="LM", tol=0, v0=start, maxiter=20 * n * n)
+        except scipy.sparse.linalg.ArpackError:
+            w = None                                   # no convergence (e.g. nilpotent T): dense below
+    if w is None:
+        L = np.einsum("rij,rkl->ikjl", Acl, Acl).reshape(n * n, n * n)
+        w, V = np.linalg.eig(L)
+    i = np.argmax(np.abs(w))
+    rho = float(np.abs(w[i]))
+    # among eigenvalues of modulus rho pick the real one (the Perron root)
+    close = np.flatnonzero(np.abs(w) >= rho * (1 - 1e-9))
+    i = close[np.argmin(np.abs(w[close].imag))]
+    X = V[:, i].real.reshape(n, n) * np.outer(scale, scale)             # back from the balanced basis
+    X = (X + X.T) / 2
+    X /= np.sign(np.trace(X)) * np.abs(X).max() if np.trace(X) != 0 else np.abs(X).max() or 1.0
+    return rho, X
+
+
 def ms_rate(system: AffineRandomSystem, dist: MomentModel | None, F) -> float:
     """Exact mean-square decay rate sqrt(rho(E[Acl (x) Acl])) of the ideal closed loop.
 
     This is the smallest lambda of eq. (exp-def) for the gain F (>= 1: not mean-square stable).
-    `dist` None uses the system's own xi_dist.
+    `dist` None uses the system's own xi_dist. Computed by `perron` (dense up to DENSE_MAX_N,
+    Arnoldi beyond, both to working precision).
     """
-    return float(np.sqrt(np.abs(np.linalg.eigvals(second_moment_operator(system, dist, F))).max()))
+    Abar, Bbar = system.moment_factors(dist)
+    Acl = Abar + Bbar @ system.check_gain(F)
+    if not np.all(np.isfinite(Acl)):
+        return float("inf")
+    if system.n <= DENSE_MAX_N:            # the dense eigenvalues, bit for bit as before
+        n = system.n
+        L = np.einsum("rij,rkl->ikjl", Acl, Acl).reshape(n * n, n * n)
+        return float(np.sqrt(np.abs(np.linalg.eigvals(L)).max()))
+    return float(np.sqrt(perron(Acl)[0]))
 
 
 def second_moments(system: AffineRandomSystem, dist: MomentModel | None, F, x0, d) -> tuple[np.ndarray, np.ndarray]:
