@@ -72,7 +72,9 @@ def _box_problem(n: int, m: int, V: int):
     lam2.value = 1.0                                   # compile now (see lmi._lmi_problem)
     for v in range(V):
         A[v].value, B[v].value = np.eye(n), np.zeros((n, m))
-    problem.solve(solver=cp.CLARABEL)
+    with warnings.catch_warnings():                           # only the compilation matters here
+        warnings.simplefilter("ignore")
+        problem.solve(solver=cp.CLARABEL)
     return problem, lam2, A, B, X, Y, t
 
 
