@@ -18,7 +18,7 @@ import pandas as pd
 from tqdm import tqdm
 from tqdm.contrib.logging import logging_redirect_tqdm
 
-from ..numerics.analysis import empirical_rate, ms_rate, second_moments
+from ..numerics.analysis import empirical_rate, h2_norm, lq_cost, ms_rate, second_moments
 from ..numerics.modeling import model_distribution, nominal_gain, one_line
 from ..numerics.simulation import Trajectories, simulate
 from ..numerics.synthesis import METHODS, SynthesisResult, synthesize
@@ -229,8 +229,9 @@ def model_table(exp: Experiment, dist) -> pd.DataFrame:
 
 
 def gains_table(exp: Experiment, designs: dict) -> pd.DataFrame:
-    """Per (distribution, method): status, lam (design), bracket, nbar, exact rates on the design
-    moments and on the true plant, F. designs: {(source, method): (moments, SynthesisResult)}.
+    """Per (distribution, method): status, lam (design), bracket, nbar, exact rates, LQ costs and H2
+    norms on the design moments and on the true plant (`performance`), robust_box's certified box rate
+    (lam_box, NaN for other methods), F. designs: {(source, method): (moments, SynthesisResult)}.
 
     Only reproducible numbers go into tables; synthesis times are in run.json's timings."""
     rows = []
@@ -243,8 +244,21 @@ def gains_table(exp: Experiment, designs: dict) -> pd.DataFrame:
                      "lower_certified": res.lower_certified, "nbar": res.nbar,
                      "rate_model": safe_rate(exp.model, moments, F) if found else np.nan,
                      "rate_plant": safe_rate(exp.plant, None, F) if found else np.nan,
+                     **performance(exp, moments, F if found else None),
+                     "lam_box": res.info.get("lam_box", np.nan),
                      **{f"F[{i}]": v for i, v in enumerate(F.ravel())}})
     return pd.DataFrame(rows)
+
+
+def performance(exp: Experiment, moments, F) -> dict:
+    """Exact LQ cost (weights I, I) from the plant's q0 and averaged over x0 ~ N(0, I), and the H2 norm
+    from d (added on u) to [x; F x], on the true plant and on the design moments; inf where not
+    mean-square stable, NaN without a gain."""
+    if F is None:
+        return dict.fromkeys(("lq_cost_q0_plant", "lq_cost_plant", "h2_plant", "lq_cost_model", "h2_model"), np.nan)
+    return {"lq_cost_q0_plant": lq_cost(exp.plant, None, F, exp.q0), "lq_cost_plant": lq_cost(exp.plant, None, F),
+            "h2_plant": h2_norm(exp.plant, None, F), "lq_cost_model": lq_cost(exp.model, moments, F),
+            "h2_model": h2_norm(exp.model, moments, F)}
 
 
 def metrics_table(exp: Experiment, loops: dict[str, Trajectories]) -> pd.DataFrame:

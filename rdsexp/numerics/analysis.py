@@ -142,3 +142,104 @@ def empirical_rate(q: np.ndarray, k_from: int, k_to: int, level: float = 0.95) -
 def rms(q: np.ndarray) -> np.ndarray:
     """sqrt(E||q_k||^2) over paths: q (K+1, P, n) -> (K+1,)."""
     return np.sqrt(np.mean(np.sum(q ** 2, axis=-1), axis=1))
+
+
+# ------------------------------------------------------------ exact LQ cost and H2 norm of a gain
+# The ideal closed loop x_{k+1} = Acl(xi_k) x_k (+ B(xi_k) w_k) with the performance output
+# z_k = [Q^(1/2) x_k; R^(1/2) F x_k]. Its observability Gramian P solves the generalized Lyapunov equation
+#     P = Q + F^T R F + E[Acl^T P Acl] = Q + F^T R F + sum_r Acl_r^T P Acl_r,   Acl_r = Abar_r + Bbar_r F,
+# which has a (unique, PSD) solution iff the loop is mean-square stable; then x0^T P x0 = E sum_k z_k^T z_k.
+
+def weight(name: str, value, dim: int) -> np.ndarray:
+    """A weight as a (dim, dim) matrix: a scalar w > 0 means w I; a matrix must be symmetric positive definite.
+
+    Positive definite Q and R make a finite cost equivalent to mean-square stability."""
+    try:
+        W = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name}: {value!r} is not allowed, expected a number > 0 or a ({dim}, {dim}) "
+                         "matrix") from None
+    if W.ndim == 0:
+        W = W * np.eye(dim)
+    if W.shape != (dim, dim) or not np.all(np.isfinite(W)):
+        raise ValueError(f"{name}: shape {W.shape} is not allowed, expected a number > 0 or a finite ({dim}, {dim}) "
+                         "matrix")
+    if not np.allclose(W, W.T, rtol=1e-9, atol=1e-12) or np.linalg.eigvalsh((W + W.T) / 2).min() <= 0:
+        raise ValueError(f"{name}: must be symmetric positive definite")
+    return (W + W.T) / 2
+
+
+def cost_matrix(system: AffineRandomSystem, dist: MomentModel | None, F, *, state_weight=1.0,
+                input_weight=1.0) -> np.ndarray:
+    """P (n, n) with x0^T P x0 = E sum_{k>=0} (x_k^T Q x_k + u_k^T R u_k), u = F x: the exact LQ cost matrix.
+
+    Solves the generalized Lyapunov equation above as one linear system in vec(P) (`lyapunov`).
+    All entries inf when the loop is not mean-square stable
+    (ms_rate >= 1): then x^T P x grows without bound for every x outside a proper subspace.
+    """
+    dist = system.check_distribution(dist)
+    F = system.check_gain(F)
+    Q, R = weight("state_weight", state_weight, system.n), weight("input_weight", input_weight, system.m)
+    if ms_rate(system, dist, F) >= 1:
+        return np.full((system.n, system.n), np.inf)
+    Abar, Bbar = system.moment_factors(dist)
+    P = lyapunov(Abar + Bbar @ F, Q + F.T @ R @ F)
+    return P if P is not None else np.full((system.n, system.n), np.inf)
+
+
+def lyapunov(Acl: np.ndarray, Qbar: np.ndarray) -> np.ndarray | None:
+    """P (n, n) solving P = Qbar + sum_r Acl_r^T P Acl_r for Acl (nbar, n, n) and Qbar > 0, or None.
+
+    For Qbar > 0 a positive definite solution exists iff the loop is mean-square stable (P is then a
+    Lyapunov function: E[Acl^T P Acl] = P - Qbar < P), so None (no positive definite solution) means
+    not mean-square stable; the Cholesky test costs less than the spectrum.
+    """
+    n = Acl.shape[1]
+    L = np.einsum("rji,rlk->ikjl", Acl, Acl).reshape(n * n, n * n)   # row-major vec(A^T P A) = (A^T (x) A^T) vec P
+    try:
+        P = np.linalg.solve(np.eye(n * n) - L, Qbar.ravel()).reshape(n, n)
+        P = (P + P.T) / 2
+        np.linalg.cholesky(P)
+    except np.linalg.LinAlgError:
+        return None
+    return P
+
+
+def lq_cost(system: AffineRandomSystem, dist: MomentModel | None, F, x0=None, *, state_weight=1.0,
+            input_weight=1.0) -> float:
+    """Exact E sum_{k>=0} (x_k^T Q x_k + u_k^T R u_k) of the ideal loop u = F x from x0 (n,).
+
+    x0 None: the average over x0 ~ N(0, I), which is trace(P). inf when not mean-square stable.
+    """
+    P = cost_matrix(system, dist, F, state_weight=state_weight, input_weight=input_weight)
+    if not np.all(np.isfinite(P)):
+        return float("inf")
+    if x0 is None:
+        return float(np.trace(P))
+    x0 = np.asarray(x0, dtype=float)
+    if x0.shape != (system.n,):
+        raise ValueError(f"x0: shape {x0.shape}, expected ({system.n},)")
+    return float(x0 @ P @ x0)
+
+
+def h2_norm(system: AffineRandomSystem, dist: MomentModel | None, F, *, disturbance=None, state_weight=1.0,
+            input_weight=1.0) -> float:
+    """Exact H2 norm from a disturbance w to z = [Q^(1/2) x; R^(1/2) F x] of the random closed loop.
+
+    x_{k+1} = Acl(xi_k) x_k + Bw(xi_k) w_k. disturbance None: Bw = B(xi), i.e. w is added on the
+    plant input as the paper's d_k; else a constant (n, q) matrix Bw. The norm is
+    sqrt(sum_i sum_k E||z_k||^2) over unit impulses e_i at k = 0, which equals the stationary
+    E||z_k||^2 under unit white noise w: sqrt(trace E[Bw^T P Bw]) with P of `cost_matrix`. inf when
+    not mean-square stable.
+    """
+    P = cost_matrix(system, dist, F, state_weight=state_weight, input_weight=input_weight)
+    if not np.all(np.isfinite(P)):
+        return float("inf")
+    if disturbance is None:
+        _, Bw = system.moment_factors(dist)                      # E[B^T P B] = sum_r Bbar_r^T P Bbar_r
+    else:
+        Bw = np.asarray(disturbance, dtype=float)
+        if Bw.ndim != 2 or Bw.shape[0] != system.n or not np.all(np.isfinite(Bw)):
+            raise ValueError(f"disturbance: shape {Bw.shape}, expected a finite (n = {system.n}, q) matrix")
+        Bw = Bw[None]
+    return float(np.sqrt(max(np.einsum("rji,jk,rki->", Bw, P, Bw), 0.0)))
