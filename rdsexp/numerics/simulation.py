@@ -130,7 +130,9 @@ def simulate(plant: AffineRandomSystem, enkf: EnKF, *, F=None, d, q0, psi0, P0=N
     # EnKF noise, `block` steps at a time from each path's own stream, drawn by a helper thread
     # into one of two buffers while this thread filters with the other (numpy's generators release
     # the GIL); each stream is still consumed in order, so results do not depend on the threading
-    buffers = np.empty((2, P, min(block, K + 1), M, ny + dim))
+    # (the etkf variant draws no output perturbations: nv = 0 and only e_w per member and step)
+    nv = enkf.output_noise_dim
+    buffers = np.empty((2, P, min(block, K + 1), M, nv + dim))
 
     def draw(k0: int) -> np.ndarray:
         noise = buffers[(k0 // block) % 2]
@@ -153,7 +155,7 @@ def simulate(plant: AffineRandomSystem, enkf: EnKF, *, F=None, d, q0, psi0, P0=N
                 noise = pending.result()
                 if k + block <= K:
                     pending = drawer.submit(draw, k + block)
-            e_v, e_w = noise[:, k % block, :, :ny], noise[:, k % block, :, ny:]
+            e_v, e_w = noise[:, k % block, :, :nv], noise[:, k % block, :, nv:]
             mean_pred = ensemble_mean(psi)                                          # eq. (state-pred1)
             # a path whose state or ensemble left the bound (or is not finite) stops here
             fail(~(np.all(np.abs(q) <= bound, axis=1) & np.all(np.abs(mean_pred) <= bound, axis=1)),
