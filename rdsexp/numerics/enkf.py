@@ -266,6 +266,27 @@ def ensemble_mean(a: np.ndarray) -> np.ndarray:
     return (np.full((1, M), 1.0 / M) @ a)[..., 0, :]
 
 
+def truth_map(model: AffineRandomSystem, plant: AffineRandomSystem, rtol: float = 1e-9):
+    """The affine map xi = T s + t under which `model` equals `plant` for every plant parameter s,
+    as (T (p, p_plant), t (p,)), or None when there is none or it is not unique.
+
+    Solves model_0 + sum_i t_i model_i = plant_0 and sum_i T_ij model_i = plant_j for the stacked
+    basis matrices [A; B; C; D] (least squares, then checked to hold to rtol). For the paper's plant
+    and model it gives xi = [0.7 s1, s2, 0.6] (eq. sysmodel-coef); for a model that is the plant, T = I."""
+    if (model.n, model.m, model.ny) != (plant.n, plant.m, plant.ny):
+        return None
+    stack = lambda sys: np.concatenate([M.reshape(sys.p + 1, -1) for M in (sys.A, sys.B, sys.C, sys.D)], axis=1)
+    G, H = stack(model), stack(plant)                                  # (p+1, N), (p_plant+1, N)
+    rhs = np.concatenate([(H[0] - G[0])[:, None], H[1:].T], axis=1)    # (N, 1 + p_plant)
+    basis = G[1:].T                                                    # (N, p)
+    if model.p and np.linalg.matrix_rank(basis) < model.p:
+        return None                                                    # xi not determined by the matrices
+    sol = np.linalg.lstsq(basis, rhs, rcond=None)[0] if model.p else np.zeros((0, rhs.shape[1]))
+    if not np.allclose(basis @ sol, rhs, rtol=0, atol=rtol * max(1.0, np.abs(rhs).max(), np.abs(G).max())):
+        return None
+    return sol[:, 1:], sol[:, 0]
+
+
 def _real(value) -> bool:
     """A finite real number (not a bool)."""
     return isinstance(value, (int, float, np.floating, np.integer)) and not isinstance(value, bool) \
