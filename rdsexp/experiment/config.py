@@ -13,7 +13,7 @@ import numpy as np
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from ..numerics.distributions import from_spec
-from ..numerics.enkf import EnKF, check_covariance
+from ..numerics.enkf import VARIANTS, EnKF, check_covariance
 from ..numerics.modeling import mls_input
 from ..numerics.synthesis import METHODS, check_options
 from ..numerics.systems import AffineRandomSystem, MomentModel
@@ -160,7 +160,14 @@ def build(cfg) -> Experiment:
     r_scale = _number(get(cfg, "enkf.r_scale"), "enkf.r_scale", low=0)
     Q = q_scale * _process_noise(cfg, model.n, model.p)
     R = r_scale * _covariance(cfg, "enkf.R", model.ny)
-    enkf = EnKF(model, Q, R)
+    variant = get(cfg, "enkf.variant")
+    if variant not in VARIANTS:
+        raise ConfigError(f"enkf.variant: {variant!r} is not allowed, expected one of {', '.join(VARIANTS)}")
+    inflation = _number(get(cfg, "enkf.inflation"), "enkf.inflation", low=1)
+    relaxation = _number(get(cfg, "enkf.relaxation"), "enkf.relaxation", low=0, high=1)
+    if variant == "etkf" and np.linalg.eigvalsh(R).min() <= 1e-12 * max(np.abs(R).max(), 1e-300):
+        raise ConfigError("enkf.R: must be positive definite with enkf.variant=etkf (its transform uses R^-1)")
+    enkf = EnKF(model, Q, R, variant=variant, inflation=inflation, relaxation=relaxation)
     mean = get(cfg, "enkf.initial.mean")
     with key("enkf.initial.mean"):
         psi0 = np.zeros(dim) if mean is None else np.asarray(mean, dtype=float)

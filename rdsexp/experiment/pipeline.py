@@ -19,6 +19,7 @@ from tqdm import tqdm
 from tqdm.contrib.logging import logging_redirect_tqdm
 
 from ..numerics.analysis import empirical_rate, h2_norm, lq_cost, ms_rate, second_moments
+from ..numerics.enkf import truth_map
 from ..numerics.modeling import model_distribution, nominal_gain, one_line
 from ..numerics.simulation import Trajectories, simulate
 from ..numerics.synthesis import METHODS, SynthesisResult, synthesize
@@ -272,9 +273,36 @@ def metrics_table(exp: Experiment, loops: dict[str, Trajectories]) -> pd.DataFra
                      "k_from": k_from, "k_to": k_to, "paths": tr.q.shape[1],
                      "failed_fraction": float(np.mean(tr.failed_at >= 0)),
                      "x_error_rms": float(np.sqrt(np.nanmean(np.sum(err ** 2, axis=-1)))),
-                     "q_rms_final": float(np.sqrt(np.mean(np.sum(tr.q[-1] ** 2, axis=-1))))})
+                     "q_rms_final": float(np.sqrt(np.mean(np.sum(tr.q[-1] ** 2, axis=-1)))),
+                     **estimation_quality(exp, tr)})
     return pd.DataFrame(rows, columns=["experiment", "status", "rate", "rate_low", "rate_high", "k_from", "k_to",
-                                       "paths", "failed_fraction", "x_error_rms", "q_rms_final"])
+                                       "paths", "failed_fraction", "x_error_rms", "q_rms_final", *ESTIMATION])
+
+
+ESTIMATION = ("x_rmse", "x_spread_error", "xi_rmse", "xi_spread_error")
+
+
+def estimation_quality(exp: Experiment, tr: Trajectories) -> dict:
+    """RMSE sqrt(mean ||e||^2) of the filtered x_{k|k} against q_k and of xi_{k|k} against the true
+    xi, over steps k = 1..K and paths not failed, and the spread/error ratio sqrt(mean sum std^2) / RMSE
+    (1: the ensemble spread matches its error). The true xi at k is T s_{k-1} + t, the coefficients
+    that moved the plant into q_k, with (T, t) from `truth_map` (NaN when the model's xi has no
+    value in the plant's terms)."""
+    def rmse_ratio(err, std):
+        rmse = np.sqrt(np.nanmean(np.sum(err ** 2, axis=-1)))
+        return float(rmse), float(np.sqrt(np.nanmean(np.sum(std ** 2, axis=-1))) / rmse)
+    out = dict.fromkeys(ESTIMATION, np.nan)
+    if tr.q.shape[0] < 2:
+        return out
+    with np.errstate(all="ignore"):
+        out["x_rmse"], out["x_spread_error"] = rmse_ratio(tr.x(tr.psi_filt_mean)[1:] - tr.q[1:],
+                                                         tr.x(tr.psi_filt_std)[1:])
+        truth = truth_map(exp.model, exp.plant) if tr.s is not None else None
+        if truth is not None:
+            T, t = truth
+            out["xi_rmse"], out["xi_spread_error"] = rmse_ratio(tr.xi(tr.psi_filt_mean)[1:] - (tr.s[:-1] @ T.T + t),
+                                                               tr.xi(tr.psi_filt_std)[1:])
+    return out
 
 
 def exact_table(exp: Experiment, chosen: SynthesisResult | None) -> pd.DataFrame:
