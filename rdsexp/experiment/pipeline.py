@@ -81,7 +81,13 @@ def run_experiment(exp: Experiment) -> Outcome:
             for method in METHODS if moments is not None else ():
                 options = exp.gain_options if method == exp.gain_method else {}
                 designs[source, method] = (moments, synthesize(exp.model, moments, method, **options))
-        chosen = designs.get(("identified", exp.gain_method), (None, None))[1]
+        selected = (exp.gain_source, exp.gain_method)
+        if exp.gain_source == "fixed":      # a given F (e.g. a paper's own gain): no design, its exact rate
+            selected, moments = ("fixed", "fixed"), dist if dist is not None else exp.reported
+            rate = ms_rate(exp.model, moments, exp.gain_F) if moments is not None else np.nan
+            nbar = int(exp.model.Gbar(moments).shape[0]) if moments is not None else 0
+            designs[selected] = (moments, SynthesisResult("fixed", exp.gain_F, rate, "fixed", nbar=nbar))
+        chosen = designs.get(selected, (None, None))[1]
 
     loops = {}
     if chosen is not None and chosen.F is not None:
@@ -101,7 +107,7 @@ def run_experiment(exp: Experiment) -> Outcome:
             "identification": trajectory_table("identification", ident),
             "paths": path_table({"identification": ident, **loops}),
             "model": model_table(exp, dist),
-            "gains": gains_table(exp, designs),
+            "gains": gains_table(exp, designs, selected),
             "metrics": metrics_table(exp, loops),
             "exact": exact_table(exp, chosen),
         }
@@ -167,9 +173,10 @@ def model_table(exp: Experiment, dist) -> pd.DataFrame:
     return pd.DataFrame(rows, columns=["quantity", "row", "col", "value"])
 
 
-def gains_table(exp: Experiment, designs: dict) -> pd.DataFrame:
+def gains_table(exp: Experiment, designs: dict, selected: tuple[str, str]) -> pd.DataFrame:
     """Per (distribution, method): status, lam (design), bracket, nbar, exact rates on the design
-    moments and on the true plant, F. designs: {(source, method): (moments, SynthesisResult)}.
+    moments and on the true plant, F. designs: {(source, method): (moments, SynthesisResult)};
+    `selected` is the (source, method) the closed loop used (gain.source; ("fixed", "fixed") for a given F).
 
     Only reproducible numbers go into tables; synthesis times are in run.json's timings."""
     rows = []
@@ -177,10 +184,10 @@ def gains_table(exp: Experiment, designs: dict) -> pd.DataFrame:
         found = res.F is not None
         F = res.F if found else np.full((exp.model.m, exp.model.n), np.nan)
         rows.append({"distribution": source, "method": method,
-                     "selected": source == "identified" and method == exp.gain_method,
+                     "selected": (source, method) == selected,
                      "status": res.status, "lam": res.lam, "lam_lower": res.lam_lower,
                      "lower_certified": res.lower_certified, "nbar": res.nbar,
-                     "rate_model": ms_rate(exp.model, moments, F) if found else np.nan,
+                     "rate_model": ms_rate(exp.model, moments, F) if found and moments is not None else np.nan,
                      "rate_plant": ms_rate(exp.plant, None, F) if found else np.nan,
                      **{f"F[{i}]": v for i, v in enumerate(F.ravel())}})
     return pd.DataFrame(rows)
