@@ -86,6 +86,57 @@ def system_from(cfg, group: str, xi=None) -> AffineRandomSystem:
         return AffineRandomSystem(**mats, xi_dist=xi)
 
 
+INPUT_LEVELS = ("bipolar", "unipolar")
+
+
+def identification_input(cfg, horizon: int, m: int) -> np.ndarray:
+    """The M-sequence of identification.input (levels, amplitude, hold, register_length, taps,
+    state, seed; the last three optional, null by default) as (horizon + 1, m)."""
+    name = "identification.input"
+    node = plain(OmegaConf.select(cfg, name))
+    allowed = {"register_length", "amplitude", "levels", "hold", "taps", "state", "seed"}
+    if not isinstance(node, dict) or not set(node) <= allowed:
+        extra = sorted(set(node) - allowed) if isinstance(node, dict) else node
+        raise ConfigError(f"{name}: {extra!r} is not allowed, expected keys among {', '.join(sorted(allowed))}")
+    reg = _number(get(cfg, f"{name}.register_length"), f"{name}.register_length", integer=True, low=2, high=32)
+    amp = _number(get(cfg, f"{name}.amplitude"), f"{name}.amplitude", low=0, low_open=True)
+    levels = node.get("levels", "bipolar")
+    if levels not in INPUT_LEVELS:
+        raise ConfigError(f"{name}.levels: {levels!r} is not allowed, expected one of {', '.join(INPUT_LEVELS)}")
+    hold = _number(node.get("hold", 1), f"{name}.hold", integer=True, low=1)
+    seed = node.get("seed")
+    if seed is not None:
+        seed = _number(seed, f"{name}.seed", integer=True, low=0)
+    for sub in ("taps", "state"):
+        if node.get(sub) is not None and not (isinstance(node[sub], list) and
+                                              all(isinstance(v, int) and not isinstance(v, bool) for v in node[sub])):
+            raise ConfigError(f"{name}.{sub}: {node[sub]!r} is not allowed, expected null or a list of integers")
+    with key(name):
+        return mls_input(horizon, m, reg, amp, levels=levels, hold=hold, taps=node.get("taps"),
+                         state=node.get("state"), seed=seed)
+
+
+GAIN_SOURCES = ("identified", "reported", "fixed")
+
+
+def _gain_source(cfg, model: AffineRandomSystem, reported) -> tuple[str, np.ndarray | None]:
+    """gain.source (default identified) and, for `fixed`, the (m, n) gain gain.F."""
+    source = plain(OmegaConf.select(cfg, "gain.source", default="identified"))
+    if source not in GAIN_SOURCES:
+        raise ConfigError(f"gain.source: {source!r} is not allowed, expected one of {', '.join(GAIN_SOURCES)}")
+    if source == "reported" and reported is None:
+        raise ConfigError("gain.source: 'reported' is not allowed with model.reported = null (no reported moments)")
+    if source != "fixed":
+        return source, None
+    F = plain(OmegaConf.select(cfg, "gain.F"))
+    with key("gain.F"):
+        arr = np.asarray(F, dtype=float) if isinstance(F, list) else None
+        if arr is None or arr.shape != (model.m, model.n) or not np.all(np.isfinite(arr)):
+            raise ValueError(f"{F!r} is not allowed with gain.source = fixed, expected an (m, n) = "
+                             f"({model.m}, {model.n}) list of finite numbers")
+    return source, arr
+
+
 @dataclass(frozen=True)
 class Experiment:
     """Everything a run needs, validated: the numerics objects and settings of conf/."""
@@ -103,6 +154,8 @@ class Experiment:
     K1: int
     gain_method: str
     gain_options: dict
+    gain_source: str                      # identified | reported | fixed: what the closed loop's F is
+    gain_F: np.ndarray | None             # (m, n), the gain of gain.source = fixed
     paths: int
     disturbance: np.ndarray               # (K + 1, m)
     filter_sees_disturbance: bool
@@ -181,10 +234,7 @@ def build(cfg) -> Experiment:
     if K0 + K1 > K_id:
         raise ConfigError(f"identification.K1: K0 + K1 = {K0 + K1} is not allowed, must be <= "
                           f"identification.horizon = {K_id}")
-    reg = _number(get(cfg, "identification.input.register_length"), "identification.input.register_length",
-                  integer=True, low=2, high=32)
-    amp = _number(get(cfg, "identification.input.amplitude"), "identification.input.amplitude", low=0, low_open=True)
-    u_id = mls_input(K_id, model.m, reg, amp)
+    u_id = identification_input(cfg, K_id, model.m)
     feedback, F_id, xi_guess = _identification_feedback(cfg, plant)
 
     method = get(cfg, "gain.method")
@@ -201,6 +251,7 @@ def build(cfg) -> Experiment:
             check_options("pole_placement", {"poles": poles}, model)
     # every method is designed (the gains table); pole placement only with poles from the config
     design_options = {m: {} for m in METHODS} | {"pole_placement": {"poles": poles}, method: options}
+    gain_source, gain_F = _gain_source(cfg, model, reported)
 
     paths = _number(get(cfg, "closed_loop.paths"), "closed_loop.paths", integer=True, low=1)
     K = _number(get(cfg, "closed_loop.horizon"), "closed_loop.horizon", integer=True, low=1)
@@ -230,6 +281,7 @@ def build(cfg) -> Experiment:
 
     return Experiment(plant=plant, model=model, reported=reported, enkf=enkf, ensemble_size=M, q0=q0, psi0=psi0, P0=P0,
                       identification_input=u_id, K0=K0, K1=K1, gain_method=method, gain_options=options,
+                      gain_source=gain_source, gain_F=gain_F,
                       paths=paths, disturbance=d,
                       filter_sees_disturbance=flags["closed_loop.filter_sees_disturbance"],
                       open_loop=flags["closed_loop.open_loop"], rate_window=tuple(window), seed=seed,

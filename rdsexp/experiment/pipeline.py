@@ -86,7 +86,13 @@ def run_experiment(exp: Experiment) -> Outcome:
             for method in METHODS if moments is not None else ():
                 options = exp.design_options.get(method, exp.gain_options if method == exp.gain_method else {})
                 designs[source, method] = (moments, safe_synthesize(exp.model, moments, method, options))
-        chosen = designs.get(("identified", exp.gain_method), (None, None))[1]
+        selected = (exp.gain_source, exp.gain_method)
+        if exp.gain_source == "fixed":      # a given F (e.g. a paper's own gain): no design, its exact rate
+            selected, moments = ("fixed", "fixed"), dist if dist is not None else exp.reported
+            rate = ms_rate(exp.model, moments, exp.gain_F) if moments is not None else np.nan
+            nbar = int(exp.model.Gbar(moments).shape[0]) if moments is not None else 0
+            designs[selected] = (moments, SynthesisResult("fixed", exp.gain_F, rate, "fixed", nbar=nbar))
+        chosen = designs.get(selected, (None, None))[1]
 
     loops = {}
     if chosen is not None and chosen.F is not None:
@@ -106,7 +112,7 @@ def run_experiment(exp: Experiment) -> Outcome:
             "identification": trajectory_table("identification", ident),
             "paths": path_table({"identification": ident, **loops}),
             "model": model_table(exp, dist),
-            "gains": gains_table(exp, designs),
+            "gains": gains_table(exp, designs, selected),
             "metrics": metrics_table(exp, loops),
             "exact": exact_table(exp, chosen),
         }
@@ -229,10 +235,11 @@ def model_table(exp: Experiment, dist) -> pd.DataFrame:
     return pd.DataFrame(rows, columns=["quantity", "row", "col", "value"])
 
 
-def gains_table(exp: Experiment, designs: dict) -> pd.DataFrame:
+def gains_table(exp: Experiment, designs: dict, selected: tuple[str, str]) -> pd.DataFrame:
     """Per (distribution, method): status, lam (design), bracket, nbar, exact rates, LQ costs and H2
     norms on the design moments and on the true plant (`performance`), robust_box's certified box rate
-    (lam_box, NaN for other methods), F. designs: {(source, method): (moments, SynthesisResult)}.
+    (lam_box, NaN for other methods), F. designs: {(source, method): (moments, SynthesisResult)};
+    `selected` is the (source, method) the closed loop used (gain.source; ("fixed", "fixed") for a given F).
 
     Only reproducible numbers go into tables; synthesis times are in run.json's timings."""
     rows = []
@@ -240,12 +247,12 @@ def gains_table(exp: Experiment, designs: dict) -> pd.DataFrame:
         found = res.F is not None
         F = res.F if found else np.full((exp.model.m, exp.model.n), np.nan)
         rows.append({"distribution": source, "method": method,
-                     "selected": source == "identified" and method == exp.gain_method,
+                     "selected": (source, method) == selected,
                      "status": res.status, "lam": res.lam, "lam_lower": res.lam_lower,
                      "lower_certified": res.lower_certified, "nbar": res.nbar,
-                     "rate_model": safe_rate(exp.model, moments, F) if found else np.nan,
+                     "rate_model": safe_rate(exp.model, moments, F) if found and moments is not None else np.nan,
                      "rate_plant": safe_rate(exp.plant, None, F) if found else np.nan,
-                     **performance(exp, moments, F if found else None),
+                     **performance(exp, moments, F if found and moments is not None else None),
                      "lam_box": res.info.get("lam_box", np.nan),
                      **{f"F[{i}]": v for i, v in enumerate(F.ravel())}})
     return pd.DataFrame(rows)
@@ -255,8 +262,9 @@ def performance(exp: Experiment, moments, F) -> dict:
     """Exact LQ cost (weights I, I) from the plant's q0 and averaged over x0 ~ N(0, I), and the H2 norm
     from d (added on u) to [x; F x], on the true plant and on the design moments; inf where not
     mean-square stable, NaN without a gain."""
-    if F is None:
-        return dict.fromkeys(("lq_cost_q0_plant", "lq_cost_plant", "h2_plant", "lq_cost_model", "h2_model"), np.nan)
+    keys = ("lq_cost_q0_plant", "lq_cost_plant", "h2_plant", "lq_cost_model", "h2_model")
+    if F is None or not np.all(np.isfinite(F)):
+        return dict.fromkeys(keys, np.nan)
     return {"lq_cost_q0_plant": lq_cost(exp.plant, None, F, exp.q0), "lq_cost_plant": lq_cost(exp.plant, None, F),
             "h2_plant": h2_norm(exp.plant, None, F), "lq_cost_model": lq_cost(exp.model, moments, F),
             "h2_model": h2_norm(exp.model, moments, F)}

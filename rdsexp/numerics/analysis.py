@@ -243,3 +243,62 @@ def h2_norm(system: AffineRandomSystem, dist: MomentModel | None, F, *, disturba
             raise ValueError(f"disturbance: shape {Bw.shape}, expected a finite (n = {system.n}, q) matrix")
         Bw = Bw[None]
     return float(np.sqrt(max(np.einsum("rji,jk,rki->", Bw, P, Bw), 0.0)))
+
+
+# ----------------------------------------------------------- rate estimators beside empirical_rate
+def bootstrap_rate(sq_from: np.ndarray, sq_to: np.ndarray, span: int, *, replicates: int = 2000,
+                   level: float = 0.95, seed=0) -> tuple[float, float, float]:
+    """Two-point mean-square rate with a percentile bootstrap interval, resampling seeds then paths.
+
+    sq_from, sq_to: (S, P) values of ||q_{k_from}||^2 and ||q_{k_to}||^2 per seed (independent run)
+    and path; span = k_to - k_from. The rate is (sum sq_to / sum sq_from)^(1/(2 span)), the paper's
+    ratio of sample means pooled over all S*P paths. Each replicate draws S seeds with replacement
+    and, within each, P paths with replacement (S = 1: the bootstrap over paths of one run), so the
+    interval carries the spread between seeds as well as within. NaN if any value is not finite.
+    Returns (rate, low, high).
+    """
+    a, b = np.atleast_2d(np.asarray(sq_to, float)), np.atleast_2d(np.asarray(sq_from, float))
+    if a.shape != b.shape or span < 1:
+        raise ValueError(f"sq_from, sq_to: shapes {b.shape}, {a.shape} must match (S, P); span {span} must be >= 1")
+    if not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))) or b.sum() <= 0 or a.sum() <= 0:
+        return float("nan"), float("nan"), float("nan")
+    S, P = a.shape
+    rng = np.random.default_rng(seed)
+    s = rng.integers(S, size=(replicates, S, 1))
+    p = rng.integers(P, size=(replicates, S, P))
+    ratio = a[s, p].sum(axis=(1, 2)) / b[s, p].sum(axis=(1, 2))          # (replicates,)
+    with np.errstate(divide="ignore"):
+        boot = ratio ** (1 / (2 * span))
+    low, high = np.quantile(boot, [0.5 - level / 2, 0.5 + level / 2])
+    return float((a.sum() / b.sum()) ** (1 / (2 * span))), float(low), float(high)
+
+
+def largest_path_share(q: np.ndarray, k: int) -> float:
+    """Share of the largest path in the sample mean of ||q_k||^2: q (K+1, P, n) -> in [1/P, 1]."""
+    sq = np.sum(q[k] ** 2, axis=-1)
+    return float(sq.max() / sq.sum()) if np.all(np.isfinite(sq)) and sq.sum() > 0 else float("nan")
+
+
+def robust_rate(q: np.ndarray, k_from: int, k_to: int, groups: int = 10) -> float:
+    """Median-of-means rate: a rate estimate that no single path can dominate.
+
+    The P paths are split into `groups` interleaved groups (path j in group j mod groups); in each,
+    log of the group's mean ||q_k||^2 is fitted by least squares against k = k_from..k_to (every
+    step of the window, not only its two ends), the slope halved; the median over groups is
+    returned as exp(.). One heavy path moves one group, not the median. It estimates the same
+    mean-square rate as the two-point ratio when groups are large enough that each group mean is
+    close to its expectation. q: (K+1, P, n). NaN if a path is not finite in the window.
+    """
+    P = q.shape[1]
+    if not 1 <= groups <= P or not 0 <= k_from < k_to < q.shape[0]:
+        raise ValueError(f"groups {groups} must be in 1..P = {P}; window {k_from}..{k_to} within 0..{q.shape[0] - 1}")
+    sq = np.sum(q[k_from:k_to + 1] ** 2, axis=-1)                            # (W, P)
+    if not np.all(np.isfinite(sq)):
+        return float("nan")
+    member = np.arange(P) % groups
+    means = np.stack([sq[:, member == g].mean(axis=1) for g in range(groups)], axis=1)   # (W, groups)
+    if np.any(means <= 0):
+        return float("nan")
+    k = np.arange(k_from, k_to + 1) - (k_from + k_to) / 2
+    slopes = k @ np.log(means) / (k @ k)                                   # least-squares slope per group
+    return float(np.exp(np.median(slopes) / 2))
