@@ -17,14 +17,13 @@ from pathlib import Path
 
 import hydra
 import numpy as np
-import pandas as pd
 from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
 from . import records
 from .config import ConfigError, Experiment, build
-from .pipeline import SPAWN_KEYS, Outcome, run_experiment, timed
+from .pipeline import SPAWN_KEYS, TABLES, Outcome, run_experiment, timed
 
 log = logging.getLogger("rdsexp")
 CONF_PACKAGE = "pkg://rdsexp.conf"        # conf/ of the repository, shipped as the package rdsexp.conf
@@ -35,26 +34,29 @@ if not OmegaConf.has_resolver("uid"):
     OmegaConf.register_new_resolver("uid", lambda: uuid.uuid4().hex[:8], use_cache=True)
 
 
-def record(run_dir: Path, outcome: Outcome, exp: Experiment, info: dict) -> dict:
-    """Write tables, recording and the final run.json into run_dir; returns the run.json content."""
+def record(run_dir: Path, outcome: Outcome, exp: Experiment, info: dict, streamed: dict) -> dict:
+    """Write the remaining tables, the recording and the final run.json into run_dir; `streamed`:
+    the tables the pipeline already wrote through a ParquetSink. Returns the run.json content."""
     timings = dict(outcome.timings)
     with timed(timings, "tables"):
-        frames = dict(outcome.tables) | ({"members": outcome.members} if outcome.members is not None else {})
         hashes = {name: {"file": f"{name}.parquet", "rows": len(table),
                          "sha256": records.write_table(run_dir / f"{name}.parquet", table)}
-                  for name, table in frames.items()}
+                  for name, table in outcome.tables.items()}
+        hashes = dict(sorted((hashes | streamed).items(), key=lambda item: _table_order(item[0])))
     with timed(timings, "recording"):
         if exp.recording:
             from .recording import write_recording  # rerun is imported only when recording
             tmp = run_dir / ".recording.rrd.tmp"
-            trajectories = pd.concat([outcome.tables["identification"], outcome.tables["trajectories"]],
-                                     ignore_index=True)
-            write_recording(tmp, trajectories, recording_id=info["id"], members=outcome.members)
+            write_recording(tmp, outcome.recorded, recording_id=info["id"], members=outcome.recorded_members)
             tmp.replace(run_dir / "recording.rrd")
     info.update(status="complete", finished=records.now(), summary=outcome.summary, tables=hashes, timings=timings,
                 seconds=round(sum(v for v in timings.values() if isinstance(v, float)), 3))
     records.write_json(run_dir / "run.json", info)
     return info
+
+
+def _table_order(name: str) -> int:
+    return TABLES.index(name) if name in TABLES else len(TABLES)
 
 
 def run_info(run_dir: Path, job_config: dict, seed: int) -> tuple[dict, str]:
@@ -104,9 +106,12 @@ def execute(cfg: DictConfig, run_dir: Path) -> dict:
         if diff:
             records.atomic_write_bytes(run_dir / "uncommitted.diff", diff.encode())
         records.write_json(run_dir / "run.json", info)     # "incomplete" until the end
-    outcome = run_experiment(exp)
+    sink = records.ParquetSink(run_dir)
+    outcome = run_experiment(exp, sink)
     outcome.timings |= timings
-    return record(run_dir, outcome, exp, info)
+    with timed(outcome.timings, "streamed_tables"):
+        streamed = sink.close()
+    return record(run_dir, outcome, exp, info, streamed)
 
 
 def reusable_run(cfg: DictConfig, info: dict) -> Path | None:

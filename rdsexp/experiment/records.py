@@ -64,13 +64,56 @@ def write_table(path: Path, table: pd.DataFrame) -> str:
 
 def table_hash(table: pd.DataFrame) -> str:
     """sha256 over column names, dtypes and values: equal for equal tables, whatever the file bytes."""
+    return _hash_columns((name, table[name]) for name in table.columns)
+
+
+def file_hash(path: Path) -> str:
+    """`table_hash` of a stored parquet table, read one column at a time (bounded memory)."""
+    import pyarrow.parquet as pq
+    source = pq.ParquetFile(path)
+    return _hash_columns((name, source.read(columns=[name]).to_pandas()[name]) for name in source.schema_arrow.names)
+
+
+def _hash_columns(columns) -> str:
     h = hashlib.sha256()
-    for name in table.columns:
-        column = table[name]
+    for name, column in columns:
         h.update(f"{name}:{column.dtype}".encode())
         values = column.to_numpy()
         h.update(values.tobytes() if values.dtype.kind in "biuf" else "\x1f".join(map(str, values)).encode())
     return h.hexdigest()
+
+
+class ParquetSink:
+    """Streams tables into DIR/NAME.parquet, one row group per `append`, under a temporary name until
+    `close` renames them (a killed run leaves no table that looks complete).
+
+    Every append of a table must have the same columns and dtypes (the chunks of one table do)."""
+
+    def __init__(self, directory: Path):
+        self.directory, self.writers, self.rows = Path(directory), {}, {}
+
+    def append(self, name: str, rows: pd.DataFrame) -> None:
+        import pyarrow as pa
+        import pyarrow.parquet as pq
+        table = pa.Table.from_pandas(rows, preserve_index=False)
+        if name not in self.writers:
+            self.writers[name] = pq.ParquetWriter(self.directory / f".{name}.parquet.{os.getpid()}.tmp", table.schema)
+            self.rows[name] = 0
+        self.writers[name].write_table(table)
+        self.rows[name] += len(rows)
+
+    def close(self) -> dict:
+        """Finish every table; returns {name: {"file", "rows", "sha256"}} as run.json's `tables`."""
+        out = {}
+        for name, writer in self.writers.items():
+            writer.close()
+            tmp, final = self.directory / f".{name}.parquet.{os.getpid()}.tmp", self.directory / f"{name}.parquet"
+            with open(tmp, "rb") as fh:
+                os.fsync(fh.fileno())
+            os.replace(tmp, final)
+            out[name] = {"file": final.name, "rows": self.rows[name], "sha256": file_hash(final)}
+        self.writers = {}
+        return out
 
 
 def config_hash(job_config: dict) -> str:

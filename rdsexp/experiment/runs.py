@@ -107,7 +107,7 @@ def verify(run_dir: Path) -> bool:
     outcome = run_experiment(build(cfg))
     ok = True
     for name, meta in (info.get("tables") or {}).items():
-        fresh = outcome.members if name == "members" else outcome.tables.get(name)
+        fresh = outcome.tables.get(name)
         stored = pd.read_parquet(run_dir / meta["file"])
         problems = compare_tables(stored, fresh) if fresh is not None else ["not produced by the re-run"]
         if records.table_hash(stored) != meta["sha256"]:

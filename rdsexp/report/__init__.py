@@ -160,7 +160,7 @@ def rms_with_band(q: np.ndarray, level_z: float = 1.96) -> tuple[np.ndarray, np.
 
 def trajectory_array(table: pd.DataFrame, experiment: str, quantity: str) -> np.ndarray:
     """(K+1, P, dim) array of QUANTITY[i] columns of one experiment of a trajectories table."""
-    rows = table[table["experiment"] == experiment]
+    rows = table[table["experiment"] == experiment].sort_values(["k", "path"], kind="stable")
     cols = sorted((c for c in table.columns if c.startswith(quantity + "[")),
                   key=lambda c: int(c[len(quantity) + 1:-1]))
     steps, paths = rows["k"].nunique(), rows["path"].nunique()
