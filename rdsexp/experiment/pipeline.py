@@ -331,10 +331,15 @@ def metrics_table(exp: Experiment, loops: dict[str, LoopSummary]) -> pd.DataFram
                      "failed_fraction": float(np.mean(loop.failed_at >= 0)),
                      "x_error_rms": loop.rms_of("x_pred_err"),
                      "q_rms_final": float(np.sqrt(np.mean(loop.sq[-1]))),
-                     "x_rmse": x_rmse, "x_spread_error": loop.rms_of("x_var") / x_rmse,
-                     "xi_rmse": xi_rmse, "xi_spread_error": loop.rms_of("xi_var") / xi_rmse})
+                     "x_rmse": x_rmse, "x_spread_error": _ratio(loop.rms_of("x_var"), x_rmse),
+                     "xi_rmse": xi_rmse, "xi_spread_error": _ratio(loop.rms_of("xi_var"), xi_rmse)})
     return pd.DataFrame(rows, columns=["experiment", "status", "rate", "rate_low", "rate_high", "k_from", "k_to",
                                        "paths", "failed_fraction", "x_error_rms", "q_rms_final", *ESTIMATION])
+
+
+def _ratio(a: float, b: float) -> float:
+    """a / b, NaN when b is 0 (no error to compare the spread with, e.g. p = 0)."""
+    return a / b if b != 0 else float("nan")
 
 
 ESTIMATION = ("x_rmse", "x_spread_error", "xi_rmse", "xi_spread_error")
