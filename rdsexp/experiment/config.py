@@ -71,7 +71,16 @@ def _covariance(cfg, name: str, dim: int) -> np.ndarray:
     try:
         return check_covariance(name, get(cfg, name), dim)
     except (ValueError, TypeError) as err:
-        raise ConfigError(str(err)) from None
+        text = one_line_text(err)
+        raise ConfigError(text if text.startswith(f"{name}:") else
+                          f"{name}: {get(cfg, name)!r} is not allowed, expected a scalar, {dim} diagonal entries "
+                          f"or a ({dim}, {dim}) matrix of numbers") from None
+
+
+def one_line_text(err: BaseException) -> str:
+    """The first line of an exception's message."""
+    lines = str(err).strip().splitlines()
+    return lines[0] if lines else type(err).__name__
 
 
 def system_from(cfg, group: str, xi=None) -> AffineRandomSystem:
@@ -300,12 +309,17 @@ def build(cfg) -> Experiment:
 
 
 def _process_noise(cfg, n: int, p: int) -> np.ndarray:
-    """enkf.Q: {x: scale, xi: scale} (times I_n and I_p), or a scalar, diagonal or full (n+p) matrix."""
+    """enkf.Q: {x: scale, xi: scale, matrix: null} -> diag(x I_n, xi I_p); a non-null `matrix` (a
+    scalar, n + p diagonal entries or a full (n+p, n+p) matrix) replaces the scales. A conf file may
+    also give enkf.Q itself as such a matrix."""
     Q = get(cfg, "enkf.Q")
     if not isinstance(Q, dict):
         return _covariance(cfg, "enkf.Q", n + p)
-    if set(Q) != {"x", "xi"}:
-        raise ConfigError(f"enkf.Q: {Q!r} is not allowed, expected {{x: scale, xi: scale}} or a matrix")
+    if not {"x", "xi"} <= set(Q) <= {"x", "xi", "matrix"}:
+        raise ConfigError(f"enkf.Q: {Q!r} is not allowed, expected {{x: scale, xi: scale, matrix: null or a "
+                          f"scalar, {n + p} diagonal entries or ({n + p}, {n + p})}}")
+    if Q.get("matrix") is not None:
+        return _covariance(cfg, "enkf.Q.matrix", n + p)
     scales = [_number(Q[part], f"enkf.Q.{part}", low=0) for part in ("x", "xi")]
     return np.diag(np.repeat(scales, [n, p]))
 

@@ -28,6 +28,9 @@ from .montecarlo import LoopSummary, run_chunks
 
 log = logging.getLogger("rdsexp")
 SPAWN_KEYS = {"identification": (0,), "closed_loop": (1,), "open_loop": (1,)}
+# a path's failure reason (Trajectories.failure) in words, for the summary
+FAILURES = {"diverged": "the plant state diverged", "filter_diverged": "the EnKF estimate diverged",
+            "singular_innovation": "the EnKF innovation covariance was singular"}
 TABLES = ("trajectories", "identification", "paths", "model", "gains", "metrics", "exact")
 STREAMED = ("trajectories", "members")        # written chunk by chunk through a sink
 
@@ -50,7 +53,12 @@ def timed(timings: dict, stage: str):
     """Time the block into timings[stage] and log the stage with its seconds (rdsexp.log)."""
     start = time.perf_counter()
     log.info("%s ...", stage)
-    yield
+    try:
+        yield
+    except Exception as err:
+        if not hasattr(err, "rdsexp_stage"):      # the innermost stage, for the run's failure status
+            err.rdsexp_stage = stage
+        raise
     timings[stage] = round(time.perf_counter() - start, 4)
     log.info("%s done in %.3f s", stage, timings[stage])
 
@@ -81,7 +89,9 @@ def run_experiment(exp: Experiment, sink=None) -> Outcome:
         xi = ident.xi(ident.psi_filt_mean)[:, 0]
         if ident.status != "ok" or not np.all(np.isfinite(xi[exp.K0:exp.K0 + exp.K1 + 1])):
             dist = None
-            summary["modeling_status"] = f"identification {ident.failure[0]} at k = {ident.failed_at[0]}"
+            reason = ident.failure[0] or "the filtered xi is not finite"
+            k_fail = ident.failed_at[0] if ident.failed_at[0] >= 0 else "window"
+            summary["modeling_status"] = f"identification failed at k = {k_fail}: {FAILURES.get(reason, reason)}"
         else:
             dist = model_distribution(xi, exp.K0, exp.K1)
             summary["modeling_status"] = "ok"
@@ -375,8 +385,10 @@ def _summary(exp: Experiment, dist, chosen, tables: dict) -> dict:
         s[f"{row.experiment}_rate"] = [row.rate, row.rate_low, row.rate_high]
         failed = paths[(paths["experiment"] == row.experiment) & (paths["failed_at"] >= 0)]["failed_at"]
         if len(failed):
+            reasons = paths[(paths["experiment"] == row.experiment) & (paths["failed_at"] >= 0)]["failure"]
             s[f"{row.experiment}_failed"] = {"fraction": row.failed_fraction, "first_k": int(failed.min()),
-                                             "median_k": float(failed.median())}
+                                             "median_k": float(failed.median()),
+                                             "reasons": {str(r): int(c) for r, c in reasons.value_counts().items()}}
     if exp.reference is not None:
         s["reference"] = exp.reference
     return s

@@ -23,7 +23,7 @@ from .enkf import EnKF, check_covariance, component_major, ensemble_mean, sqrtm_
 from .systems import AffineRandomSystem, _finite_array
 
 PLANT, ENKF = 0, 1            # SeedSequence spawn-key slots per purpose
-DIVERGENCE_BOUND = 1e6        # |q| or |ensemble mean| beyond this marks a path diverged
+DIVERGENCE_BOUND = 1e6        # |q| (or |ensemble mean|) beyond this marks a path (or its filter) diverged
 
 
 def path_generators(seed, purpose: int, paths) -> list[np.random.Generator]:
@@ -40,7 +40,8 @@ class Trajectories:
     q: plant state, y: output, u: input applied to the plant (F x_{k|k-1} + d_k),
     psi_pred_* / psi_filt_*: ensemble mean and spread (std over members, ddof 1) of psi_{k|k-1}
     and psi_{k|k}; split with `x(...)`/`xi(...)`. failed_at (P,): first step whose values are
-    not kept (-1 if none); failure (P,): "" / "diverged" / "singular_innovation". Values of a
+    not kept (-1 if none); failure (P,): "" / "diverged" (the plant state) / "filter_diverged" (the
+    EnKF mean only) / "singular_innovation". Values of a
     failed path from failed_at on are NaN. members: filtered ensembles (K+1, P, M, n+p) if kept.
     s: the plant's coefficients (K+1, P, p_plant), s_k moving q_k to q_{k+1} (all steps drawn).
     """
@@ -163,9 +164,10 @@ def simulate(plant: AffineRandomSystem, enkf: EnKF, *, F=None, d, q0, psi0, P0=N
                     pending = drawer.submit(draw, k + block)
             e_v, e_w = noise[:, k % block, :, :nv], noise[:, k % block, :, nv:]
             mean_pred = ensemble_mean(psi)                                          # eq. (state-pred1)
-            # a path whose state or ensemble left the bound (or is not finite) stops here
-            fail(~(np.all(np.abs(q) <= bound, axis=1) & np.all(np.abs(mean_pred) <= bound, axis=1)),
-                 k, "diverged")
+            # a path whose state or ensemble left the bound (or is not finite) stops here; the
+            # reason says which: the plant ("diverged") or only the EnKF's estimate
+            fail(~np.all(np.abs(q) <= bound, axis=1), k, "diverged")
+            fail(~np.all(np.abs(mean_pred) <= bound, axis=1), k, "filter_diverged")
             q[~alive], psi[~alive], mean_pred[~alive] = 0.0, 0.0, 0.0    # no overflow on failed paths
             # eq. (sf-enkf) + d_k, one product per path: the rounding of a single (P, n) @ (n, m)
             # product depends on P (paths=1 gave other last bits)
