@@ -87,3 +87,19 @@ def test_not_ms_stabilizable_is_a_status():
 def test_bad_synthesis_arguments(model, method, options, message):
     with pytest.raises(ValueError, match=message):
         rx.synthesize(*model, method, **options)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_seeded_lmi_matches_full_bisection(seed):
+    """Seeded by policy iteration's bracket: same status and lambda within tol, in fewer solves."""
+    rng = np.random.default_rng(50 + seed)
+    system, dist = random_model(rng, n=int(rng.integers(2, 6)), m=int(rng.integers(1, 3)), p=int(rng.integers(1, 4)))
+    seeded = rx.synthesize(system, dist, "proposed")
+    full = rx.synthesize(system, dist, "proposed", seed=False)
+    assert seeded.status == full.status
+    assert seeded.lam == pytest.approx(full.lam, abs=1e-7)
+    assert seeded.lam == pytest.approx(rx.ms_rate(system, dist, seeded.F), rel=1e-12)
+    assert seeded.lam_lower <= full.lam and full.lam_lower <= seeded.lam
+    if seeded.status == "optimal":
+        assert seeded.info["seeded"] and seeded.info["solves"] <= full.info["solves"]
+        assert seeded.lower_certified and seeded.lam - seeded.lam_lower <= 1e-7

@@ -73,6 +73,8 @@ def check_options(method: str, options: dict, system: AffineRandomSystem) -> Non
     for name, value in options.items():
         if name == "poles":
             check_poles(value, system)
+        elif name == "seed" and not isinstance(value, bool):
+            raise ValueError(f"seed: {value!r} is not allowed, expected true or false")
         elif name in POSITIVE_OPTIONS and not (isinstance(value, (int, float)) and not isinstance(value, bool)
                                                and np.isfinite(value) and value > 0):
             raise ValueError(f"{name}: {value!r} is not allowed, expected a number > 0")
