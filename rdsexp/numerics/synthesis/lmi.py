@@ -41,11 +41,12 @@ def _lmi_problem(n: int, m: int, nbar: int):
     problem = cp.Problem(cp.Maximize(t), [lmi >> 0, cp.trace(X) == 1])
     # compile now: cvxpy's first solve canonicalises with the parameter values in place, later ones
     # go through the cached parametrised program, and the two differ in the last bits; compiling
-    # here sends every real solve through the same path, so results do not depend on call history
+    # here (get_problem_data builds and caches the parametrised program without solving) sends every
+    # real solve through the same path, so results do not depend on call history
     lam2.value = 1.0
     for r in range(nbar):
         Abar[r].value, Bbar[r].value = np.eye(n), np.zeros((n, m))
-    problem.solve(solver=cp.CLARABEL)
+    problem.get_problem_data(cp.CLARABEL)          # compiles the parametrised program, no solve
     return problem, lam2, Abar, Bbar, X, Y, t
 
 

@@ -9,6 +9,7 @@ from .base import SynthesisResult, designed, mean_model
 
 BRACKET_TOL = 1e-7           # status `optimal` when (lam - lam_lower) / lam is below this
 KERNEL_TOL = 1e-12           # relative size below which an eigenvalue of S + diag(P, 0) counts as 0
+STALL_TOL = 1e-13            # policy iteration stops when the rate decreases by less than this (relative)
 LOWER_MARGIN = 1e-9          # relative back-off of c before its independent check (rounding of S)
 
 
@@ -85,7 +86,7 @@ def rate_lower_bound(Abar: np.ndarray, Bbar: np.ndarray, P: np.ndarray) -> float
     return 0.0
 
 
-def policy_iteration(system, dist, *, max_iter: int = 200, tol: float = 1e-13, F0=None):
+def policy_iteration(system, dist, *, max_iter: int = 200, tol: float = 1e-9, F0=None):
     """Optimal mean-square rate without an SDP, with a certified bracket [lam_lower, lam].
 
     Alternate (i) P = Perron eigenvector (PSD) of T_F(P) = E[Acl^T P Acl] for the current F,
@@ -95,7 +96,8 @@ def policy_iteration(system, dist, *, max_iter: int = 200, tol: float = 1e-13, F
 
     Returned: the gain with the smallest exact rate seen (F = 0 or F0 included), lam its rate (the
     Perron root of its second-moment map, computed on the balanced closed loop), lam_lower the best
-    certified lower bound. Status: `optimal` (lam < 1, relative bracket width below BRACKET_TOL),
+    certified lower bound. The iteration stops when (lam - lam_lower) / lam <= tol or the rate stops
+    decreasing. Status: `optimal` (lam < 1, relative bracket width below BRACKET_TOL),
     `not_ms_stabilizable` (lam_lower >= 1 proves it, or lam >= 1 with a closed bracket),
     `not_converged` (the bracket stays open after max_iter or once F stops improving: e.g. an
     infimum that no gain attains; lam and lam_lower say how far apart). info: iterations.
@@ -103,15 +105,15 @@ def policy_iteration(system, dist, *, max_iter: int = 200, tol: float = 1e-13, F
     Abar, Bbar = system.moment_factors(dist)
     n, m = system.n, system.m
     F = np.zeros((m, n)) if F0 is None else system.check_gain(F0)
-    best_F, lam, lower, P, it = F, np.inf, 0.0, None, 0
+    best_F, best_P, lam, lower, P, it = F, None, np.inf, 0.0, None, 0
     for it in range(1, max_iter + 1):
         rho, P = perron(Abar + Bbar @ F, adjoint=True, v0=P)
         rate = float(np.sqrt(rho))
-        improved = rate < lam * (1 - tol)
+        improved = rate < lam * (1 - STALL_TOL)
         if rate < lam:
-            best_F, lam = F, rate
+            best_F, best_P, lam = F, P, rate
         lower = max(lower, rate_lower_bound(Abar, Bbar, P))
-        if lam - lower <= tol * max(lam, 1e-300) or (not improved and it > 1):
+        if lam - lower <= tol * lam or (not improved and it > 1):
             break
         F = greedy_gain(Abar, Bbar, P)
         if not np.all(np.isfinite(F)):
@@ -120,8 +122,8 @@ def policy_iteration(system, dist, *, max_iter: int = 200, tol: float = 1e-13, F
     # eigenvectors) times rounding of T; near dead beat (a nilpotent closed loop, Jordan blocks)
     # <X, P> -> 0 and no floating-point rate, upper or lower, is accurate
     Acl = Abar + Bbar @ best_F
-    rho_x, X = perron(Acl)
-    _, P = perron(Acl, adjoint=True, v0=P if best_F is F else None)
+    _, X = perron(Acl)
+    P = best_P
     overlap = float(np.sum(X * P))
     size = float(np.sum(np.abs(Acl).sum(axis=(1, 2)) ** 2))
     kappa = np.linalg.norm(X) * np.linalg.norm(P) / overlap if overlap > 0 else np.inf
