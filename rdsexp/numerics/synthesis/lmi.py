@@ -42,7 +42,9 @@ def _lmi_problem(n: int, m: int, nbar: int):
     # compile now: cvxpy's first solve canonicalises with the parameter values in place, later ones
     # go through the cached parametrised program, and the two differ in the last bits; compiling
     # here (get_problem_data builds and caches the parametrised program without solving) sends every
-    # real solve through the same path, so results do not depend on call history
+    # real solve through the same path; every solve also builds a fresh Clarabel solver
+    # (warm_start=False) instead of updating the previous one's data in place, which differs in the last
+    # bits. Together, results do not depend on call history.
     lam2.value = 1.0
     for r in range(nbar):
         Abar[r].value, Bbar[r].value = np.eye(n), np.zeros((n, m))
@@ -63,7 +65,7 @@ def _theorem2(system: AffineRandomSystem, dist: MomentModel, method: str, seed: 
         try:
             with warnings.catch_warnings():                              # inaccuracy is a status here
                 warnings.simplefilter("ignore")
-                problem.solve(solver=cp.CLARABEL)
+                problem.solve(solver=cp.CLARABEL, warm_start=False)    # a fresh solver: see _lmi_problem
             status = problem.status
         except cp.error.SolverError:
             status = "solver_error"

@@ -88,7 +88,7 @@ def _solver(system: AffineRandomSystem, vertices: np.ndarray):
         try:
             with warnings.catch_warnings():                       # inaccuracy is a status here
                 warnings.simplefilter("ignore")
-                problem.solve(solver=cp.CLARABEL)
+                problem.solve(solver=cp.CLARABEL, warm_start=False)    # a fresh solver: see lmi._lmi_problem
             status = problem.status
         except cp.error.SolverError:
             status = "solver_error"
