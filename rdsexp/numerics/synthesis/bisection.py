@@ -16,7 +16,7 @@ from ..analysis import ms_rate
 from ..systems import AffineRandomSystem, MomentModel
 from .base import SynthesisResult
 
-SEED_MARGIN = 3e-8           # below the seed's lower end, where the LMI is proven infeasible
+SEED_MARGIN = 3e-8           # above the seed's upper end: the trial lambda of the confirming solve
 
 
 @dataclass
@@ -43,11 +43,12 @@ def certified_bisection(system: AffineRandomSystem, dist: MomentModel, solve: Ca
     lambda^2. A trial whose gain does not confirm it raises the lower end; that lower end is
     certified when the solver proved the LMI infeasible there.
 
-    bracket (lower, upper): a certified bracket of the optimum from elsewhere (policy iteration's),
-    used as a seed: one solve just above `upper` (its gain's exact rate confirms the upper end) and
-    one at `lower` - SEED_MARGIN (the solver proves the LMI infeasible there), then the bracket is
-    closed in two solves; where either step fails the bisection goes on from what it has.
-    SEED_MARGIN sits well above the solver's accuracy on the margin t (about 1e-9 near the optimum).
+    bracket (lower, upper): a certified bracket of the optimum from elsewhere (policy iteration's,
+    whose lower end is proven without an SDP): the lower end is taken as proven, and one solve at
+    upper + SEED_MARGIN returns a gain whose exact rate confirms the upper end, closing the bracket
+    in one solve; where it does not, the bisection goes on from [lower, best rate in hand].
+    (A solve just below the lower end cannot prove the LMI infeasible there: the solver's margin t
+    is within its accuracy, about 1e-9, of 0 on both sides of the optimum.)
     """
     best_F = np.zeros((system.m, system.n))
     lam = ms_rate(system, dist, best_F)
@@ -57,12 +58,7 @@ def certified_bisection(system: AffineRandomSystem, dist: MomentModel, solve: Ca
         solves += 1
         if result.F is not None and (rate := ms_rate(system, dist, result.F)) < lam:
             lam, best_F, best_X = rate, result.F, result.X
-        trial = bracket[0] - SEED_MARGIN
-        if best_X is not None and lam - trial <= tol and trial > 0:
-            result = solve(trial)
-            solves += 1
-            if result.infeasible:
-                lo, certified = trial, True
+        lo = min(bracket[0], lam)
         confirmed = lam - lo > tol                  # not closed: the bisection probes below lam first
     while lam - lo > tol and solves < max_iter:
         trial = max(lam - tol / 2, 0.0) if confirmed else np.sqrt((lo ** 2 + lam ** 2) / 2)
