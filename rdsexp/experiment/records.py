@@ -3,7 +3,17 @@
 A run directory holds Hydra's `.hydra/`, `run.json` (status, timings, seeds, code version,
 environment, table hashes), parquet tables, `recording.rrd` and, when the working tree was dirty,
 `uncommitted.diff`. Every file is written to a temporary name and renamed, so a killed run leaves
-either a complete file or none; `run.json` says "incomplete" until the last table is in place.
+either a complete file or none; `run.json` says "incomplete" until the last table is in place, and
+records the process (pid, host, start time) so that a run whose process died can be told apart.
+
+Reading is defensive: `read_run` turns an unreadable or partial run.json into `DamagedRecord` (one
+line: path and reason) so that every reader of the store can skip it with one warning and go on;
+`damage` lists a run's missing, unreadable or modified files. Writing fails loudly: an `OSError` on
+the way becomes `WriteError` (one line), the temporary file is removed, nothing partial is left
+under a final name. Tables and recordings are stored read-only (reused runs share them by hard link).
+
+The reuse index (`<store>/index/`, one small JSON per config hash and code version pointing at a
+complete run) lets a sweep job find a run to reuse without reading every run.json in the store.
 """
 from __future__ import annotations
 
@@ -31,15 +41,60 @@ PACKAGE = Path(__file__).resolve().parents[1]
 REPO = PACKAGE.parent          # the repository root when rdsexp runs from a checkout
 
 
-def atomic_write_bytes(path: Path, data: bytes) -> None:
-    """Write `data` to `path` via a temporary file in the same directory and an atomic rename."""
+READ_ONLY = 0o444
+TMP_SUFFIX = ".tmp"                 # temporary files are ".<name>.<pid>.tmp", renamed when complete
+
+
+class WriteError(RuntimeError):
+    """A write to the run store failed (disk full, permission denied, read-only file system)."""
+
+    def __init__(self, path: Path, err: BaseException):
+        reason = err.strerror if isinstance(err, OSError) and err.strerror else str(err)
+        super().__init__(f"cannot write {path}: {reason}")
+        self.path = Path(path)
+
+
+class DamagedRecord(Exception):
+    """A stored record that cannot be read as written (one line: path and reason)."""
+
+    def __init__(self, path: Path, reason: str):
+        super().__init__(f"{path}: {reason}")
+        self.path, self.reason = Path(path), reason
+
+
+def warn_damaged(err: DamagedRecord, action: str = "skipped") -> None:
+    """The one warning line a reader of the store prints for a record it skips."""
+    print(f"rdsexp: warning: {action} {err.path}: {err.reason}", file=sys.stderr)
+
+
+def tmp_name(path: Path) -> Path:
+    return path.with_name(f".{path.name}.{os.getpid()}{TMP_SUFFIX}")
+
+
+def atomic_write_bytes(path: Path, data: bytes, read_only: bool = False) -> None:
+    """Write `data` to `path` via a temporary file in the same directory and an atomic rename.
+
+    WriteError (and no file under either name) if any step fails; `read_only` stores it mode 0444."""
     path = Path(path)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    with open(tmp, "wb") as fh:
-        fh.write(data)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
+    tmp = tmp_name(path)
+    try:
+        with open(tmp, "wb") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
+            if read_only:
+                os.fchmod(fh.fileno(), READ_ONLY)
+        os.replace(tmp, path)
+    except OSError as err:
+        _discard(tmp)
+        raise WriteError(path, err) from err
+
+
+def _discard(tmp: Path) -> None:
+    try:
+        tmp.unlink(missing_ok=True)
+    except OSError:
+        pass
 
 
 def write_json(path: Path, obj) -> None:
@@ -54,12 +109,30 @@ def _json_default(obj):
     raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
 
 
-def write_table(path: Path, table: pd.DataFrame) -> str:
+def write_table(path: Path, table: pd.DataFrame, read_only: bool = False) -> str:
     """Write a parquet table atomically; returns the sha256 of its content (see `table_hash`)."""
     buffer = io.BytesIO()
     table.to_parquet(buffer, index=False)
-    atomic_write_bytes(path, buffer.getvalue())
+    atomic_write_bytes(path, buffer.getvalue(), read_only=read_only)
     return table_hash(table)
+
+
+def store_table(path: Path, table: pd.DataFrame) -> dict:
+    """A run's table, stored read-only; its run.json entry (file, rows, content and file sha256)."""
+    buffer = io.BytesIO()
+    table.to_parquet(buffer, index=False)
+    atomic_write_bytes(path, buffer.getvalue(), read_only=True)
+    return {"file": Path(path).name, "rows": len(table), "sha256": table_hash(table),
+            "file_sha256": hashlib.sha256(buffer.getvalue()).hexdigest()}
+
+
+def file_hash(path: Path) -> str:
+    """sha256 of a file's bytes."""
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
 
 
 def table_hash(table: pd.DataFrame) -> str:
@@ -127,14 +200,154 @@ def read_json(path: Path) -> dict:
         return json.load(fh)
 
 
+REQUIRED = ("id", "status")          # what every run.json of every rdsexp version has
+
+
+def read_run(run_dir: Path) -> dict:
+    """The run.json of run_dir; DamagedRecord (path, reason) if it is missing, unreadable, partial or
+    not an rdsexp run record."""
+    path = Path(run_dir) / "run.json"
+    try:
+        text = path.read_bytes()
+    except FileNotFoundError:
+        raise DamagedRecord(path, "missing") from None
+    except OSError as err:
+        raise DamagedRecord(path, f"unreadable ({err.strerror or err})") from None
+    if not text.strip():
+        raise DamagedRecord(path, "empty")
+    try:
+        info = json.loads(text)
+    except (json.JSONDecodeError, UnicodeDecodeError) as err:
+        raise DamagedRecord(path, f"truncated or not JSON ({err})") from None
+    if not isinstance(info, dict) or any(k not in info for k in REQUIRED):
+        raise DamagedRecord(path, f"not an rdsexp run record (no {' or '.join(REQUIRED)})")
+    return info
+
+
+def damage(run_dir: Path, info: dict) -> list[str]:
+    """What is wrong with the files of a complete run: missing, unreadable or modified tables and
+    recording, missing .hydra/config.yaml; [] when intact.
+
+    A file recorded with its bytes' sha256 is checked by hashing the bytes; older records (content
+    hash only) by reading the parquet table and hashing its content."""
+    import pyarrow as pa
+    run_dir = Path(run_dir)
+    problems = []
+    entries = list((info.get("tables") or {}).values()) + ([info["recording"]] if info.get("recording") else [])
+    for meta in entries:
+        if not isinstance(meta, dict) or not isinstance(meta.get("file"), str):
+            problems.append(f"run.json: malformed file entry {meta!r}")
+            continue
+        path = run_dir / meta["file"]
+        try:
+            if meta.get("file_sha256"):
+                if file_hash(path) == meta["file_sha256"]:
+                    continue
+                if path.suffix == ".parquet":
+                    pd.read_parquet(path)           # unreadable (truncated) or only modified?
+                problems.append(f"{meta['file']}: does not match the hash in run.json (modified after the run)")
+            elif path.suffix == ".parquet" and table_hash(pd.read_parquet(path)) != meta.get("sha256"):
+                problems.append(f"{meta['file']}: does not match the hash in run.json (modified after the run)")
+        except FileNotFoundError:
+            problems.append(f"{meta['file']}: missing")
+        except (OSError, pa.ArrowException, ValueError) as err:
+            problems.append(f"{meta['file']}: unreadable ({_one_line(err)})")
+    if not (run_dir / ".hydra" / "config.yaml").is_file():
+        problems.append(".hydra/config.yaml: missing")
+    return problems
+
+
+def _one_line(err: BaseException) -> str:
+    text = str(err).strip().splitlines()
+    return f"{type(err).__name__}: {text[0] if text else ''}"
+
+
+def _start_time(pid: int) -> str | None:
+    """The start time of a process (Linux /proc, clock ticks since boot), None where unknown."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[19]
+    except (OSError, IndexError):
+        return None
+
+
+def process_info() -> dict:
+    """This process as run.json records it: pid, host and start time (a reused pid is told apart)."""
+    pid = os.getpid()
+    return {"pid": pid, "host": socket.gethostname(), "start": _start_time(pid)}
+
+
+def process_alive(process: dict | None) -> bool | None:
+    """Whether the process recorded in run.json still runs; None when that cannot be known here
+    (another host, or no process recorded)."""
+    if not isinstance(process, dict) or process.get("host") != socket.gethostname() \
+            or not isinstance(process.get("pid"), int):
+        return None
+    try:
+        os.kill(process["pid"], 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:             # exists, owned by someone else
+        pass
+    start = _start_time(process["pid"])
+    return start is None or process.get("start") is None or start == process["start"]
+
+
 def now() -> str:
     """UTC time stamp of run.json, to the millisecond."""
     return dt.datetime.now(dt.UTC).isoformat(timespec="milliseconds")
 
 
 def link_or_copy(source: Path, target: Path) -> None:
-    """Hard-link source to target (a reused run shares its files), copying where links are not possible."""
+    """Hard-link a read-only stored file to target (a reused run shares it); copy it (stored
+    read-only) where links are not possible or the source is writable, so that an edit of one run's
+    file can never change another's."""
+    source, target = Path(source), Path(target)
+    if not os.stat(source).st_mode & 0o222:
+        try:
+            os.link(source, target)
+            return
+        except OSError:
+            pass
+    tmp = tmp_name(target)
     try:
-        os.link(source, target)
-    except OSError:
-        shutil.copy2(source, target)
+        shutil.copyfile(source, tmp)
+        os.chmod(tmp, READ_ONLY)
+        os.replace(tmp, target)
+    except OSError as err:
+        _discard(tmp)
+        raise WriteError(target, err) from err
+
+
+# --- the reuse index: <store>/index/<key>.json -> a complete run directory under the store
+
+INDEX = "index"
+QUARANTINE = "quarantine"
+
+
+def index_key(config_hash: str, version: str) -> str:
+    return hashlib.sha256(f"{config_hash}\n{version}".encode()).hexdigest()[:32]
+
+
+def index_add(store: Path, run_dir: Path, info: dict) -> None:
+    """Point the index entry of this run's config hash and code version at run_dir (a complete,
+    not reused run inside the store; runs outside the store are not indexed)."""
+    store, run_dir = Path(store).resolve(), Path(run_dir).resolve()
+    if not run_dir.is_relative_to(store) or info.get("reused_from") or info.get("status") != "complete":
+        return
+    index = store / INDEX
+    index.mkdir(exist_ok=True)
+    write_json(index / f"{index_key(info['config_hash'], info['code']['version'])}.json",
+               {"dir": run_dir.relative_to(store).as_posix(), "id": info.get("id")})
+
+
+def index_lookup(store: Path, config_hash: str, version: str) -> Path | None:
+    """The run directory the index names for this config hash and code version (not checked)."""
+    path = Path(store) / INDEX / f"{index_key(config_hash, version)}.json"
+    try:
+        entry = read_json(path)
+        return Path(store) / entry["dir"]
+    except FileNotFoundError:
+        return None
+    except (OSError, ValueError, KeyError, TypeError) as err:
+        warn_damaged(DamagedRecord(path, f"unreadable index entry ({_one_line(err)})"), "ignored")
+        return None
