@@ -19,16 +19,19 @@ def draw(run: report.Run):
     k = ident["k"].to_numpy()
     fig, axes = report.figure(report.PAGE_WIDTH, 5.6, 3, 3, sharex=True)
     for i, ax in enumerate(axes.flat[:6]):
-        ax.plot(k, ident[f"q[{i}]"], color="black", lw=1.2, label="plant $q_k$")
-        ax.plot(k, ident[f"x_pred_mean[{i}]"], color="0.5", ls="--", label=r"predicted $x_{k|k-1}$")
-        ax.plot(k, ident[f"x_filt_mean[{i}]"], color="0.3", ls=":", label=r"filtered $x_{k|k}$")
+        # the plant as a wide light line under thin dark estimates: distinct in grayscale print
+        ax.plot(k, ident[f"q[{i}]"], color="0.72", lw=2.6, solid_capstyle="butt", label="plant $q_k$")
+        ax.plot(k, ident[f"x_pred_mean[{i}]"], color="black", lw=0.8, ls="--", label=r"predicted $x_{k|k-1}$")
+        ax.plot(k, ident[f"x_filt_mean[{i}]"], color="black", lw=0.8, ls=":", label=r"filtered $x_{k|k}$")
         ax.set_ylabel(f"$q_{{{i + 1}}}$, $x_{{{i + 1}}}$")
     modeled = model[model["quantity"] == "mean"].sort_values("row")["value"].to_numpy()
     for j, ax in enumerate(axes.flat[6:]):
         mean, std = ident[f"xi_filt_mean[{j}]"], ident[f"xi_filt_std[{j}]"]
-        ax.fill_between(k, mean - std, mean + std, color="0.85", lw=0, label="ensemble spread")
+        ax.fill_between(k, mean - std, mean + std, color="0.75", lw=0, label="ensemble spread (1 sd)")
         ax.plot(k, mean, color="black", label=r"$\xi_{k|k}$")
-        ax.axvspan(K0, K0 + K1, color="0.93", zorder=0, label=f"window {K0}..{K0 + K1}")
+        # the window hatched, not a second grey fill, so it never reads as the spread
+        ax.axvspan(K0, K0 + K1, facecolor="none", edgecolor="0.8", hatch="////", lw=0, zorder=0,
+                   label=f"modeling window {K0}..{K0 + K1}")
         ax.axhline(modeled[j], color="0.4", ls="--", label="modeled mean")
         ax.axhline(true_mean[j], color="0.4", ls=":", label="true mean")
         ax.set_ylabel(rf"$\xi_{{{j + 1}}}$")
@@ -38,11 +41,20 @@ def draw(run: report.Run):
     return fig
 
 
+def caption(run: report.Run) -> str:
+    node = run.get("identification.input")
+    return (f"Fig. estimation. Identification run (seed {run.get('seed')}, M = {run.get('enkf.ensemble_size')}): "
+            f"the open-loop plant driven by a {node.get('levels', 'bipolar')} maximal-length sequence of amplitude "
+            f"{node['amplitude']:g} (register {node['register_length']}); top: plant states q_k (wide grey) and the "
+            "EnKF's predicted and filtered estimates; bottom: the filtered xi_{k|k} with the ensemble spread, the "
+            "modeled mean over the hatched window and the true mean of the plant's parameter.")
+
+
 def main(argv=None):
     args = report.arguments(__doc__.splitlines()[0], argv)
     runs = report.paper_runs(args)
     run = report.first_seed(runs)
-    return report.save_figure(draw(run), args.out, NAME, [run], __file__)
+    return report.save_figure(draw(run), args.out, NAME, [run], __file__, caption(run))
 
 
 if __name__ == "__main__":

@@ -1,9 +1,11 @@
 """Sweep figures: empirical and exact rates against ensemble size, Q/R scale and window K1.
 
 For each value, over the seeds of the latest `ensemble_size`, `noise` and `window` sweeps: the
-empirical k = 60..80 closed-loop rate and the exact rate of the designed gain on the true plant,
-mean with a 95% t-interval over seeds; a triangle at the top marks a rate off the scale or not
-finite (a loop that diverged).
+empirical k = 60..80 closed-loop rate (Monte Carlo, EnKF observer) and the exact rate of the
+designed gain on the true plant (sqrt(rho(E[Acl (x) Acl])), no Monte Carlo), mean with a 95%
+t-interval over the seeds where it is finite. A value where some seeds' loops diverged is drawn
+with an open marker and the fraction of diverged paths written beside it; where no seed has a
+finite rate (or the mean is off scale) a triangle at the top carries that fraction.
 
     python experiments/fig_sweeps.py [--root outputs] [--out outputs/report]
 """
@@ -13,19 +15,23 @@ import pandas as pd
 from rdsexp import report
 
 NAME = "sweeps"
+TITLES = {"ensemble_size": "ensemble size", "noise": "EnKF noise scales", "window": "modeling window"}
 PANELS = (("ensemble_size", "enkf.ensemble_size", "ensemble size M"),
           ("noise", None, "scale of Q (R = 0.01) or R (Q as paper)"),
           ("window", "identification.K1", "window length $K_1$"))
 
 
 def points(runs: list[report.Run], key: str) -> pd.DataFrame:
-    """Per run: the swept value, empirical closed-loop rate and exact rate on the true plant."""
+    """Per run: the swept value, empirical closed-loop rate, exact rate on the true plant, and the
+    fraction of closed-loop paths that diverged."""
     rows = []
     for r in runs:
         metrics = r.table("metrics").set_index("experiment")
         gains = r.table("gains")
-        rows.append({"value": r.get(key), "empirical": metrics.loc["closed_loop", "rate"] if "closed_loop" in
-                     metrics.index else np.nan, "exact": gains[gains["selected"]]["rate_plant"].iloc[0]})
+        closed = "closed_loop" in metrics.index
+        rows.append({"value": r.get(key), "empirical": metrics.loc["closed_loop", "rate"] if closed else np.nan,
+                     "exact": gains[gains["selected"]]["rate_plant"].iloc[0],
+                     "diverged": metrics.loc["closed_loop", "failed_fraction"] if closed else 1.0})
     return pd.DataFrame(rows)
 
 
@@ -34,16 +40,23 @@ YLIM = (0.75, 1.1)          # rates beyond it (a diverging loop, a useless model
 
 def plot_series(ax, frame: pd.DataFrame, label: str, color, marker):
     for column, ls in (("empirical", "-"), ("exact", "--")):
-        stats = [(v, *report.seed_interval(g[column])[:3]) for v, g in frame.groupby("value")]
-        v, mean, lo, hi = map(np.array, zip(*stats))
+        stats = [(v, *report.seed_interval(g[column])[:3], g["diverged"].mean()) for v, g in frame.groupby("value")]
+        v, mean, lo, hi, diverged = map(np.array, zip(*stats))
         ax.errorbar(v, mean, yerr=[mean - lo, hi - mean], color=color, ls=ls, marker=marker, ms=3, capsize=2,
                     label=f"{label} {column}".strip())
-        off = ~(mean <= YLIM[1])                  # above the scale or no finite rate (diverged)
-        ax.plot(v[off], np.full(off.sum(), YLIM[1]), ls="none", marker="^", color=color, ms=4)
+        if column != "empirical":
+            continue
+        partial = (diverged > 0) & (mean <= YLIM[1])             # some paths diverged: open marker + fraction
+        ax.plot(v[partial], mean[partial], ls="none", marker=marker, ms=6, mfc="white", color=color)
+        off = ~(mean <= YLIM[1])                  # above the scale or no finite rate (every seed diverged)
+        ax.plot(v[off], np.full(off.sum(), YLIM[1]), ls="none", marker="^", color=color, ms=4, clip_on=False)
+        for x, y, f in zip(v[partial | off], np.where(off, YLIM[1], mean)[partial | off], diverged[partial | off]):
+            ax.annotate(f"{f:.0%} div.", (x, y), xytext=(3, -8), textcoords="offset points", fontsize=5.5,
+                        color=color)
 
 
 def draw(sweeps: dict[str, list[report.Run]]):
-    fig, axes = report.figure(report.PAGE_WIDTH, 2.3, 1, 3, sharey=True)
+    fig, axes = report.figure(report.PAGE_WIDTH, 2.5, 1, 3, sharey=True)
     for ax, (sweep, key, xlabel) in zip(axes, PANELS):
         runs = sweeps.get(sweep) or []
         if sweep == "noise":
@@ -60,12 +73,24 @@ def draw(sweeps: dict[str, list[report.Run]]):
             plot_series(ax, points(runs, key), "", "black", "o")
             if sweep == "ensemble_size":
                 ax.set_xscale("log")
+        seeds = len({r.get("seed") for r in runs})
         ax.set_xlabel(xlabel)
-        ax.set_title(f"sweep {sweep}: {len(runs)} runs")
+        ax.set_title(f"{TITLES[sweep]} ({len(runs)} runs, {seeds} seeds)")
         ax.legend(frameon=False, fontsize=5.5)
-    axes[0].set_ylabel("mean-square rate ($\\blacktriangle$: off scale)")
+    axes[0].set_ylabel("mean-square rate\n(exact: of the designed gain on the true plant)")
     axes[0].set_ylim(*YLIM)
     return fig
+
+
+def caption(sweeps: dict[str, list[report.Run]]) -> str:
+    k_from, k_to = next((r.get("closed_loop.rate_window") for runs in sweeps.values() for r in runs), (60, 80))
+    return ("Sweeps of the EnKF's ensemble size, of the scales of its artificial noises Q and R, and of the "
+            "modeling window K1. Solid (empirical): the closed loop's two-point rate "
+            f"k = {k_from}..{k_to} from the Monte Carlo paths, with the EnKF observer. Dashed (exact): the exact "
+            "mean-square rate sqrt(rho(E[Acl (x) Acl])) of the gain designed in that run, on the true plant "
+            "(ideal state feedback, no Monte Carlo). Points: mean over seeds, bars: 95% t-interval over the seeds "
+            "with a finite rate. Open marker with a percentage: some closed-loop paths diverged (mean fraction "
+            "over seeds); triangle at the top: no finite rate or the mean off the scale.")
 
 
 def main(argv=None):
@@ -73,7 +98,7 @@ def main(argv=None):
     sweeps = {name: report.load_runs(args.root, name) for name, _, _ in PANELS}
     used = [r for runs in sweeps.values() for r in runs]
     report.check_versions(used, args.allow_mixed)
-    return report.save_figure(draw(sweeps), args.out, NAME, used, __file__)
+    return report.save_figure(draw(sweeps), args.out, NAME, used, __file__, caption(sweeps))
 
 
 if __name__ == "__main__":

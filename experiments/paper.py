@@ -2,24 +2,40 @@
 
     python experiments/paper.py [--root outputs] [--out outputs/report] [--allow-mixed]
 
-Finds the latest stored `paper`, `ensemble_size`, `noise` and `window` sweeps under --root; a
-missing one is run first (`python -m rdsexp +sweep=NAME`, said on the terminal). Then every
-figure and table is drawn from the stored parquet tables only; re-running on the same runs
-rewrites identical files and simulates nothing. Refuses runs of different code versions unless
---allow-mixed.
+Finds the latest stored `paper`, `ensemble_size`, `noise`, `window`, `identification_input` and
+`closed_loop_rate` sweeps under --root; a missing one is run first (`python -m rdsexp
++sweep=NAME`, said on the terminal). Then every figure and table is drawn from the stored parquet
+tables only; re-running on the same runs rewrites identical files and simulates nothing. Refuses
+runs of different code versions unless --allow-mixed. Last, index.md: one page with every figure
+(in the paper's order, then any other figure present), its caption and the tables.
 """
 import subprocess
 import sys
+from pathlib import Path
 
+import closed_loop_rate
 import fig_decay
 import fig_estimation
 import fig_gains
 import fig_sweeps
+import identification_input
 import reproduction_table
 
 from rdsexp import report
+from rdsexp.experiment import records
 
-SWEEPS = ("paper", "ensemble_size", "noise", "window")
+SWEEPS = ("paper", "ensemble_size", "noise", "window", "identification_input", "closed_loop_rate")
+# (kind, name, heading) in the paper's order (Sec. V-A, V-B), then rdsexp's own analyses
+PAGE = (("figure", "estimation", "Identification run (Sec. V-A, Fig. estimation)"),
+        ("table", "identification_input", "Which identification input matches the paper's modeled moments"),
+        ("figure", "decay_proposed", "Closed loop with the proposed gain (Fig. decay_proposed)"),
+        ("figure", "decay_open", "Open-loop plant (Fig. decay_open)"),
+        ("table", "closed_loop_rate", "The closed-loop rate k = 60..80 by gain source and EnKF input"),
+        ("figure", "gain_comparison", "Gain comparison (Sec. V-B)"),
+        ("table", "gain_comparison", None),
+        ("table", "reproduction_inputs", "Paper vs rdsexp: inputs configured as the paper says"),
+        ("table", "reproduction", "Paper vs rdsexp: results computed"),
+        ("figure", "sweeps", "Sweeps beyond the paper"))
 
 
 def ensure_sweeps(root, extra_overrides=()) -> None:
@@ -32,15 +48,41 @@ def ensure_sweeps(root, extra_overrides=()) -> None:
                            check=True)
 
 
+def index(out: Path, counts) -> str:
+    """outputs/report/index.md: every figure with its caption and every table, in PAGE order."""
+    lines = ["# rdsexp: reproduction of Hosoe & Peaucelle, Sec. V", "",
+             "Every figure and table below is drawn from stored runs (see each output's .json for the runs, "
+             "table hashes and code version). Verdicts of the computed results: "
+             + ", ".join(f"{v} {n}" for v, n in counts.items()) + " (configured inputs carry no verdict).", ""]
+    known = {name for kind, name, _ in PAGE if kind == "figure"}
+    others = sorted(p.stem for p in out.glob("*.png") if p.stem not in known)
+    for kind, name, heading in [*PAGE, *(("figure", n, n.replace("_", " ")) for n in others)]:
+        path = out / (f"{name}.png" if kind == "figure" else f"{name}.md")
+        if not path.exists():
+            continue
+        if heading:
+            lines += [f"## {heading}", ""]
+        if kind == "figure":
+            lines += [f"![{name}]({name}.png)", ""]
+            cap = out / f"{name}.caption.md"
+            if cap.exists():
+                lines += [f"*{cap.read_text().strip()}*", ""]
+        else:
+            lines += [path.read_text().strip(), ""]
+    return "\n".join(lines)
+
+
 def main(argv=None) -> None:
     args = report.arguments(__doc__.splitlines()[0], argv)
     ensure_sweeps(args.root)
     common = ["--root", str(args.root), "--out", str(args.out)] + (["--allow-mixed"] if args.allow_mixed else [])
-    for script in (fig_estimation, fig_decay, fig_gains, fig_sweeps):
+    for script in (fig_estimation, fig_decay, fig_gains, fig_sweeps, identification_input, closed_loop_rate):
         script.main(common)
-    table = reproduction_table.main(common)
-    print(table["verdict"].value_counts().to_string())
-    print(f"report written to {args.out}/")
+    _, results = reproduction_table.main(common)
+    counts = reproduction_table.verdict_counts(results)
+    records.atomic_write_bytes(args.out / "index.md", index(args.out, counts).encode())
+    print(counts.to_string())
+    print(f"report written to {args.out}/ (one page: {args.out}/index.md)")
 
 
 if __name__ == "__main__":

@@ -1,9 +1,14 @@
-"""Paper vs rdsexp: one row per number in rdsexp/paper/reference.yaml, with a verdict.
+"""Paper vs rdsexp: one row per number in rdsexp/paper/reference.yaml, in two tables.
 
-Settings come from the stored runs' configs, deterministic results from the gains designed on the
+reproduction_inputs: the paper's settings that rdsexp is configured with (plant, EnKF, window,
+disturbance, poles): one line each, "as the paper says" or not, no verdict. reproduction: the results
+the code computed, each with a verdict. Deterministic results come from the gains designed on the
 paper's reported moments (gains.distribution = reported), stochastic ones from the proposed-gain
 runs of the `paper` sweep: mean, 95% interval of the mean over seeds, the range of single seeds,
-and whether the paper's single draw lies in that range ("within Monte Carlo error").
+and whether the paper's single draw lies in that range ("within Monte Carlo error"). Rows not in
+the reference, when their sweeps are stored: which identification input is consistent with the
+paper's modeled moments (identification_input sweep) and the closed-loop rate with the paper's
+moments and the paper's F (closed_loop_rate sweep).
 
     python experiments/reproduction_table.py [--root outputs] [--out outputs/report]
 """
@@ -12,7 +17,10 @@ import pandas as pd
 
 from rdsexp import report
 
-NAME = "reproduction"
+NAME, INPUTS_NAME = "reproduction", "reproduction_inputs"
+# reference numbers that are settings rdsexp is configured with, not results it computes
+INPUT_KEYS = ("plant.", "enkf.", "modeling.K0", "modeling.K1", "modeling.horizon", "closed_loop.paths",
+              "closed_loop.disturbance", "pole_placement.poles")
 REPRODUCED, WITHIN_MC, DIFFERS = "reproduced", "within Monte Carlo error", "differs"
 
 
@@ -128,9 +136,10 @@ def row_for(key: str, paper, s: Sources):
         ok = ours is None and s.setting("enkf.initial.cov") == 0
         return ("zeros(9), no spread" if ok else str(ours)), REPRODUCED if ok else DIFFERS, ""
     if path == "enkf.identification_input":
-        return (f"maximal length sequence, register {s.setting('identification.input.register_length')}, "
-                f"amplitude {s.setting('identification.input.amplitude')}", REPRODUCED,
-                "amplitude not stated in the paper; rdsexp uses the size of d_k")
+        node = s.setting("identification.input")
+        return (f"maximal length sequence, {node.get('levels', 'bipolar')}, register {node['register_length']}, "
+                f"amplitude {node['amplitude']:g}, hold {node.get('hold', 1)}", REPRODUCED,
+                "levels and amplitude not stated in the paper; see the identification_input table")
     if path in ("modeling.K0", "modeling.K1", "modeling.horizon"):
         return compare_setting(paper, s.setting(f"identification.{path.split('.')[1]}"))
     if path == "modeling.xi_mean":
@@ -202,25 +211,80 @@ def _not_stabilised(run: report.Run) -> bool:
     return bool(m["failed_fraction"] > 0 or m["q_rms_final"] > np.linalg.norm(run.get("plant.q0")))
 
 
-def build(runs: list[report.Run]) -> pd.DataFrame:
+def is_input(key: str) -> bool:
+    return key.startswith(INPUT_KEYS)
+
+
+def build(runs: list[report.Run], ident_runs=(), rate_runs=()) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """(inputs, results): configured settings (no verdict) and computed results (verdicts)."""
     s = Sources(runs)
-    rows = []
+    inputs, results = [], []
     for key, paper in flatten("", report.reference()):
         ours, verdict, reason = row_for(key, paper, s)
         diff = float(ours) - float(paper) if isinstance(ours, (int, float, np.number)) and \
             isinstance(paper, (int, float)) else np.nan
-        rows.append({"number": key, "paper": paper if not isinstance(paper, list) else str(paper),
-                     "rdsexp": f"{ours:.6g}" if isinstance(ours, (float, np.floating)) else str(ours),
-                     "difference": diff, "verdict": verdict, "reason": reason})
-    return pd.DataFrame(rows)
+        text = f"{ours:.6g}" if isinstance(ours, (float, np.floating)) else str(ours)
+        paper_text = paper if not isinstance(paper, list) else str(paper)
+        if is_input(key):
+            inputs.append({"number": key, "paper": paper_text, "rdsexp": text,
+                           "as_the_paper_says": "yes" if verdict == REPRODUCED else "no", "note": reason})
+        else:
+            results.append({"number": key, "paper": paper_text, "rdsexp": text, "difference": diff,
+                            "verdict": verdict, "reason": reason})
+    results += extra_rows(s, list(ident_runs), list(rate_runs))
+    return pd.DataFrame(inputs), pd.DataFrame(results)
+
+
+def extra_rows(s: Sources, ident_runs: list[report.Run], rate_runs: list[report.Run]) -> list[dict]:
+    """Results not in the reference: the identification input consistent with the paper's moments,
+    and the closed-loop rate with the gains that take identification noise out."""
+    import closed_loop_rate
+    import identification_input
+    rows = []
+    if ident_runs:
+        table = identification_input.build(ident_runs)
+        ok = identification_input.consistent_settings(table)
+        configured = identification_input.setting(s.first)
+        verdict = WITHIN_MC if configured in ok else DIFFERS
+        rows.append({"number": "modeling.identification_input_consistent", "paper": "(not stated)",
+                     "rdsexp": "; ".join(ok) if ok else "none of the swept settings", "difference": np.nan,
+                     "verdict": verdict,
+                     "reason": (f"all 9 modeled moments within the joint 95% prediction region of one seed; "
+                                f"configured: {configured}" if verdict == WITHIN_MC else
+                                f"the configured input ({configured}) is not among the consistent settings")})
+    if rate_runs:
+        paper = report.reference()["closed_loop"]["rate_k60_k80"]
+        table = closed_loop_rate.group_rows(rate_runs)
+        for row in table[~table["filter_sees_d"]].itertuples():
+            if row.source == "identified":
+                continue
+            inside = row.pooled_low <= paper <= row.pooled_high
+            rows.append({"number": f"closed_loop.rate_k60_k80 ({row.gain})", "paper": paper,
+                         "rdsexp": f"{row.pooled_bootstrap_seeds_paths}, pooled over {row.seeds} seeds x "
+                                   f"{row.paths} paths", "difference": row.pooled_rate - paper,
+                         "verdict": WITHIN_MC if inside else DIFFERS,
+                         "reason": "" if inside else f"outside the bootstrap interval over seeds and paths; exact "
+                                   f"ideal-loop ratio {row.ideal_two_point_exact:.4f}"})
+    return rows
+
+
+def verdict_counts(results: pd.DataFrame) -> pd.Series:
+    """Verdicts of the computed results only (configured inputs carry none)."""
+    return results["verdict"].value_counts()
 
 
 def main(argv=None):
+    import closed_loop_rate
+    import identification_input
     args = report.arguments(__doc__.splitlines()[0], argv)
     runs = report.paper_runs(args)
-    table = build(runs)
-    report.write_table(table, args.out, NAME, runs, __file__)
-    return table
+    ident = report.load_runs(args.root, identification_input.SWEEP)
+    rate = report.load_runs(args.root, closed_loop_rate.SWEEP)
+    report.check_versions(runs + ident + rate, args.allow_mixed)
+    inputs, results = build(runs, ident, rate)
+    report.write_table(inputs, args.out, INPUTS_NAME, runs, __file__)
+    report.write_table(results, args.out, NAME, runs + ident + rate, __file__)
+    return inputs, results
 
 
 if __name__ == "__main__":

@@ -6,6 +6,7 @@ In a sweep a job that fails is recorded with its status and the sweep goes on.
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
 import shutil
 import signal
@@ -21,7 +22,6 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
-from .. import paper
 from . import records
 from .config import ConfigError, Experiment, build
 from .pipeline import SPAWN_KEYS, Outcome, run_experiment, timed
@@ -89,6 +89,9 @@ def execute(cfg: DictConfig, run_dir: Path) -> dict:
     With tracking level "off" nothing is written (Hydra's .hydra/ aside) and the same content
     is only returned."""
     exp = build(cfg)                                    # ConfigError before any compute
+    if OmegaConf.select(cfg, "plant.name") is None and HydraConfig.initialized():
+        # a plant file without `name:` is named by its file (plant=NAME)
+        exp = dataclasses.replace(exp, plant_name=HydraConfig.get().runtime.choices.get("plant") or "plant")
     if exp.tracking == "off":
         outcome = run_experiment(exp)
         return {"id": run_dir.name, "status": "complete", "summary": outcome.summary, "timings": outcome.timings}
@@ -175,19 +178,53 @@ def _failed(run_dir: Path, cfg: DictConfig, status: str, message: str, trace: st
 
 
 def print_summary(info: dict, run_dir: Path) -> None:
-    """A few lines: the key numbers beside the paper's, the run directory and how to view it."""
+    """A few lines: the plant and model, the key numbers (beside the reference numbers when the
+    config carries them), plainly what failed, the run directory and how to view it."""
     s = info.get("summary", {})
+    ref = s.get("reference") or {}
     fmt = lambda v: "n/a" if v is None else (f"{v:.4f}" if isinstance(v, float) else str(v))
     interval = lambda r: f"{r[0]:.4f} [{r[1]:.4f}, {r[2]:.4f}]" if r else "n/a"
+    beside = lambda name: f" ({ref.get('source', 'paper')} {ref[name]})" if name in ref else ""
+    k_from, k_to = s.get("rate_window") or (None, None)
     lines = [f"rdsexp run {info.get('id')}: {info.get('status')}",
-             f"  modeling {s.get('modeling_status')}: xi mean {np.round(s.get('xi_mean', []), 4).tolist()}  "
-             f"(paper {paper.xi_mean.tolist()}), nbar {s.get('nbar')} (paper {paper.nbar_proposed})",
-             f"  gain {s.get('gain_method')}: {s.get('synthesis_status')}, lambda {fmt(s.get('lam'))} "
-             f"(paper {paper.lam_proposed}), exact rate on the true plant {fmt(s.get('rate_plant'))}",
-             f"  closed loop rate k=60..80: {interval(s.get('closed_loop_rate'))} (paper {paper.rate_k60_k80}), "
-             f"{s.get('closed_loop_status')}"]
-    if "open_loop_rate" in s:
-        lines.append(f"  open loop rate k=60..80:   {interval(s.get('open_loop_rate'))}, {s.get('open_loop_status')}")
+             f"  plant {s.get('plant')}, model {s.get('model')}"]
+    ident = s.get("identification_feedback") or {}
+    if ident.get("mode", "none") != "none":
+        line = f"  identification feedback {ident['mode']}: {ident.get('used')}"
+        if "open_loop_rate_at_guess" in ident:
+            line += f" (open-loop rate at xi_guess {fmt(ident['open_loop_rate_at_guess'])})"
+        if ident.get("used", "").startswith("nominal"):
+            line += f", gain {ident.get('method')} with rate {fmt(ident.get('rate_plant'))} on the true plant"
+        lines.append(line)
+    if s.get("modeling_status") == "ok":
+        lines.append(f"  modeling ok: xi mean {np.round(s.get('xi_mean', []), 4).tolist()}{beside('xi_mean')}, "
+                     f"nbar {s.get('nbar')}{beside('nbar')}")
+    else:
+        lines.append(f"  no model: {s.get('modeling_status')}; no gain designed, no closed loop")
+    if s.get("synthesis_status") is not None:
+        lines.append(f"  gain {s.get('gain_method')}: {s.get('synthesis_status')}, lambda {fmt(s.get('lam'))}"
+                     f"{beside('lam')}, exact rate on the true plant {fmt(s.get('rate_plant'))}")
+        if s.get("rate_plant") is None:
+            lines.append(f"  no stabilizing gain: {s.get('gain_method')} returned none "
+                         f"({s.get('synthesis_status')}); no closed loop")
+        elif s.get("synthesis_status") == "not_ms_stabilizable":
+            lines.append(f"  no stabilizing gain: not_ms_stabilizable, the best rate found is {fmt(s.get('lam'))}")
+    others = {m: st for m, st in (s.get("designs") or {}).items()
+              if m != s.get("gain_method") and st not in ("optimal", "designed")}
+    if others:
+        lines.append("  other designs: " + ", ".join(f"{m} {st}" for m, st in others.items()))
+    for loop, label in (("closed_loop", "closed loop"), ("open_loop", "open loop  ")):
+        if f"{loop}_status" not in s:
+            continue
+        line = f"  {label} rate k={k_from}..{k_to}: {interval(s.get(f'{loop}_rate'))}"
+        if loop == "closed_loop":
+            line += beside("closed_loop_rate")
+        line += f", {s.get(f'{loop}_status')}"
+        failed = s.get(f"{loop}_failed")
+        if failed:
+            line += (f"; {100 * failed['fraction']:.0f}% of paths diverged (first at k = {failed['first_k']}, "
+                     f"median k = {failed['median_k']:g})")
+        lines.append(line)
     lines.append(f"  run directory: {run_dir}")
     if (run_dir / "recording.rrd").exists():
         lines.append(f"  view: rerun {run_dir / 'recording.rrd'}")

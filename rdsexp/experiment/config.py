@@ -7,17 +7,19 @@ from __future__ import annotations
 
 import math
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
-from ..numerics.enkf import EnKF, check_covariance
+from ..numerics.distributions import from_spec
+from ..numerics.enkf import VARIANTS, EnKF, check_covariance
 from ..numerics.modeling import mls_input
 from ..numerics.synthesis import METHODS, check_options
 from ..numerics.systems import AffineRandomSystem, MomentModel
 
 TRACKING_LEVELS = ("off", "summary", "full")
+FEEDBACK_MODES = ("none", "nominal", "auto")     # identification.feedback, or a gain F (m x n)
 
 
 class ConfigError(ValueError):
@@ -84,6 +86,57 @@ def system_from(cfg, group: str, xi=None) -> AffineRandomSystem:
         return AffineRandomSystem(**mats, xi_dist=xi)
 
 
+INPUT_LEVELS = ("bipolar", "unipolar")
+
+
+def identification_input(cfg, horizon: int, m: int) -> np.ndarray:
+    """The M-sequence of identification.input (levels, amplitude, hold, register_length, taps,
+    state, seed; the last three optional, null by default) as (horizon + 1, m)."""
+    name = "identification.input"
+    node = plain(OmegaConf.select(cfg, name))
+    allowed = {"register_length", "amplitude", "levels", "hold", "taps", "state", "seed"}
+    if not isinstance(node, dict) or not set(node) <= allowed:
+        extra = sorted(set(node) - allowed) if isinstance(node, dict) else node
+        raise ConfigError(f"{name}: {extra!r} is not allowed, expected keys among {', '.join(sorted(allowed))}")
+    reg = _number(get(cfg, f"{name}.register_length"), f"{name}.register_length", integer=True, low=2, high=32)
+    amp = _number(get(cfg, f"{name}.amplitude"), f"{name}.amplitude", low=0, low_open=True)
+    levels = node.get("levels", "bipolar")
+    if levels not in INPUT_LEVELS:
+        raise ConfigError(f"{name}.levels: {levels!r} is not allowed, expected one of {', '.join(INPUT_LEVELS)}")
+    hold = _number(node.get("hold", 1), f"{name}.hold", integer=True, low=1)
+    seed = node.get("seed")
+    if seed is not None:
+        seed = _number(seed, f"{name}.seed", integer=True, low=0)
+    for sub in ("taps", "state"):
+        if node.get(sub) is not None and not (isinstance(node[sub], list) and
+                                              all(isinstance(v, int) and not isinstance(v, bool) for v in node[sub])):
+            raise ConfigError(f"{name}.{sub}: {node[sub]!r} is not allowed, expected null or a list of integers")
+    with key(name):
+        return mls_input(horizon, m, reg, amp, levels=levels, hold=hold, taps=node.get("taps"),
+                         state=node.get("state"), seed=seed)
+
+
+GAIN_SOURCES = ("identified", "reported", "fixed")
+
+
+def _gain_source(cfg, model: AffineRandomSystem, reported) -> tuple[str, np.ndarray | None]:
+    """gain.source (default identified) and, for `fixed`, the (m, n) gain gain.F."""
+    source = plain(OmegaConf.select(cfg, "gain.source", default="identified"))
+    if source not in GAIN_SOURCES:
+        raise ConfigError(f"gain.source: {source!r} is not allowed, expected one of {', '.join(GAIN_SOURCES)}")
+    if source == "reported" and reported is None:
+        raise ConfigError("gain.source: 'reported' is not allowed with model.reported = null (no reported moments)")
+    if source != "fixed":
+        return source, None
+    F = plain(OmegaConf.select(cfg, "gain.F"))
+    with key("gain.F"):
+        arr = np.asarray(F, dtype=float) if isinstance(F, list) else None
+        if arr is None or arr.shape != (model.m, model.n) or not np.all(np.isfinite(arr)):
+            raise ValueError(f"{F!r} is not allowed with gain.source = fixed, expected an (m, n) = "
+                             f"({model.m}, {model.n}) list of finite numbers")
+    return source, arr
+
+
 @dataclass(frozen=True)
 class Experiment:
     """Everything a run needs, validated: the numerics objects and settings of conf/."""
@@ -101,6 +154,8 @@ class Experiment:
     K1: int
     gain_method: str
     gain_options: dict
+    gain_source: str                      # identified | reported | fixed: what the closed loop's F is
+    gain_F: np.ndarray | None             # (m, n), the gain of gain.source = fixed
     paths: int
     disturbance: np.ndarray               # (K + 1, m)
     filter_sees_disturbance: bool
@@ -109,19 +164,34 @@ class Experiment:
     seed: int
     tracking: str
     recording: bool
+    # added for any plant (issue 17); defaults keep older callers working
+    plant_name: str = "plant"
+    model_name: str = "plant"             # "plant": the plant's own structure, its xi the plant's
+    reference: dict | None = None         # numbers a paper reports for this plant (summary only)
+    design_options: dict = field(default_factory=dict)   # method -> options for every design
+    identification_feedback: str = "none"   # none | nominal | auto | given
+    identification_gain: np.ndarray | None = None       # (m, n) when feedback is a given F
+    xi_guess: np.ndarray | None = None      # nominal guess of the plant's xi (prior knowledge), (p_plant,)
 
 
 def build(cfg) -> Experiment:
     """Validate the composed job config `cfg` (without the hydra node) and build the Experiment."""
     seed = _number(get(cfg, "seed"), "seed", integer=True, low=0)
     xi = get(cfg, "plant.xi")
-    if not isinstance(xi, dict) or set(xi) != {"mean", "cov"}:
-        raise ConfigError(f"plant.xi: {xi!r} is not allowed, expected {{mean: [...], cov: [[...]]}}")
     with key("plant.xi"):
-        xi_dist = MomentModel(mean=xi["mean"], cov=xi["cov"])
+        xi_dist = from_spec(xi)      # {family: normal (default) | uniform | bernoulli | discrete, ...}
     plant = system_from(cfg, "plant", xi_dist)
-    model = system_from(cfg, "model")
-    reported = plain(OmegaConf.select(cfg, "model.reported"))
+    plant_name = str(plain(OmegaConf.select(cfg, "plant.name")) or "plant")
+    # the model: a model group with bases (model=paper), else bases inline in the plant file
+    # (plant.model), else the plant's own affine structure with the plant's xi as the unknown
+    reported = None
+    if OmegaConf.select(cfg, "model.A") is not None:
+        model, model_name = system_from(cfg, "model"), str(plain(OmegaConf.select(cfg, "model.name")) or "model")
+        reported = plain(OmegaConf.select(cfg, "model.reported"))
+    elif OmegaConf.select(cfg, "plant.model") is not None:
+        model, model_name = system_from(cfg, "plant.model"), f"{plant_name} (inline model)"
+    else:
+        model, model_name = AffineRandomSystem(plant.A, plant.B, plant.C, plant.D), "plant's own structure"
     if reported is not None:
         if not isinstance(reported, dict) or set(reported) != {"mean", "cov"}:
             raise ConfigError(f"model.reported: {reported!r} is not allowed, expected null or {{mean, cov}}")
@@ -130,18 +200,27 @@ def build(cfg) -> Experiment:
     if (plant.n, plant.m, plant.ny) != (model.n, model.m, model.ny):
         raise ConfigError(f"model: (n, m, ny) = {(model.n, model.m, model.ny)} does not match the plant's "
                           f"{(plant.n, plant.m, plant.ny)}")
+    q0 = plain(OmegaConf.select(cfg, "plant.q0"))
     with key("plant.q0"):
-        q0 = np.asarray(get(cfg, "plant.q0"), dtype=float)
+        q0 = np.ones(plant.n) if q0 is None else np.asarray(q0, dtype=float)      # default: ones (the paper's)
         if q0.shape != (plant.n,) or not np.all(np.isfinite(q0)):
-            raise ValueError(f"{get(cfg, 'plant.q0')!r} is not allowed, expected {plant.n} finite numbers")
+            raise ValueError(f"{plain(OmegaConf.select(cfg, 'plant.q0'))!r} is not allowed, expected null or "
+                             f"{plant.n} finite numbers")
 
     dim = model.n + model.p
     M = _number(get(cfg, "enkf.ensemble_size"), "enkf.ensemble_size", integer=True, low=2)
     q_scale = _number(get(cfg, "enkf.q_scale"), "enkf.q_scale", low=0)
     r_scale = _number(get(cfg, "enkf.r_scale"), "enkf.r_scale", low=0)
-    Q = q_scale * _covariance(cfg, "enkf.Q", dim)
+    Q = q_scale * _process_noise(cfg, model.n, model.p)
     R = r_scale * _covariance(cfg, "enkf.R", model.ny)
-    enkf = EnKF(model, Q, R)
+    variant = get(cfg, "enkf.variant")
+    if variant not in VARIANTS:
+        raise ConfigError(f"enkf.variant: {variant!r} is not allowed, expected one of {', '.join(VARIANTS)}")
+    inflation = _number(get(cfg, "enkf.inflation"), "enkf.inflation", low=1)
+    relaxation = _number(get(cfg, "enkf.relaxation"), "enkf.relaxation", low=0, high=1)
+    if variant == "etkf" and np.linalg.eigvalsh(R).min() <= 1e-12 * max(np.abs(R).max(), 1e-300):
+        raise ConfigError("enkf.R: must be positive definite with enkf.variant=etkf (its transform uses R^-1)")
+    enkf = EnKF(model, Q, R, variant=variant, inflation=inflation, relaxation=relaxation)
     mean = get(cfg, "enkf.initial.mean")
     with key("enkf.initial.mean"):
         psi0 = np.zeros(dim) if mean is None else np.asarray(mean, dtype=float)
@@ -155,10 +234,8 @@ def build(cfg) -> Experiment:
     if K0 + K1 > K_id:
         raise ConfigError(f"identification.K1: K0 + K1 = {K0 + K1} is not allowed, must be <= "
                           f"identification.horizon = {K_id}")
-    reg = _number(get(cfg, "identification.input.register_length"), "identification.input.register_length",
-                  integer=True, low=2, high=32)
-    amp = _number(get(cfg, "identification.input.amplitude"), "identification.input.amplitude", low=0, low_open=True)
-    u_id = mls_input(K_id, model.m, reg, amp)
+    u_id = identification_input(cfg, K_id, model.m)
+    feedback, F_id, xi_guess = _identification_feedback(cfg, plant)
 
     method = get(cfg, "gain.method")
     if method not in METHODS:
@@ -167,31 +244,96 @@ def build(cfg) -> Experiment:
     if not isinstance(options, dict):
         raise ConfigError(f"gain.options: {options!r} is not allowed, expected a mapping")
     with key("gain.options"):
-        check_options(method, options, model)
+        check_options(method, {k: v for k, v in options.items() if not (k == "poles" and v is None)}, model)
+    poles = plain(OmegaConf.select(cfg, "plant.poles"))
+    if poles is not None:
+        with key("plant.poles"):
+            check_options("pole_placement", {"poles": poles}, model)
+    # every method is designed (the gains table); pole placement only with poles from the config
+    design_options = {m: {} for m in METHODS} | {"pole_placement": {"poles": poles}, method: options}
+    gain_source, gain_F = _gain_source(cfg, model, reported)
 
     paths = _number(get(cfg, "closed_loop.paths"), "closed_loop.paths", integer=True, low=1)
     K = _number(get(cfg, "closed_loop.horizon"), "closed_loop.horizon", integer=True, low=1)
-    amplitude = _number(get(cfg, "closed_loop.disturbance.amplitude"), "closed_loop.disturbance.amplitude")
+    amplitude = get(cfg, "closed_loop.disturbance.amplitude")
+    if isinstance(amplitude, list):                     # one amplitude per input channel
+        if len(amplitude) != model.m:
+            raise ConfigError(f"closed_loop.disturbance.amplitude: {amplitude!r} is not allowed, expected a "
+                              f"number or m = {model.m} numbers")
+        amplitude = [_number(a, "closed_loop.disturbance.amplitude") for a in amplitude]
+    else:
+        amplitude = _number(amplitude, "closed_loop.disturbance.amplitude")
     until = _number(get(cfg, "closed_loop.disturbance.until"), "closed_loop.disturbance.until", integer=True, low=0)
     d = np.zeros((K + 1, model.m))
     d[:until] = amplitude
-    window = get(cfg, "closed_loop.rate_window")
-    if not (isinstance(window, list) and len(window) == 2 and all(isinstance(k, int) for k in window)
-            and 0 <= window[0] < window[1] <= K):
-        raise ConfigError(f"closed_loop.rate_window: {window!r} is not allowed, expected [k_from, k_to] "
-                          f"with 0 <= k_from < k_to <= closed_loop.horizon = {K}")
+    window = _rate_window(get(cfg, "closed_loop.rate_window"), K)
     flags = {}
     for name in ("closed_loop.filter_sees_disturbance", "closed_loop.open_loop", "tracking.recording"):
         flags[name] = get(cfg, name)
         if not isinstance(flags[name], bool):
             raise ConfigError(f"{name}: {flags[name]!r} is not allowed, expected true or false")
+    reference = plain(OmegaConf.select(cfg, "plant.reference"))
+    if reference is not None and not isinstance(reference, dict):
+        raise ConfigError(f"plant.reference: {reference!r} is not allowed, expected null or a mapping")
     level = get(cfg, "tracking.level")
     if level not in TRACKING_LEVELS:
         raise ConfigError(f"tracking.level: {level!r} is not allowed, expected one of {', '.join(TRACKING_LEVELS)}")
 
     return Experiment(plant=plant, model=model, reported=reported, enkf=enkf, ensemble_size=M, q0=q0, psi0=psi0, P0=P0,
                       identification_input=u_id, K0=K0, K1=K1, gain_method=method, gain_options=options,
+                      gain_source=gain_source, gain_F=gain_F,
                       paths=paths, disturbance=d,
                       filter_sees_disturbance=flags["closed_loop.filter_sees_disturbance"],
                       open_loop=flags["closed_loop.open_loop"], rate_window=tuple(window), seed=seed,
-                      tracking=level, recording=flags["tracking.recording"] and level != "off")
+                      tracking=level, recording=flags["tracking.recording"] and level != "off",
+                      plant_name=plant_name, model_name=model_name, reference=reference,
+                      design_options=design_options, identification_feedback=feedback, identification_gain=F_id,
+                      xi_guess=xi_guess)
+
+
+def _process_noise(cfg, n: int, p: int) -> np.ndarray:
+    """enkf.Q: {x: scale, xi: scale} (times I_n and I_p), or a scalar, diagonal or full (n+p) matrix."""
+    Q = get(cfg, "enkf.Q")
+    if not isinstance(Q, dict):
+        return _covariance(cfg, "enkf.Q", n + p)
+    if set(Q) != {"x", "xi"}:
+        raise ConfigError(f"enkf.Q: {Q!r} is not allowed, expected {{x: scale, xi: scale}} or a matrix")
+    scales = [_number(Q[part], f"enkf.Q.{part}", low=0) for part in ("x", "xi")]
+    return np.diag(np.repeat(scales, [n, p]))
+
+
+def _rate_window(window, K: int) -> tuple[int, int]:
+    """closed_loop.rate_window: [k_from, k_to] as steps (integers) or as fractions of the horizon K."""
+    if isinstance(window, list) and len(window) == 2 and all(isinstance(k, float) for k in window) \
+            and all(0 <= k <= 1 for k in window):
+        window = [round(k * K) for k in window]
+    if not (isinstance(window, list) and len(window) == 2 and all(isinstance(k, int) for k in window)
+            and 0 <= window[0] < window[1] <= K):
+        raise ConfigError(f"closed_loop.rate_window: {window!r} is not allowed, expected [k_from, k_to] "
+                          f"with 0 <= k_from < k_to <= closed_loop.horizon = {K} (integers), or fractions "
+                          f"of the horizon (e.g. [0.6, 0.8])")
+    return tuple(window)
+
+
+def _identification_feedback(cfg, plant: AffineRandomSystem) -> tuple[str, np.ndarray | None, np.ndarray]:
+    """identification.feedback (none | nominal | auto | a gain F (m x n)) and identification.xi_guess.
+
+    xi_guess is the nominal guess of the plant's random parameters, in the plant file's xi, that a
+    stabilizing gain is designed on: prior knowledge, by default the mean of the plant file's
+    distribution."""
+    feedback = plain(OmegaConf.select(cfg, "identification.feedback", default="none"))
+    F = None
+    if isinstance(feedback, list):
+        with key("identification.feedback"):
+            F = plant.check_gain(feedback)
+        feedback = "given"
+    elif feedback not in FEEDBACK_MODES:
+        raise ConfigError(f"identification.feedback: {feedback!r} is not allowed, expected one of "
+                          f"{', '.join(FEEDBACK_MODES)} or a gain [[...]] of shape (m, n) = {(plant.m, plant.n)}")
+    guess = plain(OmegaConf.select(cfg, "identification.xi_guess"))
+    with key("identification.xi_guess"):
+        xi_guess = plant.check_distribution(None).mean if guess is None else np.asarray(guess, dtype=float)
+        if xi_guess.shape != (plant.p,) or not np.all(np.isfinite(xi_guess)):
+            raise ValueError(f"{guess!r} is not allowed, expected null or p = {plant.p} finite numbers "
+                             "(the plant file's xi)")
+    return feedback, F, xi_guess

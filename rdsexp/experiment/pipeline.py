@@ -18,10 +18,12 @@ import pandas as pd
 from tqdm import tqdm
 from tqdm.contrib.logging import logging_redirect_tqdm
 
-from ..numerics.analysis import empirical_rate, ms_rate, second_moments
-from ..numerics.modeling import model_distribution
+from ..numerics.analysis import empirical_rate, h2_norm, lq_cost, ms_rate, second_moments
+from ..numerics.enkf import truth_map
+from ..numerics.modeling import model_distribution, nominal_gain, one_line
 from ..numerics.simulation import Trajectories, simulate
 from ..numerics.synthesis import METHODS, SynthesisResult, synthesize
+from ..numerics.systems import MomentModel
 from .config import Experiment
 
 log = logging.getLogger("rdsexp")
@@ -63,8 +65,10 @@ def run_experiment(exp: Experiment) -> Outcome:
     keep = exp.tracking == "full"
 
     with timed(timings, "identification"):
-        ident = simulate(exp.plant, exp.enkf, d=exp.identification_input, paths=1, seed=root("identification"),
-                         filter_sees_d=True, keep_members=keep, **sim)
+        F_id, summary["identification_feedback"] = identification_feedback(exp)
+        # the identification input is added on top of the feedback; the EnKF is told the applied input
+        ident = simulate(exp.plant, exp.enkf, F=F_id, d=exp.identification_input, paths=1,
+                         seed=root("identification"), filter_sees_d=True, keep_members=keep, **sim)
     with timed(timings, "modeling"):
         xi = ident.xi(ident.psi_filt_mean)[:, 0]
         if ident.status != "ok" or not np.all(np.isfinite(xi[exp.K0:exp.K0 + exp.K1 + 1])):
@@ -75,13 +79,20 @@ def run_experiment(exp: Experiment) -> Outcome:
             summary["modeling_status"] = "ok"
     with timed(timings, "synthesis"):
         # every method on the identified moments (the selected one with its configured options) and,
-        # when the config gives them, on the moments a paper reports
+        # when the config gives them, on the moments a paper reports; a design that cannot be applied
+        # or fails is a status in the gains table, never the end of the run
         designs = {}
         for source, moments in (("identified", dist), ("reported", exp.reported)):
             for method in METHODS if moments is not None else ():
-                options = exp.gain_options if method == exp.gain_method else {}
-                designs[source, method] = (moments, synthesize(exp.model, moments, method, **options))
-        chosen = designs.get(("identified", exp.gain_method), (None, None))[1]
+                options = exp.design_options.get(method, exp.gain_options if method == exp.gain_method else {})
+                designs[source, method] = (moments, safe_synthesize(exp.model, moments, method, options))
+        selected = (exp.gain_source, exp.gain_method)
+        if exp.gain_source == "fixed":      # a given F (e.g. a paper's own gain): no design, its exact rate
+            selected, moments = ("fixed", "fixed"), dist if dist is not None else exp.reported
+            rate = ms_rate(exp.model, moments, exp.gain_F) if moments is not None else np.nan
+            nbar = int(exp.model.Gbar(moments).shape[0]) if moments is not None else 0
+            designs[selected] = (moments, SynthesisResult("fixed", exp.gain_F, rate, "fixed", nbar=nbar))
+        chosen = designs.get(selected, (None, None))[1]
 
     loops = {}
     if chosen is not None and chosen.F is not None:
@@ -101,11 +112,11 @@ def run_experiment(exp: Experiment) -> Outcome:
             "identification": trajectory_table("identification", ident),
             "paths": path_table({"identification": ident, **loops}),
             "model": model_table(exp, dist),
-            "gains": gains_table(exp, designs),
+            "gains": gains_table(exp, designs, selected),
             "metrics": metrics_table(exp, loops),
             "exact": exact_table(exp, chosen),
         }
-    summary.update(_summary(exp, dist, chosen, tables["metrics"]))
+    summary.update(_summary(exp, dist, chosen, tables))
     timings["synthesis_by_method"] = {f"{source}/{method}": round(res.seconds, 4)
                                       for (source, method), (_, res) in designs.items()}
     members = None
@@ -113,6 +124,63 @@ def run_experiment(exp: Experiment) -> Outcome:
         members = pd.concat([members_table(name, tr, exp) for name, tr in {"identification": ident, **loops}.items()],
                             ignore_index=True)
     return Outcome(tables=tables, summary=summary, timings=timings, members=members)
+
+
+def safe_synthesize(model, moments, method: str, options: dict) -> SynthesisResult:
+    """`synthesize`, with every way a design can fail on this system as a status, never an exception.
+
+    not_applicable: pole placement without poles in the config. failed: <reason>: the method raised
+    (e.g. a Riccati equation without a solution) or returned a gain that is not finite."""
+    if method == "pole_placement" and options.get("poles") is None:
+        return SynthesisResult(method, None, float("nan"), "not_applicable", nbar=0,
+                               info={"reason": "no poles in the config (plant.poles or gain.options.poles)"})
+    start = time.perf_counter()
+    try:
+        with np.errstate(all="ignore"):
+            res = synthesize(model, moments, method, **options)
+    except Exception as err:                      # noqa: BLE001 -- any failure of one design is its status
+        log.warning("design %s failed: %s", method, one_line(err))
+        res = SynthesisResult(method, None, float("nan"), f"failed: {one_line(err)}", nbar=0)
+    if res.F is not None and not np.all(np.isfinite(res.F)):
+        res = SynthesisResult(method, None, float("nan"), "failed: the gain is not finite", nbar=res.nbar)
+    res.seconds = res.seconds or time.perf_counter() - start
+    return res
+
+
+def identification_feedback(exp: Experiment) -> tuple[np.ndarray | None, dict]:
+    """The gain of the identification run (None: open loop) and what was decided, for the summary.
+
+    auto: open loop when the plant at the nominal guess xi_guess (prior knowledge, by default the mean
+    of the plant's distribution) is mean-square stable in open loop, else nominal: a stabilizing
+    gain designed on the plant at xi_guess (`nominal_gain`)."""
+    mode = exp.identification_feedback
+    info = {"mode": mode}
+    if mode == "none":
+        return None, info
+    if mode == "given":
+        return exp.identification_gain, info | {"used": "given"}
+    guess = MomentModel.deterministic(exp.xi_guess)
+    with np.errstate(all="ignore"):
+        info["open_loop_rate_at_guess"] = safe_rate(exp.plant, guess, np.zeros((exp.plant.m, exp.plant.n)))
+    if mode == "auto" and info["open_loop_rate_at_guess"] < 1:
+        return None, info | {"used": "open_loop"}
+    res = nominal_gain(exp.plant, exp.xi_guess)
+    info |= {"used": "nominal", "method": res.method, "status": res.status, "rate_at_guess": res.lam}
+    if res.F is None or not np.all(np.isfinite(res.F)) or not res.lam < 1:
+        info["used"] = "open_loop (no stabilizing nominal gain)"
+        return None, info
+    with np.errstate(all="ignore"):
+        info["rate_plant"] = safe_rate(exp.plant, None, res.F)
+    return res.F, info
+
+
+def safe_rate(system, dist, F) -> float:
+    """ms_rate, NaN where it cannot be computed (a gain so large that the operator is not finite)."""
+    try:
+        with np.errstate(all="ignore"):
+            return ms_rate(system, dist, F)
+    except (ValueError, np.linalg.LinAlgError):
+        return float("nan")
 
 
 # ------------------------------------------------------------------------------------ tables
@@ -167,9 +235,11 @@ def model_table(exp: Experiment, dist) -> pd.DataFrame:
     return pd.DataFrame(rows, columns=["quantity", "row", "col", "value"])
 
 
-def gains_table(exp: Experiment, designs: dict) -> pd.DataFrame:
-    """Per (distribution, method): status, lam (design), bracket, nbar, exact rates on the design
-    moments and on the true plant, F. designs: {(source, method): (moments, SynthesisResult)}.
+def gains_table(exp: Experiment, designs: dict, selected: tuple[str, str]) -> pd.DataFrame:
+    """Per (distribution, method): status, lam (design), bracket, nbar, exact rates, LQ costs and H2
+    norms on the design moments and on the true plant (`performance`), robust_box's certified box rate
+    (lam_box, NaN for other methods), F. designs: {(source, method): (moments, SynthesisResult)};
+    `selected` is the (source, method) the closed loop used (gain.source; ("fixed", "fixed") for a given F).
 
     Only reproducible numbers go into tables; synthesis times are in run.json's timings."""
     rows = []
@@ -177,13 +247,27 @@ def gains_table(exp: Experiment, designs: dict) -> pd.DataFrame:
         found = res.F is not None
         F = res.F if found else np.full((exp.model.m, exp.model.n), np.nan)
         rows.append({"distribution": source, "method": method,
-                     "selected": source == "identified" and method == exp.gain_method,
+                     "selected": (source, method) == selected,
                      "status": res.status, "lam": res.lam, "lam_lower": res.lam_lower,
                      "lower_certified": res.lower_certified, "nbar": res.nbar,
-                     "rate_model": ms_rate(exp.model, moments, F) if found else np.nan,
-                     "rate_plant": ms_rate(exp.plant, None, F) if found else np.nan,
+                     "rate_model": safe_rate(exp.model, moments, F) if found and moments is not None else np.nan,
+                     "rate_plant": safe_rate(exp.plant, None, F) if found else np.nan,
+                     **performance(exp, moments, F if found and moments is not None else None),
+                     "lam_box": res.info.get("lam_box", np.nan),
                      **{f"F[{i}]": v for i, v in enumerate(F.ravel())}})
     return pd.DataFrame(rows)
+
+
+def performance(exp: Experiment, moments, F) -> dict:
+    """Exact LQ cost (weights I, I) from the plant's q0 and averaged over x0 ~ N(0, I), and the H2 norm
+    from d (added on u) to [x; F x], on the true plant and on the design moments; inf where not
+    mean-square stable, NaN without a gain."""
+    keys = ("lq_cost_q0_plant", "lq_cost_plant", "h2_plant", "lq_cost_model", "h2_model")
+    if F is None or not np.all(np.isfinite(F)):
+        return dict.fromkeys(keys, np.nan)
+    return {"lq_cost_q0_plant": lq_cost(exp.plant, None, F, exp.q0), "lq_cost_plant": lq_cost(exp.plant, None, F),
+            "h2_plant": h2_norm(exp.plant, None, F), "lq_cost_model": lq_cost(exp.model, moments, F),
+            "h2_model": h2_norm(exp.model, moments, F)}
 
 
 def metrics_table(exp: Experiment, loops: dict[str, Trajectories]) -> pd.DataFrame:
@@ -197,9 +281,36 @@ def metrics_table(exp: Experiment, loops: dict[str, Trajectories]) -> pd.DataFra
                      "k_from": k_from, "k_to": k_to, "paths": tr.q.shape[1],
                      "failed_fraction": float(np.mean(tr.failed_at >= 0)),
                      "x_error_rms": float(np.sqrt(np.nanmean(np.sum(err ** 2, axis=-1)))),
-                     "q_rms_final": float(np.sqrt(np.mean(np.sum(tr.q[-1] ** 2, axis=-1))))})
+                     "q_rms_final": float(np.sqrt(np.mean(np.sum(tr.q[-1] ** 2, axis=-1)))),
+                     **estimation_quality(exp, tr)})
     return pd.DataFrame(rows, columns=["experiment", "status", "rate", "rate_low", "rate_high", "k_from", "k_to",
-                                       "paths", "failed_fraction", "x_error_rms", "q_rms_final"])
+                                       "paths", "failed_fraction", "x_error_rms", "q_rms_final", *ESTIMATION])
+
+
+ESTIMATION = ("x_rmse", "x_spread_error", "xi_rmse", "xi_spread_error")
+
+
+def estimation_quality(exp: Experiment, tr: Trajectories) -> dict:
+    """RMSE sqrt(mean ||e||^2) of the filtered x_{k|k} against q_k and of xi_{k|k} against the true
+    xi, over steps k = 1..K and paths not failed, and the spread/error ratio sqrt(mean sum std^2) / RMSE
+    (1: the ensemble spread matches its error). The true xi at k is T s_{k-1} + t, the coefficients
+    that moved the plant into q_k, with (T, t) from `truth_map` (NaN when the model's xi has no
+    value in the plant's terms)."""
+    def rmse_ratio(err, std):
+        rmse = np.sqrt(np.nanmean(np.sum(err ** 2, axis=-1)))
+        return float(rmse), float(np.sqrt(np.nanmean(np.sum(std ** 2, axis=-1))) / rmse)
+    out = dict.fromkeys(ESTIMATION, np.nan)
+    if tr.q.shape[0] < 2:
+        return out
+    with np.errstate(all="ignore"):
+        out["x_rmse"], out["x_spread_error"] = rmse_ratio(tr.x(tr.psi_filt_mean)[1:] - tr.q[1:],
+                                                         tr.x(tr.psi_filt_std)[1:])
+        truth = truth_map(exp.model, exp.plant) if tr.s is not None else None
+        if truth is not None:
+            T, t = truth
+            out["xi_rmse"], out["xi_spread_error"] = rmse_ratio(tr.xi(tr.psi_filt_mean)[1:] - (tr.s[:-1] @ T.T + t),
+                                                               tr.xi(tr.psi_filt_std)[1:])
+    return out
 
 
 def exact_table(exp: Experiment, chosen: SynthesisResult | None) -> pd.DataFrame:
@@ -215,16 +326,27 @@ def exact_table(exp: Experiment, chosen: SynthesisResult | None) -> pd.DataFrame
     return pd.concat(frames, ignore_index=True)
 
 
-def _summary(exp: Experiment, dist, chosen, metrics: pd.DataFrame) -> dict:
-    s = {"gain_method": exp.gain_method}
+def _summary(exp: Experiment, dist, chosen, tables: dict) -> dict:
+    """Key numbers of the run (run.json `summary`); what print_summary shows."""
+    s = {"plant": exp.plant_name, "model": exp.model_name, "gain_method": exp.gain_method,
+         "rate_window": list(exp.rate_window)}
     if dist is not None:
         s.update(nbar=int(exp.model.Gbar(dist).shape[0]), xi_mean=dist.mean.tolist())
     if chosen is not None:
         s.update(synthesis_status=chosen.status, lam=chosen.lam,
-                 rate_plant=ms_rate(exp.plant, None, chosen.F) if chosen.F is not None else None)
-    for row in metrics.itertuples():
+                 rate_plant=safe_rate(exp.plant, None, chosen.F) if chosen.F is not None else None)
+    gains = tables["gains"]
+    s["designs"] = {row.method: row.status for row in gains.itertuples() if row.distribution == "identified"}
+    paths = tables["paths"]
+    for row in tables["metrics"].itertuples():
         s[f"{row.experiment}_status"] = row.status
         s[f"{row.experiment}_rate"] = [row.rate, row.rate_low, row.rate_high]
+        failed = paths[(paths["experiment"] == row.experiment) & (paths["failed_at"] >= 0)]["failed_at"]
+        if len(failed):
+            s[f"{row.experiment}_failed"] = {"fraction": row.failed_fraction, "first_k": int(failed.min()),
+                                             "median_k": float(failed.median())}
+    if exp.reference is not None:
+        s["reference"] = exp.reference
     return s
 
 

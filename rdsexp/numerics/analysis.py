@@ -6,26 +6,86 @@ and full state feedback; its second moments depend on the distribution of xi onl
 from __future__ import annotations
 
 import numpy as np
+import scipy.linalg
+import scipy.sparse.linalg
 from scipy import stats
 
 from .systems import AffineRandomSystem, MomentModel
 
 
 def second_moment_operator(system: AffineRandomSystem, dist: MomentModel | None, F) -> np.ndarray:
-    """E[Acl (x) Acl], shape (n^2, n^2): row-major vec(X_{k+1}) = this @ vec(X_k) for d = 0."""
+    """E[Acl (x) Acl], shape (n^2, n^2): row-major vec(X_{k+1}) = this @ vec(X_k) for d = 0.
+
+    Dense: for small n and for checks; `ms_rate` never forms it for n > DENSE_MAX_N."""
     Abar, Bbar = system.moment_factors(dist)
     Acl = Abar + Bbar @ system.check_gain(F)                 # (nbar, n, n)
     n = system.n
     return np.einsum("rij,rkl->ikjl", Acl, Acl).reshape(n * n, n * n)
 
 
+DENSE_MAX_N = 8      # up to n^2 = 64 the dense eigenvalue problem is as fast as an Arnoldi iteration
+
+
+def perron(Acl: np.ndarray, *, adjoint: bool = False, v0: np.ndarray | None = None) -> tuple[float, np.ndarray]:
+    """Spectral radius rho and a Perron eigenvector V (n, n) of T(X) = sum_r Acl_r X Acl_r^T.
+
+    Acl: (nbar, n, n). adjoint=True uses T*(P) = sum_r Acl_r^T P Acl_r (same spectrum). T maps the
+    PSD cone into itself, so rho is an eigenvalue with a PSD eigenvector (Krein-Rutman); V is
+    returned symmetrised with a nonnegative trace (PSD up to rounding). For n > DENSE_MAX_N an
+    Arnoldi iteration (ARPACK, tolerance 0 = working precision, started from v0 if given) applies T
+    as nbar pairs of n x n products, O(nbar n^3) per step, instead of an O(n^6) dense eigensolve;
+    there the closed loop is first balanced (a diagonal similarity, which leaves the spectrum
+    unchanged) so that gains with large entries do not cost accuracy. (The dense eigensolver
+    balances the n^2 x n^2 matrix itself.)
+    """
+    Acl = np.asarray(Acl, dtype=float)
+    n = Acl.shape[1]
+    if adjoint:
+        Acl = Acl.transpose(0, 2, 1)
+    scale = np.ones(n)
+    if n > DENSE_MAX_N and np.all(np.isfinite(Acl)):
+        _, (scale, _) = scipy.linalg.matrix_balance(np.abs(Acl).sum(axis=0), permute=False, separate=True)
+        Acl = Acl * scale[None, None, :] / scale[None, :, None]         # D^-1 Acl D
+    w = V = None
+    if n > DENSE_MAX_N:
+        AclT = np.ascontiguousarray(Acl.transpose(0, 2, 1))
+        op = scipy.sparse.linalg.LinearOperator(
+            (n * n, n * n), dtype=float, matvec=lambda x: (Acl @ x.reshape(n, n) @ AclT).sum(axis=0).ravel())
+        start = None if v0 is None else (np.asarray(v0, dtype=float) / np.outer(scale, scale)).ravel()
+        try:
+            w, V = scipy.sparse.linalg.eigs(op, k=2, which="LM", tol=0, v0=start, maxiter=20 * n * n)
+        except scipy.sparse.linalg.ArpackError:
+            w = None                                   # no convergence (e.g. nilpotent T): dense below
+    if w is None:
+        L = np.einsum("rij,rkl->ikjl", Acl, Acl).reshape(n * n, n * n)
+        w, V = np.linalg.eig(L)
+    i = np.argmax(np.abs(w))
+    rho = float(np.abs(w[i]))
+    # among eigenvalues of modulus rho pick the real one (the Perron root)
+    close = np.flatnonzero(np.abs(w) >= rho * (1 - 1e-9))
+    i = close[np.argmin(np.abs(w[close].imag))]
+    X = V[:, i].real.reshape(n, n) * np.outer(scale, scale)             # back from the balanced basis
+    X = (X + X.T) / 2
+    X /= np.sign(np.trace(X)) * np.abs(X).max() if np.trace(X) != 0 else np.abs(X).max() or 1.0
+    return rho, X
+
+
 def ms_rate(system: AffineRandomSystem, dist: MomentModel | None, F) -> float:
     """Exact mean-square decay rate sqrt(rho(E[Acl (x) Acl])) of the ideal closed loop.
 
     This is the smallest lambda of eq. (exp-def) for the gain F (>= 1: not mean-square stable).
-    `dist` None uses the system's own xi_dist.
+    `dist` None uses the system's own xi_dist. Computed by `perron` (dense up to DENSE_MAX_N,
+    Arnoldi beyond, both to working precision).
     """
-    return float(np.sqrt(np.abs(np.linalg.eigvals(second_moment_operator(system, dist, F))).max()))
+    Abar, Bbar = system.moment_factors(dist)
+    Acl = Abar + Bbar @ system.check_gain(F)
+    if not np.all(np.isfinite(Acl)):
+        return float("inf")
+    if system.n <= DENSE_MAX_N:            # the dense eigenvalues, bit for bit as before
+        n = system.n
+        L = np.einsum("rij,rkl->ikjl", Acl, Acl).reshape(n * n, n * n)
+        return float(np.sqrt(np.abs(np.linalg.eigvals(L)).max()))
+    return float(np.sqrt(perron(Acl)[0]))
 
 
 def second_moments(system: AffineRandomSystem, dist: MomentModel | None, F, x0, d) -> tuple[np.ndarray, np.ndarray]:
@@ -82,3 +142,163 @@ def empirical_rate(q: np.ndarray, k_from: int, k_to: int, level: float = 0.95) -
 def rms(q: np.ndarray) -> np.ndarray:
     """sqrt(E||q_k||^2) over paths: q (K+1, P, n) -> (K+1,)."""
     return np.sqrt(np.mean(np.sum(q ** 2, axis=-1), axis=1))
+
+
+# ------------------------------------------------------------ exact LQ cost and H2 norm of a gain
+# The ideal closed loop x_{k+1} = Acl(xi_k) x_k (+ B(xi_k) w_k) with the performance output
+# z_k = [Q^(1/2) x_k; R^(1/2) F x_k]. Its observability Gramian P solves the generalized Lyapunov equation
+#     P = Q + F^T R F + E[Acl^T P Acl] = Q + F^T R F + sum_r Acl_r^T P Acl_r,   Acl_r = Abar_r + Bbar_r F,
+# which has a (unique, PSD) solution iff the loop is mean-square stable; then x0^T P x0 = E sum_k z_k^T z_k.
+
+def weight(name: str, value, dim: int) -> np.ndarray:
+    """A weight as a (dim, dim) matrix: a scalar w > 0 means w I; a matrix must be symmetric positive definite.
+
+    Positive definite Q and R make a finite cost equivalent to mean-square stability."""
+    try:
+        W = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name}: {value!r} is not allowed, expected a number > 0 or a ({dim}, {dim}) "
+                         "matrix") from None
+    if W.ndim == 0:
+        W = W * np.eye(dim)
+    if W.shape != (dim, dim) or not np.all(np.isfinite(W)):
+        raise ValueError(f"{name}: shape {W.shape} is not allowed, expected a number > 0 or a finite ({dim}, {dim}) "
+                         "matrix")
+    if not np.allclose(W, W.T, rtol=1e-9, atol=1e-12) or np.linalg.eigvalsh((W + W.T) / 2).min() <= 0:
+        raise ValueError(f"{name}: must be symmetric positive definite")
+    return (W + W.T) / 2
+
+
+def cost_matrix(system: AffineRandomSystem, dist: MomentModel | None, F, *, state_weight=1.0,
+                input_weight=1.0) -> np.ndarray:
+    """P (n, n) with x0^T P x0 = E sum_{k>=0} (x_k^T Q x_k + u_k^T R u_k), u = F x: the exact LQ cost matrix.
+
+    Solves the generalized Lyapunov equation above as one linear system in vec(P) (`lyapunov`).
+    All entries inf when the loop is not mean-square stable
+    (ms_rate >= 1): then x^T P x grows without bound for every x outside a proper subspace.
+    """
+    dist = system.check_distribution(dist)
+    F = system.check_gain(F)
+    Q, R = weight("state_weight", state_weight, system.n), weight("input_weight", input_weight, system.m)
+    if ms_rate(system, dist, F) >= 1:
+        return np.full((system.n, system.n), np.inf)
+    Abar, Bbar = system.moment_factors(dist)
+    P = lyapunov(Abar + Bbar @ F, Q + F.T @ R @ F)
+    return P if P is not None else np.full((system.n, system.n), np.inf)
+
+
+def lyapunov(Acl: np.ndarray, Qbar: np.ndarray) -> np.ndarray | None:
+    """P (n, n) solving P = Qbar + sum_r Acl_r^T P Acl_r for Acl (nbar, n, n) and Qbar > 0, or None.
+
+    For Qbar > 0 a positive definite solution exists iff the loop is mean-square stable (P is then a
+    Lyapunov function: E[Acl^T P Acl] = P - Qbar < P), so None (no positive definite solution) means
+    not mean-square stable; the Cholesky test costs less than the spectrum.
+    """
+    n = Acl.shape[1]
+    L = np.einsum("rji,rlk->ikjl", Acl, Acl).reshape(n * n, n * n)   # row-major vec(A^T P A) = (A^T (x) A^T) vec P
+    try:
+        P = np.linalg.solve(np.eye(n * n) - L, Qbar.ravel()).reshape(n, n)
+        P = (P + P.T) / 2
+        np.linalg.cholesky(P)
+    except np.linalg.LinAlgError:
+        return None
+    return P
+
+
+def lq_cost(system: AffineRandomSystem, dist: MomentModel | None, F, x0=None, *, state_weight=1.0,
+            input_weight=1.0) -> float:
+    """Exact E sum_{k>=0} (x_k^T Q x_k + u_k^T R u_k) of the ideal loop u = F x from x0 (n,).
+
+    x0 None: the average over x0 ~ N(0, I), which is trace(P). inf when not mean-square stable.
+    """
+    P = cost_matrix(system, dist, F, state_weight=state_weight, input_weight=input_weight)
+    if not np.all(np.isfinite(P)):
+        return float("inf")
+    if x0 is None:
+        return float(np.trace(P))
+    x0 = np.asarray(x0, dtype=float)
+    if x0.shape != (system.n,):
+        raise ValueError(f"x0: shape {x0.shape}, expected ({system.n},)")
+    return float(x0 @ P @ x0)
+
+
+def h2_norm(system: AffineRandomSystem, dist: MomentModel | None, F, *, disturbance=None, state_weight=1.0,
+            input_weight=1.0) -> float:
+    """Exact H2 norm from a disturbance w to z = [Q^(1/2) x; R^(1/2) F x] of the random closed loop.
+
+    x_{k+1} = Acl(xi_k) x_k + Bw(xi_k) w_k. disturbance None: Bw = B(xi), i.e. w is added on the
+    plant input as the paper's d_k; else a constant (n, q) matrix Bw. The norm is
+    sqrt(sum_i sum_k E||z_k||^2) over unit impulses e_i at k = 0, which equals the stationary
+    E||z_k||^2 under unit white noise w: sqrt(trace E[Bw^T P Bw]) with P of `cost_matrix`. inf when
+    not mean-square stable.
+    """
+    P = cost_matrix(system, dist, F, state_weight=state_weight, input_weight=input_weight)
+    if not np.all(np.isfinite(P)):
+        return float("inf")
+    if disturbance is None:
+        _, Bw = system.moment_factors(dist)                      # E[B^T P B] = sum_r Bbar_r^T P Bbar_r
+    else:
+        Bw = np.asarray(disturbance, dtype=float)
+        if Bw.ndim != 2 or Bw.shape[0] != system.n or not np.all(np.isfinite(Bw)):
+            raise ValueError(f"disturbance: shape {Bw.shape}, expected a finite (n = {system.n}, q) matrix")
+        Bw = Bw[None]
+    return float(np.sqrt(max(np.einsum("rji,jk,rki->", Bw, P, Bw), 0.0)))
+
+
+# ----------------------------------------------------------- rate estimators beside empirical_rate
+def bootstrap_rate(sq_from: np.ndarray, sq_to: np.ndarray, span: int, *, replicates: int = 2000,
+                   level: float = 0.95, seed=0) -> tuple[float, float, float]:
+    """Two-point mean-square rate with a percentile bootstrap interval, resampling seeds then paths.
+
+    sq_from, sq_to: (S, P) values of ||q_{k_from}||^2 and ||q_{k_to}||^2 per seed (independent run)
+    and path; span = k_to - k_from. The rate is (sum sq_to / sum sq_from)^(1/(2 span)), the paper's
+    ratio of sample means pooled over all S*P paths. Each replicate draws S seeds with replacement
+    and, within each, P paths with replacement (S = 1: the bootstrap over paths of one run), so the
+    interval carries the spread between seeds as well as within. NaN if any value is not finite.
+    Returns (rate, low, high).
+    """
+    a, b = np.atleast_2d(np.asarray(sq_to, float)), np.atleast_2d(np.asarray(sq_from, float))
+    if a.shape != b.shape or span < 1:
+        raise ValueError(f"sq_from, sq_to: shapes {b.shape}, {a.shape} must match (S, P); span {span} must be >= 1")
+    if not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))) or b.sum() <= 0 or a.sum() <= 0:
+        return float("nan"), float("nan"), float("nan")
+    S, P = a.shape
+    rng = np.random.default_rng(seed)
+    s = rng.integers(S, size=(replicates, S, 1))
+    p = rng.integers(P, size=(replicates, S, P))
+    ratio = a[s, p].sum(axis=(1, 2)) / b[s, p].sum(axis=(1, 2))          # (replicates,)
+    with np.errstate(divide="ignore"):
+        boot = ratio ** (1 / (2 * span))
+    low, high = np.quantile(boot, [0.5 - level / 2, 0.5 + level / 2])
+    return float((a.sum() / b.sum()) ** (1 / (2 * span))), float(low), float(high)
+
+
+def largest_path_share(q: np.ndarray, k: int) -> float:
+    """Share of the largest path in the sample mean of ||q_k||^2: q (K+1, P, n) -> in [1/P, 1]."""
+    sq = np.sum(q[k] ** 2, axis=-1)
+    return float(sq.max() / sq.sum()) if np.all(np.isfinite(sq)) and sq.sum() > 0 else float("nan")
+
+
+def robust_rate(q: np.ndarray, k_from: int, k_to: int, groups: int = 10) -> float:
+    """Median-of-means rate: a rate estimate that no single path can dominate.
+
+    The P paths are split into `groups` interleaved groups (path j in group j mod groups); in each,
+    log of the group's mean ||q_k||^2 is fitted by least squares against k = k_from..k_to (every
+    step of the window, not only its two ends), the slope halved; the median over groups is
+    returned as exp(.). One heavy path moves one group, not the median. It estimates the same
+    mean-square rate as the two-point ratio when groups are large enough that each group mean is
+    close to its expectation. q: (K+1, P, n). NaN if a path is not finite in the window.
+    """
+    P = q.shape[1]
+    if not 1 <= groups <= P or not 0 <= k_from < k_to < q.shape[0]:
+        raise ValueError(f"groups {groups} must be in 1..P = {P}; window {k_from}..{k_to} within 0..{q.shape[0] - 1}")
+    sq = np.sum(q[k_from:k_to + 1] ** 2, axis=-1)                            # (W, P)
+    if not np.all(np.isfinite(sq)):
+        return float("nan")
+    member = np.arange(P) % groups
+    means = np.stack([sq[:, member == g].mean(axis=1) for g in range(groups)], axis=1)   # (W, groups)
+    if np.any(means <= 0):
+        return float("nan")
+    k = np.arange(k_from, k_to + 1) - (k_from + k_to) / 2
+    slopes = k @ np.log(means) / (k @ k)                                   # least-squares slope per group
+    return float(np.exp(np.median(slopes) / 2))

@@ -5,6 +5,24 @@ w ~ N(0, Q), v ~ N(0, R). Ensembles are arrays (..., M, n+p) with any leading ba
 (paths); every step is a few batched matrix products, never a loop over members. Noise comes in
 as standard normal draws so that the caller owns the random streams (one per path).
 
+Variants (`EnKF.variant`), both batched the same way:
+- "stochastic": the paper's EnKF with perturbed outputs z^(i) = h(psi^(i)) + v^(i) (eq. output-pred2),
+  gain K = U V^-1 from the sample moments of eqs. (kalman-u), (kalman-v).
+- "etkf": the ensemble transform Kalman filter (deterministic square root, symmetric transform;
+  Hunt, Kostelich & Szunyogh 2007). No output perturbations are drawn. With the output anomalies
+  Y = [h(psi^(i)) - z_mean] (ny, M) and S = R^(-1/2) Y / sqrt(M-1), the analysis anomalies are
+  X (I + S^T S)^(-1/2) (the symmetric root keeps the mean, as S 1 = 0) and the mean moves by
+  K (y - z_mean), K = U (V_z + R)^-1. With S S^T = R^(-1/2) V_z R^(-1/2) = E diag(lam) E^T
+  (ny x ny, not M x M) this is X + U R^(-1/2) E diag(g(lam)) E^T R^(-1/2) Y with
+  g(lam) = ((1 + lam)^(-1/2) - 1) / lam = -1 / (sqrt(1 + lam) (1 + sqrt(1 + lam))): the same
+  [coefficients, correction] @ [Y; 1] product as the stochastic update, and the analysis sample
+  covariance is exactly Cov(psi_{k|k-1}) - U (V_z + R)^-1 U^T, the Kalman update of the forecast
+  ensemble's moments.
+Options for small ensembles, for both variants: `inflation` rho >= 1 scales the forecast
+anomalies psi^(i) - mean by rho after each prediction; `relaxation` alpha in [0, 1] relaxes the
+analysis spread to the prior spread per component (RTPS, Whitaker & Hamill 2012):
+sigma_a <- alpha sigma_f + (1 - alpha) sigma_a, by scaling the analysis anomalies.
+
 Ensembles returned by `predict` and `update` are stored component-major: they are (..., M, n+p)
 views of (n+p, ..., M) arrays, so each component of all paths and members is one contiguous block
 and the elementwise work runs as single long loops (with the n+p = 9 numbers of a member
@@ -22,6 +40,7 @@ from .systems import AffineRandomSystem, _finite_array, affine_apply
 # an innovation covariance V with condition number above this is singular to working precision
 # (1 / (45 eps)); a merely large spread of the outputs stays well below it
 V_COND_LIMIT = 1e14
+VARIANTS = ("stochastic", "etkf")
 
 
 def check_covariance(name: str, value, dim: int) -> np.ndarray:
@@ -51,20 +70,41 @@ def sqrtm_psd(S: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True, eq=False)
 class EnKF:
-    """The paper's EnKF with perturbed outputs for `model`, process noise Q (n+p, n+p), output noise R (ny, ny).
+    """EnKF for `model`, process noise Q (n+p, n+p), output noise R (ny, ny) (module docstring).
 
-    Q and R may be given as scalars (times I) or diagonals.
+    Q and R may be given as scalars (times I) or diagonals. variant: "stochastic" (the paper's,
+    perturbed outputs) or "etkf" (needs R positive definite); inflation rho >= 1 of the forecast
+    anomalies (1: none); relaxation alpha in [0, 1] to the prior spread (0: none).
     """
 
     model: AffineRandomSystem
     Q: np.ndarray
     R: np.ndarray
+    variant: str = "stochastic"
+    inflation: float = 1.0
+    relaxation: float = 0.0
 
     def __post_init__(self):
         object.__setattr__(self, "Q", check_covariance("Q", self.Q, self.dim))
         object.__setattr__(self, "R", check_covariance("R", self.R, self.model.ny))
         object.__setattr__(self, "_Q_sqrt", sqrtm_psd(self.Q))
         object.__setattr__(self, "_R_sqrt", sqrtm_psd(self.R))
+        if self.variant not in VARIANTS:
+            raise ValueError(f"variant: {self.variant!r} is not allowed, expected one of {', '.join(VARIANTS)}")
+        if not (_real(self.inflation) and self.inflation >= 1):
+            raise ValueError(f"inflation: {self.inflation!r} is not allowed, expected a finite number >= 1")
+        if not (_real(self.relaxation) and 0 <= self.relaxation <= 1):
+            raise ValueError(f"relaxation: {self.relaxation!r} is not allowed, expected a number in [0, 1]")
+        if self.variant == "etkf":
+            w, E = np.linalg.eigh(self.R)
+            if w.min() <= 1e-12 * max(w.max(), 1e-300):
+                raise ValueError("R: must be positive definite for the etkf variant (its transform uses R^-1)")
+            object.__setattr__(self, "_R_isqrt", (E / np.sqrt(w)) @ E.T)              # R^(-1/2), symmetric
+
+    @property
+    def output_noise_dim(self) -> int:
+        """Standard normals per member and step for the output perturbations: ny (stochastic), 0 (etkf)."""
+        return self.model.ny if self.variant == "stochastic" else 0
 
     @property
     def dim(self) -> int:
@@ -79,7 +119,8 @@ class EnKF:
         """State prediction, eq. (state-pred2): psi_{k|k-1}^(i) = f(psi_{k-1|k-1}^(i), u_{k-1}) + w_k^(i).
 
         psi: (..., M, n+p) filtered ensemble, u: (..., m) input applied at k-1 (same for all members),
-        e_w: (..., M, n+p) standard normal draws (w = Q^(1/2) e_w). Returns (..., M, n+p), component-major.
+        e_w: (..., M, n+p) standard normal draws (w = Q^(1/2) e_w). Returns (..., M, n+p), component-major,
+        its anomalies scaled by `inflation`.
         """
         return self._predict(psi, u, e_w, out=component_major(e_w.shape))
 
@@ -88,10 +129,10 @@ class EnKF:
         """Output prediction and filtering, eqs. (output-pred2), (filtering)-(kalman-v).
 
         psi: (..., M, n+p) predicted ensemble psi_{k|k-1}, u: (..., m) input at k, y: (..., ny)
-        measured output, e_v: (..., M, ny) standard normal draws (v = R^(1/2) e_v), psi_mean: the
-        ensemble mean (eq. state-pred1) if already computed. Where the innovation covariance V_k is
-        singular, `ok` is False and the ensemble is returned unfiltered (K_k = 0). The filtered
-        ensemble is component-major.
+        measured output, e_v: (..., M, ny) standard normal draws (v = R^(1/2) e_v; the etkf variant
+        draws none: pass None), psi_mean: the ensemble mean (eq. state-pred1) if already computed.
+        Where the innovation covariance V_k is singular, `ok` is False and the ensemble is returned
+        unfiltered (K_k = 0). The filtered ensemble is component-major.
         """
         work = component_major(psi.shape[:-1] + (self.dim + self.model.ny + 1,))
         return self._update(psi, u, y, e_v, psi_mean, out=component_major(psi.shape), work=work)
@@ -108,6 +149,11 @@ class EnKF:
         psi_next[:n] += components(affine_apply(self.model.A, xi, x))                 # eq. (f-A-B)
         psi_next[:n] += components(affine_apply(self.model.B, xi, u[..., None, :]))
         psi_next[n:] += components(xi)
+        if self.inflation != 1:                     # rho (psi - mean) + mean; skipped at 1 (bit-identical)
+            mean = components(ensemble_mean(out))[..., None]
+            psi_next -= mean
+            psi_next *= self.inflation
+            psi_next += mean
         return out
 
     def _update(self, psi: np.ndarray, u: np.ndarray, y: np.ndarray, e_v: np.ndarray,
@@ -122,8 +168,11 @@ class EnKF:
         X = components(work)
         Xb = np.moveaxis(X, 0, -2)
         dpsi, dz = X[:d], X[d:-1]
-        np.matmul(self._R_sqrt.T, e_v.swapaxes(-1, -2), out=Xb[..., d:-1, :])        # v = R^(1/2) e_v
-        dz += components(affine_apply(self.model.C, xi, x))                            # eq. (output-pred2)
+        if self.variant == "stochastic":
+            np.matmul(self._R_sqrt.T, e_v.swapaxes(-1, -2), out=Xb[..., d:-1, :])    # v = R^(1/2) e_v
+            dz += components(affine_apply(self.model.C, xi, x))                        # eq. (output-pred2)
+        else:
+            dz[...] = components(affine_apply(self.model.C, xi, x))                    # no perturbation
         if self.model.D.any():
             dz += components(affine_apply(self.model.D, xi, u[..., None, :]))
         psi_mean = ensemble_mean(psi) if psi_mean is None else psi_mean              # eq. (state-pred1)
@@ -133,21 +182,59 @@ class EnKF:
         X[-1] = 1.0
         S = Xb[..., :-1, :] @ Xb[..., :-1, :].swapaxes(-1, -2) / (M - 1)   # sample covariance of [psi; z]
         cov_pred, U, V = S[..., :d, :d], S[..., :d, d:], S[..., d:, d:]    # eqs. (kalman-u), (kalman-v)
-        lam = np.linalg.eigvalsh(V)                                        # V is symmetric PSD:
-        ok = lam[..., 0] * V_COND_LIMIT > lam[..., -1]                     # cond(V) = lam_max / lam_min
-        V = np.where(ok[..., None, None], V, np.eye(ny))
-        K = np.linalg.solve(V, U.swapaxes(-1, -2)).swapaxes(-1, -2) * ok[..., None, None]   # eq. (kalman-gain)
+        if self.variant == "stochastic":
+            lam = np.linalg.eigvalsh(V)                                    # V is symmetric PSD:
+            ok = lam[..., 0] * V_COND_LIMIT > lam[..., -1]                 # cond(V) = lam_max / lam_min
+            V = np.where(ok[..., None, None], V, np.eye(ny))
+            K = np.linalg.solve(V, U.swapaxes(-1, -2)).swapaxes(-1, -2) * ok[..., None, None]   # eq. (kalman-gain)
+            # eq. (filtering) for all members: psi + K (y - z) = psi + [-K, K (y - z_mean)] [dz; 1]
+            coefficients = -K
+        else:
+            K, coefficients, ok = self._transform(U, V)
         correction = (K @ (y - z_mean)[..., None])[..., 0]                 # of the mean
-        # eq. (filtering) for all members: psi + K (y - z) = psi + [-K, K (y - z_mean)] [dz; 1]
-        np.matmul(np.concatenate([-K, correction[..., None]], axis=-1), Xb[..., d:, :], out=out.swapaxes(-1, -2))
+        np.matmul(np.concatenate([coefficients, correction[..., None]], axis=-1), Xb[..., d:, :],
+                  out=out.swapaxes(-1, -2))
         filtered = components(out)
         filtered += components(psi)
         # moments of psi_{k|k} from the same products: psi_{k|k} - mean = dpsi - K dz, so its sample
-        # covariance is Cov(psi_{k|k-1}) - U K^T (exactly, for the sample moments)
+        # covariance is Cov(psi_{k|k-1}) - U K^T (exactly, for the sample moments; for the etkf
+        # Cov(psi_{k|k-1}) - U (V_z + R)^-1 U^T, the same expression with its K)
         var_pred = np.diagonal(cov_pred, axis1=-2, axis2=-1)
-        return Analysis(psi=out, ok=ok, pred_mean=psi_mean, pred_std=np.sqrt(np.clip(var_pred, 0, None)),
-                        filt_mean=psi_mean + correction,
-                        filt_std=np.sqrt(np.clip(var_pred - np.sum(U * K, axis=-1), 0, None)))
+        pred_std = np.sqrt(np.clip(var_pred, 0, None))
+        filt_mean = psi_mean + correction
+        filt_std = np.sqrt(np.clip(var_pred - np.sum(U * K, axis=-1), 0, None))
+        if self.relaxation:
+            filt_std = self._relax(filtered, filt_mean, pred_std, filt_std)
+        return Analysis(psi=out, ok=ok, pred_mean=psi_mean, pred_std=pred_std, filt_mean=filt_mean, filt_std=filt_std)
+
+    def _transform(self, U: np.ndarray, V_z: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """ETKF: (K, L, ok) with K = U (V_z + R)^-1 (..., n+p, ny) for the mean and L (..., n+p, ny)
+        with analysis anomalies dpsi + L dz = X (I + S^T S)^(-1/2) (module docstring), from the
+        eigenpairs of S S^T = R^(-1/2) V_z R^(-1/2) (..., ny, ny). V_z + R is positive definite, so
+        only non-finite moments make ok False (K = L = 0, the ensemble unfiltered)."""
+        ok = np.all(np.isfinite(V_z), axis=(-2, -1)) & np.all(np.isfinite(U), axis=(-2, -1))
+        V_z = np.where(ok[..., None, None], V_z, 0.0)
+        lam, E = np.linalg.eigh(self._R_isqrt @ V_z @ self._R_isqrt)
+        lam = np.clip(lam, 0.0, None)                                    # S S^T is PSD
+        W = np.where(ok[..., None, None], U, 0.0) @ self._R_isqrt @ E   # U R^(-1/2) E
+        Et = E.swapaxes(-1, -2) @ self._R_isqrt                          # E^T R^(-1/2)
+        root = np.sqrt(1.0 + lam)[..., None, :]
+        K = (W / (root * root)) @ Et
+        L = (W * (-1.0 / (root * (1.0 + root)))) @ Et
+        return K, L, ok
+
+    def _relax(self, filtered: np.ndarray, mean: np.ndarray, pred_std: np.ndarray, filt_std: np.ndarray) -> np.ndarray:
+        """RTPS in place on `filtered` (n+p, ..., M) (components) about its mean (..., n+p): anomalies
+        scaled by (alpha sigma_f + (1 - alpha) sigma_a) / sigma_a per component; returns the new spread.
+        A component without analysis spread stays as it is."""
+        a = self.relaxation
+        relaxed = a * pred_std + (1 - a) * filt_std
+        scale = np.divide(relaxed, filt_std, out=np.ones_like(filt_std), where=filt_std > 0)
+        centre = components(mean)[..., None]
+        filtered -= centre
+        filtered *= components(scale)[..., None]
+        filtered += centre
+        return np.where(filt_std > 0, relaxed, filt_std)
 
 
 class Analysis(NamedTuple):
@@ -177,3 +264,30 @@ def ensemble_mean(a: np.ndarray) -> np.ndarray:
     """Mean over the member axis: (..., M, d) -> (..., d), as one batched matrix-vector product."""
     M = a.shape[-2]
     return (np.full((1, M), 1.0 / M) @ a)[..., 0, :]
+
+
+def truth_map(model: AffineRandomSystem, plant: AffineRandomSystem, rtol: float = 1e-9):
+    """The affine map xi = T s + t under which `model` equals `plant` for every plant parameter s,
+    as (T (p, p_plant), t (p,)), or None when there is none or it is not unique.
+
+    Solves model_0 + sum_i t_i model_i = plant_0 and sum_i T_ij model_i = plant_j for the stacked
+    basis matrices [A; B; C; D] (least squares, then checked to hold to rtol). For the paper's plant
+    and model it gives xi = [0.7 s1, s2, 0.6] (eq. sysmodel-coef); for a model that is the plant, T = I."""
+    if (model.n, model.m, model.ny) != (plant.n, plant.m, plant.ny):
+        return None
+    stack = lambda sys: np.concatenate([M.reshape(sys.p + 1, -1) for M in (sys.A, sys.B, sys.C, sys.D)], axis=1)
+    G, H = stack(model), stack(plant)                                  # (p+1, N), (p_plant+1, N)
+    rhs = np.concatenate([(H[0] - G[0])[:, None], H[1:].T], axis=1)    # (N, 1 + p_plant)
+    basis = G[1:].T                                                    # (N, p)
+    if model.p and np.linalg.matrix_rank(basis) < model.p:
+        return None                                                    # xi not determined by the matrices
+    sol = np.linalg.lstsq(basis, rhs, rcond=None)[0] if model.p else np.zeros((0, rhs.shape[1]))
+    if not np.allclose(basis @ sol, rhs, rtol=0, atol=rtol * max(1.0, np.abs(rhs).max(), np.abs(G).max())):
+        return None
+    return sol[:, 1:], sol[:, 0]
+
+
+def _real(value) -> bool:
+    """A finite real number (not a bool)."""
+    return isinstance(value, (int, float, np.floating, np.integer)) and not isinstance(value, bool) \
+        and bool(np.isfinite(value))

@@ -9,23 +9,62 @@ from __future__ import annotations
 import numpy as np
 import scipy.signal
 
+from .synthesis.base import SynthesisResult
 from .systems import MomentModel
 
+LEVELS = ("bipolar", "unipolar")
 
-def mls_input(horizon: int, m: int = 1, register_length: int = 7, amplitude: float = 1.0) -> np.ndarray:
-    """Maximal-length sequence input, +-amplitude, shape (horizon+1, m).
 
-    Period 2^register_length - 1; input channel j uses the sequence shifted by j * period / m so
-    that the channels are uncorrelated over a period.
+def mls_input(horizon: int, m: int = 1, register_length: int = 7, amplitude: float = 1.0, *,
+              levels: str = "bipolar", hold: int = 1, taps=None, state=None, seed=None) -> np.ndarray:
+    """Maximal-length sequence input (paper Sec. V-A), shape (horizon+1, m).
+
+    levels "bipolar": bits {0, 1} -> {-amplitude, +amplitude}; "unipolar": -> {0, amplitude} (a
+    non-zero mean input). Each bit is held for `hold` steps. The shift register has
+    `register_length` bits, feedback `taps` (None: scipy's default maximal taps; given taps are
+    checked to produce a maximal sequence, period 2^register_length - 1) and initial `state`
+    (register_length bits, not all 0; None: all ones). `seed` (int or SeedSequence) instead draws
+    the initial state at random: a random phase of the same sequence, from its own stream.
+    Input channel j uses the sequence shifted by j * period / m so that the channels are
+    uncorrelated over a period.
     """
     if not 2 <= register_length <= 32:
         raise ValueError(f"register_length: {register_length}, allowed 2..32")
     if not (np.isfinite(amplitude) and amplitude > 0):
         raise ValueError(f"amplitude: {amplitude}, must be a positive number")
-    seq = scipy.signal.max_len_seq(register_length)[0].astype(float) * 2 - 1
-    period = seq.size
-    k = np.arange(horizon + 1)
-    return amplitude * np.stack([seq[(k + j * period // m) % period] for j in range(m)], axis=1)
+    if levels not in LEVELS:
+        raise ValueError(f"levels: {levels!r}, allowed {', '.join(LEVELS)}")
+    if not (isinstance(hold, (int, np.integer)) and hold >= 1):
+        raise ValueError(f"hold: {hold!r}, must be an integer >= 1")
+    if state is not None and seed is not None:
+        raise ValueError("state, seed: give an initial register state or a seed to draw it, not both")
+    if state is not None:
+        state = np.asarray(state)
+        if state.shape != (register_length,) or not np.all(np.isin(state, (0, 1))) or not state.any():
+            raise ValueError(f"state: {state.tolist()}, expected {register_length} bits 0/1, not all 0")
+    if seed is not None:
+        rng = np.random.default_rng(seed)
+        state = np.zeros(register_length, dtype=int)
+        while not state.any():                      # the all-zero register is the one invalid state
+            state = rng.integers(0, 2, register_length)
+    period = 2 ** register_length - 1
+    if taps is not None:
+        taps = [int(t) for t in np.atleast_1d(taps)]
+        if register_length > 20 or not all(0 < t < register_length for t in taps):
+            raise ValueError(f"taps: {taps}, expected integers in 1..register_length-1 "
+                             f"(custom taps for register_length <= 20)")
+        full = scipy.signal.max_len_seq(register_length, state=state, taps=taps)[0].astype(float) * 2 - 1
+        # an m-sequence is exactly the binary sequence whose circular autocorrelation is -1 at every lag != 0
+        corr = np.fft.irfft(np.abs(np.fft.rfft(full)) ** 2, n=period)[1:]
+        if not np.allclose(corr, -1, atol=1e-6):
+            raise ValueError(f"taps: {taps} do not give a maximal-length sequence for register_length "
+                             f"{register_length}")
+    # one channel reads only the first bits (the register may be long); m > 1 shifts over a period
+    length = period if m > 1 else min(period, horizon // hold + 1)
+    seq = scipy.signal.max_len_seq(register_length, state=state, taps=taps, length=length)[0].astype(float)
+    seq = seq * 2 - 1 if levels == "bipolar" else seq
+    k = np.arange(horizon + 1) // hold                                  # bit index of step k
+    return amplitude * np.stack([seq[(k + j * period // m) % seq.size] for j in range(m)], axis=1)
 
 
 def window_samples(xi_filt_mean: np.ndarray, K0: int, K1: int) -> np.ndarray:
@@ -39,3 +78,33 @@ def window_samples(xi_filt_mean: np.ndarray, K0: int, K1: int) -> np.ndarray:
 def model_distribution(xi_filt_mean: np.ndarray, K0: int, K1: int) -> MomentModel:
     """The modeled distribution of xi from one path's xi_{k|k} (K+1, p), eq. (sample-mean)."""
     return MomentModel.from_samples(window_samples(xi_filt_mean, K0, K1))
+
+
+def nominal_gain(model, xi_guess) -> SynthesisResult:
+    """A stabilizing gain for the model at the nominal guess xi = xi_guess (p,) (prior knowledge).
+
+    Used to identify an open-loop unstable plant under feedback, u_k = F x_{k|k-1} + d_k. The guess
+    says nothing about the spread of xi, so the design wants a stability margin rather than the
+    fastest rate at the guess (Theorem 2 on a deterministic model is often near dead-beat, which a
+    small deviation of xi destabilises): LQR with unit weights on A(xi_guess), B(xi_guess) first,
+    Theorem 2 at the guess if the Riccati equation has no solution. Returns the first design whose
+    exact rate at the guess is < 1, else the last one tried (status says why); never raises.
+    """
+    from .synthesis import synthesize  # synthesis imports systems only; no cycle
+    guess = MomentModel.deterministic(xi_guess)
+    result = None
+    for method in ("lqr_mean", "proposed"):
+        try:
+            result = synthesize(model, guess, method)
+        except (ValueError, np.linalg.LinAlgError) as err:
+            result = SynthesisResult(method, None, float("nan"), f"failed: {one_line(err)}", nbar=0)
+            continue
+        if result.F is not None and np.all(np.isfinite(result.F)) and result.lam < 1:
+            return result
+    return result
+
+
+def one_line(err: BaseException) -> str:
+    """An exception as one line: its type and the first line of its message."""
+    text = str(err).strip().splitlines()
+    return f"{type(err).__name__}: {text[0] if text else ''}".rstrip(": ")

@@ -42,6 +42,7 @@ class Trajectories:
     and psi_{k|k}; split with `x(...)`/`xi(...)`. failed_at (P,): first step whose values are
     not kept (-1 if none); failure (P,): "" / "diverged" / "singular_innovation". Values of a
     failed path from failed_at on are NaN. members: filtered ensembles (K+1, P, M, n+p) if kept.
+    s: the plant's coefficients (K+1, P, p_plant), s_k moving q_k to q_{k+1} (all steps drawn).
     """
 
     q: np.ndarray
@@ -55,6 +56,7 @@ class Trajectories:
     failure: np.ndarray
     n: int
     members: np.ndarray | None = None
+    s: np.ndarray | None = None
 
     @property
     def status(self) -> str:
@@ -124,13 +126,15 @@ def simulate(plant: AffineRandomSystem, enkf: EnKF, *, F=None, d, q0, psi0, P0=N
     out = Trajectories(q=nan(plant.n), y=nan(ny), u=nan(model.m), psi_pred_mean=nan(dim),
                        psi_pred_std=nan(dim), psi_filt_mean=nan(dim), psi_filt_std=nan(dim),
                        failed_at=np.full(P, -1), failure=np.full(P, "", dtype=object), n=model.n,
-                       members=nan(M, dim) if keep_members else None)
+                       members=nan(M, dim) if keep_members else None, s=s)
     q = np.broadcast_to(q0, (P, plant.n)).copy()
     alive = np.ones(P, dtype=bool)
     # EnKF noise, `block` steps at a time from each path's own stream, drawn by a helper thread
     # into one of two buffers while this thread filters with the other (numpy's generators release
     # the GIL); each stream is still consumed in order, so results do not depend on the threading
-    buffers = np.empty((2, P, min(block, K + 1), M, ny + dim))
+    # (the etkf variant draws no output perturbations: nv = 0 and only e_w per member and step)
+    nv = enkf.output_noise_dim
+    buffers = np.empty((2, P, min(block, K + 1), M, nv + dim))
 
     def draw(k0: int) -> np.ndarray:
         noise = buffers[(k0 // block) % 2]
@@ -153,7 +157,7 @@ def simulate(plant: AffineRandomSystem, enkf: EnKF, *, F=None, d, q0, psi0, P0=N
                 noise = pending.result()
                 if k + block <= K:
                     pending = drawer.submit(draw, k + block)
-            e_v, e_w = noise[:, k % block, :, :ny], noise[:, k % block, :, ny:]
+            e_v, e_w = noise[:, k % block, :, :nv], noise[:, k % block, :, nv:]
             mean_pred = ensemble_mean(psi)                                          # eq. (state-pred1)
             # a path whose state or ensemble left the bound (or is not finite) stops here
             fail(~(np.all(np.abs(q) <= bound, axis=1) & np.all(np.abs(mean_pred) <= bound, axis=1)),
@@ -187,7 +191,9 @@ def simulate_state_feedback(system: AffineRandomSystem, F, *, d, x0, paths: int,
 
     d: (K+1, m); returns x (K+1, P, n). Per-path streams as in `simulate` (PLANT slot).
     """
-    F, dist = system.check_gain(F), system.check_distribution(None)
+    F = system.check_gain(F)
+    system.check_distribution(None)
+    dist = system.xi_dist                                   # the family itself samples, not its moments
     d = np.asarray(d, dtype=float).reshape(len(d), -1)
     if d.shape[1] != system.m or paths < 1:
         raise ValueError(f"d: shape {d.shape}, expected (K+1, m = {system.m}); paths: {paths}, must be >= 1")

@@ -126,14 +126,16 @@ class AffineRandomSystem:
 
     A: (p+1, n, n), B: (p+1, n, m), C: (p+1, ny, n) (default I), D: (p+1, ny, m) (default 0).
     A list shorter than p+1 is padded with zeros (a constant C may be given as [C0]).
-    xi_dist: distribution of xi when it is known (a plant); None for a model to be identified.
+    xi_dist: distribution of xi when it is known (a plant): a MomentModel (Gaussian) or a family of
+    `distributions` (exact moments for the analysis, its own sampler for the Monte Carlo); None for
+    a model to be identified.
     """
 
     A: np.ndarray
     B: np.ndarray
     C: np.ndarray | None = None
     D: np.ndarray | None = None
-    xi_dist: MomentModel | None = field(default=None)
+    xi_dist: object | None = field(default=None)
 
     def __post_init__(self):
         A = _basis("A", self.A, None, None)
@@ -174,10 +176,14 @@ class AffineRandomSystem:
         return F
 
     def check_distribution(self, dist: MomentModel | None) -> MomentModel:
-        """`dist`, or the system's own xi_dist when None; checked against p."""
+        """`dist`, or the system's own xi_dist when None, as moments; checked against p.
+
+        A distribution family (see `distributions`) stands for its exact MomentModel."""
         dist = self.xi_dist if dist is None else dist
         if dist is None:
             raise ValueError("dist: no distribution of xi given and the system has no xi_dist")
+        if not isinstance(dist, MomentModel):
+            dist = dist.moments
         if dist.p != self.p:
             raise ValueError(f"dist: has dimension {dist.p}, the system has p = {self.p}")
         return dist

@@ -105,15 +105,41 @@ def lineage(runs: list[Run], script: str, **extra) -> dict:
             "runs": [{"id": r.id, "dir": str(r.dir), "tables": dict(sorted(r.used.items()))} for r in used], **extra}
 
 
-def save_figure(fig, out_dir: Path, name: str, runs: list[Run], script: str) -> list[Path]:
-    """PNG + PDF (byte-identical on re-runs) and name.json with the lineage."""
+def save_figure(fig, out_dir: Path, name: str, runs: list[Run], script: str, caption: str = "") -> list[Path]:
+    """PNG + PDF (byte-identical on re-runs), name.caption.md (the numbers, out of the figure) and
+    name.json with the lineage."""
     out_dir.mkdir(parents=True, exist_ok=True)
     paths = [out_dir / f"{name}.png", out_dir / f"{name}.pdf"]
     fig.savefig(paths[0], metadata={"Software": None})
     fig.savefig(paths[1], metadata={"CreationDate": None, "ModDate": None, "Producer": None, "Creator": None})
     plt.close(fig)
+    if caption:
+        paths.append(out_dir / f"{name}.caption.md")
+        records.atomic_write_bytes(paths[-1], (caption.strip() + "\n").encode())
     records.write_json(out_dir / f"{name}.json", lineage(runs, script, outputs=[p.name for p in paths]))
     return paths
+
+
+def log_ticks(ax) -> None:
+    """Readable log y-axis: a labelled tick per decade (at most ~6 labels), unlabelled minor ticks."""
+    from matplotlib.ticker import LogFormatterMathtext, LogLocator, NullFormatter
+    ax.yaxis.set_major_locator(LogLocator(base=10, numticks=7))
+    ax.yaxis.set_major_formatter(LogFormatterMathtext())
+    ax.yaxis.set_minor_locator(LogLocator(base=10, subs=np.arange(2, 10), numticks=12))
+    ax.yaxis.set_minor_formatter(NullFormatter())
+
+
+def interval(mean: float, low: float, high: float, digits: int = 4) -> str:
+    """'mean [low, high]' (low/high omitted when NaN)."""
+    if not np.isfinite(low):
+        return f"{mean:.{digits}f}"
+    return f"{mean:.{digits}f} [{low:.{digits}f}, {high:.{digits}f}]"
+
+
+def squared_norms(run: Run, experiment: str, ks) -> np.ndarray:
+    """||q_k||^2 per path at the steps ks of one stored loop: (len(ks), P)."""
+    q = trajectory_array(run.table("trajectories"), experiment, "q")
+    return np.sum(q[list(ks)] ** 2, axis=-1)
 
 
 def figure(width: float, height: float, nrows: int = 1, ncols: int = 1, **kw):

@@ -4,7 +4,9 @@ One module per family of methods:
 - `lmi`: `proposed` (Theorem 2, the mean-square optimal decay rate) and `nominal_lmi` (xi at its
   mean), both through the certified bisection of `bisection`;
 - `riccati`: `policy_iteration` (SDP-free optimal rate, cross-checks the LMI) and `lqr_mean`;
-- `classical`: `pole_placement` on the mean model.
+- `classical`: `pole_placement` on the mean model;
+- `robust`: `robust_box`, quadratic stabilization on a box / polytope of xi (what Sec. V-B argues against);
+- `lq`: `ms_lqr`, the mean-square LQ optimal gain (generalized Riccati equation).
 
 Every method returns a `SynthesisResult`; numerical outcomes (not stabilizable, solver failure)
 are statuses, bad arguments raise ValueError before any work.
@@ -19,7 +21,9 @@ from ..systems import AffineRandomSystem, MomentModel
 from .base import STATUSES, SynthesisResult
 from .classical import check_poles, pole_placement
 from .lmi import nominal_lmi, proposed
+from .lq import ms_lqr
 from .riccati import lqr_mean, policy_iteration
+from .robust import robust_box
 
 METHODS = {
     "proposed": proposed,
@@ -27,6 +31,8 @@ METHODS = {
     "pole_placement": pole_placement,
     "lqr_mean": lqr_mean,
     "policy_iteration": policy_iteration,
+    "robust_box": robust_box,
+    "ms_lqr": ms_lqr,
 }
 POSITIVE_OPTIONS = ("tol", "max_iter", "x_cond_limit", "state_weight", "input_weight")
 
@@ -54,6 +60,8 @@ def check_options(method: str, options: dict, system: AffineRandomSystem) -> Non
     unknown = set(options) - allowed
     if unknown:
         raise ValueError(f"{method}: unknown option(s) {sorted(unknown)}, allowed: {sorted(allowed) or 'none'}")
+    if hasattr(METHODS[method], "check_options"):          # a method with structured options checks them itself
+        return METHODS[method].check_options(options, system)
     for name, value in options.items():
         if name == "poles":
             check_poles(value, system)

@@ -1,0 +1,129 @@
+"""EnKF variants against ensemble size M: closed-loop rate, diverged fraction and xi RMSE.
+
+From the latest `filters` sweep (conf/sweep/filters.yaml), per filter (variant, inflation rho,
+relaxation alpha) and M, over seeds: the empirical k = 60..80 closed-loop rate (mean with a 95%
+t-interval over the seeds whose loop kept every path; an open marker where some seed diverged),
+the fraction of closed-loop paths that diverged (mean over seeds), and the RMSE of the filtered
+xi against the true xi. Also a table (filters_frontier) and the sentence: the smallest M at which
+each filter's rate is within 0.01 of the stochastic EnKF at M = 300 (no inflation, no relaxation)
+with no path diverged in any seed.
+
+    python experiments/fig_filters.py [--root outputs] [--out outputs/report]
+"""
+import numpy as np
+import pandas as pd
+
+from rdsexp import report
+from rdsexp.experiment import records
+
+NAME = "filters"
+SWEEP = "filters"
+TOLERANCE = 0.01
+KEYS = ("enkf.variant", "enkf.inflation", "enkf.relaxation", "enkf.ensemble_size", "seed")
+
+
+def points(runs: list[report.Run]) -> pd.DataFrame:
+    """One row per run: the filter settings, M, seed and the closed loop's metrics."""
+    rows = []
+    for r in runs:
+        m = r.table("metrics").set_index("experiment")
+        loop = m.loc["closed_loop"] if "closed_loop" in m.index else None
+        rows.append({"variant": r.get("enkf.variant"), "inflation": float(r.get("enkf.inflation")),
+                     "relaxation": float(r.get("enkf.relaxation")), "M": int(r.get("enkf.ensemble_size")),
+                     "seed": r.get("seed"),
+                     # no closed loop (no gain from the identified model) counts as diverged
+                     **{c: (loop[c] if loop is not None else (1.0 if c == "failed_fraction" else np.nan))
+                        for c in ("rate", "failed_fraction", "xi_rmse", "x_rmse", "xi_spread_error")}})
+    return pd.DataFrame(rows)
+
+
+def label(variant, inflation, relaxation) -> str:
+    extra = [f"$\\rho$={inflation:g}"] * (inflation != 1) + [f"$\\alpha$={relaxation:g}"] * (relaxation != 0)
+    return " ".join([variant, *extra])
+
+
+def summary(frame: pd.DataFrame) -> pd.DataFrame:
+    """Per (filter, M): rate mean and interval over seeds without divergence, diverged fractions, RMSE."""
+    rows = []
+    for (v, rho, a, M), g in frame.groupby(["variant", "inflation", "relaxation", "M"]):
+        ok = g["failed_fraction"] == 0
+        mean, lo, hi, n = report.seed_interval(g.loc[ok, "rate"])
+        rows.append({"variant": v, "inflation": rho, "relaxation": a, "M": M, "seeds": len(g),
+                     "seeds_diverged": int((~ok).sum()), "diverged_fraction": float(g["failed_fraction"].mean()),
+                     "rate": mean, "rate_low": lo, "rate_high": hi,
+                     "xi_rmse": float(g.loc[ok, "xi_rmse"].mean()) if ok.any() else np.nan,
+                     "xi_spread_error": float(g.loc[ok, "xi_spread_error"].mean()) if ok.any() else np.nan})
+    return pd.DataFrame(rows)
+
+
+def frontier(stats: pd.DataFrame) -> tuple[pd.DataFrame, float, str]:
+    """Smallest M per filter with |rate - reference| <= TOLERANCE and no divergence in any seed."""
+    ref_rows = stats[(stats["variant"] == "stochastic") & (stats["inflation"] == 1) & (stats["relaxation"] == 0)
+                     & (stats["M"] == stats["M"].max())]
+    ref = float(ref_rows["rate"].iloc[0]) if len(ref_rows) else np.nan
+    Mref = int(stats["M"].max())
+    rows = []
+    for (v, rho, a), g in stats.groupby(["variant", "inflation", "relaxation"]):
+        good = g[(g["seeds_diverged"] == 0) & (np.abs(g["rate"] - ref) <= TOLERANCE)].sort_values("M")
+        best = good.iloc[0] if len(good) else None
+        rows.append({"variant": v, "inflation": rho, "relaxation": a,
+                     "smallest_M": int(best["M"]) if best is not None else None,
+                     "rate_at_smallest_M": float(best["rate"]) if best is not None else np.nan})
+    table = pd.DataFrame(rows)
+    parts = [f"{label(r.variant, r.inflation, r.relaxation).replace('$', '').replace(chr(92), '')}: "
+             + (f"M = {r.smallest_M}" if r.smallest_M is not None else f"none up to M = {Mref}")
+             for r in table.itertuples()]
+    sentence = (f"Smallest ensemble size M at which the closed-loop rate is within {TOLERANCE} of the stochastic "
+                f"EnKF at M = {Mref} ({ref:.4f}) with no path diverged in any seed: " + "; ".join(parts) + ".")
+    return table, ref, sentence
+
+
+STYLE = {"stochastic": "black", "etkf": "0.5"}
+MARKERS = {(1.0, 0.0): ("o", "-"), (1.1, 0.0): ("s", "--"), (1.0, 0.1): ("^", ":"), (1.1, 0.1): ("D", "-.")}
+
+
+def draw(stats: pd.DataFrame, ref: float):
+    fig, axes = report.figure(report.PAGE_WIDTH, 2.5, 1, 3)
+    for (v, rho, a), g in stats.groupby(["variant", "inflation", "relaxation"]):
+        g = g.sort_values("M")
+        marker, ls = MARKERS.get((rho, a), ("x", "-"))
+        kw = dict(color=STYLE.get(v, "0.3"), ls=ls, marker=marker, ms=3, label=label(v, rho, a))
+        clean = g["seeds_diverged"] == 0
+        axes[0].errorbar(g["M"], g["rate"], yerr=[g["rate"] - g["rate_low"], g["rate_high"] - g["rate"]],
+                         capsize=2, **kw)
+        axes[0].plot(g.loc[~clean, "M"], g.loc[~clean, "rate"], ls="none", marker=marker, ms=6, mfc="white",
+                     color=kw["color"])
+        axes[1].plot(g["M"], g["diverged_fraction"], **kw)
+        axes[2].plot(g["M"], g["xi_rmse"], **kw)
+    if np.isfinite(ref):
+        axes[0].axhspan(ref - TOLERANCE, ref + TOLERANCE, color="0.9", zorder=0,
+                        label=f"stochastic M=300 $\\pm${TOLERANCE}")
+    titles = ("closed-loop rate (open: some seed diverged,\nrate over the others)", "diverged fraction of paths",
+              "RMSE of $\\xi_{k|k}$ (seeds without divergence)")
+    for ax, title in zip(axes, titles):
+        ax.set_xscale("log")
+        ax.set_xlabel("ensemble size M")
+        ax.set_title(title)
+    axes[1].set_ylim(-0.02, 1.02)
+    axes[0].legend(frameon=False, fontsize=5.5)
+    return fig
+
+
+def main(argv=None):
+    args = report.arguments(__doc__.splitlines()[0], argv)
+    runs = report.load_runs(args.root, SWEEP)
+    if not runs:
+        raise SystemExit(f"no stored `{SWEEP}` sweep under {args.root}: run `rdsexp +sweep={SWEEP}` first")
+    report.check_versions(runs, args.allow_mixed)
+    stats = summary(points(runs))
+    table, ref, sentence = frontier(stats)
+    paths = report.save_figure(draw(stats, ref), args.out, NAME, runs, __file__)
+    report.write_table(stats, args.out, f"{NAME}_summary", runs, __file__)
+    report.write_table(table, args.out, f"{NAME}_frontier", runs, __file__)
+    records.atomic_write_bytes(args.out / f"{NAME}_frontier.txt", (sentence + "\n").encode())
+    print(sentence)
+    return paths
+
+
+if __name__ == "__main__":
+    main()

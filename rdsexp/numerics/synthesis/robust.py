@@ -1,0 +1,247 @@
+"""Robust (deterministic-uncertainty) design the paper argues against in Sec. V-B: quadratic stabilization
+with decay rate lambda for every xi in a box (or a polytope), not in distribution.
+
+For the vertices v of the set (the box mean +- width * std has 2^p of them),
+    (A(v) X + B(v) Y)^T X^-1 (A(v) X + B(v) Y) <= lambda^2 X,  X > 0,   F = Y X^-1,
+which by Schur complement is the LMI [[lambda^2 X, *], [A(v) X + B(v) Y, X]] >= 0 at every vertex.
+It is affine in (A, B), so it holds on the convex hull: ||x_{k+1}||_P <= lambda ||x_k||_P with
+P = X^-1 for every xi in the set. Bisection on lambda gives the smallest such lambda (`lam_box`).
+
+The bisection's upper end is the box rate certified by the gain and X in hand, checked independently
+of the solver (`box_rate`); its lower end is certified where the solver proved the LMI infeasible.
+As for every method, the result's `lam` is the exact mean-square rate of the gain on the modeled
+distribution (`ms_rate`); the box's decay rate is info["lam_box"].
+"""
+from __future__ import annotations
+
+import itertools
+import warnings
+from functools import lru_cache
+
+import cvxpy as cp
+import numpy as np
+
+from ..analysis import ms_rate
+from ..systems import AffineRandomSystem, MomentModel
+from .base import SynthesisResult
+
+MAX_VERTICES = 1024
+MAX_WIDTH = 1024.0          # find_max_width stops doubling here
+
+
+def box_vertices(dist: MomentModel, width: float) -> np.ndarray:
+    """Vertices (V, p) of the box mean +- width * std(xi), duplicates (zero spread) removed."""
+    std = np.sqrt(np.clip(np.diag(dist.cov), 0.0, None))
+    signs = np.array(list(itertools.product((-1.0, 1.0), repeat=dist.p))).reshape(-1, dist.p)
+    return np.unique(dist.mean + width * signs * std, axis=0)
+
+
+def box_rate(system: AffineRandomSystem, vertices: np.ndarray, F, X) -> float:
+    """max_v ||X^-1/2 (A(v) + B(v) F) X^1/2||_2: the decay rate that (F, X) certifies on the hull of vertices.
+
+    It is the smallest lambda with (A(v) X + B(v) F X)^T X^-1 (...) <= lambda^2 X at every vertex;
+    inf if X is not positive definite.
+    """
+    w, U = np.linalg.eigh((X + X.T) / 2)
+    if w.min() <= 0:
+        return float("inf")
+    half, inv_half = (U * np.sqrt(w)) @ U.T, (U / np.sqrt(w)) @ U.T
+    A, B, _, _ = system.at(vertices)
+    return float(np.linalg.norm(inv_half @ (A + B @ F) @ half, ord=2, axis=(1, 2)).max())
+
+
+@lru_cache(maxsize=16)
+def _box_problem(n: int, m: int, V: int):
+    """The vertex LMIs at a given lambda^2, compiled once per size (parameters lambda^2, A(v), B(v)).
+
+    As in Theorem 2's problem (lmi.py): the margin t on the (1,1) blocks is maximised with
+    trace(X) = 1 fixing the scale; the LMIs hold with X > 0 iff t* >= 0 and a gain comes back at
+    every lambda, whose certified box rate then decides.
+    """
+    lam2 = cp.Parameter(nonneg=True)
+    A = [cp.Parameter((n, n)) for _ in range(V)]
+    B = [cp.Parameter((n, m)) for _ in range(V)]
+    X = cp.Variable((n, n), symmetric=True)
+    Y = cp.Variable((m, n))
+    t = cp.Variable()
+    lmis = []
+    for v in range(V):
+        H = A[v] @ X + B[v] @ Y
+        lmis.append(cp.bmat([[lam2 * X - t * np.eye(n), H.T], [H, X]]) >> 0)
+    problem = cp.Problem(cp.Maximize(t), lmis + [cp.trace(X) == 1])
+    lam2.value = 1.0                                   # compile now (see lmi._lmi_problem)
+    for v in range(V):
+        A[v].value, B[v].value = np.eye(n), np.zeros((n, m))
+    with warnings.catch_warnings():                           # only the compilation matters here
+        warnings.simplefilter("ignore")
+        problem.solve(solver=cp.CLARABEL)
+    return problem, lam2, A, B, X, Y, t
+
+
+def _solver(system: AffineRandomSystem, vertices: np.ndarray):
+    """solve(lam) -> (F, X, proven_infeasible) for the vertex LMIs at lam."""
+    problem, lam2, pA, pB, X, Y, t = _box_problem(system.n, system.m, len(vertices))
+    A, B, _, _ = system.at(vertices)
+    for v in range(len(vertices)):
+        pA[v].value, pB[v].value = A[v], B[v]
+
+    def solve(lam: float):
+        lam2.value = lam ** 2
+        try:
+            with warnings.catch_warnings():                       # inaccuracy is a status here
+                warnings.simplefilter("ignore")
+                problem.solve(solver=cp.CLARABEL)
+            status = problem.status
+        except cp.error.SolverError:
+            status = "solver_error"
+        if X.value is None or status not in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE):
+            return None, None, False
+        try:
+            F = np.linalg.solve(X.value.T, Y.value.T).T                  # Y X^-1
+        except np.linalg.LinAlgError:
+            F = None
+        return F, X.value, status == cp.OPTIMAL and t.value < 0
+
+    return solve
+
+
+def box_bisection(system: AffineRandomSystem, vertices: np.ndarray, *, tol: float, max_iter: int) -> dict:
+    """Smallest certified box rate over the vertex LMIs, by bisection on lambda^2.
+
+    Starts at lambda = 1 (quadratic stabilizability), then halves [lo, hi] in lambda^2. Upper end hi:
+    the certified `box_rate` of the best (F, X) in hand (often below the trial that produced it);
+    a trial whose (F, X) does not certify it raises the lower end, certified when the solver proved
+    the LMI infeasible there. Unlike `certified_bisection` no probe just below hi: the margin-maximising
+    solve returns gains whose box rate is only slightly below the trial, so such probes creep.
+    Returns {F, X, hi, lo, lo_certified, solves}; F None when no gain certifies any rate.
+    """
+    solve = _solver(system, vertices)
+    F_best = X_best = None
+    hi, lo, certified, trial, solves = np.inf, 0.0, True, 1.0, 0
+    while solves < max_iter:
+        F, X, infeasible = solve(trial)
+        solves += 1
+        rate = box_rate(system, vertices, F, X) if F is not None else np.inf
+        if rate < hi:                                          # any (F, X) certifies its own rate
+            hi, F_best, X_best = rate, F, X
+        if rate > trial:
+            lo, certified = min(trial, hi), infeasible
+        if lo > hi:                                            # a gain beat an uncertified lower end
+            lo, certified = hi, False
+        if hi - lo <= tol or lo >= 1:                          # bracketed, or no box rate below 1
+            break
+        trial = float(np.sqrt((lo ** 2 + hi ** 2) / 2))
+    return {"F": F_best, "X": X_best, "hi": hi, "lo": lo, "lo_certified": certified, "solves": solves}
+
+
+def max_feasible_width(system: AffineRandomSystem, dist: MomentModel, *, rel_tol: float = 1e-3) -> tuple[float, float]:
+    """(largest width certified quadratically stabilizable, smallest width proven not), the box mean +- width * std.
+
+    Nested boxes: feasibility at lambda = 1 is monotone in the width, so doubling then bisection
+    brackets the boundary. A check that neither certifies nor proves counts as not certified, so
+    the second value stays the smallest width actually proven infeasible; inf when none up to
+    MAX_WIDTH was (first value NaN when even width 0 is not certified).
+    """
+    def status(width: float) -> str:
+        pts = box_vertices(dist, width)
+        F, X, infeasible = _solver(system, pts)(1.0)
+        if F is not None and box_rate(system, pts, F, X) < 1:
+            return "feasible"
+        return "infeasible" if infeasible else "unknown"
+
+    first = status(0.0)
+    if first != "feasible":
+        return float("nan"), 0.0 if first == "infeasible" else float("nan")
+    lo, upper, hi, width = 0.0, None, np.inf, 1.0        # certified / not certified / proven infeasible
+    while upper is None and width <= MAX_WIDTH:
+        s = status(width)
+        if s == "feasible":
+            lo, width = width, 2 * width
+        else:
+            upper, hi = width, width if s == "infeasible" else np.inf
+    if upper is None:
+        return float(lo), float("inf")
+    while upper - lo > rel_tol * max(lo, 1.0):
+        mid = (lo + upper) / 2
+        s = status(mid)
+        if s == "feasible":
+            lo = mid
+        else:
+            upper, hi = mid, mid if s == "infeasible" else hi
+    return float(lo), float(hi)
+
+
+def robust_box(system, dist, *, width=None, vertices=None, find_max_width: bool = False, tol: float = 1e-4,
+               max_iter: int = 60, x_cond_limit: float = 1e6):
+    """Quadratic stabilization on the box mean +- width * std (default width 1) or the hull of `vertices` (V, p).
+
+    Status `box_optimal` (the smallest box rate, bracketed to tol: 1e-4 by default, since each
+    bisection step is an SDP with 2^p blocks and the box rate is a design bound; lam is exact anyway),
+    `infimum_not_attained` (the
+    bracket closes at 0 or X degenerates, e.g. a controllable single point), `infeasible` (proven
+    not quadratically stabilizable on the set: F None), `solver_failed`. lam: exact mean-square
+    rate of F on `dist`; info: lam_box, lam_box_lower (and whether certified), X, vertices,
+    solves; with find_max_width, max_width (certified) and min_infeasible_width (proven).
+    """
+    if vertices is None:
+        width = 1.0 if width is None else float(width)
+        pts = box_vertices(dist, width)
+    else:
+        pts = np.unique(np.asarray(vertices, dtype=float).reshape(-1, system.p), axis=0)
+    found = box_bisection(system, pts, tol=tol, max_iter=max_iter)
+    F, X, hi, lo = found["F"], found["X"], found["hi"], found["lo"]
+    info = {"lam_box": float(hi), "lam_box_lower": float(lo), "lam_box_lower_certified": found["lo_certified"],
+            "vertices": len(pts), "solves": found["solves"]}
+    if vertices is None:
+        info["width"] = width
+    if find_max_width:
+        info["max_width"], info["min_infeasible_width"] = max_feasible_width(system, dist)
+    nbar = system.Gbar(dist).shape[0]
+    if hi >= 1:
+        status = "infeasible" if found["lo_certified"] and lo >= 1 else "solver_failed"
+        return SynthesisResult("robust_box", None, float("nan"), status, nbar, info=info)
+    info["X"], info["cond_X"] = X, float(np.linalg.cond(X))
+    if lo <= tol or (not found["lo_certified"] and info["cond_X"] > x_cond_limit):
+        status = "infimum_not_attained"
+    elif hi - lo <= tol:
+        status = "box_optimal"
+    else:
+        status = "solver_failed"
+    return SynthesisResult("robust_box", F, ms_rate(system, dist, F), status, nbar, info=info)
+
+
+def _check(options: dict, system: AffineRandomSystem) -> None:
+    """One-line ValueError for bad robust_box options (before any work)."""
+    for name in ("tol", "max_iter", "x_cond_limit"):
+        _positive(name, options.get(name, 1))
+    if "width" in options:
+        w = options["width"]
+        if not (_is_number(w) and w >= 0):
+            raise ValueError(f"width: {w!r} is not allowed, expected a number >= 0")
+    if not isinstance(options.get("find_max_width", False), bool):
+        raise ValueError(f"find_max_width: {options['find_max_width']!r} is not allowed, expected true or false")
+    if options.get("vertices") is not None:
+        if "width" in options or options.get("find_max_width"):
+            raise ValueError("vertices: give either vertices or width/find_max_width, not both")
+        try:
+            pts = np.asarray(options["vertices"], dtype=float)
+        except (TypeError, ValueError):
+            pts = np.zeros((0,))
+        if pts.ndim != 2 or pts.shape[1] != system.p or not 1 <= len(pts) <= MAX_VERTICES \
+                or not np.all(np.isfinite(pts)):
+            raise ValueError(f"vertices: {options['vertices']!r} is not allowed, expected 1..{MAX_VERTICES} finite "
+                             f"points of length p = {system.p}")
+    elif 2 ** system.p > MAX_VERTICES:
+        raise ValueError(f"robust_box: the box has 2^{system.p} vertices, more than {MAX_VERTICES}; give `vertices`")
+
+
+def _is_number(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and bool(np.isfinite(v))
+
+
+def _positive(name: str, v) -> None:
+    if not (_is_number(v) and v > 0):
+        raise ValueError(f"{name}: {v!r} is not allowed, expected a number > 0")
+
+
+robust_box.check_options = _check

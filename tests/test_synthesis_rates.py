@@ -1,0 +1,29 @@
+"""ms_rate (dense for small n, Arnoldi beyond) against an independent dense Kronecker eigenvalue."""
+import numpy as np
+import pytest
+
+import rdsexp as rx
+from rdsexp.numerics.analysis import DENSE_MAX_N, second_moment_operator
+
+
+def dense_rate(system, dist, F):
+    return np.sqrt(np.abs(np.linalg.eigvals(second_moment_operator(system, dist, F))).max())
+
+
+def system_of(rng, n, m, p, scale=1.0, cov=True):
+    A = [rng.normal(size=(n, n)) / np.sqrt(n)] + [0.4 * rng.normal(size=(n, n)) / np.sqrt(n) for _ in range(p)]
+    B = [rng.normal(size=(n, m))] + [0.3 * rng.normal(size=(n, m)) for _ in range(p)]
+    L = rng.normal(size=(p, p)) * 0.5 if cov else np.zeros((p, p))
+    return rx.AffineRandomSystem(A=np.array(A) * scale, B=B), rx.MomentModel(mean=rng.normal(size=p) * 0.3, cov=L @ L.T)
+
+
+@pytest.mark.parametrize("seed", range(12))
+def test_ms_rate_matches_dense_kronecker(seed):
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(2, DENSE_MAX_N + 7))          # both the dense and the Arnoldi path
+    m, p = int(rng.integers(1, 4)), int(rng.integers(0, 4))
+    scale = [1.0, 1e-6, 1e6][seed % 3]                # tiny and huge scales
+    system, dist = system_of(rng, n, m, p, scale=scale, cov=seed % 4 != 0)      # some with zero covariance
+    for F in (np.zeros((m, n)), rng.normal(size=(m, n)) * scale, rng.normal(size=(m, n)) * 10 * scale):
+        assert rx.ms_rate(system, dist, F) == pytest.approx(dense_rate(system, dist, F), rel=1e-10)
+
