@@ -6,14 +6,10 @@ environment, table hashes), parquet tables, `recording.rrd` and, when the workin
 either a complete file or none; `run.json` says "incomplete" until the last table is in place, and
 records the process (pid, host, start time) so that a run whose process died can be told apart.
 
-Reading is defensive: `read_run` turns an unreadable or partial run.json into `DamagedRecord` (one
-line: path and reason) so that every reader of the store can skip it with one warning and go on;
-`damage` lists a run's missing, unreadable or modified files. Writing fails loudly: an `OSError` on
-the way becomes `WriteError` (one line), the temporary file is removed, nothing partial is left
-under a final name. Tables and recordings are stored read-only (reused runs share them by hard link).
-
-The reuse index (`<store>/index/`, one small JSON per config hash and code version pointing at a
-complete run) lets a sweep job find a run to reuse without reading every run.json in the store.
+Writing fails loudly: an `OSError` on the way becomes `WriteError` (one line), the temporary file
+is removed, nothing partial is left under a final name. Tables and recordings are stored read-only
+with the sha256 of their bytes in run.json (reused runs share them by hard link, see `link_or_copy`).
+Reading a store defensively (damaged records, the check walk, the reuse index) is `store`'s job.
 """
 from __future__ import annotations
 
@@ -52,19 +48,6 @@ class WriteError(RuntimeError):
         reason = err.strerror if isinstance(err, OSError) and err.strerror else str(err)
         super().__init__(f"cannot write {path}: {reason}")
         self.path = Path(path)
-
-
-class DamagedRecord(Exception):
-    """A stored record that cannot be read as written (one line: path and reason)."""
-
-    def __init__(self, path: Path, reason: str):
-        super().__init__(f"{path}: {reason}")
-        self.path, self.reason = Path(path), reason
-
-
-def warn_damaged(err: DamagedRecord, action: str = "skipped") -> None:
-    """The one warning line a reader of the store prints for a record it skips."""
-    print(f"rdsexp: warning: {action} {err.path}: {err.reason}", file=sys.stderr)
 
 
 def tmp_name(path: Path) -> Path:
@@ -124,6 +107,19 @@ def store_table(path: Path, table: pd.DataFrame) -> dict:
     atomic_write_bytes(path, buffer.getvalue(), read_only=True)
     return {"file": Path(path).name, "rows": len(table), "sha256": table_hash(table),
             "file_sha256": hashlib.sha256(buffer.getvalue()).hexdigest()}
+
+
+def store_file(tmp: Path, path: Path) -> dict:
+    """Move a complete file written at `tmp` to `path`, read-only; its run.json entry (file, sha256
+    of its bytes). WriteError (and nothing under `path`) if that fails."""
+    try:
+        os.chmod(tmp, READ_ONLY)
+        digest = file_hash(tmp)
+        os.replace(tmp, path)
+    except OSError as err:
+        _discard(tmp)
+        raise WriteError(path, err) from err
+    return {"file": Path(path).name, "file_sha256": digest}
 
 
 def file_hash(path: Path) -> str:
@@ -200,69 +196,7 @@ def read_json(path: Path) -> dict:
         return json.load(fh)
 
 
-REQUIRED = ("id", "status")          # what every run.json of every rdsexp version has
-
-
-def read_run(run_dir: Path) -> dict:
-    """The run.json of run_dir; DamagedRecord (path, reason) if it is missing, unreadable, partial or
-    not an rdsexp run record."""
-    path = Path(run_dir) / "run.json"
-    try:
-        text = path.read_bytes()
-    except FileNotFoundError:
-        raise DamagedRecord(path, "missing") from None
-    except OSError as err:
-        raise DamagedRecord(path, f"unreadable ({err.strerror or err})") from None
-    if not text.strip():
-        raise DamagedRecord(path, "empty")
-    try:
-        info = json.loads(text)
-    except (json.JSONDecodeError, UnicodeDecodeError) as err:
-        raise DamagedRecord(path, f"truncated or not JSON ({err})") from None
-    if not isinstance(info, dict) or any(k not in info for k in REQUIRED):
-        raise DamagedRecord(path, f"not an rdsexp run record (no {' or '.join(REQUIRED)})")
-    return info
-
-
-def damage(run_dir: Path, info: dict) -> list[str]:
-    """What is wrong with the files of a complete run: missing, unreadable or modified tables and
-    recording, missing .hydra/config.yaml; [] when intact.
-
-    A file recorded with its bytes' sha256 is checked by hashing the bytes; older records (content
-    hash only) by reading the parquet table and hashing its content."""
-    import pyarrow as pa
-    run_dir = Path(run_dir)
-    problems = []
-    entries = list((info.get("tables") or {}).values()) + ([info["recording"]] if info.get("recording") else [])
-    for meta in entries:
-        if not isinstance(meta, dict) or not isinstance(meta.get("file"), str):
-            problems.append(f"run.json: malformed file entry {meta!r}")
-            continue
-        path = run_dir / meta["file"]
-        try:
-            if meta.get("file_sha256"):
-                if file_hash(path) == meta["file_sha256"]:
-                    continue
-                if path.suffix == ".parquet":
-                    pd.read_parquet(path)           # unreadable (truncated) or only modified?
-                problems.append(f"{meta['file']}: does not match the hash in run.json (modified after the run)")
-            elif path.suffix == ".parquet" and table_hash(pd.read_parquet(path)) != meta.get("sha256"):
-                problems.append(f"{meta['file']}: does not match the hash in run.json (modified after the run)")
-        except FileNotFoundError:
-            problems.append(f"{meta['file']}: missing")
-        except (OSError, pa.ArrowException, ValueError) as err:
-            problems.append(f"{meta['file']}: unreadable ({_one_line(err)})")
-    if not (run_dir / ".hydra" / "config.yaml").is_file():
-        problems.append(".hydra/config.yaml: missing")
-    return problems
-
-
-def _one_line(err: BaseException) -> str:
-    text = str(err).strip().splitlines()
-    return f"{type(err).__name__}: {text[0] if text else ''}"
-
-
-def _start_time(pid: int) -> str | None:
+def start_time(pid: int) -> str | None:
     """The start time of a process (Linux /proc, clock ticks since boot), None where unknown."""
     try:
         return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[19]
@@ -273,23 +207,7 @@ def _start_time(pid: int) -> str | None:
 def process_info() -> dict:
     """This process as run.json records it: pid, host and start time (a reused pid is told apart)."""
     pid = os.getpid()
-    return {"pid": pid, "host": socket.gethostname(), "start": _start_time(pid)}
-
-
-def process_alive(process: dict | None) -> bool | None:
-    """Whether the process recorded in run.json still runs; None when that cannot be known here
-    (another host, or no process recorded)."""
-    if not isinstance(process, dict) or process.get("host") != socket.gethostname() \
-            or not isinstance(process.get("pid"), int):
-        return None
-    try:
-        os.kill(process["pid"], 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:             # exists, owned by someone else
-        pass
-    start = _start_time(process["pid"])
-    return start is None or process.get("start") is None or start == process["start"]
+    return {"pid": pid, "host": socket.gethostname(), "start": start_time(pid)}
 
 
 def now() -> str:
@@ -299,10 +217,11 @@ def now() -> str:
 
 def link_or_copy(source: Path, target: Path) -> None:
     """Hard-link a read-only stored file to target (a reused run shares it); copy it (stored
-    read-only) where links are not possible or the source is writable, so that an edit of one run's
-    file can never change another's."""
+    read-only) where links are not possible, the source is writable, or this process runs as root
+    (modes do not stop root), so that an edit of one run's file can never change another's.
+    `verify` and `check` catch an edit either way (file hashes in run.json)."""
     source, target = Path(source), Path(target)
-    if not os.stat(source).st_mode & 0o222:
+    if not os.stat(source).st_mode & 0o222 and os.geteuid() != 0:
         try:
             os.link(source, target)
             return
@@ -316,38 +235,3 @@ def link_or_copy(source: Path, target: Path) -> None:
     except OSError as err:
         _discard(tmp)
         raise WriteError(target, err) from err
-
-
-# --- the reuse index: <store>/index/<key>.json -> a complete run directory under the store
-
-INDEX = "index"
-QUARANTINE = "quarantine"
-
-
-def index_key(config_hash: str, version: str) -> str:
-    return hashlib.sha256(f"{config_hash}\n{version}".encode()).hexdigest()[:32]
-
-
-def index_add(store: Path, run_dir: Path, info: dict) -> None:
-    """Point the index entry of this run's config hash and code version at run_dir (a complete,
-    not reused run inside the store; runs outside the store are not indexed)."""
-    store, run_dir = Path(store).resolve(), Path(run_dir).resolve()
-    if not run_dir.is_relative_to(store) or info.get("reused_from") or info.get("status") != "complete":
-        return
-    index = store / INDEX
-    index.mkdir(exist_ok=True)
-    write_json(index / f"{index_key(info['config_hash'], info['code']['version'])}.json",
-               {"dir": run_dir.relative_to(store).as_posix(), "id": info.get("id")})
-
-
-def index_lookup(store: Path, config_hash: str, version: str) -> Path | None:
-    """The run directory the index names for this config hash and code version (not checked)."""
-    path = Path(store) / INDEX / f"{index_key(config_hash, version)}.json"
-    try:
-        entry = read_json(path)
-        return Path(store) / entry["dir"]
-    except FileNotFoundError:
-        return None
-    except (OSError, ValueError, KeyError, TypeError) as err:
-        warn_damaged(DamagedRecord(path, f"unreadable index entry ({_one_line(err)})"), "ignored")
-        return None
