@@ -90,6 +90,7 @@ def test_verify_passes_on_fresh_run_and_fails_on_tampered_table(small_run, tmp_p
     shutil.copytree(small_run, tampered)
     table = pd.read_parquet(tampered / "metrics.parquet")
     table.loc[0, "rate"] += 1e-9
+    (tampered / "metrics.parquet").chmod(0o644)           # stored read-only: an edit is deliberate
     table.to_parquet(tampered / "metrics.parquet", index=False)
     proc = rdsexp("verify", str(tampered), cwd=tmp_path, module="rdsexp.runs", check=False)
     assert proc.returncode == 1

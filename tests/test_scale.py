@@ -91,7 +91,7 @@ def test_cli_streams_tables_and_verify_passes(tmp_path):
     info = json.loads((run / "run.json").read_text())
     assert info["tables"]["trajectories"]["rows"] == 2 * 5 * 31
     assert pq.ParquetFile(run / "trajectories.parquet").num_row_groups == 2 * 3   # two loops, three chunks
-    assert records.file_hash(run / "trajectories.parquet") == info["tables"]["trajectories"]["sha256"]
+    assert records.stored_table_hash(run / "trajectories.parquet") == info["tables"]["trajectories"]["sha256"]
     assert not [p for p in run.iterdir() if p.name.endswith(".tmp")]
     proc = rdsexp("verify", str(run), cwd=tmp_path, module="rdsexp.runs")
     assert "verify: identical" in proc.stdout
