@@ -18,7 +18,7 @@ import pandas as pd
 from tqdm import tqdm
 from tqdm.contrib.logging import logging_redirect_tqdm
 
-from ..numerics.analysis import empirical_rate, h2_norm, lq_cost, ms_rate, second_moments
+from ..numerics.analysis import empirical_rate, exact_costs, ms_rate, second_moments
 from ..numerics.enkf import truth_map
 from ..numerics.modeling import model_distribution, nominal_gain, one_line
 from ..numerics.simulation import Trajectories, simulate
@@ -268,9 +268,9 @@ def performance(exp: Experiment, moments, F) -> dict:
     keys = ("lq_cost_q0_plant", "lq_cost_plant", "h2_plant", "lq_cost_model", "h2_model")
     if F is None or not np.all(np.isfinite(F)):
         return dict.fromkeys(keys, np.nan)
-    return {"lq_cost_q0_plant": lq_cost(exp.plant, None, F, exp.q0), "lq_cost_plant": lq_cost(exp.plant, None, F),
-            "h2_plant": h2_norm(exp.plant, None, F), "lq_cost_model": lq_cost(exp.model, moments, F),
-            "h2_model": h2_norm(exp.model, moments, F)}
+    plant, model = exact_costs(exp.plant, None, F, exp.q0), exact_costs(exp.model, moments, F)
+    return {"lq_cost_q0_plant": plant["lq_cost_x0"], "lq_cost_plant": plant["lq_cost"], "h2_plant": plant["h2"],
+            "lq_cost_model": model["lq_cost"], "h2_model": model["h2"]}
 
 
 def metrics_table(exp: Experiment, loops: dict[str, Trajectories]) -> pd.DataFrame:
