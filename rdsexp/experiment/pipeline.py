@@ -18,7 +18,7 @@ import pandas as pd
 from tqdm import tqdm
 from tqdm.contrib.logging import logging_redirect_tqdm
 
-from ..numerics.analysis import empirical_rate_sq, h2_norm, lq_cost, ms_rate, second_moments
+from ..numerics.analysis import empirical_rate_sq, exact_costs, ms_rate, second_moments
 from ..numerics.modeling import model_distribution, nominal_gain, one_line
 from ..numerics.simulation import Trajectories, simulate
 from ..numerics.synthesis import METHODS, SynthesisResult, synthesize
@@ -291,7 +291,8 @@ def model_table(exp: Experiment, dist) -> pd.DataFrame:
 def gains_table(exp: Experiment, designs: dict, selected: tuple[str, str]) -> pd.DataFrame:
     """Per (distribution, method): status, lam (design), bracket, nbar, exact rates, LQ costs and H2
     norms on the design moments and on the true plant (`performance`), robust_box's certified box rate
-    (lam_box, NaN for other methods), F. designs: {(source, method): (moments, SynthesisResult)};
+    (lam_box) and, with find_max_width, the largest certified and smallest proven-infeasible box widths
+    (max_width, min_infeasible_width; NaN otherwise), F. designs: {(source, method): (moments, SynthesisResult)};
     `selected` is the (source, method) the closed loop used (gain.source; ("fixed", "fixed") for a given F).
 
     Only reproducible numbers go into tables; synthesis times are in run.json's timings."""
@@ -307,6 +308,8 @@ def gains_table(exp: Experiment, designs: dict, selected: tuple[str, str]) -> pd
                      "rate_plant": safe_rate(exp.plant, None, F) if found else np.nan,
                      **performance(exp, moments, F if found and moments is not None else None),
                      "lam_box": res.info.get("lam_box", np.nan),
+                     "max_width": res.info.get("max_width", np.nan),
+                     "min_infeasible_width": res.info.get("min_infeasible_width", np.nan),
                      **{f"F[{i}]": v for i, v in enumerate(F.ravel())}})
     return pd.DataFrame(rows)
 
@@ -318,9 +321,9 @@ def performance(exp: Experiment, moments, F) -> dict:
     keys = ("lq_cost_q0_plant", "lq_cost_plant", "h2_plant", "lq_cost_model", "h2_model")
     if F is None or not np.all(np.isfinite(F)):
         return dict.fromkeys(keys, np.nan)
-    return {"lq_cost_q0_plant": lq_cost(exp.plant, None, F, exp.q0), "lq_cost_plant": lq_cost(exp.plant, None, F),
-            "h2_plant": h2_norm(exp.plant, None, F), "lq_cost_model": lq_cost(exp.model, moments, F),
-            "h2_model": h2_norm(exp.model, moments, F)}
+    plant, model = exact_costs(exp.plant, None, F, exp.q0), exact_costs(exp.model, moments, F)
+    return {"lq_cost_q0_plant": plant["lq_cost_x0"], "lq_cost_plant": plant["lq_cost"], "h2_plant": plant["h2"],
+            "lq_cost_model": model["lq_cost"], "h2_model": model["h2"]}
 
 
 def metrics_table(exp: Experiment, loops: dict[str, LoopSummary]) -> pd.DataFrame:
