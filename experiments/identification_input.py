@@ -93,7 +93,11 @@ def verdict(table: pd.DataFrame, configured: str | None = None) -> str:
             "against one more seed. Consistent: all 9 |z| below the Bonferroni bound (joint 95% prediction "
             "region). ")
     if ok:
-        text += "Consistent with all the paper's modeled moments together: " + "; ".join(ok) + "."
+        best = table[table["consistent"]].sort_values("max_abs_z").iloc[0]
+        text += ("Consistent with all the paper's modeled moments together: "
+                 + "; ".join(f"{s} (max |z| {z:.2f})" for s, z in table[table["consistent"]][["setting", "max_abs_z"]]
+                             .itertuples(index=False))
+                 + f" (bound {best['z_bound']:.2f}). The closest: {best['setting']}.")
     elif "max_abs_z" in table and table["max_abs_z"].notna().any():
         best = table.loc[table["max_abs_z"].idxmin()]
         text += (f"No swept setting is consistent with all the paper's modeled moments together; the closest is "
