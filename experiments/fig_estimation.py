@@ -45,7 +45,8 @@ def caption(run: report.Run) -> str:
     node = run.get("identification.input")
     return (f"Fig. estimation. Identification run (seed {run.get('seed')}, M = {run.get('enkf.ensemble_size')}): "
             f"the open-loop plant driven by a {node.get('levels', 'bipolar')} maximal-length sequence of amplitude "
-            f"{node['amplitude']:g} (register {node['register_length']}); top: plant states q_k (wide grey) and the "
+            f"{node['amplitude']:g}, each bit held {node.get('hold', 1)} step(s) (register "
+            f"{node['register_length']}); top: plant states q_k (wide grey) and the "
             "EnKF's predicted and filtered estimates; bottom: the filtered xi_{k|k} with the ensemble spread, the "
             "modeled mean over the hatched window and the true mean of the plant's parameter.")
 

@@ -3,12 +3,13 @@
 For each value, over the seeds of the latest `ensemble_size`, `noise` and `window` sweeps: the
 empirical k = 60..80 closed-loop rate (Monte Carlo, EnKF observer) and the exact rate of the
 designed gain on the true plant (sqrt(rho(E[Acl (x) Acl])), no Monte Carlo), mean with a 95%
-t-interval over the seeds where it is finite. A value where some seeds' loops diverged is drawn
-with an open marker and the fraction of diverged paths written beside it; where no seed has a
-finite rate (or the mean is off scale) a triangle at the top carries that fraction.
+t-interval over the seeds where it is finite. Below each panel, the fraction of diverged
+closed-loop paths at every value (a failed or partly failed point is shown as such, never only
+missing); a rate point with diverged paths has an open marker.
 
     python experiments/fig_sweeps.py [--root outputs] [--out outputs/report]
 """
+import matplotlib.ticker
 import numpy as np
 import pandas as pd
 
@@ -35,10 +36,12 @@ def points(runs: list[report.Run], key: str) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
-YLIM = (0.75, 1.1)          # rates beyond it (a diverging loop, a useless model) are marked at the top
+YLIM = (0.75, 1.1)          # rate axis; the diverged fraction has its own row, so no point is off scale unseen
 
 
-def plot_series(ax, frame: pd.DataFrame, label: str, color, marker):
+def plot_series(ax, ax_div, frame: pd.DataFrame, label: str, color, marker):
+    """Rates (top axes) with 95% t-intervals over seeds, and the fraction of diverged closed-loop
+    paths (bottom axes) at every value, so a failed or partly failed point is shown as such."""
     for column, ls in (("empirical", "-"), ("exact", "--")):
         stats = [(v, *report.seed_interval(g[column])[:3], g["diverged"].mean()) for v, g in frame.groupby("value")]
         v, mean, lo, hi, diverged = map(np.array, zip(*stats))
@@ -46,39 +49,44 @@ def plot_series(ax, frame: pd.DataFrame, label: str, color, marker):
                     label=f"{label} {column}".strip())
         if column != "empirical":
             continue
-        partial = (diverged > 0) & (mean <= YLIM[1])             # some paths diverged: open marker + fraction
+        partial = diverged > 0                      # some paths diverged: open marker on the rate
         ax.plot(v[partial], mean[partial], ls="none", marker=marker, ms=6, mfc="white", color=color)
-        off = ~(mean <= YLIM[1])                  # above the scale or no finite rate (every seed diverged)
-        ax.plot(v[off], np.full(off.sum(), YLIM[1]), ls="none", marker="^", color=color, ms=4, clip_on=False)
-        for x, y, f in zip(v[partial | off], np.where(off, YLIM[1], mean)[partial | off], diverged[partial | off]):
-            ax.annotate(f"{f:.0%} div.", (x, y), xytext=(3, -8), textcoords="offset points", fontsize=5.5,
-                        color=color)
+        ax_div.plot(v, diverged, color=color, ls="-", marker=marker, ms=3, label=label or None)
+        for x, f in zip(v[diverged > 0], diverged[diverged > 0]):
+            ax_div.annotate(f"{f:.0%}", (x, f), xytext=(2, 2), textcoords="offset points", fontsize=5.5, color=color)
 
 
 def draw(sweeps: dict[str, list[report.Run]]):
-    fig, axes = report.figure(report.PAGE_WIDTH, 2.5, 1, 3, sharey=True)
-    for ax, (sweep, key, xlabel) in zip(axes, PANELS):
+    fig, axes = report.figure(report.PAGE_WIDTH, 3.3, 2, 3, sharey="row", sharex="col",
+                              gridspec_kw={"height_ratios": [3, 1]})
+    for ax, ax_div, (sweep, key, xlabel) in zip(axes[0], axes[1], PANELS):
         runs = sweeps.get(sweep) or []
         if sweep == "noise":
             frame_q = points([r for r in runs if r.get("enkf.r_scale") == 1.0], "enkf.q_scale")
             frame_r = points([r for r in runs if r.get("enkf.q_scale") == 1.0], "enkf.r_scale")
             if len(frame_q):
-                plot_series(ax, frame_q, "Q scale", "black", "o")
+                plot_series(ax, ax_div, frame_q, "Q scale", "black", "o")
             if len(frame_r):
-                plot_series(ax, frame_r, "R scale", "0.55", "s")
+                plot_series(ax, ax_div, frame_r, "R scale", "0.55", "s")
             ax.set_xscale("log")
-            ax.set_xticks([0.25, 0.5, 1, 2, 4], ["1/4", "1/2", "1", "2", "4"])
-            ax.minorticks_off()
+            ax_div.set_xticks([0.25, 0.5, 1, 2, 4], ["1/4", "1/2", "1", "2", "4"])
+            ax_div.minorticks_off()
         elif runs:
-            plot_series(ax, points(runs, key), "", "black", "o")
+            plot_series(ax, ax_div, points(runs, key), "", "black", "o")
             if sweep == "ensemble_size":
                 ax.set_xscale("log")
+                values = sorted({r.get(key) for r in runs})
+                ax_div.set_xticks(values, [f"{v:g}" for v in values])
+                ax_div.minorticks_off()
         seeds = len({r.get("seed") for r in runs})
-        ax.set_xlabel(xlabel)
-        ax.set_title(f"{TITLES[sweep]} ({len(runs)} runs, {seeds} seeds)")
+        ax_div.set_xlabel(xlabel)
+        ax.set_title(f"{TITLES[sweep]} ({len(runs)} runs, {seeds} seed{'s' if seeds != 1 else ''})")
         ax.legend(frameon=False, fontsize=5.5)
-    axes[0].set_ylabel("mean-square rate\n(exact: of the designed gain on the true plant)")
-    axes[0].set_ylim(*YLIM)
+    axes[0, 0].set_ylabel("mean-square rate\n(exact: of the designed gain\non the true plant)")
+    axes[0, 0].set_ylim(*YLIM)
+    axes[1, 0].set_ylabel("paths\ndiverged")
+    axes[1, 0].set_ylim(-0.05, 1.15)
+    axes[1, 0].yaxis.set_major_formatter(matplotlib.ticker.PercentFormatter(1.0, decimals=0))
     return fig
 
 
@@ -89,8 +97,9 @@ def caption(sweeps: dict[str, list[report.Run]]) -> str:
             f"k = {k_from}..{k_to} from the Monte Carlo paths, with the EnKF observer. Dashed (exact): the exact "
             "mean-square rate sqrt(rho(E[Acl (x) Acl])) of the gain designed in that run, on the true plant "
             "(ideal state feedback, no Monte Carlo). Points: mean over seeds, bars: 95% t-interval over the seeds "
-            "with a finite rate. Open marker with a percentage: some closed-loop paths diverged (mean fraction "
-            "over seeds); triangle at the top: no finite rate or the mean off the scale.")
+            "with a finite rate (a value where every seed's loop diverged has no rate point). Bottom row: the "
+            "fraction of closed-loop paths that diverged (mean over seeds), at every value; an open marker on a "
+            "rate point says some of its paths diverged.")
 
 
 def main(argv=None):

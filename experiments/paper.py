@@ -69,13 +69,13 @@ def index(out: Path, counts) -> str:
             continue
         if heading:
             lines += [f"## {heading}", ""]
+        cap = out / f"{name}.caption.md"
         if kind == "figure":
             lines += [f"![{name}]({name}.png)", ""]
-            cap = out / f"{name}.caption.md"
-            if cap.exists():
-                lines += [f"*{cap.read_text().strip()}*", ""]
         else:
             lines += [path.read_text().strip(), ""]
+        if cap.exists():
+            lines += [f"*{cap.read_text().strip()}*", ""]
     return "\n".join(lines)
 
 

@@ -9,6 +9,7 @@ import pandas as pd
 import pytest
 from conftest import REPO, SMALL, rdsexp
 
+import rdsexp as rx
 from rdsexp import report
 from rdsexp.experiment import records
 
@@ -17,20 +18,36 @@ import fig_decay  # noqa: E402
 import fig_estimation  # noqa: E402
 import fig_gains  # noqa: E402
 import fig_sweeps  # noqa: E402
+import identification_input  # noqa: E402
 import paper  # noqa: E402
 import reproduction_table  # noqa: E402
 
-SWEEPS = {"paper": ["seed=0,1"], "ensemble_size": ["enkf.ensemble_size=10,20", "seed=0,1"],
+# Small sizes: every run designs all gain methods (a few CPU seconds), so the number of runs is the
+# cost. The paper sweep keeps the methods the reproduction rows read (proposed, nominal_lmi,
+# pole_placement) and one that reaches the proposed gain's rate (the figure's overlap note).
+METHODS = ("proposed", "nominal_lmi", "pole_placement", "policy_iteration")
+SWEEPS = {"paper": [f"gain={','.join(METHODS)}", "seed=0,1"], "ensemble_size": ["enkf.ensemble_size=10,20", "seed=0"],
           "noise": ["enkf.q_scale=0.5,1.0", "enkf.r_scale=1.0,2.0", "seed=0"],
-          "window": ["identification.K1=10,20", "seed=0,1"]}
+          "window": ["identification.K1=10,20", "seed=0"],
+          # every key the sweep files vary is overridden, so each small sweep is exactly this grid
+          "identification_input": ["identification.input.levels=bipolar,unipolar", "identification.input.amplitude=10",
+                                   "identification.input.hold=1", "seed=0,1,2"],
+          "closed_loop_rate": ["gain.source=identified,reported,fixed", "closed_loop.filter_sees_disturbance=false,true",
+                               "seed=0,1"]}
 
 
 @pytest.fixture(scope="module")
 def root(tmp_path_factory):
-    """outputs/ with small versions of the four sweeps the report needs."""
+    """outputs/ with small versions of the six sweeps the report needs (paper.SWEEPS): the report
+    then runs none itself (at full size the identification_input sweep alone takes minutes)."""
+    assert set(SWEEPS) == set(paper.SWEEPS)
+    from concurrent.futures import ThreadPoolExecutor
     cwd = tmp_path_factory.mktemp("report")
-    for sweep, overrides in SWEEPS.items():
-        rdsexp(f"+sweep={sweep}", *SMALL, "tracking.recording=false", *overrides, cwd=cwd)
+    with ThreadPoolExecutor(2) as pool:           # CI's two cores: two sweeps at a time
+        done = [pool.submit(rdsexp, f"+sweep={sweep}", *SMALL, "tracking.recording=false", *overrides, cwd=cwd,
+                            timeout=1800) for sweep, overrides in SWEEPS.items()]
+        for job in done:
+            job.result()
     return cwd / "outputs"
 
 
@@ -56,27 +73,78 @@ def test_each_figure_script_draws_finite_data(root):
     for experiment in ("closed_loop", "open_loop"):
         assert finite_axes(fig_decay.draw(report.first_seed(runs), experiment, proposed))
     summary = fig_gains.table(runs)
-    assert set(summary["method"]) == set(fig_gains.STYLES)
+    assert list(summary["method"]) == [m for m in fig_gains.ORDER if m in METHODS]
+    assert list(summary["label"]) == [fig_gains.label(m) for m in METHODS]
     assert finite_axes(fig_gains.draw(runs, summary))
     assert finite_axes(fig_sweeps.draw({name: report.load_runs(root, name) for name in SWEEPS if name != "paper"}))
 
 
-def test_reproduction_table_has_a_row_per_reference_number(written):
-    table = pd.read_csv(written / "reproduction.csv")
+def test_reproduction_tables_split_inputs_from_results(written):
+    """Every reference number is in exactly one of the two tables, in the reference's order; configured
+    inputs carry no verdict, computed results do, and the summary counts results only."""
+    inputs, table = pd.read_csv(written / "reproduction_inputs.csv"), pd.read_csv(written / "reproduction.csv")
     expected = [key for key, _ in reproduction_table.flatten("", report.reference())]
-    assert list(table["number"]) == expected and len(expected) > 60
+    assert len(expected) > 60
+    assert [k for k in expected if k in set(inputs["number"])] == list(inputs["number"])
+    assert [k for k in expected if reproduction_table.is_input(k)] == list(inputs["number"])
+    computed = [k for k in expected if not reproduction_table.is_input(k)]
+    assert list(table["number"])[:len(computed)] == computed
+    assert "verdict" not in inputs.columns and set(inputs["as_the_paper_says"]) <= {"yes", "no"}
+    assert {"plant.q0[0]", "enkf.M", "pole_placement.poles[0]"} <= set(inputs["number"])
     assert set(table["verdict"]) <= {"reproduced", "within Monte Carlo error", "differs"}
     assert not table["reason"].fillna("").str.contains("no rule").any()
     rows = table.set_index("number")
     assert rows.loc["synthesis_proposed.nbar", "verdict"] == "reproduced"
     assert rows.loc["pole_placement.F[4]", "verdict"] == "reproduced"
     assert rows.loc["nominal_lmi.lambda", "verdict"] == "differs"       # the infimum is 0
+    counts = reproduction_table.verdict_counts(table)
+    assert counts.sum() == len(table)
+    page = (written / "index.md").read_text()
+    assert "Verdicts of the computed results: " + ", ".join(f"{v} {n}" for v, n in counts.items()) in page
+
+
+def test_new_reproduction_rows_on_small_runs(root, written):
+    """The rows not in the reference: the identification input consistent with the paper's moments
+    (one per sweep, the verdict follows identification_input's table) and the closed-loop rate with
+    the paper's moments and the paper's F, EnKF told d_k and not, each with its bootstrap interval."""
+    table = pd.read_csv(written / "reproduction.csv").set_index("number")
+    ident = pd.read_csv(written / "identification_input.csv")
+    assert list(ident["setting"]) == ["bipolar, amplitude 10, hold 1, register 7",
+                                      "unipolar, amplitude 10, hold 1, register 7"]
+    assert (ident["seeds"] == 3).all() and set(ident["consistent"]) <= {True, False}
+    z = ident[[c for c in ident.columns if c.startswith("z ")]].abs().max(axis=1)
+    assert np.allclose(z, ident["max_abs_z"], atol=0.01)
+    assert list(ident["consistent"]) == list(ident["max_abs_z"] <= ident["z_bound"])
+    row = table.loc["modeling.identification_input_consistent"]
+    consistent = list(ident[ident["consistent"]]["setting"])
+    configured = identification_input.setting(report.first_seed(report.load_runs(root, "paper")))
+    assert row["verdict"] == ("within Monte Carlo error" if configured in consistent else "differs")
+    rate = pd.read_csv(written / "closed_loop_rate.csv")
+    assert sorted(zip(rate["source"], rate["filter_sees_d"])) == sorted(
+        (s, t) for s in ("identified", "reported", "fixed") for t in (False, True))
+    assert (rate["seeds"] == 2).all() and (rate["paths"] == 4).all()
+    assert ((rate["pooled_low"] <= rate["pooled_rate"]) & (rate["pooled_rate"] <= rate["pooled_high"])).all()
+    assert ((rate["largest_path_share_median"] >= 0.25) & (rate["largest_path_share_max"] <= 1)).all()
+    # the fixed gain is the paper's F in every seed: its exact rate on the true plant is one number
+    fixed = rate[rate["source"] == "fixed"]
+    assert fixed["exact_rate_true_plant"].nunique() == 1
+    assert fixed["exact_rate_true_plant"].iloc[0] == pytest.approx(rx.ms_rate(rx.paper.plant(), None,
+                                                                              rx.paper.F_proposed), abs=1e-4)
+    for source in ("reported", "fixed"):
+        for told in (False, True):
+            number = [n for n in table.index if n.startswith("closed_loop.rate_k60_k80 (")
+                      and reproduction_table.RATE_ROW[source] in n and ("not told" in n) != told]
+            assert len(number) == 1, (source, told, list(table.index))
+            r = rate[(rate["source"] == source) & (rate["filter_sees_d"] == told)].iloc[0]
+            inside = r["pooled_low"] <= 0.8473 <= r["pooled_high"]
+            assert table.loc[number[0], "verdict"] == ("within Monte Carlo error" if inside else "differs")
 
 
 def test_lineage_hashes_match_the_tables(written):
     outputs = sorted(written.glob("*.json"))
-    assert {p.stem for p in outputs} == {"estimation", "decay_proposed", "decay_open", "gain_comparison",
-                                         "sweeps", "reproduction"}
+    assert {p.stem for p in outputs} >= {"estimation", "decay_proposed", "decay_open", "gain_comparison",
+                                         "sweeps", "reproduction", "reproduction_inputs", "identification_input",
+                                         "closed_loop_rate"}
     for path in outputs:
         lineage = json.loads(path.read_text())
         assert lineage["runs"] and lineage["script"].endswith(".py")
@@ -123,3 +191,42 @@ def test_tampered_table_is_refused(root, tmp_path):
     frame.to_parquet(copy / "metrics.parquet", index=False)
     with pytest.raises(report.LineageError, match="does not match the hash"):
         report.Run(copy).table("metrics")
+
+
+def test_figures_meet_the_print_requirements(root, written):
+    """decay_*: one y-range, numbers in captions not titles, the lambda line names its lambda;
+    gain_comparison: human labels in a legend outside the axes, the seed stated; sweeps: a diverged
+    fraction under every panel; index.md: every figure and table, in the paper's order."""
+    runs = report.load_runs(root, "paper")
+    proposed = report.select(runs, gain__method="proposed")
+    first = report.first_seed(runs)
+    ylim = fig_decay.shared_ylim(first)
+    figs = [fig_decay.draw(first, e, proposed, ylim) for e in ("closed_loop", "open_loop")]
+    assert figs[0].axes[0].get_ylim() == figs[1].axes[0].get_ylim() == ylim
+    for fig in figs:
+        assert not any(ch.isdigit() for ch in fig.axes[0].get_title())
+    lam = first.table("gains").query("selected")["lam"].iloc[0]
+    assert any(f"= {lam:.4f}" in t.get_text() for t in figs[0].axes[0].get_legend().get_texts())
+    for name in ("decay_proposed", "decay_open", "gain_comparison", "sweeps", "estimation"):
+        assert (written / f"{name}.caption.md").read_text().strip(), name
+    assert "0.8473" in (written / "decay_proposed.caption.md").read_text()
+    summary = fig_gains.table(runs)
+    fig = fig_gains.draw(runs, summary)
+    legend = fig.legends[0] if fig.legends else fig.axes[0].get_legend()
+    labels = [t.get_text() for t in legend.get_texts()]
+    assert all(fig_gains.label(m) in labels for m in METHODS) and not any("_" in t for t in labels)
+    fig.canvas.draw()
+    inside = fig.axes[0].get_window_extent()
+    assert legend.get_window_extent().x0 >= inside.x1 - 1          # outside the data
+    assert "seed 0" in fig_gains.caption(runs, summary)
+    sweeps = fig_sweeps.draw({name: report.load_runs(root, name) for name in ("ensemble_size", "noise", "window")})
+    bottom = sweeps.axes[3:]
+    assert len(bottom) == 3 and all(ax.get_lines() for ax in bottom)
+    for ax in bottom:
+        fractions = np.concatenate([line.get_ydata() for line in ax.get_lines()])
+        assert np.all((fractions >= 0) & (fractions <= 1))
+    page = (written / "index.md").read_text()
+    order = [f"![{name}]({name}.png)" if kind == "figure" else (written / f"{name}.md").read_text().strip()
+             for kind, name, _ in paper.PAGE]
+    positions = [page.index(item) for item in order]
+    assert positions == sorted(positions)

@@ -195,6 +195,13 @@ def write_table(frame: pd.DataFrame, out_dir: Path, name: str, runs: list[Run], 
     records.write_json(out_dir / f"{name}.json", lineage(runs, script, outputs=[f"{name}.csv", f"{name}.md"], **extra))
 
 
+def write_caption(out_dir: Path, name: str, text: str) -> Path:
+    """name.caption.md beside a table or figure: the sentence that says what it shows."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    records.atomic_write_bytes(out_dir / f"{name}.caption.md", (text.strip() + "\n").encode())
+    return out_dir / f"{name}.caption.md"
+
+
 def _markdown(frame: pd.DataFrame) -> str:
     def cell(v) -> str:
         if v is None or (isinstance(v, float) and np.isnan(v)):
