@@ -40,3 +40,22 @@ def test_ms_rate_with_a_complex_pair_as_large_as_the_perron_root():
     dist = rx.MomentModel(mean=np.zeros(0), cov=np.zeros((0, 0)))
     assert rx.ms_rate(system, dist, np.zeros((1, n))) == pytest.approx(0.9, rel=1e-12)
     assert dense_rate(system, dist, np.zeros((1, n))) == pytest.approx(0.9, rel=1e-12)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_perron_vectors_are_psd_eigenvectors(seed):
+    """Both Perron vectors (of T and of its adjoint) are PSD eigenvectors to working precision, also
+    for gains with large entries (non-normal maps, where LAPACK's vectors alone were off by 1e-4)."""
+    from rdsexp.numerics.analysis import perron
+    rng = np.random.default_rng(40 + seed)
+    n = int(rng.integers(2, DENSE_MAX_N + 5))
+    system, dist = system_of(rng, n, 1, 2)
+    Abar, Bbar = system.moment_factors(dist)
+    Acl = Abar + Bbar @ (rng.normal(size=(1, n)) * 5)
+    for adjoint in (False, True):
+        rho, X = perron(Acl, adjoint=adjoint)
+        M = Acl.transpose(0, 2, 1) if adjoint else Acl
+        TX = np.einsum("rij,jk,rlk->il", M, X, M)
+        scale = np.einsum("rij,rij->", np.abs(M), np.abs(M))
+        assert np.abs(TX - rho * X).max() <= 1e-10 * scale * np.abs(X).max()
+        assert np.linalg.eigvalsh(X).min() >= -1e-8 * np.abs(X).max()
