@@ -45,7 +45,7 @@ def test_ms_rate_with_a_complex_pair_as_large_as_the_perron_root():
 @pytest.mark.parametrize("seed", range(6))
 def test_perron_vectors_are_psd_eigenvectors(seed):
     """Both Perron vectors (of T and of its adjoint) are PSD eigenvectors to working precision, also
-    for gains with large entries (non-normal maps, where LAPACK's vectors alone were off by 1e-4)."""
+    for gains with large entries (the case where LAPACK's vectors were off is in test_simulation)."""
     from rdsexp.numerics.analysis import perron
     rng = np.random.default_rng(40 + seed)
     n = int(rng.integers(2, DENSE_MAX_N + 5))
