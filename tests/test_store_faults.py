@@ -313,16 +313,19 @@ def test_resumed_sweep_reruns_only_the_damaged_job(st, tmp_path):
     old, reused = st.jobs[0] / "metrics.parquet", new / "0" / "metrics.parquet"
     assert not reused.stat().st_mode & 0o222 and not old.stat().st_mode & 0o222
     assert os.path.samefile(old, reused) == (os.geteuid() != 0)         # root is not stopped by modes: copy
+    table = pd.read_parquet(reused)                                    # a deliberate edit of the reused copy
+    table.loc[0, "rate"] += 1e-9
     if os.geteuid() == 0:
-        tampered_table(store_like(new))
-        assert store.run_damage(new / "0", infos[0]) and not store.run_damage(st.jobs[0], st.infos[0])
+        reused.chmod(0o644)
+        table.to_parquet(reused, index=False)
+        assert store.run_damage(new / "0", infos[0]) == [
+            "metrics.parquet: modified after the run (does not match the hash in run.json)"]
+    else:
+        with pytest.raises(PermissionError):
+            table.to_parquet(reused, index=False)
+    assert not store.run_damage(st.jobs[0], st.infos[0])               # the original is unchanged
     # the rerun job 1 is now the indexed one: the next resume reuses it
     assert store.find_reusable(st.root, *st.key(1)) == (new / "1").resolve()
-
-
-def store_like(sweep: Path) -> Store:
-    jobs = [sweep / str(j) for j in range(3)]
-    return Store(sweep.parent.parent, sweep, jobs, [])
 
 
 def test_sweep_outside_the_store_reads_and_reuses_nothing_there(pristine, tmp_path):
