@@ -17,14 +17,14 @@ from pathlib import Path
 
 import hydra
 import numpy as np
-import pandas as pd
 from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
+from ..numerics.modeling import one_line
 from . import records, store
 from .config import ConfigError, Experiment, build
-from .pipeline import SPAWN_KEYS, Outcome, run_experiment, timed
+from .pipeline import FAILURES, SPAWN_KEYS, TABLES, Outcome, run_experiment, timed
 
 log = logging.getLogger("rdsexp")
 CONF_PACKAGE = "pkg://rdsexp.conf"        # conf/ of the repository, shipped as the package rdsexp.conf
@@ -35,20 +35,20 @@ if not OmegaConf.has_resolver("uid"):
     OmegaConf.register_new_resolver("uid", lambda: uuid.uuid4().hex[:8], use_cache=True)
 
 
-def record(run_dir: Path, outcome: Outcome, exp: Experiment, info: dict) -> dict:
-    """Write tables, recording and the final run.json into run_dir; returns the run.json content."""
+def record(run_dir: Path, outcome: Outcome, exp: Experiment, info: dict, streamed: dict) -> dict:
+    """Write the remaining tables, the recording and the final run.json into run_dir; `streamed`:
+    the tables the pipeline already wrote through a ParquetSink. Returns the run.json content."""
     timings = dict(outcome.timings)
     with timed(timings, "tables"):
-        frames = dict(outcome.tables) | ({"members": outcome.members} if outcome.members is not None else {})
-        hashes = {name: records.store_table(run_dir / f"{name}.parquet", table) for name, table in frames.items()}
+        hashes = {name: records.store_table(run_dir / f"{name}.parquet", table)
+                  for name, table in outcome.tables.items()}
+        hashes = dict(sorted((hashes | streamed).items(), key=lambda item: _table_order(item[0])))
     with timed(timings, "recording"):
         if exp.recording:
             from .recording import write_recording  # rerun is imported only when recording
             tmp = records.tmp_name(run_dir / "recording.rrd")
-            trajectories = pd.concat([outcome.tables["identification"], outcome.tables["trajectories"]],
-                                     ignore_index=True)
             try:
-                write_recording(tmp, trajectories, recording_id=info["id"], members=outcome.members)
+                write_recording(tmp, outcome.recorded, recording_id=info["id"], members=outcome.recorded_members)
             except OSError as err:
                 tmp.unlink(missing_ok=True)
                 raise records.WriteError(run_dir / "recording.rrd", err) from err
@@ -57,6 +57,10 @@ def record(run_dir: Path, outcome: Outcome, exp: Experiment, info: dict) -> dict
                 seconds=round(sum(v for v in timings.values() if isinstance(v, float)), 3))
     records.write_json(run_dir / "run.json", info)
     return info
+
+
+def _table_order(name: str) -> int:
+    return TABLES.index(name) if name in TABLES else len(TABLES)
 
 
 def run_info(run_dir: Path, job_config: dict, seed: int) -> tuple[dict, str]:
@@ -114,9 +118,16 @@ def execute(cfg: DictConfig, run_dir: Path) -> dict:
         if diff:
             records.atomic_write_bytes(run_dir / "uncommitted.diff", diff.encode())
         records.write_json(run_dir / "run.json", info)     # "incomplete" until the end
-    outcome = run_experiment(exp)
+    sink = records.ParquetSink(run_dir)
+    try:
+        outcome = run_experiment(exp, sink)
+    except BaseException:                   # no partial table left behind (run.json says what happened)
+        sink.abort()
+        raise
     outcome.timings |= timings
-    info = record(run_dir, outcome, exp, info)
+    with timed(outcome.timings, "streamed_tables"):
+        streamed = sink.close()
+    info = record(run_dir, outcome, exp, info, streamed)
     try:                                    # the index is derived data: a run is complete without it
         store.index_add(store_root(cfg), run_dir, info)
     except records.WriteError as err:
@@ -166,11 +177,15 @@ def hydra_main(cfg: DictConfig) -> dict | None:
             sys.exit(2)
         info = _failed(run_dir, cfg, "config_error", str(err))
     except Exception as err:                              # a sweep goes on; a single run reports and fails
-        if not multirun:
-            _failed(run_dir, cfg, "error", f"{type(err).__name__}: {err}", traceback.format_exc())
-            raise
-        log.exception("job %s failed", hc.job.num)
-        info = _failed(run_dir, cfg, "error", f"{type(err).__name__}: {err}", traceback.format_exc())
+        stage = getattr(err, "rdsexp_stage", "run")
+        message = f"stage {stage}: {one_line(err)}"
+        trace = traceback.format_exc()
+        log.error("%s failed: %s", "run" if not multirun else f"job {hc.job.num}", message)
+        log.info("traceback:\n%s", trace)                # rdsexp.log only (the terminal gets warnings and up)
+        info = _failed(run_dir, cfg, "error", message, trace)
+        if not multirun:                                  # the status, plainly; the traceback is in run.json
+            print_summary(info, run_dir)
+            sys.exit(1)
     if multirun:
         from .runs import write_sweep_summary
         try:
@@ -188,6 +203,15 @@ def main() -> None:
     # an ignored SIGINT): Python's default handler raises KeyboardInterrupt, which ends the run
     # with run.json still "incomplete" and every finished file complete
     signal.signal(signal.SIGINT, signal.default_int_handler)
+    for arg in sys.argv[1:]:
+        # enkf.Q's default is the mapping {x, xi, matrix}: Hydra cannot merge a list into it and
+        # would end with a stack of merge errors; say in one line where a matrix goes
+        name, _, value = arg.partition("=")
+        if name.lstrip("+") == "enkf.Q" and value.lstrip().startswith("["):
+            print(f"rdsexp: config error: enkf.Q: {value} is not allowed, expected the scales enkf.Q.x=, "
+                  f"enkf.Q.xi= or a matrix as enkf.Q.matrix={value} (a scalar, n+p diagonal entries or "
+                  f"a full (n+p)x(n+p) matrix)", file=sys.stderr)
+            sys.exit(2)
     hydra_main()
 
 
@@ -214,11 +238,15 @@ def print_summary(info: dict, run_dir: Path) -> None:
     s = info.get("summary", {})
     ref = s.get("reference") or {}
     fmt = lambda v: "n/a" if v is None else (f"{v:.4f}" if isinstance(v, float) else str(v))
-    interval = lambda r: f"{r[0]:.4f} [{r[1]:.4f}, {r[2]:.4f}]" if r else "n/a"
+    interval = lambda r: (f"{r[0]:.4f} [{r[1]:.4f}, {r[2]:.4f}]" if r and np.all(np.isfinite(r))
+                          else "n/a (not every path reached the window)")
     beside = lambda name: f" ({ref.get('source', 'paper')} {ref[name]})" if name in ref else ""
+    unstable = lambda rate: rate is not None and not rate < 1          # NaN too: not shown to be stable
     k_from, k_to = s.get("rate_window") or (None, None)
     lines = [f"rdsexp run {info.get('id')}: {info.get('status')}",
              f"  plant {s.get('plant')}, model {s.get('model')}"]
+    if info.get("error"):
+        lines.append(f"  failed: {info['error']} (traceback in run.json and rdsexp.log)")
     ident = s.get("identification_feedback") or {}
     if ident.get("mode", "none") != "none":
         line = f"  identification feedback {ident['mode']}: {ident.get('used')}"
@@ -226,12 +254,15 @@ def print_summary(info: dict, run_dir: Path) -> None:
             line += f" (open-loop rate at xi_guess {fmt(ident['open_loop_rate_at_guess'])})"
         if ident.get("used", "").startswith("nominal"):
             line += f", gain {ident.get('method')} with rate {fmt(ident.get('rate_plant'))} on the true plant"
+            if unstable(ident.get("rate_plant")):
+                line += " (it does not stabilize the true plant in mean square)"
         lines.append(line)
     if s.get("modeling_status") == "ok":
         lines.append(f"  modeling ok: xi mean {np.round(s.get('xi_mean', []), 4).tolist()}{beside('xi_mean')}, "
                      f"nbar {s.get('nbar')}{beside('nbar')}")
-    else:
-        lines.append(f"  no model: {s.get('modeling_status')}; no gain designed, no closed loop")
+    elif s.get("modeling_status") is not None:
+        lines.append(f"  no model: {s.get('modeling_status')}" +
+                     ("; no gain designed, no closed loop" if s.get("synthesis_status") is None else ""))
     if s.get("synthesis_status") is not None:
         lines.append(f"  gain {s.get('gain_method')}: {s.get('synthesis_status')}, lambda {fmt(s.get('lam'))}"
                      f"{beside('lam')}, exact rate on the true plant {fmt(s.get('rate_plant'))}")
@@ -239,7 +270,11 @@ def print_summary(info: dict, run_dir: Path) -> None:
             lines.append(f"  no stabilizing gain: {s.get('gain_method')} returned none "
                          f"({s.get('synthesis_status')}); no closed loop")
         elif s.get("synthesis_status") == "not_ms_stabilizable":
-            lines.append(f"  no stabilizing gain: not_ms_stabilizable, the best rate found is {fmt(s.get('lam'))}")
+            lines.append(f"  no stabilizing gain: not_ms_stabilizable, the best rate found on the model is "
+                         f"{fmt(s.get('lam'))}")
+        elif unstable(s.get("rate_plant")):
+            lines.append(f"  the gain does not stabilize the true plant: its exact rate there is "
+                         f"{fmt(s.get('rate_plant'))} >= 1")
     others = {m: st for m, st in (s.get("designs") or {}).items()
               if m != s.get("gain_method") and st not in ("optimal", "designed")}
     if others:
@@ -253,8 +288,11 @@ def print_summary(info: dict, run_dir: Path) -> None:
         line += f", {s.get(f'{loop}_status')}"
         failed = s.get(f"{loop}_failed")
         if failed:
-            line += (f"; {100 * failed['fraction']:.0f}% of paths diverged (first at k = {failed['first_k']}, "
+            line += (f"; {100 * failed['fraction']:.0f}% of paths failed (first at k = {failed['first_k']}, "
                      f"median k = {failed['median_k']:g})")
+            reasons = failed.get("reasons") or {}
+            if reasons:
+                line += ": " + ", ".join(f"{FAILURES.get(r, r)} on {c}" for r, c in reasons.items())
         lines.append(line)
     lines.append(f"  run directory: {run_dir}")
     if (run_dir / "recording.rrd").exists():

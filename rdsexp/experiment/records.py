@@ -133,13 +133,76 @@ def file_hash(path: Path) -> str:
 
 def table_hash(table: pd.DataFrame) -> str:
     """sha256 over column names, dtypes and values: equal for equal tables, whatever the file bytes."""
+    return _hash_columns((name, table[name]) for name in table.columns)
+
+
+def stored_table_hash(path: Path) -> str:
+    """`table_hash` of a stored parquet table, read one column at a time (bounded memory)."""
+    import pyarrow.parquet as pq
+    source = pq.ParquetFile(path)
+    return _hash_columns((name, source.read(columns=[name]).to_pandas()[name]) for name in source.schema_arrow.names)
+
+
+def _hash_columns(columns) -> str:
     h = hashlib.sha256()
-    for name in table.columns:
-        column = table[name]
+    for name, column in columns:
         h.update(f"{name}:{column.dtype}".encode())
         values = column.to_numpy()
         h.update(values.tobytes() if values.dtype.kind in "biuf" else "\x1f".join(map(str, values)).encode())
     return h.hexdigest()
+
+
+class ParquetSink:
+    """Streams tables into DIR/NAME.parquet, one row group per `append`, under a temporary name until
+    `close` stores them read-only (a killed run leaves no table that looks complete).
+
+    Every append of a table must have the same columns and dtypes (the chunks of one table do).
+    A failed write raises WriteError and leaves no file under the final name."""
+
+    def __init__(self, directory: Path):
+        self.directory, self.writers, self.rows = Path(directory), {}, {}
+
+    def append(self, name: str, rows: pd.DataFrame) -> None:
+        import pyarrow as pa
+        import pyarrow.parquet as pq
+        table = pa.Table.from_pandas(rows, preserve_index=False)
+        tmp = tmp_name(self.directory / f"{name}.parquet")
+        try:
+            if name not in self.writers:
+                self.writers[name], self.rows[name] = pq.ParquetWriter(tmp, table.schema), 0
+            self.writers[name].write_table(table)
+        except OSError as err:
+            self.abort()
+            raise WriteError(self.directory / f"{name}.parquet", err) from err
+        self.rows[name] += len(rows)
+
+    def close(self) -> dict:
+        """Store every table; returns {name: run.json entry} as `store_table` does."""
+        out = {}
+        for name in list(self.writers):
+            final = self.directory / f"{name}.parquet"
+            tmp = tmp_name(final)
+            try:
+                self.writers.pop(name).close()
+                with open(tmp, "rb") as fh:
+                    os.fsync(fh.fileno())
+            except OSError as err:
+                self.abort()
+                _discard(tmp)
+                raise WriteError(final, err) from err
+            content = stored_table_hash(tmp)
+            out[name] = {"rows": self.rows[name], "sha256": content, **store_file(tmp, final)}
+        return out
+
+    def abort(self) -> None:
+        """Drop every table still being written (their temporary files)."""
+        for name, writer in list(self.writers.items()):
+            try:
+                writer.close()
+            except OSError:
+                pass
+            _discard(tmp_name(self.directory / f"{name}.parquet"))
+        self.writers = {}
 
 
 def config_hash(job_config: dict) -> str:

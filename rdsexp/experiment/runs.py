@@ -63,14 +63,25 @@ def catalog(root: Path) -> pd.DataFrame:
 
 
 def write_sweep_summary(sweep_dir: Path) -> Path:
-    """Rebuild <sweep>/summary.parquet (and .csv) from the jobs' run.json files on disk."""
-    table = catalog(sweep_dir)
-    if len(table):
-        table.insert(0, "job", [int(Path(d).name) if Path(d).name.isdigit() else -1 for d in table["dir"]])
-        table = table.sort_values("job", ignore_index=True)
+    """Rebuild <sweep>/summary.parquet (and .csv) from the jobs' run.json files on disk.
+
+    Jobs finishing at once (joblib, Ray, Slurm workers) rebuild one after the other under a lock on
+    <sweep>/.summary.lock, so the last rebuild has seen every job that finished before it: without
+    it a slow rebuild could overwrite a newer one with fewer jobs."""
+    import fcntl
     path = Path(sweep_dir) / "summary.parquet"
-    records.write_table(path, table)
-    records.atomic_write_bytes(path.with_suffix(".csv"), table.to_csv(index=False).encode())
+    try:
+        lock = open(Path(sweep_dir) / ".summary.lock", "a")
+    except OSError as err:
+        raise records.WriteError(path, err) from err
+    with lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        table = catalog(sweep_dir)
+        if len(table):
+            table.insert(0, "job", [int(Path(d).name) if Path(d).name.isdigit() else -1 for d in table["dir"]])
+            table = table.sort_values("job", ignore_index=True)
+        records.write_table(path, table)
+        records.atomic_write_bytes(path.with_suffix(".csv"), table.to_csv(index=False).encode())
     return path
 
 
@@ -113,7 +124,7 @@ def verify(run_dir: Path) -> bool:
     outcome = run_experiment(build(cfg))
     ok = not damaged
     for name in (info.get("tables") or {}):
-        fresh = outcome.members if name == "members" else outcome.tables.get(name)
+        fresh = outcome.tables.get(name)
         try:
             stored = store.read_table(run_dir, info, name)
         except store.DamagedRecord as err:
