@@ -370,7 +370,8 @@ def test_write_failing_midway_leaves_nothing_that_looks_complete(st, tmp_path, c
                           capture_output=True, text=True, preexec_fn=limit)
     assert proc.returncode == 1
     (line,) = proc.stderr.strip().splitlines()
-    assert line.startswith("rdsexp: cannot write ") and line.endswith(".parquet: File too large")
+    assert line.startswith(f"rdsexp: cannot write {st.root / 'runs'}/") and ".parquet: " in line
+    assert line.endswith("File too large")
     (run_dir,) = (st.root / "runs").iterdir()
     info = json.loads((run_dir / "run.json").read_text())
     assert info["status"] == "write_error" and "File too large" in info["error"]
