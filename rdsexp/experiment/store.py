@@ -232,28 +232,29 @@ def rebuild_index(store: Path) -> int:
 def find_reusable(store: Path, config_hash: str, version: str) -> Path | None:
     """The complete, intact run of this config hash and code version the store's index names, or
     None (then the job runs). Reads one index entry and that run: the cost does not grow with the
-    number of stored runs. A store without an index (written before rdsexp kept one) is indexed
-    once. An entry naming a damaged run is skipped with one warning line."""
+    number of stored runs. A store without an index (written before rdsexp kept one), or with an
+    unusable entry, is indexed again from its runs. A damaged run is never returned: it is named
+    in one warning line and the job runs again."""
     store = Path(store)
     if not store.is_dir():
         return None
     if not (store / INDEX / INDEX_BUILT).exists():
+        _rebuild_or_warn(store)
+    for attempt in range(2):
+        path = store / INDEX / f"{index_key(config_hash, version)}.json"
         try:
-            rebuild_index(store)
-        except records.WriteError as err:
-            print(f"rdsexp: warning: cannot index the run store: {err}", file=sys.stderr)
-    path = store / INDEX / f"{index_key(config_hash, version)}.json"
-    try:
-        entry = json.loads(path.read_bytes())
-        run_dir = (store / entry["dir"]).resolve()
-    except FileNotFoundError:
-        return None
-    except (OSError, ValueError, KeyError, TypeError) as err:
-        warn(DamagedRecord(path, f"unreadable index entry ({_one_line(err)})"), "ignored")
-        return None
-    if not run_dir.is_relative_to(store.resolve()):
-        warn(DamagedRecord(path, f"index entry names {run_dir}, outside the store"), "ignored")
-        return None
+            entry = json.loads(path.read_bytes())
+            run_dir = (store / entry["dir"]).resolve()
+            if not run_dir.is_relative_to(store.resolve()):
+                raise ValueError(f"names {run_dir}, outside the store")
+            break
+        except FileNotFoundError:
+            return None
+        except (OSError, ValueError, KeyError, TypeError) as err:
+            warn(DamagedRecord(path, f"unusable index entry ({_one_line(err)})"), "ignored",
+                 "; indexing the store again" if attempt == 0 else "")
+            if attempt == 1 or not _rebuild_or_warn(store):
+                return None
     try:
         info = read_run(run_dir)
         if not (_reusable(info) and info.get("config_hash") == config_hash and _version(info) == version):
@@ -265,6 +266,15 @@ def find_reusable(store: Path, config_hash: str, version: str) -> Path | None:
         warn(err, "not reusing", "; the job runs again")
         return None
     return run_dir
+
+
+def _rebuild_or_warn(store: Path) -> bool:
+    try:
+        rebuild_index(store)
+        return True
+    except (OSError, records.WriteError) as err:
+        print(f"rdsexp: warning: cannot index the run store {store}: {err}", file=sys.stderr)
+        return False
 
 
 # --- the check walk and quarantine
@@ -371,7 +381,7 @@ def _check_index(root: Path) -> list[Finding]:
         except DamagedRecord as err:
             findings.append(Finding("index", path, f"names a damaged run ({err})"))
         except (OSError, ValueError, KeyError, TypeError) as err:
-            findings.append(Finding("index", path, f"unusable entry ({_one_line(err)})"))
+            findings.append(Finding("index", path, f"unusable index entry ({_one_line(err)})"))
     return findings
 
 
