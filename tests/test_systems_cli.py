@@ -169,3 +169,15 @@ def test_process_noise_matrix_from_the_command_line(tmp_path):
     assert proc.returncode == 2 and proc.stderr.count("\n") == 1
     assert proc.stderr.startswith("rdsexp: config error: enkf.Q: [[1,2],[3,4]] is not allowed") \
         and "enkf.Q.matrix=[[1,2],[3,4]]" in proc.stderr
+
+
+def test_readme_plant_file_runs(tmp_path):
+    text = (REPO / "README.md").read_text()
+    section = text[text.index("## Your own system"):]
+    plant = section[section.index("```yaml\n") + 8:section.index("```", section.index("```yaml\n") + 8)]
+    assert plant.count("\n") <= 12
+    (tmp_path / "mine" / "plant").mkdir(parents=True)
+    (tmp_path / "mine" / "plant" / "cart.yaml").write_text(plant)
+    assert "rdsexp --config-dir mine plant=cart" in section
+    proc = rdsexp("--config-dir", "mine", "plant=cart", *SMALL, cwd=tmp_path)
+    assert "plant cart, model plant's own structure" in proc.stdout and "modeling ok" in proc.stdout
