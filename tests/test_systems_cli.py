@@ -181,3 +181,16 @@ def test_readme_plant_file_runs(tmp_path):
     assert "rdsexp --config-dir mine plant=cart" in section
     proc = rdsexp("--config-dir", "mine", "plant=cart", *SMALL, cwd=tmp_path)
     assert "plant cart, model plant's own structure" in proc.stdout and "modeling ok" in proc.stdout
+
+
+def test_plant_file_with_inline_model(tmp_path):
+    # the plant's xi is one gain; the model (inline) has its own two parameters on both A entries
+    plant = {"A": [[[0.5, 0.1], [0, 0.7]], [[0, 0], [0, 0]]], "B": [[[0], [1]], [[1], [0]]],
+             "xi": {"family": "uniform", "low": [0.5], "high": [1.0]},
+             "model": {"A": [[[0.5, 0.1], [0, 0.7]], [[1, 0], [0, 0]], [[0, 0], [0, 1]]],
+                       "B": [[[0], [1]], [[0], [0]], [[0], [0]]]}}
+    conf = user_dir(tmp_path, "own", plant)
+    rdsexp("--config-dir", conf, "plant=own", *SMALL[:-1], cwd=tmp_path)
+    (run,) = (tmp_path / "outputs" / "runs").iterdir()
+    s = json.loads((run / "run.json").read_text())["summary"]
+    assert s["model"] == "inline in the plant file" and len(s["xi_mean"]) == 2
