@@ -17,15 +17,14 @@ from pathlib import Path
 
 import hydra
 import numpy as np
-import pandas as pd
 from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
 from ..numerics.modeling import one_line
-from . import records
+from . import records, store
 from .config import ConfigError, Experiment, build
-from .pipeline import FAILURES, SPAWN_KEYS, Outcome, run_experiment, timed
+from .pipeline import FAILURES, SPAWN_KEYS, TABLES, Outcome, run_experiment, timed
 
 log = logging.getLogger("rdsexp")
 CONF_PACKAGE = "pkg://rdsexp.conf"        # conf/ of the repository, shipped as the package rdsexp.conf
@@ -36,26 +35,32 @@ if not OmegaConf.has_resolver("uid"):
     OmegaConf.register_new_resolver("uid", lambda: uuid.uuid4().hex[:8], use_cache=True)
 
 
-def record(run_dir: Path, outcome: Outcome, exp: Experiment, info: dict) -> dict:
-    """Write tables, recording and the final run.json into run_dir; returns the run.json content."""
+def record(run_dir: Path, outcome: Outcome, exp: Experiment, info: dict, streamed: dict) -> dict:
+    """Write the remaining tables, the recording and the final run.json into run_dir; `streamed`:
+    the tables the pipeline already wrote through a ParquetSink. Returns the run.json content."""
     timings = dict(outcome.timings)
     with timed(timings, "tables"):
-        frames = dict(outcome.tables) | ({"members": outcome.members} if outcome.members is not None else {})
-        hashes = {name: {"file": f"{name}.parquet", "rows": len(table),
-                         "sha256": records.write_table(run_dir / f"{name}.parquet", table)}
-                  for name, table in frames.items()}
+        hashes = {name: records.store_table(run_dir / f"{name}.parquet", table)
+                  for name, table in outcome.tables.items()}
+        hashes = dict(sorted((hashes | streamed).items(), key=lambda item: _table_order(item[0])))
     with timed(timings, "recording"):
         if exp.recording:
             from .recording import write_recording  # rerun is imported only when recording
-            tmp = run_dir / ".recording.rrd.tmp"
-            trajectories = pd.concat([outcome.tables["identification"], outcome.tables["trajectories"]],
-                                     ignore_index=True)
-            write_recording(tmp, trajectories, recording_id=info["id"], members=outcome.members)
-            tmp.replace(run_dir / "recording.rrd")
+            tmp = records.tmp_name(run_dir / "recording.rrd")
+            try:
+                write_recording(tmp, outcome.recorded, recording_id=info["id"], members=outcome.recorded_members)
+            except OSError as err:
+                tmp.unlink(missing_ok=True)
+                raise records.WriteError(run_dir / "recording.rrd", err) from err
+            info["recording"] = records.store_file(tmp, run_dir / "recording.rrd")
     info.update(status="complete", finished=records.now(), summary=outcome.summary, tables=hashes, timings=timings,
                 seconds=round(sum(v for v in timings.values() if isinstance(v, float)), 3))
     records.write_json(run_dir / "run.json", info)
     return info
+
+
+def _table_order(name: str) -> int:
+    return TABLES.index(name) if name in TABLES else len(TABLES)
 
 
 def run_info(run_dir: Path, job_config: dict, seed: int) -> tuple[dict, str]:
@@ -76,12 +81,20 @@ def run_info(run_dir: Path, job_config: dict, seed: int) -> tuple[dict, str]:
         "seed": {"root": seed, "spawn_keys": {k: list(v) for k, v in SPAWN_KEYS.items()},
                  "per_path": "SeedSequence(seed, spawn_key=(*spawn_key, purpose, path)), purpose 0 plant, 1 EnKF"},
         "environment": records.environment(),
+        "process": records.process_info(),     # tells a run whose process died from a running one
     }, code["diff"]
 
 
 def job_config(cfg: DictConfig) -> dict:
-    """The resolved job config without the hydra node (what the run computes from)."""
-    return OmegaConf.to_container(cfg, resolve=True)
+    """The resolved job config without the hydra node (what the run computes from; `store`, where
+    it is recorded, is not part of it)."""
+    return {k: v for k, v in OmegaConf.to_container(cfg, resolve=True).items() if k != "store"}
+
+
+def store_root(cfg: DictConfig) -> Path:
+    """The run store (config key `store`, relative to the directory rdsexp was started in)."""
+    from hydra.utils import to_absolute_path
+    return Path(to_absolute_path(str(cfg.get("store") or "outputs")))
 
 
 def execute(cfg: DictConfig, run_dir: Path) -> dict:
@@ -105,29 +118,41 @@ def execute(cfg: DictConfig, run_dir: Path) -> dict:
         if diff:
             records.atomic_write_bytes(run_dir / "uncommitted.diff", diff.encode())
         records.write_json(run_dir / "run.json", info)     # "incomplete" until the end
-    outcome = run_experiment(exp)
+    sink = records.ParquetSink(run_dir)
+    try:
+        outcome = run_experiment(exp, sink)
+    except BaseException:                   # no partial table left behind (run.json says what happened)
+        sink.abort()
+        raise
     outcome.timings |= timings
-    return record(run_dir, outcome, exp, info)
+    with timed(outcome.timings, "streamed_tables"):
+        streamed = sink.close()
+    info = record(run_dir, outcome, exp, info, streamed)
+    try:                                    # the index is derived data: a run is complete without it
+        store.index_add(store_root(cfg), run_dir, info)
+    except records.WriteError as err:
+        log.warning("run %s not indexed for reuse: %s", info["id"], err)
+    return info
 
 
 def reusable_run(cfg: DictConfig, info: dict) -> Path | None:
-    """In a sweep with `reuse: true`, a complete run of the same config hash and code version under
-    the sweeps' root (a relaunched sweep skips the jobs a killed one completed)."""
+    """In a sweep with `reuse: true`, an intact complete run of the same config hash and code version
+    in the run store (config key `store`, found through its index; never anything outside it), so
+    that a relaunched sweep skips the jobs a killed one completed."""
     if not cfg.get("reuse") or info["sweep"] is None:
         return None
-    from .runs import find_complete
-    return find_complete(Path(info["sweep"]["dir"]).parent, info["config_hash"], info["code"]["version"])
+    return store.find_reusable(store_root(cfg), info["config_hash"], info["code"]["version"])
 
 
 def reuse(previous: Path, run_dir: Path, info: dict) -> dict:
     """Record run_dir as a copy of a complete previous run (files hard-linked where possible)."""
-    old = records.read_json(previous / "run.json")
+    old = store.read_run(previous)
     for name in [meta["file"] for meta in old["tables"].values()] + ["recording.rrd", "uncommitted.diff"]:
         if (previous / name).exists() and not (run_dir / name).exists():
             records.link_or_copy(previous / name, run_dir / name)
     log.info("reused the complete run %s (same config hash and code version)", old["id"])
     info.update(status="complete", finished=records.now(), reused_from=old["id"],
-                **{k: old[k] for k in ("summary", "tables", "timings", "seconds") if k in old})
+                **{k: old[k] for k in ("summary", "tables", "recording", "timings", "seconds") if k in old})
     records.write_json(run_dir / "run.json", info)
     return info
 
@@ -139,6 +164,12 @@ def hydra_main(cfg: DictConfig) -> dict | None:
     multirun = hc.mode == RunMode.MULTIRUN
     try:
         info = execute(cfg, run_dir)
+    except records.WriteError as err:                     # disk full, permission denied, read-only
+        info = _failed(run_dir, cfg, "write_error", str(err))
+        if not multirun:
+            print(f"rdsexp: {err}", file=sys.stderr)
+            sys.exit(1)
+        log.error("job %s: %s", hc.job.num, err)
     except ConfigError as err:
         if not multirun:                                  # nothing that could pass for a result
             shutil.rmtree(run_dir, ignore_errors=True)
@@ -157,7 +188,10 @@ def hydra_main(cfg: DictConfig) -> dict | None:
             sys.exit(1)
     if multirun:
         from .runs import write_sweep_summary
-        write_sweep_summary(Path(hc.sweep.dir))
+        try:
+            write_sweep_summary(Path(hc.sweep.dir))
+        except records.WriteError as err:                 # the sweep's end writes it again, and fails loudly
+            log.error("job %s: %s", hc.job.num, err)
     else:
         print_summary(info, run_dir)
     return info
@@ -182,12 +216,19 @@ def main() -> None:
 
 
 def _failed(run_dir: Path, cfg: DictConfig, status: str, message: str, trace: str | None = None) -> dict:
-    """Record a run that could not finish (keeps whatever provenance run.json already had)."""
+    """Record a run that could not finish (keeps whatever provenance run.json already had), where
+    run.json can still be written."""
     path = run_dir / "run.json"
-    info = records.read_json(path) if path.exists() else {"id": run_dir.name, "created": records.now(),
-                                                            "config_hash": records.config_hash(job_config(cfg))}
+    try:
+        info = store.read_run(run_dir)
+    except store.DamagedRecord:
+        info = {"id": run_dir.name, "created": records.now(), "config_hash": records.config_hash(job_config(cfg))}
     info.update(status=status, error=message, traceback=trace, finished=records.now())
-    records.write_json(path, info)
+    try:
+        run_dir.mkdir(parents=True, exist_ok=True)
+        records.write_json(path, info)
+    except (OSError, records.WriteError) as err:
+        log.error("cannot record status %s in %s: %s", status, path, err)
     return info
 
 

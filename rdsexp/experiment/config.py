@@ -181,6 +181,10 @@ class Experiment:
     identification_feedback: str = "none"   # none | nominal | auto | given
     identification_gain: np.ndarray | None = None       # (m, n) when feedback is a given F
     xi_guess: np.ndarray | None = None      # nominal guess of the plant's xi (prior knowledge), (p_plant,)
+    # scale (issue 12): paths per chunk (None: from a memory budget), worker processes, paths recorded
+    chunk_paths: int | None = None
+    workers: int = 1
+    recorded_paths: int = 200
 
 
 def build(cfg) -> Experiment:
@@ -284,6 +288,10 @@ def build(cfg) -> Experiment:
     reference = plain(OmegaConf.select(cfg, "plant.reference"))
     if reference is not None and not isinstance(reference, dict):
         raise ConfigError(f"plant.reference: {reference!r} is not allowed, expected null or a mapping")
+    chunk = get(cfg, "closed_loop.chunk_paths")
+    chunk = None if chunk is None else _number(chunk, "closed_loop.chunk_paths", integer=True, low=1)
+    workers = _number(get(cfg, "closed_loop.workers"), "closed_loop.workers", integer=True, low=1)
+    recorded_paths = _number(get(cfg, "tracking.recorded_paths"), "tracking.recorded_paths", integer=True, low=0)
     level = get(cfg, "tracking.level")
     if level not in TRACKING_LEVELS:
         raise ConfigError(f"tracking.level: {level!r} is not allowed, expected one of {', '.join(TRACKING_LEVELS)}")
@@ -297,7 +305,7 @@ def build(cfg) -> Experiment:
                       tracking=level, recording=flags["tracking.recording"] and level != "off",
                       plant_name=plant_name, model_name=model_name, reference=reference,
                       design_options=design_options, identification_feedback=feedback, identification_gain=F_id,
-                      xi_guess=xi_guess)
+                      xi_guess=xi_guess, chunk_paths=chunk, workers=workers, recorded_paths=recorded_paths)
 
 
 def _process_noise(cfg, n: int, p: int) -> np.ndarray:

@@ -95,14 +95,16 @@ def check_settings(plant: AffineRandomSystem, enkf: EnKF, F, d, q0, psi0, P0) ->
 
 
 def simulate(plant: AffineRandomSystem, enkf: EnKF, *, F=None, d, q0, psi0, P0=None, ensemble_size: int,
-             paths: int, seed, filter_sees_d: bool = True, keep_members: bool = False,
+             paths: int, seed, first_path: int = 0, filter_sees_d: bool = True, keep_members: bool = False,
              block: int = 16, bound: float = DIVERGENCE_BOUND, progress=None) -> Trajectories:
     """Closed loop (open loop when F is None) of `plant` observed by `enkf`, P = `paths` sample paths.
 
     d: (K+1, m) external input added on u_k (horizon K = len(d) - 1); q0: (n,) plant initial state;
     psi0, P0: mean (n+p,) and covariance of the initial ensemble psi_{0|-1} (P0 = 0: every member
-    at psi0, as in the paper). filter_sees_d: the EnKF is told the applied input u_k (True) or only
-    F x_{k|k-1} (False). block: steps of noise drawn per generator call (does not change results).
+    at psi0, as in the paper). first_path: index of the first of the P paths, so that a run split into
+    chunks of paths (first_path = 0, P1, P1 + P2, ...) gives exactly the paths of one batch.
+    filter_sees_d: the EnKF is told the applied input u_k (True) or only F x_{k|k-1} (False).
+    block: steps of noise drawn per generator call (does not change results).
     progress: optional callable(k) called once per step (a progress bar's update).
     """
     F, d, q0, psi0, P0 = check_settings(plant, enkf, F, d, q0, psi0, P0)
@@ -111,12 +113,14 @@ def simulate(plant: AffineRandomSystem, enkf: EnKF, *, F=None, d, q0, psi0, P0=N
         raise ValueError(f"ensemble_size: {M}, must be >= 2 (the EnKF needs a sample covariance)")
     if P < 1:
         raise ValueError(f"paths: {P}, must be >= 1")
+    if first_path < 0:
+        raise ValueError(f"first_path: {first_path}, must be >= 0")
     if block < 1:
         raise ValueError(f"block: {block}, must be >= 1")
     model, dim, ny = enkf.model, enkf.dim, enkf.model.ny
 
-    plant_rngs = path_generators(seed, PLANT, range(P))
-    enkf_rngs = path_generators(seed, ENKF, range(P))
+    plant_rngs = path_generators(seed, PLANT, range(first_path, first_path + P))
+    enkf_rngs = path_generators(seed, ENKF, range(first_path, first_path + P))
     s = np.stack([plant.xi_dist.sample(g, (K + 1,)) for g in plant_rngs], axis=1)    # (K+1, P, p_plant)
     A_s, B_s, C_s, D_s = plant.at(s)
     # ensembles psi_{k|k-1}, psi_{k|k} and the EnKF's scratch, reused at every step (see EnKF._predict)
@@ -186,6 +190,22 @@ def simulate(plant: AffineRandomSystem, enkf: EnKF, *, F=None, d, q0, psi0, P0=N
             q = (A_s[k] @ q[..., None])[..., 0] + (B_s[k] @ u[..., None])[..., 0]
             enkf._predict(filtered, u_filter, e_w, out=psi)
     return out
+
+
+def bytes_per_path(plant: AffineRandomSystem, enkf: EnKF, *, ensemble_size: int, horizon: int,
+                   keep_members: bool = False, block: int = 16) -> int:
+    """Bytes `simulate` holds per path (the arrays above, float64), to size chunks of paths.
+
+    Plant coefficients and matrices per step, the result arrays (K+1 steps), the ensembles and
+    their scratch, and the two noise buffers of `block` steps; members (K+1, M, n+p) if kept.
+    """
+    M, K1, model, dim = int(ensemble_size), int(horizon) + 1, enkf.model, enkf.dim
+    n, m, ny = model.n, model.m, model.ny
+    per_step = plant.xi_dist.p if plant.xi_dist is not None else 0
+    per_step += n * n + n * m + ny * n + ny * m + n + ny + m + 4 * dim + (M * dim if keep_members else 0)
+    ensembles = M * (3 * dim + ny + 1)
+    noise = 2 * min(block, K1) * M * (enkf.output_noise_dim + dim)
+    return 8 * (K1 * per_step + ensembles + noise)
 
 
 def simulate_state_feedback(system: AffineRandomSystem, F, *, d, x0, paths: int, seed) -> np.ndarray:
