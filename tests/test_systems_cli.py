@@ -97,7 +97,8 @@ def test_systems_sweep_runs_every_library_plant(tmp_path):
         assert info["status"] == "complete" and s["modeling_status"] == "ok", (name, s)
         assert s["identification_feedback"].get("used") == FEEDBACK[name], (name, s["identification_feedback"])
         assert ("reference" in s) == (name == "paper")
-        assert np.isfinite(s["lam"]) and s["synthesis_status"] in ("optimal", "not_ms_stabilizable")
+        assert np.isfinite(s["lam"]) and np.isfinite(s["rate_plant"]), (name, s["synthesis_status"])
+        assert not s["synthesis_status"].startswith(("failed", "not_applicable"))
         if name != "paper":
             assert s["designs"]["pole_placement"] == "not_applicable" and s["model"] == "plant's own structure"
 
