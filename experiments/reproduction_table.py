@@ -14,6 +14,7 @@ moments and the paper's F (closed_loop_rate sweep).
 """
 import numpy as np
 import pandas as pd
+from omegaconf import OmegaConf
 
 from rdsexp import report
 
@@ -44,6 +45,17 @@ def flatten(prefix: str, value):
 
 def index(key: str) -> tuple[int, ...]:
     return tuple(int(part.split("]")[0]) for part in key.split("[")[1:])
+
+
+def process_noise_diagonal(s) -> list[float]:
+    """The diagonal of the run's enkf.Q: {x, xi, matrix} scales (x for the n states, xi after) or a matrix."""
+    Q = OmegaConf.to_container(s.setting("enkf.Q")) if OmegaConf.is_config(s.setting("enkf.Q")) else s.setting("enkf.Q")
+    if isinstance(Q, dict) and Q.get("matrix") is None:
+        n = len(s.setting("model.A")[0])
+        return [Q["x"] if k < n else Q["xi"] for k in range(n + len(s.setting("model.A")) - 1)]
+    Q = np.asarray(Q["matrix"] if isinstance(Q, dict) else Q, dtype=float)
+    n_p = len(s.setting("model.A")[0]) + len(s.setting("model.A")) - 1
+    return [float(v) for v in (np.diag(Q) if Q.ndim == 2 else np.broadcast_to(Q, (n_p,)))]
 
 
 class Sources:
@@ -132,7 +144,7 @@ def row_for(key: str, paper, s: Sources):
     if path == "enkf.R":
         return compare_setting(paper, s.setting("enkf.R") * s.setting("enkf.r_scale"))
     if path == "enkf.Q_diag":
-        return compare_setting(paper, s.setting("enkf.Q")[i[0]] * s.setting("enkf.q_scale"))
+        return compare_setting(paper, process_noise_diagonal(s)[i[0]] * s.setting("enkf.q_scale"))
     if path == "enkf.psi0":
         ours = s.setting("enkf.initial.mean")
         ok = ours is None and s.setting("enkf.initial.cov") == 0

@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 import yaml
-from conftest import rdsexp
+from conftest import REPO, rdsexp
 
 from rdsexp.numerics import distributions as D
 from rdsexp.numerics.systems import MomentModel
@@ -74,3 +74,124 @@ def test_paper_design_without_poles_and_bad_feedback(tmp_path):
     assert "Traceback" not in proc.stderr
     proc = rdsexp("identification.feedback=sometimes", *SMALL, cwd=tmp_path, check=False)
     assert proc.returncode == 2 and "identification.feedback: 'sometimes' is not allowed" in proc.stderr
+
+
+LIBRARY = sorted(p.stem for p in (REPO / "conf" / "plant").glob("*.yaml"))
+FEEDBACK = {"paper": None, "dropout": "nominal", "multiplicative": "open_loop", "two_carts": "open_loop",
+            "cart_pole": "nominal"}          # what each plant file's comment says it shows
+
+
+def test_systems_sweep_runs_every_library_plant(tmp_path):
+    sweep = yaml.safe_load((REPO / "conf" / "sweep" / "systems.yaml").read_text())
+    assert sorted(sweep["hydra"]["sweeper"]["params"]["plant"].split(",")) == LIBRARY == sorted(FEEDBACK)
+    for name in LIBRARY:                        # every plant file cites its source in a comment
+        assert "Source" in (REPO / "conf" / "plant" / f"{name}.yaml").read_text() or name == "paper"
+    rdsexp("+sweep=systems", "seed=0", *SMALL[:-1], cwd=tmp_path)
+    infos = {}
+    for run in (tmp_path / "outputs" / "sweeps").glob("*/*/run.json"):
+        info = json.loads(run.read_text())
+        infos[info["summary"]["plant"]] = info
+    assert sorted(infos) == LIBRARY
+    for name, info in infos.items():
+        s = info["summary"]
+        assert info["status"] == "complete" and s["modeling_status"] == "ok", (name, s)
+        assert s["identification_feedback"].get("used") == FEEDBACK[name], (name, s["identification_feedback"])
+        assert ("reference" in s) == (name == "paper")
+        assert np.isfinite(s["lam"]) and np.isfinite(s["rate_plant"]), (name, s["synthesis_status"])
+        assert not s["synthesis_status"].startswith(("failed", "not_applicable"))
+        if name != "paper":
+            assert s["designs"]["pole_placement"] == "not_applicable" and s["model"] == "plant's own structure"
+
+
+# an unstable mode (1.5) that no input reaches: identification must run open loop (no stabilizing
+# nominal gain), every design is not_ms_stabilizable, and q_k[0] = 1.5^k leaves the bound 1e6 at k = 35
+STUCK = {"A": [[[1.5, 0], [0, 0.5]], [[0, 0], [0, 1]]], "B": [[[0], [1]]], "xi": {"mean": [0], "cov": [[0.04]]}}
+
+
+def user_dir(tmp_path, name, plant):
+    (tmp_path / "conf" / "plant").mkdir(parents=True, exist_ok=True)
+    (tmp_path / "conf" / "plant" / f"{name}.yaml").write_text(yaml.safe_dump(plant))
+    return str(tmp_path / "conf")
+
+
+def test_not_stabilizable_and_diverged_paths_are_stated(tmp_path):
+    conf = user_dir(tmp_path, "stuck", STUCK)
+    proc = rdsexp("--config-dir", conf, "plant=stuck", *SMALL[:-1], "closed_loop.horizon=60", cwd=tmp_path)
+    assert "Traceback" not in proc.stderr
+    (run,) = (tmp_path / "outputs" / "runs").iterdir()
+    s = json.loads((run / "run.json").read_text())["summary"]
+    assert s["identification_feedback"]["used"] == "open_loop (no stabilizing nominal gain)"
+    assert s["synthesis_status"] == "not_ms_stabilizable" and abs(s["rate_plant"] - 1.5) < 1e-9
+    assert "no stabilizing gain: not_ms_stabilizable, the best rate found on the model is 1.5000" in proc.stdout
+    assert s["closed_loop_failed"] == {"fraction": 1.0, "first_k": 35, "median_k": 35.0, "reasons": {"diverged": 4}}
+    assert "100% of paths failed (first at k = 35, median k = 35): the plant state diverged on 4" in proc.stdout
+    assert "rate k=36..48: n/a" in proc.stdout
+
+
+def test_no_model_is_stated(tmp_path):
+    # unstable, no input at all reaching it, identified in open loop: q_k = 3^k leaves 1e6 at k = 13
+    conf = user_dir(tmp_path, "wild", {"A": [[[3.0]], [[0.1]]], "B": [[[0.0]]], "xi": {"mean": [0], "cov": [[1]]},
+                                       "identification_feedback": "none"})
+    proc = rdsexp("--config-dir", conf, "plant=wild", *SMALL, cwd=tmp_path)
+    assert "Traceback" not in proc.stderr
+    assert "no model: identification failed at k = " in proc.stdout
+    assert ": the plant state diverged; no gain designed, no closed loop" in proc.stdout
+    assert "closed loop" not in proc.stdout.replace("no closed loop", "")
+
+
+def test_failing_stage_is_a_status_not_a_traceback(tmp_path):
+    # a stage that raises (here: modeling, patched to fail) ends the run with status error and its
+    # stage named in the summary; the traceback goes to run.json and rdsexp.log only
+    (tmp_path / "broken.py").write_text(
+        "import rdsexp.experiment.pipeline as p\n"
+        "def boom(*a, **k):\n    raise RuntimeError('boom')\n"
+        "p.model_distribution = boom\n"
+        "from rdsexp.experiment.cli import main\nmain()\n")
+    proc = rdsexp(*SMALL[:-1], cwd=tmp_path, module="broken", check=False)
+    assert proc.returncode == 1 and "Traceback" not in proc.stderr + proc.stdout
+    assert "failed: stage modeling: RuntimeError: boom" in proc.stdout
+    (run,) = (tmp_path / "outputs" / "runs").iterdir()
+    info = json.loads((run / "run.json").read_text())
+    assert info["status"] == "error" and "RuntimeError: boom" in info["traceback"]
+    assert "Traceback" in (run / "rdsexp.log").read_text()
+
+
+def test_process_noise_matrix_from_the_command_line(tmp_path):
+    from hydra import compose, initialize_config_module
+
+    from rdsexp.experiment.config import build
+    Q = np.diag(np.arange(1.0, 10.0)) + 0.1 * (np.ones((9, 9)) - np.eye(9))
+    with initialize_config_module(config_module="rdsexp.conf", version_base="1.3"):
+        exp = build(compose("config", overrides=[f"enkf.Q.matrix={Q.tolist()}".replace(" ", "")]))
+        np.testing.assert_array_equal(exp.enkf.Q, Q)
+        exp = build(compose("config", overrides=["enkf.Q.matrix=[1,2,3,4,5,6,7,8,9]", "enkf.q_scale=2"]))
+        np.testing.assert_array_equal(exp.enkf.Q, 2 * np.diag(np.arange(1.0, 10.0)))
+    proc = rdsexp("enkf.Q=[[1,2],[3,4]]", cwd=tmp_path, check=False)
+    assert proc.returncode == 2 and proc.stderr.count("\n") == 1
+    assert proc.stderr.startswith("rdsexp: config error: enkf.Q: [[1,2],[3,4]] is not allowed") \
+        and "enkf.Q.matrix=[[1,2],[3,4]]" in proc.stderr
+
+
+def test_readme_plant_file_runs(tmp_path):
+    text = (REPO / "README.md").read_text()
+    section = text[text.index("## Your own system"):]
+    plant = section[section.index("```yaml\n") + 8:section.index("```", section.index("```yaml\n") + 8)]
+    assert plant.count("\n") <= 12
+    (tmp_path / "mine" / "plant").mkdir(parents=True)
+    (tmp_path / "mine" / "plant" / "cart.yaml").write_text(plant)
+    assert "rdsexp --config-dir mine plant=cart" in section
+    proc = rdsexp("--config-dir", "mine", "plant=cart", *SMALL, cwd=tmp_path)
+    assert "plant cart, model plant's own structure" in proc.stdout and "modeling ok" in proc.stdout
+
+
+def test_plant_file_with_inline_model(tmp_path):
+    # the plant's xi is one gain; the model (inline) has its own two parameters on both A entries
+    plant = {"A": [[[0.5, 0.1], [0, 0.7]], [[0, 0], [0, 0]]], "B": [[[0], [1]], [[1], [0]]],
+             "xi": {"family": "uniform", "low": [0.5], "high": [1.0]},
+             "model": {"A": [[[0.5, 0.1], [0, 0.7]], [[1, 0], [0, 0]], [[0, 0], [0, 1]]],
+                       "B": [[[0], [1]], [[0], [0]], [[0], [0]]]}}
+    conf = user_dir(tmp_path, "own", plant)
+    rdsexp("--config-dir", conf, "plant=own", *SMALL[:-1], cwd=tmp_path)
+    (run,) = (tmp_path / "outputs" / "runs").iterdir()
+    s = json.loads((run / "run.json").read_text())["summary"]
+    assert s["model"] == "inline in the plant file" and len(s["xi_mean"]) == 2

@@ -202,7 +202,7 @@ def build(cfg) -> Experiment:
         model, model_name = system_from(cfg, "model"), str(plain(OmegaConf.select(cfg, "model.name")) or "model")
         reported = plain(OmegaConf.select(cfg, "model.reported"))
     elif OmegaConf.select(cfg, "plant.model") is not None:
-        model, model_name = system_from(cfg, "plant.model"), f"{plant_name} (inline model)"
+        model, model_name = system_from(cfg, "plant.model"), "inline in the plant file"
     else:
         model, model_name = AffineRandomSystem(plant.A, plant.B, plant.C, plant.D), "plant's own structure"
     if reported is not None:
