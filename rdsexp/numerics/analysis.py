@@ -126,11 +126,15 @@ def empirical_rate(q: np.ndarray, k_from: int, k_to: int, level: float = 0.95) -
     paper, which used k = 60 -> 80); the interval is the delta-method interval for the log ratio of
     the two correlated means. Returns (rate, low, high); NaN when a path is not finite at either step.
     """
-    a = np.sum(q[k_to] ** 2, axis=-1)
-    b = np.sum(q[k_from] ** 2, axis=-1)
+    return empirical_rate_sq(np.sum(q[k_from] ** 2, axis=-1), np.sum(q[k_to] ** 2, axis=-1), k_to - k_from, level)
+
+
+def empirical_rate_sq(b: np.ndarray, a: np.ndarray, span: int, level: float = 0.95) -> tuple[float, float, float]:
+    """`empirical_rate` from the per-path ||q_{k_from}||^2 = b (P,) and ||q_{k_to}||^2 = a (P,);
+    span = k_to - k_from (what a run split into chunks of paths keeps)."""
     if not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))) or a.mean() <= 0 or b.mean() <= 0:
         return float("nan"), float("nan"), float("nan")
-    P, span = a.size, 2.0 * (k_to - k_from)
+    P, span = a.size, 2.0 * span
     log_ratio = np.log(a.mean()) - np.log(b.mean())
     # gradient of log(mean a) - log(mean b) applied to the per-path pairs
     g = a / a.mean() - b / b.mean()
