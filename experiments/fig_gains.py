@@ -9,7 +9,8 @@ Table gain_comparison.{csv,md}: per plant and method, over the seeds of its swee
 the exact rate of its gain on the modeled and on the true distribution, the exact LQ cost (weights I,
 from the plant's q0 and averaged over x0 ~ N(0, I)) and H2 norm (d on u to [x; F x]) on the true
 plant (inf: not mean-square stable), the empirical closed-loop rate (mean and 95% interval over
-seeds) and the fraction of diverged paths.
+seeds; for a single seed, that run's interval over its paths, `interval_over`) and the fraction of
+diverged paths.
 
 Plants: the paper's plant from the `paper` sweep; any other plant from the latest `gain_methods`
 sweep that ran it (`python -m rdsexp +sweep=gain_methods plant=NAME`, or several plants at once
@@ -85,12 +86,15 @@ def table(runs: list[report.Run], plant: str | None = None) -> pd.DataFrame:
         metrics = pd.concat([r.table("metrics") for r in chosen])
         closed = metrics[metrics["experiment"] == "closed_loop"]
         mean, lo, hi, n = report.seed_interval(closed["rate"])
+        over = "seeds"
+        if n == 1 and len(closed) == 1:            # one seed: the run's own 95% interval over its paths
+            mean, lo, hi, over = *closed[["rate", "rate_low", "rate_high"]].iloc[0].astype(float), "paths"
         costs = {c: gains[c].mean() if c in gains else np.nan for c in COSTS}    # inf if any seed is unstable
         rows.append({"plant": plant or plant_name(chosen[0]), "method": method, "label": label(method),
                      "seeds": len(chosen), "status": ",".join(sorted(set(gains["status"]))),
                      "lambda_design": gains["lam"].mean(), "rate_modeled": gains["rate_model"].mean(),
                      "rate_true_plant": gains["rate_plant"].mean(), **costs, "empirical_rate": mean,
-                     "empirical_low": lo, "empirical_high": hi, "finite_rate_seeds": n,
+                     "empirical_low": lo, "empirical_high": hi, "interval_over": over, "finite_rate_seeds": n,
                      # a method without a gain (e.g. an infeasible box) has no closed loop: all diverged
                      "diverged_fraction": closed["failed_fraction"].mean() if len(closed) else 1.0})
     return pd.DataFrame(rows)
@@ -145,24 +149,26 @@ def draw_rates(ax, summary: pd.DataFrame) -> None:
         marker, color = MARKERS[j % len(MARKERS)], GRAYS[j % len(GRAYS)]
         exact = rows["rate_true_plant"].to_numpy(float)
         ax.plot(x, np.minimum(exact, RATE_TOP), ls="none", marker=marker, mfc="white", color=color, ms=4,
-                clip_on=False, label=f"{plant}: exact rate, true plant")
+                clip_on=False)
         emp, lo, hi = (rows[c].to_numpy(float) for c in ("empirical_rate", "empirical_low", "empirical_high"))
         inside = np.isfinite(emp) & (emp <= RATE_TOP)
         err = np.nan_to_num(np.array([emp - lo, hi - emp])[:, inside])
         ax.errorbar(x[inside], emp[inside], yerr=err, ls="none", marker=marker, color=color, ms=3, capsize=2,
-                    label=f"{plant}: EnKF closed loop (95% over seeds)")
+                    label=plant)
         ax.plot(x[~inside], np.full((~inside).sum(), RATE_TOP), ls="none", marker=marker, color=color, ms=3,
                 clip_on=False)
     ax.axhline(1.0, color="0.6", lw=0.6)
     ax.set_ylim(top=RATE_TOP)
     ax.set_xticks(range(len(methods)), [label(m) for m in methods], rotation=35, ha="right", fontsize=6)
     ax.set_ylabel("mean-square rate")
-    ax.legend(frameon=False, fontsize=5.5)
+    ax.plot([], [], ls="none", marker="o", mfc="white", color="black", label="open: exact, true plant")
+    ax.plot([], [], ls="none", marker="o", color="black", label="filled: EnKF loop, 95%")
+    ax.legend(frameon=False, fontsize=5, ncols=2, loc="best")
 
 
 def draw(runs: list[report.Run], summary: pd.DataFrame, all_plants: pd.DataFrame | None = None):
     """(a) trajectories on the first plant's runs, (b) rates of every plant in all_plants (default: summary)."""
-    fig, (a, b) = report.figure(report.PAGE_WIDTH, 2.9, 1, 2, width_ratios=[1.25, 1])
+    fig, (a, b) = report.figure(report.PAGE_WIDTH, 3.2, 1, 2, width_ratios=[1.1, 1])
     draw_trajectories(a, runs, summary)
     draw_rates(b, summary if all_plants is None else all_plants)
     a.set_title(f"(a) closed loop, plant {summary['plant'].iloc[0]}")
@@ -178,9 +184,9 @@ def caption(runs: list[report.Run], summary: pd.DataFrame, all_plants: pd.DataFr
             f"identified moments. (a) plant {summary['plant'].iloc[0]}, curves of seed {first} ({paths} paths "
             f"each), shaded: 95% band over paths; a cross marks where a curve leaves the plot (a path diverged, or "
             f"above {CEILING:g}). (b) open: exact mean-square rate of the gain on the true plant; filled: EnKF "
-            f"closed-loop rate k = 60..80, mean and 95% t-interval over seeds; at the top: above {RATE_TOP:g} or "
-            f"no finite rate. Plants: {', '.join(dict.fromkeys(all_plants['plant']))}. The table below is over "
-            f"the seeds of each plant's sweep (paper: seeds {', '.join(map(str, seeds))}).")
+            f"closed-loop rate k = 60..80, mean and 95% t-interval over seeds (one seed: over its paths); at the "
+            f"top: above {RATE_TOP:g} or no finite rate. Plants: {', '.join(dict.fromkeys(all_plants['plant']))}. "
+            f"The table below is over the seeds of each plant's sweep (paper: seeds {', '.join(map(str, seeds))}).")
     for group in overlapping(summary):
         rate = summary.set_index("method").loc[group, "rate_true_plant"].mean()
         text += (f" {', '.join(label(m) for m in group)} reach the same exact rate {rate:.4f} on the true plant "

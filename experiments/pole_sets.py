@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import importlib.resources
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -84,7 +85,7 @@ def study(plant: str, count: int, seed: int) -> tuple[list[dict], list[dict]]:
     """(summary rows, per-set rows) of one plant."""
     exp = experiment(plant)
     # one child stream per plant, so adding a plant does not change another plant's sample
-    rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(sum(map(ord, plant)),)))
+    rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(zlib.crc32(plant.encode()),)))
     sets = random_pole_sets(rng, exp.model.n, count)
     summary, rows = [], []
     own = exp.design_options.get("pole_placement", {}).get("poles")
