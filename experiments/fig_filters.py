@@ -74,8 +74,20 @@ def frontier(stats: pd.DataFrame) -> tuple[pd.DataFrame, float, str]:
              + (f"M = {int(r.smallest_M)}" if pd.notna(r.smallest_M) else f"none of M = {r.measured_M}")
              for r in table.itertuples()]
     sentence = (f"Smallest ensemble size M at which the closed-loop rate is within {TOLERANCE} of the stochastic "
-                f"EnKF at M = {Mref} ({ref:.4f}) with no path diverged in any seed: " + "; ".join(parts) + ".")
+                f"EnKF at M = {Mref} ({resolution(ref_rows)}) with no path diverged in any seed: "
+                + "; ".join(parts) + ".")
     return table, ref, sentence
+
+
+def resolution(ref_rows: pd.DataFrame) -> str:
+    """The reference rate with its 95% interval over seeds: how finely the study resolves a rate."""
+    if not len(ref_rows):
+        return "not measured"
+    r = ref_rows.iloc[0]
+    if "rate_low" not in r or not np.isfinite(r["rate_low"]):
+        return f"{r['rate']:.4f}"
+    return f"{r['rate']:.4f}, 95% interval over {int(r['seeds'] - r['seeds_diverged'])} seeds [{r['rate_low']:.4f}, " \
+           f"{r['rate_high']:.4f}]"
 
 
 STYLE = {"stochastic": "black", "etkf": "0.5"}
