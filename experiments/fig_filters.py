@@ -122,6 +122,10 @@ def draw(stats: pd.DataFrame, ref: float, plant: str):
         ax.set_xlabel("ensemble size M")
         ax.set_title(title)
     axes[1].set_ylim(-0.02, 1.02)
+    rates = stats["rate"].to_numpy(float)
+    if np.isfinite(rates).any():        # the means in view; t-intervals over a few seeds may leave the frame
+        lo, hi = np.nanmin(np.append(rates, ref)), np.nanmax(np.append(rates, ref))
+        axes[0].set_ylim(lo - 0.1, hi + 0.1)
     axes[0].legend(frameon=False, fontsize=5.5)
     fig.suptitle(f"plant {plant}", fontsize=8)
     return fig
