@@ -1,7 +1,7 @@
 """EnKF variants against ensemble size M: closed-loop rate, diverged fraction and xi RMSE.
 
-From the latest `filters` sweep (conf/sweep/filters.yaml) of each plant (files filters_<plant>.*),
-per filter (variant, inflation rho, relaxation alpha) and M, over seeds: the empirical k = 60..80
+From the `filters` sweeps (conf/sweep/filters.yaml) of each plant (files filters_<plant>.*; the latest
+run of each point), per filter (variant, inflation rho, relaxation alpha) and M, over seeds: the empirical k = 60..80
 closed-loop rate (mean with a 95% t-interval over the seeds whose loop kept every path; an open
 marker where some seed diverged), the fraction of closed-loop paths that diverged (mean over
 seeds), and the RMSE of the filtered xi against the true xi. Also a table (filters_<plant>_frontier)
@@ -66,16 +66,28 @@ def frontier(stats: pd.DataFrame) -> tuple[pd.DataFrame, float, str]:
     for (v, rho, a), g in stats.groupby(["variant", "inflation", "relaxation"]):
         good = g[(g["seeds_diverged"] == 0) & (np.abs(g["rate"] - ref) <= TOLERANCE)].sort_values("M")
         best = good.iloc[0] if len(good) else None
-        rows.append({"variant": v, "inflation": rho, "relaxation": a,
+        rows.append({"variant": v, "inflation": rho, "relaxation": a, "measured_M": ", ".join(map(str, sorted(g["M"]))),
                      "smallest_M": int(best["M"]) if best is not None else None,
                      "rate_at_smallest_M": float(best["rate"]) if best is not None else np.nan})
     table = pd.DataFrame(rows)
     parts = [f"{label(r.variant, r.inflation, r.relaxation).replace('$', '').replace(chr(92), '')}: "
-             + (f"M = {r.smallest_M}" if r.smallest_M is not None else f"none up to M = {Mref}")
+             + (f"M = {int(r.smallest_M)}" if pd.notna(r.smallest_M) else f"none of M = {r.measured_M}")
              for r in table.itertuples()]
     sentence = (f"Smallest ensemble size M at which the closed-loop rate is within {TOLERANCE} of the stochastic "
-                f"EnKF at M = {Mref} ({ref:.4f}) with no path diverged in any seed: " + "; ".join(parts) + ".")
+                f"EnKF at M = {Mref} ({resolution(ref_rows)}) with no path diverged in any seed: "
+                + "; ".join(parts) + ".")
     return table, ref, sentence
+
+
+def resolution(ref_rows: pd.DataFrame) -> str:
+    """The reference rate with its 95% interval over seeds: how finely the study resolves a rate."""
+    if not len(ref_rows):
+        return "not measured"
+    r = ref_rows.iloc[0]
+    if "rate_low" not in r or not np.isfinite(r["rate_low"]):
+        return f"{r['rate']:.4f}"
+    return f"{r['rate']:.4f}, 95% interval over {int(r['seeds'] - r['seeds_diverged'])} seeds [{r['rate_low']:.4f}, " \
+           f"{r['rate_high']:.4f}]"
 
 
 STYLE = {"stochastic": "black", "etkf": "0.5"}
@@ -99,13 +111,21 @@ def draw(stats: pd.DataFrame, ref: float, plant: str):
     if np.isfinite(ref):
         axes[0].axhspan(ref - TOLERANCE, ref + TOLERANCE, color="0.9", zorder=0,
                         label=f"stochastic M=300 $\\pm${TOLERANCE}")
-    titles = ("closed-loop rate (open: some seed diverged,\nrate over the others)", "diverged fraction of paths",
-              "RMSE of $\\xi_{k|k}$ (seeds without divergence)")
+    titles = ("closed-loop rate (open marker: some seed\ndiverged, rate over the others)",
+              "diverged fraction of paths\n(mean over seeds)", "RMSE of $\\xi_{k|k}$\n(seeds without divergence)")
+    sizes = sorted(stats["M"].unique())
     for ax, title in zip(axes, titles):
         ax.set_xscale("log")
+        ax.set_xticks(sizes, [str(M) for M in sizes])
+        ax.minorticks_off()
+        ax.set_xlim(sizes[0] / 1.3, sizes[-1] * 1.3)
         ax.set_xlabel("ensemble size M")
         ax.set_title(title)
     axes[1].set_ylim(-0.02, 1.02)
+    rates = stats["rate"].to_numpy(float)
+    if np.isfinite(rates).any():        # the means in view; t-intervals over a few seeds may leave the frame
+        lo, hi = np.nanmin(np.append(rates, ref)), np.nanmax(np.append(rates, ref))
+        axes[0].set_ylim(lo - 0.1, hi + 0.1)
     axes[0].legend(frameon=False, fontsize=5.5)
     fig.suptitle(f"plant {plant}", fontsize=8)
     return fig
@@ -122,23 +142,26 @@ def main(argv=None):
         stats = summary(points(runs))
         table, ref, sentence = frontier(stats)
         name = f"{NAME}_{plant}"
-        paths += report.save_figure(draw(stats, ref, plant), args.out, name, runs, __file__)
+        sentence = f"Plant {plant}: {sentence}"
+        paths += report.save_figure(draw(stats, ref, plant), args.out, name, runs, __file__, caption=sentence)
         report.write_table(stats, args.out, f"{name}_summary", runs, __file__)
         report.write_table(table, args.out, f"{name}_frontier", runs, __file__)
-        sentence = f"Plant {plant}: {sentence}"
         records.atomic_write_bytes(args.out / f"{name}_frontier.txt", (sentence + "\n").encode())
         print(sentence)
     return paths
 
 
 def latest_per_plant(runs: list[report.Run]) -> dict[str, list[report.Run]]:
-    """plant name -> the runs of the latest `filters` sweep on that plant."""
-    runs = [r for r in runs if (r.info.get("sweep") or {}).get("name") == SWEEP]
+    """plant name -> runs of the `filters` sweeps on that plant, the latest run of each point (filter
+    settings, M, seed): a study may be run as several sweeps (e.g. one per variant)."""
+    latest = {}
+    for r in sorted((r for r in runs if (r.info.get("sweep") or {}).get("name") == SWEEP),
+                    key=lambda r: r.info["created"]):
+        point = (r.get("plant.name"), *(str(r.get(k)) for k in KEYS))
+        latest[point] = r                                   # later sweeps replace earlier runs of a point
     out = {}
-    for plant in {r.get("plant.name") for r in runs}:
-        mine = [r for r in runs if r.get("plant.name") == plant]
-        latest = max(r.info["sweep"]["dir"] for r in mine)
-        out[plant] = [r for r in mine if r.info["sweep"]["dir"] == latest]
+    for point, r in latest.items():
+        out.setdefault(point[0], []).append(r)
     return out
 
 

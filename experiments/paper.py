@@ -18,6 +18,7 @@ from pathlib import Path
 import closed_loop_rate
 import fig_decay
 import fig_estimation
+import fig_filters
 import fig_gains
 import fig_sweeps
 import identification_input
@@ -86,6 +87,8 @@ def main(argv=None) -> None:
     for script in (fig_estimation, fig_decay, fig_gains, fig_sweeps, identification_input, closed_loop_rate,
                    pole_sets, robust_width):
         script.main(common)
+    if fig_filters.latest_per_plant(report.load_runs(args.root)):    # the filters study, when stored (not run
+        fig_filters.main(common)                                     # here: 200 runs per plant)
     _, results = reproduction_table.main(common)
     counts = reproduction_table.verdict_counts(results)
     records.atomic_write_bytes(args.out / "index.md", index(args.out, counts).encode())

@@ -189,3 +189,22 @@ def test_bad_enkf_settings_are_one_line_config_errors(overrides, message):
 def test_python_api_rejects_bad_settings(kwargs, message):
     with pytest.raises(ValueError, match=message):
         EnKF(paper.model(), paper.Q, paper.R, **kwargs)
+
+
+def test_frontier_is_the_smallest_M_within_tolerance_without_divergence():
+    """experiments/fig_filters.py: a diverged seed or a rate off by more than 0.01 disqualifies an M."""
+    import sys
+    from pathlib import Path
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "experiments"))
+    import fig_filters
+    import pandas as pd
+    rows = [("stochastic", 1.0, 300, 0.850, 0), ("stochastic", 1.0, 100, 0.855, 0), ("stochastic", 1.0, 20, 0.851, 1),
+            ("etkf", 1.1, 10, 0.845, 0), ("etkf", 1.1, 300, 0.86, 0), ("etkf", 1.0, 20, 0.8615, 0)]
+    stats = pd.DataFrame([{"variant": v, "inflation": rho, "relaxation": 0.0, "M": M, "rate": r, "seeds_diverged": dv}
+                          for v, rho, M, r, dv in rows])
+    table, ref, sentence = fig_filters.frontier(stats)
+    assert ref == 0.850
+    smallest = {(r.variant, r.inflation): r.smallest_M for r in table.itertuples()}
+    assert smallest[("stochastic", 1.0)] == 100 and smallest[("etkf", 1.1)] == 10
+    assert pd.isna(smallest[("etkf", 1.0)])                 # 0.0115 away
+    assert "etkf: none of M = 20" in sentence and "etkf rho=1.1: M = 10" in sentence
