@@ -23,7 +23,7 @@ from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
 from . import records
-from .config import ConfigError, Experiment, build
+from .config import ConfigError, Experiment, build, check_overrides
 from .pipeline import SPAWN_KEYS, Outcome, run_experiment, timed
 
 log = logging.getLogger("rdsexp")
@@ -88,6 +88,8 @@ def execute(cfg: DictConfig, run_dir: Path) -> dict:
 
     With tracking level "off" nothing is written (Hydra's .hydra/ aside) and the same content
     is only returned."""
+    if HydraConfig.initialized():
+        check_overrides(cfg, HydraConfig.get().overrides.task)   # `+enkf.ensemble_sze=50`: a typo, not a key
     exp = build(cfg)                                    # ConfigError before any compute
     if OmegaConf.select(cfg, "plant.name") is None and HydraConfig.initialized():
         # a plant file without `name:` is named by its file (plant=NAME)
@@ -133,6 +135,7 @@ def reuse(previous: Path, run_dir: Path, info: dict) -> dict:
 
 @hydra.main(config_path=CONF_PACKAGE, config_name="config", version_base="1.3")
 def hydra_main(cfg: DictConfig) -> dict | None:
+    STATE["started"] = True
     hc = HydraConfig.get()
     run_dir = Path(hc.runtime.output_dir)
     multirun = hc.mode == RunMode.MULTIRUN
@@ -164,7 +167,22 @@ def main() -> None:
     # an ignored SIGINT): Python's default handler raises KeyboardInterrupt, which ends the run
     # with run.json still "incomplete" and every finished file complete
     signal.signal(signal.SIGINT, signal.default_int_handler)
-    hydra_main()
+    try:
+        hydra_main()
+    except SystemExit as exit_:
+        # Hydra reports its own errors (a bad override, a missing config option, a key `+` cannot
+        # add) and exits 1; before the run or sweep has started that is a config error: exit 2
+        if exit_.code == 1 and not STATE["started"]:
+            print("rdsexp: config error (reported by Hydra above)", file=sys.stderr)
+            sys.exit(2)
+        raise
+    if STATE["failed_jobs"]:
+        sys.exit(1)                                       # a sweep with failed jobs (summary written)
+
+
+# set by the task function / the sweep callback: what `main` turns into an exit code
+# (0 ok, 1 error or a sweep with failed jobs, 2 config error)
+STATE = {"started": False, "failed_jobs": 0}
 
 
 def _failed(run_dir: Path, cfg: DictConfig, status: str, message: str, trace: str | None = None) -> dict:

@@ -6,11 +6,12 @@ import os
 import sys
 from pathlib import Path
 
+import pandas as pd
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
-from .config import ConfigError, build
+from .config import ConfigError, build, check_overrides
 from .runs import write_sweep_summary
 
 _SWEEP_BARS: dict[int, tqdm] = {}      # the sweep's progress bar, in the process that launched it
@@ -33,7 +34,9 @@ def validate_sweep(points: list[list[str]]) -> None:
     from hydra import compose
     for overrides in points:
         try:
-            build(compose(config_name="config", overrides=overrides))
+            cfg = compose(config_name="config", overrides=overrides)
+            check_overrides(cfg, overrides)
+            build(cfg)
         except ConfigError as err:
             print(f"rdsexp: config error in sweep job {' '.join(overrides)}: {err}", file=sys.stderr)
             sys.exit(2)
@@ -48,6 +51,8 @@ class SweepSummary(Callback):
     def on_multirun_start(self, config: DictConfig, **kwargs) -> None:
         points = sweep_points(config)
         validate_sweep(points)
+        from .cli import STATE
+        STATE["started"] = True           # from here on, Hydra's errors are not config errors
         _SWEEP_BARS[os.getpid()] = tqdm(total=len(points), desc="sweep", unit="job", disable=None, file=sys.stderr)
 
     def on_job_end(self, config: DictConfig, job_return, **kwargs) -> None:
@@ -61,3 +66,10 @@ class SweepSummary(Callback):
             bar.close()
         path = write_sweep_summary(Path(config.hydra.sweep.dir))
         print(f"sweep summary: {path}")
+        statuses = pd.read_parquet(path)["status"] if path.exists() else pd.Series(dtype=object)
+        failed = int((statuses != "complete").sum())
+        if failed:                        # `rdsexp` then exits 1
+            from .cli import STATE
+            STATE["failed_jobs"] = failed
+            print(f"rdsexp: {failed} of {len(statuses)} sweep jobs did not complete "
+                  f"({', '.join(sorted(set(statuses[statuses != 'complete'])))})", file=sys.stderr)
