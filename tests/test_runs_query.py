@@ -118,3 +118,26 @@ def test_load_adds_run_id_and_long_form(small_run):
         runs.load(small_run, "gains", long=True)
     with pytest.raises(ValueError, match="table 'nosuch'"):
         runs.load(small_run, "nosuch")
+
+
+def test_tables_carry_run_id_and_described_columns(small_run):
+    info = json.loads((small_run / "run.json").read_text())
+    for name, meta in info["tables"].items():
+        frame = pd.read_parquet(small_run / meta["file"])
+        attrs = frame.attrs["rdsexp"]
+        assert attrs["run"] == info["id"] and attrs["table"] == name
+        assert list(attrs["columns"]) == list(frame.columns)
+        missing = [c for c, d in attrs["columns"].items() if not d["description"]]
+        assert not missing, (name, missing)
+    gains = pd.read_parquet(small_run / "gains.parquet")
+    m, n = 1, 6                                   # the paper's plant
+    assert [c for c in gains.columns if c.startswith("F[")] == [f"F[0,{j}]" for j in range(n)][: m * n]
+    paths = pd.read_parquet(small_run / "paths.parquet")
+    assert paths.loc[paths["failed_at"] < 0, "failure"].isna().all()
+
+
+def test_data_dictionary_in_docs_is_current():
+    from conftest import REPO
+
+    from rdsexp.experiment import schema
+    assert (REPO / "docs" / "data_dictionary.md").read_text() == schema.markdown()

@@ -25,6 +25,7 @@ from omegaconf import DictConfig, OmegaConf
 from . import records
 from .config import ConfigError, Experiment, build, check_overrides
 from .pipeline import SPAWN_KEYS, Outcome, run_experiment, timed
+from .schema import attach
 
 log = logging.getLogger("rdsexp")
 CONF_PACKAGE = "pkg://rdsexp.conf"        # conf/ of the repository, shipped as the package rdsexp.conf
@@ -40,6 +41,7 @@ def record(run_dir: Path, outcome: Outcome, exp: Experiment, info: dict) -> dict
     timings = dict(outcome.timings)
     with timed(timings, "tables"):
         frames = dict(outcome.tables) | ({"members": outcome.members} if outcome.members is not None else {})
+        frames = {name: attach(name, table, info["id"]) for name, table in frames.items()}   # schema metadata
         hashes = {name: {"file": f"{name}.parquet", "rows": len(table),
                          "sha256": records.write_table(run_dir / f"{name}.parquet", table)}
                   for name, table in frames.items()}

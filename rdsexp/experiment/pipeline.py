@@ -220,7 +220,7 @@ def members_table(experiment: str, tr: Trajectories, exp: Experiment) -> pd.Data
 def path_table(runs: dict[str, Trajectories]) -> pd.DataFrame:
     """Per path: the step it failed at (-1: never) and why."""
     return pd.DataFrame([{"experiment": name, "path": j, "failed_at": int(tr.failed_at[j]),
-                          "failure": str(tr.failure[j])}
+                          "failure": str(tr.failure[j]) if tr.failure[j] not in (None, "") else None}
                          for name, tr in runs.items() for j in range(tr.failed_at.size)])
 
 
@@ -254,7 +254,7 @@ def gains_table(exp: Experiment, designs: dict, selected: tuple[str, str]) -> pd
                      "rate_plant": safe_rate(exp.plant, None, F) if found else np.nan,
                      **performance(exp, moments, F if found and moments is not None else None),
                      "lam_box": res.info.get("lam_box", np.nan),
-                     **{f"F[{i}]": v for i, v in enumerate(F.ravel())}})
+                     **{f"F[{i},{j}]": v for (i, j), v in np.ndenumerate(F)}})     # F[i,j]: (m, n) unambiguous
     return pd.DataFrame(rows)
 
 
