@@ -51,12 +51,24 @@ def record(run_dir: Path, outcome: Outcome, exp: Experiment, info: dict) -> dict
             tmp = run_dir / ".recording.rrd.tmp"
             trajectories = pd.concat([outcome.tables["identification"], outcome.tables["trajectories"]],
                                      ignore_index=True)
-            write_recording(tmp, trajectories, recording_id=info["id"], members=outcome.members)
+            write_recording(tmp, trajectories, recording_id=info["id"], members=outcome.members,
+                            tables=outcome.tables, summary=outcome.summary, window=(exp.K0, exp.K0 + exp.K1),
+                            xi_true=true_xi_mean(exp))
             tmp.replace(run_dir / "recording.rrd")
     info.update(status="complete", finished=records.now(), summary=outcome.summary, tables=hashes, timings=timings,
                 seconds=round(sum(v for v in timings.values() if isinstance(v, float)), 3))
     records.write_json(run_dir / "run.json", info)
     return info
+
+
+def true_xi_mean(exp: Experiment) -> np.ndarray | None:
+    """The plant's mean xi in the model's terms, T E[s] + t (`truth_map`), None if there is no such map."""
+    from ..numerics.enkf import truth_map
+    truth = truth_map(exp.model, exp.plant)
+    if truth is None:
+        return None
+    T, t = truth
+    return T @ exp.plant.check_distribution(None).mean + t
 
 
 def run_info(run_dir: Path, job_config: dict, seed: int) -> tuple[dict, str]:
