@@ -141,3 +141,18 @@ def test_data_dictionary_in_docs_is_current():
 
     from rdsexp.experiment import schema
     assert (REPO / "docs" / "data_dictionary.md").read_text() == schema.markdown()
+
+
+def test_sweep_recording_and_view(root, tmp_path, monkeypatch):
+    for name in ("DISPLAY", "WAYLAND_DISPLAY"):        # no display: `view` prints the command
+        monkeypatch.delenv(name, raising=False)
+    from rdsexp.experiment.recording import read_series, write_sweep_recording
+    path = write_sweep_recording(root / "A")
+    assert path == root / "A" / "summary.rrd"
+    table = runs.search(root / "A")
+    jobs, lam = read_series(path, "/sweep/metrics/lam", index="job")
+    assert list(jobs) == [0, 1, 2] and lam.tolist() == table["metrics.lam"].tolist()
+    _, q = read_series(path, "/sweep/params/enkf.q_scale", index="job")
+    assert q.tolist() == [0.25, 1.0, 4.0]
+    out = rdsexp("view", "A", "--root", str(root), cwd=tmp_path, module="rdsexp.runs").stdout
+    assert out.split()[-1] == str(path) and "rerun" in out.split()[0]

@@ -272,7 +272,7 @@ def write_summary(rec: rr.RecordingStream, tables: dict[str, pd.DataFrame], summ
             for i in range(q.shape[-1]):
                 for j in range(min(STATE_PATHS, q.shape[1])):
                     base = f"/summary/state/q{i}/path{j}"
-                    _line(rec, f"{base}/q", ks, q[:, j, i], f"q[{i}] path {j}", (0, 0, 0), 1.5)
+                    _line(rec, f"{base}/q", ks, q[:, j, i], f"q[{i}] path {j}", (200, 200, 200), 1.5)
                     _line(rec, f"{base}/mean", ks, x[:, j, i], f"x_k|k[{i}] path {j}", color, 1.5)
                     _line(rec, f"{base}/upper", ks, x[:, j, i] + std[:, j, i], "mean + spread", color, 0.5)
                     _line(rec, f"{base}/lower", ks, x[:, j, i] - std[:, j, i], "mean - spread", color, 0.5)
@@ -299,13 +299,13 @@ def _xi(rec, tables: dict, window, xi_true) -> None:
                   f"modeled mean[{i}] (k = {k0}..{k1})", color, 3.0)
         if xi_true is not None and i < len(xi_true) and np.isfinite(xi_true[i]):
             _line(rec, f"/summary/xi/xi{i}/true_mean", ks, np.full(len(ks), xi_true[i]), f"true mean[{i}]",
-                  (0, 0, 0), 1.0)
+                  (200, 200, 200), 1.0)
         samples = xi[inside, 0, i]
         samples = samples[np.isfinite(samples)]
         if len(samples):
             counts, edges = np.histogram(samples, bins=min(15, max(len(samples) // 4, 1)))
             rec.log(f"/summary/xi_histogram/xi{i}", rr.BarChart(counts, abscissa=(edges[:-1] + edges[1:]) / 2,
-                                                                color=color), static=True)
+                                                                widths=np.diff(edges), color=color), static=True)
 
 
 def _fmt(v) -> str:
@@ -354,7 +354,7 @@ def _summary_tabs(tables: dict[str, pd.DataFrame]) -> list:
     loops = list(tables["trajectories"]["experiment"].unique())
     p = sum(1 for c in tables["identification"].columns if c.startswith("xi_filt_mean["))
     n = sum(1 for c in tables["trajectories"].columns if _COLUMN.match(c) and _split(c)[0] == "q")
-    legend = rrb.PlotLegend(visible=True)
+    legend = rrb.PlotLegend(corner=rrb.Corner2D.RightTop, visible=True)
     summary = rrb.Grid(
         rrb.TimeSeriesView(name="log10 sqrt(E|q_k|^2): band, exact, lambda^k", origin="/summary/log10_rms",
                            plot_legend=legend),
@@ -372,11 +372,53 @@ def _summary_tabs(tables: dict[str, pd.DataFrame]) -> list:
     return [summary] + ([states] if states is not None else [])
 
 
-def read_series(path, entity: str) -> tuple[np.ndarray, np.ndarray]:
-    """Steps k and scalar values of one series entity of an .rrd (e.g. /summary/rms/closed_loop/mean)."""
+def read_series(path, entity: str, index: str = "k") -> tuple[np.ndarray, np.ndarray]:
+    """Steps (timeline `index`: k, or job in a sweep's summary.rrd) and scalar values of one series
+    entity of an .rrd (e.g. /summary/rms/closed_loop/mean), read with Rerun's own reader."""
     store = rr.chunk.RrdReader(Path(path)).store().stream().filter(content=[entity]).collect()
     column = store.schema().column_for(entity, _SCALARS).name
-    table = store.reader(index="k").to_arrow_table().sort_by("k")
+    table = store.reader(index=index).to_arrow_table().sort_by(index)
     cells = table.column(column).combine_chunks()
     present = cells.is_valid().to_numpy(zero_copy_only=False)
-    return table.column("k").to_numpy()[present], cells.filter(present).flatten().to_numpy(zero_copy_only=False)
+    return table.column(index).to_numpy()[present], cells.filter(present).flatten().to_numpy(zero_copy_only=False)
+
+
+# ------------------------------------------------------------------------------------ sweeps
+SWEEP_METRICS = ("metrics.lam", "metrics.rate_plant", "metrics.closed_loop_rate", "metrics.closed_loop_rate_low",
+                 "metrics.closed_loop_rate_high", "metrics.open_loop_rate", "metrics.closed_loop_failed_fraction")
+
+
+def write_sweep_recording(sweep_dir, table: pd.DataFrame | None = None) -> Path:
+    """<sweep>/summary.rrd: on the timeline `job`, the key metrics (points) and every numeric swept
+    parameter (a `search` table's changed params) of each job, and a markdown table of the jobs."""
+    from .runs import changed, search
+    sweep_dir = Path(sweep_dir)
+    table = search(sweep_dir) if table is None else table
+    table = table.sort_values("job", ignore_index=True)
+    jobs = table["job"].to_numpy(np.int64)
+    swept = changed(table)
+    numeric = [c for c in swept if pd.api.types.is_numeric_dtype(table[c]) and not pd.api.types.is_bool_dtype(table[c])]
+    metrics = [c for c in SWEEP_METRICS if c in table.columns]
+    blueprint = rrb.Blueprint(rrb.Grid(
+        rrb.TimeSeriesView(name="metrics by job", origin="/sweep/metrics",
+                           plot_legend=rrb.PlotLegend(corner=rrb.Corner2D.RightTop, visible=True)),
+        rrb.TimeSeriesView(name="swept parameters by job", origin="/sweep/params",
+                           plot_legend=rrb.PlotLegend(corner=rrb.Corner2D.RightTop, visible=True)),
+        rrb.TextDocumentView(name="jobs", origin="/sweep/jobs"), name=f"sweep {sweep_dir.name}"))
+    path = sweep_dir / "summary.rrd"
+    tmp = sweep_dir / ".summary.rrd.tmp"
+    with rr.RecordingStream("rdsexp", recording_id=f"sweep/{sweep_dir.name}") as rec:
+        rec.save(tmp, default_blueprint=blueprint)
+        for group, columns in (("metrics", metrics), ("params", numeric)):
+            for c in columns:
+                entity = f"/sweep/{group}/{rr.escape_entity_path_part(c.split('.', 1)[1])}"
+                rec.log(entity, rr.SeriesPoints(names=[c.split(".", 1)[1]], marker_sizes=[4.0]), static=True)
+                rec.send_columns(entity, indexes=[rr.TimeColumn("job", sequence=jobs)],
+                                 columns=rr.Scalars.columns(scalars=table[c].to_numpy(np.float64)))
+        cols = ["job", "status", *swept, *metrics]
+        lines = [f"# sweep {sweep_dir.name}", "", "| " + " | ".join(c.split(".", 1)[-1] for c in cols) + " |",
+                 "|---" * len(cols) + "|"]
+        lines += ["| " + " | ".join(_fmt(v) for v in row) + " |" for row in table[cols].itertuples(index=False)]
+        rec.log("/sweep/jobs", rr.TextDocument("\n".join(lines) + "\n", media_type="text/markdown"), static=True)
+    tmp.replace(path)
+    return path

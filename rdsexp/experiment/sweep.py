@@ -66,6 +66,11 @@ class SweepSummary(Callback):
             bar.close()
         path = write_sweep_summary(Path(config.hydra.sweep.dir))
         print(f"sweep summary: {path}")
+        try:                              # the sweep's own recording: metrics against the swept params
+            from .recording import write_sweep_recording
+            print(f"sweep recording: {write_sweep_recording(path.parent)}")
+        except Exception as err:          # noqa: BLE001 -- a view, never the end of a sweep
+            print(f"rdsexp: no sweep recording ({type(err).__name__}: {err})", file=sys.stderr)
         statuses = pd.read_parquet(path)["status"] if path.exists() else pd.Series(dtype=object)
         failed = int((statuses != "complete").sum())
         if failed:                        # `rdsexp` then exits 1
