@@ -61,13 +61,6 @@ def test_incomplete_grid_is_rejected(tmp_path):
         write_recording(tmp_path / "run.rrd", trajectories, recording_id="incomplete")
 
 
-def test_raw_paths_are_a_bounded_sample(tmp_path):
-    trajectories = _table([(4, 3), (4, 3)])
-    write_recording(tmp_path / "run.rrd", trajectories, recording_id="bounded", raw_paths=2)
-    expected = trajectories[trajectories["path"] < 2].reset_index(drop=True)
-    pd.testing.assert_frame_equal(read_recording(tmp_path / "run.rrd"), expected)
-
-
 def _static_text(path, entity):
     store = rr.chunk.RrdReader(path).store().stream().filter(content=entity).collect()
     table = store.reader(index=None, contents=entity).to_arrow_table()

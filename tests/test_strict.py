@@ -55,10 +55,10 @@ FAILING = """
 import sys
 import rdsexp.experiment.cli as cli
 real = cli.run_experiment
-def failing(exp):            # job seed=1 fails as an unforeseen error would
+def failing(exp, *args, **kwargs):      # job seed=1 fails as an unforeseen error would
     if exp.seed == 1:
         raise RuntimeError("injected failure")
-    return real(exp)
+    return real(exp, *args, **kwargs)
 cli.run_experiment = failing
 sys.argv = ["rdsexp", *sys.argv[1:]]
 cli.main()
@@ -72,7 +72,7 @@ def test_sweep_with_failed_job_writes_summary_and_exits_1(tmp_path):
     proc = subprocess.run([sys.executable, str(script), "+sweep=seeds", "seed=range(0,3)", *SMALL,
                            "tracking.recording=false"], cwd=tmp_path, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 1, proc.stderr
-    assert "1 of 3 sweep jobs did not complete (error)" in proc.stderr
+    assert "1 of 3 jobs did not complete (1 error)" in proc.stderr
     (sweep,) = (tmp_path / "outputs" / "sweeps").iterdir()
     summary = pd.read_parquet(sweep / "summary.parquet")
     assert list(summary["status"]) == ["complete", "error", "complete"]

@@ -6,7 +6,8 @@ sqrt(E||q_k||^2) over the paths with its 95% band, the exact ideal-loop curve an
 means (the modeled mean drawn over the modeling window k = K0..K0+K1 only), histograms of the
 window's xi samples the model was built from, and a markdown report (gain, statuses, metrics);
 a **states** tab: per state q_k and the ensemble mean +- spread over a few sample paths. The
-raw paths follow in one tab per experiment, a bounded sample (the first `raw_paths` paths).
+raw paths follow in one tab per experiment (the bounded sample the pipeline passes,
+tracking.recorded_paths per loop).
 
 The trajectories table stays the source of truth; the raw tabs mirror it as
 
@@ -107,9 +108,6 @@ def _blueprint(experiments: list[str], quantities: list[str]) -> rrb.Blueprint:
     )
 
 
-RAW_PATHS = 20      # paths of the raw tabs by default: 3,600 unnamed lines tell nothing
-
-
 def write_recording(
     path,
     trajectories: pd.DataFrame,
@@ -121,24 +119,22 @@ def write_recording(
     summary: dict | None = None,
     window: tuple[int, int] | None = None,
     xi_true: np.ndarray | None = None,
-    raw_paths: int | None = RAW_PATHS,
+    squares: dict[str, np.ndarray] | None = None,
 ) -> None:
     """Write `trajectories` (rows: (experiment, k, path) grid, P paths per step) and optionally
     `members` (rows: (experiment, k, path, member) grid, M members per path) to the .rrd `path`,
-    the first `raw_paths` paths (None: all), with a default blueprint. With the run's `tables`
-    (pipeline.TABLES) and `summary` the recording opens on the summary tab (`write_summary`;
-    window: (K0, K0 + K1), xi_true: the true mean of xi in the model's terms, (p,), if known).
+    with a default blueprint. With the run's `tables` (pipeline.TABLES but the streamed ones) and
+    `summary` the recording opens on the summary tab (`write_summary`; window: (K0, K0 + K1),
+    xi_true: the true mean of xi in the model's terms, (p,), if known; squares: loop -> ||q_k||^2
+    (K+1, P) over every path, else computed from the paths in `trajectories`).
     The file is complete when this returns; with ``RERUN=off`` in the environment rerun
     disables the stream and nothing is written."""
-    if raw_paths is not None:
-        trajectories = trajectories[trajectories["path"] < raw_paths]
-        members = members[members["path"] < raw_paths] if members is not None else None
     columns = [c for c in trajectories.columns if c not in KEYS]
     split = [_split(c) for c in columns]
     experiments = list(trajectories["experiment"].unique())
     blueprint = _blueprint(experiments, list(dict.fromkeys(q for q, _ in split)))
     if tables is not None:
-        blueprint = rrb.Blueprint(rrb.Tabs(*_summary_tabs(tables), *blueprint.root_container.contents))
+        blueprint = rrb.Blueprint(rrb.Tabs(*_summary_tabs(tables, trajectories), *blueprint.root_container.contents))
 
     # A private stream (not the global one) so repeated calls never share state, and leaving the
     # `with` block flushes and finalizes the file sink (footer written, file closed).
@@ -146,8 +142,10 @@ def write_recording(
         rec.save(Path(path), default_blueprint=blueprint)
         rec.send_property(_PROPERTY, rr.AnyValues(experiments=experiments, columns=columns))
         if tables is not None:
-            write_summary(rec, tables, summary or {}, window=window, xi_true=xi_true)
+            write_summary(rec, tables, trajectories, summary or {}, window=window, xi_true=xi_true,
+                          squares=squares)
         for experiment, frame in trajectories.groupby("experiment", sort=False):
+            frame = frame.sort_values(["k", "path"], kind="stable")       # tables are stored path-major
             ks = _steps(frame, frame["path"].to_numpy(), f"trajectories[{experiment!r}]")
             values = frame[columns].to_numpy(np.float64)
             for j, (quantity, i) in enumerate(split):
@@ -156,6 +154,7 @@ def write_recording(
             member_columns = [c for c in members.columns if c not in MEMBER_KEYS]
             n_members = int(members["member"].max()) + 1
             for experiment, frame in members.groupby("experiment", sort=False):
+                frame = frame.sort_values(["k", "path", "member"], kind="stable")
                 instance = frame["path"].to_numpy() * n_members + frame["member"].to_numpy()
                 ks = _steps(frame, instance, f"members[{experiment!r}]")
                 values = frame[member_columns].to_numpy(np.float64)
@@ -210,6 +209,7 @@ def read_recording(path) -> pd.DataFrame:
 def _values(frame: pd.DataFrame, quantity: str) -> tuple[np.ndarray, np.ndarray]:
     """Steps (K,) and values (K, P, d) of quantity[0..d-1] of one experiment's (k, path) grid."""
     cols = [c for c in frame.columns if _COLUMN.match(c) and _split(c)[0] == quantity]
+    frame = frame.sort_values(["k", "path"], kind="stable")          # tables are stored path-major
     ks = frame["k"].unique().astype(np.int64)
     return ks, frame[cols].to_numpy(np.float64).reshape(len(ks), -1, len(cols))
 
@@ -244,16 +244,24 @@ LOOP_COLORS = {"closed_loop": (31, 119, 180), "open_loop": (214, 39, 40)}
 STATE_PATHS = 3
 
 
-def write_summary(rec: rr.RecordingStream, tables: dict[str, pd.DataFrame], summary: dict, *,
-                  window: tuple[int, int] | None = None, xi_true: np.ndarray | None = None) -> None:
-    """The summary entities of a run (see the module docstring) from its tables."""
-    traj, exact, gains = tables["trajectories"], tables["exact"], tables["gains"]
+def write_summary(rec: rr.RecordingStream, tables: dict[str, pd.DataFrame], trajectories: pd.DataFrame,
+                  summary: dict, *, window: tuple[int, int] | None = None, xi_true: np.ndarray | None = None,
+                  squares: dict[str, np.ndarray] | None = None) -> None:
+    """The summary entities of a run (see the module docstring) from its tables and the recorded
+    paths `trajectories`; the rms band from `squares` (loop -> ||q_k||^2 (K+1, P)) when given."""
+    exact, gains = tables["exact"], tables["gains"]
     selected = gains[gains["selected"]]
     lam = float(selected["lam"].iloc[0]) if len(selected) else np.nan
+    traj = trajectories[trajectories["experiment"] != "identification"]
     for loop, frame in traj.groupby("experiment", sort=False):
         color = LOOP_COLORS.get(loop)
         ks, q = _values(frame, "q")
-        mean, low, high = rms_band(q)
+        if squares is not None and loop in squares:
+            sq = squares[loop]
+            ks = np.arange(sq.shape[0], dtype=np.int64)
+            mean, low, high = rms_band(np.sqrt(sq)[..., None])
+        else:
+            mean, low, high = rms_band(q)
         ex = exact[exact["experiment"] == loop]
         lines = [("mean", ks, mean, f"{loop} sqrt(E|q|^2)", 2.0), ("band_low", ks, low, f"{loop} 95% band", 0.7),
                  ("band_high", ks, high, f"{loop} 95% band", 0.7)]
@@ -349,11 +357,11 @@ def report_markdown(tables: dict[str, pd.DataFrame], summary: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _summary_tabs(tables: dict[str, pd.DataFrame]) -> list:
+def _summary_tabs(tables: dict[str, pd.DataFrame], trajectories: pd.DataFrame) -> list:
     """The summary and states tabs of the default blueprint."""
-    loops = list(tables["trajectories"]["experiment"].unique())
+    loops = list(trajectories["experiment"].unique())
     p = sum(1 for c in tables["identification"].columns if c.startswith("xi_filt_mean["))
-    n = sum(1 for c in tables["trajectories"].columns if _COLUMN.match(c) and _split(c)[0] == "q")
+    n = sum(1 for c in trajectories.columns if _COLUMN.match(c) and _split(c)[0] == "q")
     legend = rrb.PlotLegend(corner=rrb.Corner2D.RightTop, visible=True)
     summary = rrb.Grid(
         rrb.TimeSeriesView(name="log10 sqrt(E|q_k|^2): band, exact, lambda^k", origin="/summary/log10_rms",

@@ -12,6 +12,7 @@ from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
 from .config import ConfigError, build, check_overrides
+from .records import WriteError, atomic_write_bytes
 from .runs import write_sweep_summary
 
 _SWEEP_BARS: dict[int, tqdm] = {}      # the sweep's progress bar, in the process that launched it
@@ -46,13 +47,19 @@ class SweepSummary(Callback):
     """Hydra callback: validates every job's config before the first runs, shows a progress bar over
     the jobs and writes the summary table once all have returned.
 
-    Each job also rebuilds the summary when it ends, so a sweep that is killed still has one."""
+    Each job also rebuilds the summary when it ends, so a sweep that is killed still has one.
+    A run or sweep whose directory cannot be written stops before any work with one line (exit 1);
+    a sweep in which a job did not complete exits 1 after its summary, with one line."""
+
+    def on_run_start(self, config: DictConfig, **kwargs) -> None:
+        writable_or_exit(Path(config.hydra.run.dir))
 
     def on_multirun_start(self, config: DictConfig, **kwargs) -> None:
+        writable_or_exit(Path(config.hydra.sweep.dir))
         points = sweep_points(config)
         validate_sweep(points)
         from .cli import STATE
-        STATE["started"] = True           # from here on, Hydra's errors are not config errors
+        STATE["started"] = True           # from here on, Hydra's errors are not config errors (exit 1, not 2)
         _SWEEP_BARS[os.getpid()] = tqdm(total=len(points), desc="sweep", unit="job", disable=None, file=sys.stderr)
 
     def on_job_end(self, config: DictConfig, job_return, **kwargs) -> None:
@@ -64,17 +71,36 @@ class SweepSummary(Callback):
         bar = _SWEEP_BARS.pop(os.getpid(), None)
         if bar is not None:
             bar.close()
-        path = write_sweep_summary(Path(config.hydra.sweep.dir))
+        try:
+            path = write_sweep_summary(Path(config.hydra.sweep.dir))
+        except WriteError as err:
+            print(f"rdsexp: {err}", file=sys.stderr)
+            sys.exit(1)
         print(f"sweep summary: {path}")
         try:                              # the sweep's own recording: metrics against the swept params
             from .recording import write_sweep_recording
             print(f"sweep recording: {write_sweep_recording(path.parent)}")
         except Exception as err:          # noqa: BLE001 -- a view, never the end of a sweep
             print(f"rdsexp: no sweep recording ({type(err).__name__}: {err})", file=sys.stderr)
-        statuses = pd.read_parquet(path)["status"] if path.exists() else pd.Series(dtype=object)
-        failed = int((statuses != "complete").sum())
-        if failed:                        # `rdsexp` then exits 1
-            from .cli import STATE
-            STATE["failed_jobs"] = failed
-            print(f"rdsexp: {failed} of {len(statuses)} sweep jobs did not complete "
-                  f"({', '.join(sorted(set(statuses[statuses != 'complete'])))})", file=sys.stderr)
+        table = pd.read_parquet(path)
+        status = table["status"] if "status" in table else pd.Series([], dtype=object)
+        failed = status[status != "complete"].value_counts()
+        if len(failed):
+            counts = ", ".join(f"{n} {s}" for s, n in failed.items())
+            print(f"rdsexp: sweep {path.parent}: {failed.sum()} of {len(status)} jobs did not complete ({counts}); "
+                  f"see {path.with_suffix('.csv')}", file=sys.stderr)
+            sys.exit(1)
+
+
+def writable_or_exit(directory: Path) -> None:
+    """Create `directory` and write a file into it, or exit 1 with one line (a read-only or full
+    file system, no permission) before Hydra or any job starts writing."""
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+        atomic_write_bytes(directory / ".write_test", b"")
+        (directory / ".write_test").unlink()
+    except (OSError, WriteError) as err:
+        reason = err.strerror if isinstance(err, OSError) and err.strerror else str(err)
+        print(f"rdsexp: cannot write {directory}: {reason}" if isinstance(err, OSError) else f"rdsexp: {err}",
+              file=sys.stderr)
+        sys.exit(1)
