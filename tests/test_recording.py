@@ -79,7 +79,7 @@ def test_summary_entities_match_the_tables(small_run):
     exact = pd.read_parquet(small_run / "exact.parquet")
     gains = pd.read_parquet(small_run / "gains.parquet")
     for loop in ("closed_loop", "open_loop"):
-        frame = traj[traj["experiment"] == loop]
+        frame = traj[traj["experiment"] == loop].sort_values(["k", "path"])
         q = frame[[f"q[{i}]" for i in range(6)]].to_numpy().reshape(frame["k"].nunique(), -1, 6)
         sq = (q ** 2).sum(-1)
         k, mean = read_series(rrd, f"/summary/rms/{loop}/mean")

@@ -51,7 +51,7 @@ def record(run_dir: Path, outcome: Outcome, exp: Experiment, info: dict, streame
             try:
                 write_recording(tmp, outcome.recorded, recording_id=info["id"], members=outcome.recorded_members,
                                 tables=outcome.tables, summary=outcome.summary, squares=outcome.squares,
-                                window=(exp.K0, exp.K0 + exp.K1), xi_true=true_xi_mean(exp), raw_paths=None)
+                                window=(exp.K0, exp.K0 + exp.K1), xi_true=true_xi_mean(exp))
             except OSError as err:
                 tmp.unlink(missing_ok=True)
                 raise records.WriteError(run_dir / "recording.rrd", err) from err
@@ -60,6 +60,16 @@ def record(run_dir: Path, outcome: Outcome, exp: Experiment, info: dict, streame
                 seconds=round(sum(v for v in timings.values() if isinstance(v, float)), 3))
     records.write_json(run_dir / "run.json", info)
     return info
+
+
+class _Described:
+    """The pipeline's sink for the streamed tables, each chunk with the table's schema metadata."""
+
+    def __init__(self, sink, run: str):
+        self.sink, self.run = sink, run
+
+    def append(self, name: str, rows) -> None:
+        self.sink.append(name, attach(name, rows, self.run))
 
 
 def true_xi_mean(exp: Experiment) -> np.ndarray | None:
@@ -135,7 +145,7 @@ def execute(cfg: DictConfig, run_dir: Path) -> dict:
         records.write_json(run_dir / "run.json", info)     # "incomplete" until the end
     sink = records.ParquetSink(run_dir)
     try:
-        outcome = run_experiment(exp, sink)
+        outcome = run_experiment(exp, _Described(sink, info["id"]))
     except BaseException:                   # no partial table left behind (run.json says what happened)
         sink.abort()
         raise
