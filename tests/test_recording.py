@@ -59,3 +59,49 @@ def test_incomplete_grid_is_rejected(tmp_path):
 
     with pytest.raises(ValueError, match="complete grid"):
         write_recording(tmp_path / "run.rrd", trajectories, recording_id="incomplete")
+
+
+def _static_text(path, entity):
+    store = rr.chunk.RrdReader(path).store().stream().filter(content=entity).collect()
+    table = store.reader(index=None, contents=entity).to_arrow_table()
+    name = store.schema().column_for(entity, rr.TextDocument.descriptor_text().component).name
+    return table.column(name)[0].as_py()[0]
+
+
+def test_summary_entities_match_the_tables(small_run):
+    """The run's recording, read back with Rerun's reader: the summary's curves are the tables'."""
+    import json
+
+    from rdsexp.experiment.recording import read_series
+    rrd = small_run / "recording.rrd"
+    info = json.loads((small_run / "run.json").read_text())
+    traj = pd.read_parquet(small_run / "trajectories.parquet")
+    exact = pd.read_parquet(small_run / "exact.parquet")
+    gains = pd.read_parquet(small_run / "gains.parquet")
+    for loop in ("closed_loop", "open_loop"):
+        frame = traj[traj["experiment"] == loop].sort_values(["k", "path"])
+        q = frame[[f"q[{i}]" for i in range(6)]].to_numpy().reshape(frame["k"].nunique(), -1, 6)
+        sq = (q ** 2).sum(-1)
+        k, mean = read_series(rrd, f"/summary/rms/{loop}/mean")
+        np.testing.assert_allclose(mean, np.sqrt(sq.mean(axis=1)), rtol=1e-12)
+        _, high = read_series(rrd, f"/summary/rms/{loop}/band_high")
+        half = 1.96 * sq.std(axis=1, ddof=1) / np.sqrt(sq.shape[1])
+        np.testing.assert_allclose(high, np.sqrt(sq.mean(axis=1) + half), rtol=1e-12)
+        _, ex = read_series(rrd, f"/summary/rms/{loop}/exact")
+        np.testing.assert_allclose(ex, exact[exact["experiment"] == loop]["rms"], rtol=1e-12)
+        _, log_mean = read_series(rrd, f"/summary/log10_rms/{loop}/mean")
+        np.testing.assert_allclose(log_mean, np.log10(mean), rtol=1e-12)
+    lam = gains[gains["selected"]]["lam"].iloc[0]
+    k, lam_k = read_series(rrd, "/summary/rms/closed_loop/lambda_k")
+    np.testing.assert_allclose(lam_k, exact["rms"].iloc[0] * lam ** k, rtol=1e-12)
+    # modeled mean drawn over the window K0..K0+K1 = 5..25 of the SMALL config, at the model table's mean
+    model = pd.read_parquet(small_run / "model.parquet")
+    k, modeled = read_series(rrd, "/summary/xi/xi1/modeled_mean")
+    assert (k[0], k[-1]) == (5, 25)
+    np.testing.assert_allclose(modeled, model[(model["quantity"] == "mean") & (model["row"] == 1)]["value"].iloc[0])
+    k, estimate = read_series(rrd, "/summary/xi/xi0/estimate")
+    ident = pd.read_parquet(small_run / "identification.parquet")
+    np.testing.assert_allclose(estimate, ident[ident["path"] == 0]["xi_filt_mean[0]"])
+    report = _static_text(rrd, "/summary/report")
+    assert f"lambda {info['summary']['lam']:.4g}" in report and "## Gain F (u = F x)" in report
+    assert f"{gains[gains['selected']]['F[0,1]'].iloc[0]:.4g}" in report

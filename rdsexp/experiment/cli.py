@@ -23,8 +23,9 @@ from omegaconf import DictConfig, OmegaConf
 
 from ..numerics.modeling import one_line
 from . import records, store
-from .config import ConfigError, Experiment, build
+from .config import ConfigError, Experiment, build, check_overrides
 from .pipeline import FAILURES, SPAWN_KEYS, TABLES, Outcome, run_experiment, timed
+from .schema import attach
 
 log = logging.getLogger("rdsexp")
 CONF_PACKAGE = "pkg://rdsexp.conf"        # conf/ of the repository, shipped as the package rdsexp.conf
@@ -40,15 +41,17 @@ def record(run_dir: Path, outcome: Outcome, exp: Experiment, info: dict, streame
     the tables the pipeline already wrote through a ParquetSink. Returns the run.json content."""
     timings = dict(outcome.timings)
     with timed(timings, "tables"):
-        hashes = {name: records.store_table(run_dir / f"{name}.parquet", table)
-                  for name, table in outcome.tables.items()}
+        hashes = {name: records.store_table(run_dir / f"{name}.parquet", attach(name, table, info["id"]))
+                  for name, table in outcome.tables.items()}                   # attach: schema metadata
         hashes = dict(sorted((hashes | streamed).items(), key=lambda item: _table_order(item[0])))
     with timed(timings, "recording"):
         if exp.recording:
             from .recording import write_recording  # rerun is imported only when recording
             tmp = records.tmp_name(run_dir / "recording.rrd")
             try:
-                write_recording(tmp, outcome.recorded, recording_id=info["id"], members=outcome.recorded_members)
+                write_recording(tmp, outcome.recorded, recording_id=info["id"], members=outcome.recorded_members,
+                                tables=outcome.tables, summary=outcome.summary, squares=outcome.squares,
+                                window=(exp.K0, exp.K0 + exp.K1), xi_true=true_xi_mean(exp))
             except OSError as err:
                 tmp.unlink(missing_ok=True)
                 raise records.WriteError(run_dir / "recording.rrd", err) from err
@@ -57,6 +60,26 @@ def record(run_dir: Path, outcome: Outcome, exp: Experiment, info: dict, streame
                 seconds=round(sum(v for v in timings.values() if isinstance(v, float)), 3))
     records.write_json(run_dir / "run.json", info)
     return info
+
+
+class _Described:
+    """The pipeline's sink for the streamed tables, each chunk with the table's schema metadata."""
+
+    def __init__(self, sink, run: str):
+        self.sink, self.run = sink, run
+
+    def append(self, name: str, rows) -> None:
+        self.sink.append(name, attach(name, rows, self.run))
+
+
+def true_xi_mean(exp: Experiment) -> np.ndarray | None:
+    """The plant's mean xi in the model's terms, T E[s] + t (`truth_map`), None if there is no such map."""
+    from ..numerics.enkf import truth_map
+    truth = truth_map(exp.model, exp.plant)
+    if truth is None:
+        return None
+    T, t = truth
+    return T @ exp.plant.check_distribution(None).mean + t
 
 
 def _table_order(name: str) -> int:
@@ -102,6 +125,8 @@ def execute(cfg: DictConfig, run_dir: Path) -> dict:
 
     With tracking level "off" nothing is written (Hydra's .hydra/ aside) and the same content
     is only returned."""
+    if HydraConfig.initialized():
+        check_overrides(cfg, HydraConfig.get().overrides.task)   # `+enkf.ensemble_sze=50`: a typo, not a key
     exp = build(cfg)                                    # ConfigError before any compute
     if OmegaConf.select(cfg, "plant.name") is None and HydraConfig.initialized():
         # a plant file without `name:` is named by its file (plant=NAME)
@@ -120,7 +145,7 @@ def execute(cfg: DictConfig, run_dir: Path) -> dict:
         records.write_json(run_dir / "run.json", info)     # "incomplete" until the end
     sink = records.ParquetSink(run_dir)
     try:
-        outcome = run_experiment(exp, sink)
+        outcome = run_experiment(exp, _Described(sink, info["id"]))
     except BaseException:                   # no partial table left behind (run.json says what happened)
         sink.abort()
         raise
@@ -159,6 +184,7 @@ def reuse(previous: Path, run_dir: Path, info: dict) -> dict:
 
 @hydra.main(config_path=CONF_PACKAGE, config_name="config", version_base="1.3")
 def hydra_main(cfg: DictConfig) -> dict | None:
+    STATE["started"] = True
     hc = HydraConfig.get()
     run_dir = Path(hc.runtime.output_dir)
     multirun = hc.mode == RunMode.MULTIRUN
@@ -212,7 +238,20 @@ def main() -> None:
                   f"enkf.Q.xi= or a matrix as enkf.Q.matrix={value} (a scalar, n+p diagonal entries or "
                   f"a full (n+p)x(n+p) matrix)", file=sys.stderr)
             sys.exit(2)
-    hydra_main()
+    try:
+        hydra_main()
+    except SystemExit as exit_:
+        # Hydra reports its own errors (a bad override, a missing config option, a key `+` cannot
+        # add) and exits 1; before the run or sweep has started that is a config error: exit 2
+        if exit_.code == 1 and not STATE["started"]:
+            print("rdsexp: config error (reported by Hydra above)", file=sys.stderr)
+            sys.exit(2)
+        raise
+
+
+# set by the task function and the sweep callback once the run or sweep has started: `main` tells
+# Hydra's config errors (exit 2) from errors of the run (exit 1)
+STATE = {"started": False}
 
 
 def _failed(run_dir: Path, cfg: DictConfig, status: str, message: str, trace: str | None = None) -> dict:

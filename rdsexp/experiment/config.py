@@ -359,3 +359,59 @@ def _identification_feedback(cfg, plant: AffineRandomSystem) -> tuple[str, np.nd
             raise ValueError(f"{guess!r} is not allowed, expected null or p = {plant.p} finite numbers "
                              "(the plant file's xi)")
     return feedback, F, xi_guess
+
+
+# ------------------------------------------------------------------------- strict overrides
+GROUPS = ("plant", "model", "enkf", "identification", "gain", "closed_loop", "tracking")
+TOP_LEVEL = ("seed", "reuse")
+# keys `build` reads with a default when the group's file does not set them: `+key=value` may add them
+OPTIONAL_KEYS = ("plant.name", "plant.C", "plant.D", "plant.q0", "plant.poles", "plant.reference",
+                 "plant.identification_feedback", "plant.model", "model.name", "model.A", "model.B", "model.C",
+                 "model.D", "model.reported", "gain.source", "gain.F", "gain.options",
+                 "identification.feedback", "identification.xi_guess")
+# mappings whose keys are checked where they are used (gain options by the method, xi by its family)
+FREE_FORM = ("gain.options.", "plant.xi.", "plant.reference.", "plant.model.", "model.reported.")
+
+
+def _keys(node, prefix: str = "") -> list[str]:
+    """Every dotted key of a (nested) mapping."""
+    if not isinstance(node, dict):
+        return []
+    return [k for name, value in node.items() for k in (f"{prefix}{name}", *_keys(value, f"{prefix}{name}."))]
+
+
+def check_overrides(cfg, overrides) -> None:
+    """Reject `+key=value` (and `++key=value`) that adds a key rdsexp does not read inside its groups
+    (or at the top level): one line with the closest known key. Hydra itself only refuses `+` on a
+    key that exists, so without this a typo (`+enkf.ensemble_sze=50`) would run with the default."""
+    import difflib
+
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.core.override_parser.types import OverrideType
+    try:
+        parsed = OverridesParser.create().parse_overrides([str(o) for o in overrides])
+    except Exception:         # noqa: BLE001 -- a malformed override is Hydra's own error, reported by Hydra
+        return
+    for override in parsed:
+        name = override.key_or_group
+        if override.type not in (OverrideType.ADD, OverrideType.FORCE_ADD) or "@" in name or "/" in name:
+            continue
+        group = name.split(".")[0]
+        if "." not in name and (name in TOP_LEVEL or _is_group(name)):
+            continue                     # a config group (+sweep=paper) or a top-level key rdsexp reads
+        if "." in name and group not in GROUPS:
+            continue                     # outside rdsexp's groups (hydra.*, a user's own group)
+        if name in OPTIONAL_KEYS or name.startswith(FREE_FORM):
+            continue
+        known = sorted({*(k for k in _keys(plain(cfg)) if not (name + ".").startswith(k + ".")
+                        and (k.split(".")[0] in GROUPS or k in TOP_LEVEL)), *OPTIONAL_KEYS})
+        guess = difflib.get_close_matches(name, known, n=1, cutoff=0.6)
+        hint = f", did you mean {guess[0]}?" if guess else f"; keys of {group}: " + ", ".join(
+            k for k in known if k.startswith(f"{group}.") and k.count(".") == 1)
+        raise ConfigError(f"{name}: unknown key (added with {override.input_line.split('=')[0]}){hint}")
+
+
+def _is_group(name: str) -> bool:
+    """A config group of rdsexp's conf/ (sweep, plant, ...)."""
+    from importlib.resources import files
+    return (files("rdsexp.conf") / name).is_dir()

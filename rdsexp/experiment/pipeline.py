@@ -46,6 +46,7 @@ class Outcome:
     timings: dict = field(default_factory=dict)
     recorded: pd.DataFrame | None = None
     recorded_members: pd.DataFrame | None = None
+    squares: dict[str, np.ndarray] = field(default_factory=dict)   # loop -> ||q_k||^2 (K+1, P), every path
 
 
 @contextmanager
@@ -159,7 +160,7 @@ def run_experiment(exp: Experiment, sink=None) -> Outcome:
     recorded = pd.concat([tables["identification"], *sample], ignore_index=True)
     recorded_members = pd.concat(sample_members, ignore_index=True) if keep else None
     return Outcome(tables=tables, summary=summary, timings=timings, recorded=recorded,
-                   recorded_members=recorded_members)
+                   recorded_members=recorded_members, squares={name: loop.sq for name, loop in loops.items()})
 
 
 class MemorySink:
@@ -273,7 +274,7 @@ def members_table(experiment: str, tr: Trajectories, first_path: int = 0) -> pd.
 def path_table(loops: dict[str, LoopSummary]) -> pd.DataFrame:
     """Per path: the step it failed at (-1: never) and why."""
     return pd.DataFrame([{"experiment": name, "path": j, "failed_at": int(loop.failed_at[j]),
-                          "failure": str(loop.failure[j])}
+                          "failure": str(loop.failure[j]) if loop.failure[j] not in (None, "") else None}
                          for name, loop in loops.items() for j in range(loop.failed_at.size)])
 
 
@@ -310,7 +311,7 @@ def gains_table(exp: Experiment, designs: dict, selected: tuple[str, str]) -> pd
                      "lam_box": res.info.get("lam_box", np.nan),
                      "max_width": res.info.get("max_width", np.nan),
                      "min_infeasible_width": res.info.get("min_infeasible_width", np.nan),
-                     **{f"F[{i}]": v for i, v in enumerate(F.ravel())}})
+                     **{f"F[{i},{j}]": v for (i, j), v in np.ndenumerate(F)}})     # F[i,j]: (m, n) unambiguous
     return pd.DataFrame(rows)
 
 

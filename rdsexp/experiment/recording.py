@@ -1,6 +1,15 @@
-"""Rerun recordings (.rrd) of trajectory tables, for viewing in the Rerun Viewer.
+"""Rerun recordings (.rrd) of a run's tables, for viewing in the Rerun Viewer.
 
-The trajectories table stays the source of truth; the recording mirrors it as
+The recording opens on a **summary** tab (`write_summary`, entities under ``/summary``):
+sqrt(E||q_k||^2) over the paths with its 95% band, the exact ideal-loop curve and lambda^k
+(linear and log10), the EnKF's xi estimates of the identification run with the true and modeled
+means (the modeled mean drawn over the modeling window k = K0..K0+K1 only), histograms of the
+window's xi samples the model was built from, and a markdown report (gain, statuses, metrics);
+a **states** tab: per state q_k and the ensemble mean +- spread over a few sample paths. The
+raw paths follow in one tab per experiment (the bounded sample the pipeline passes,
+tracking.recorded_paths per loop).
+
+The trajectories table stays the source of truth; the raw tabs mirror it as
 
 * ``/{experiment}/{QUANTITY}/{i}``: one entity per value column ``QUANTITY[i]``, a
   ``Scalars`` batch of P instances per step on the sequence timeline ``k``
@@ -106,21 +115,35 @@ def write_recording(
     recording_id: str,
     application_id: str = "rdsexp",
     members: pd.DataFrame | None = None,
+    tables: dict[str, pd.DataFrame] | None = None,
+    summary: dict | None = None,
+    window: tuple[int, int] | None = None,
+    xi_true: np.ndarray | None = None,
+    squares: dict[str, np.ndarray] | None = None,
 ) -> None:
     """Write `trajectories` (rows: (experiment, k, path) grid, P paths per step) and optionally
     `members` (rows: (experiment, k, path, member) grid, M members per path) to the .rrd `path`,
-    with a default blueprint. The file is complete when this returns; with ``RERUN=off`` in the
-    environment rerun disables the stream and nothing is written."""
+    with a default blueprint. With the run's `tables` (pipeline.TABLES but the streamed ones) and
+    `summary` the recording opens on the summary tab (`write_summary`; window: (K0, K0 + K1),
+    xi_true: the true mean of xi in the model's terms, (p,), if known; squares: loop -> ||q_k||^2
+    (K+1, P) over every path, else computed from the paths in `trajectories`).
+    The file is complete when this returns; with ``RERUN=off`` in the environment rerun
+    disables the stream and nothing is written."""
     columns = [c for c in trajectories.columns if c not in KEYS]
     split = [_split(c) for c in columns]
     experiments = list(trajectories["experiment"].unique())
     blueprint = _blueprint(experiments, list(dict.fromkeys(q for q, _ in split)))
+    if tables is not None:
+        blueprint = rrb.Blueprint(rrb.Tabs(*_summary_tabs(tables, trajectories), *blueprint.root_container.contents))
 
     # A private stream (not the global one) so repeated calls never share state, and leaving the
     # `with` block flushes and finalizes the file sink (footer written, file closed).
     with rr.RecordingStream(application_id, recording_id=recording_id) as rec:
         rec.save(Path(path), default_blueprint=blueprint)
         rec.send_property(_PROPERTY, rr.AnyValues(experiments=experiments, columns=columns))
+        if tables is not None:
+            write_summary(rec, tables, trajectories, summary or {}, window=window, xi_true=xi_true,
+                          squares=squares)
         for experiment, frame in trajectories.groupby("experiment", sort=False):
             frame = frame.sort_values(["k", "path"], kind="stable")       # tables are stored path-major
             ks = _steps(frame, frame["path"].to_numpy(), f"trajectories[{experiment!r}]")
@@ -180,3 +203,230 @@ def read_recording(path) -> pd.DataFrame:
         }
         frames.append(pd.DataFrame(keys | dict(zip(columns, values, strict=True))))
     return pd.concat(frames, ignore_index=True)
+
+
+# ------------------------------------------------------------------------------------ summary
+def _values(frame: pd.DataFrame, quantity: str) -> tuple[np.ndarray, np.ndarray]:
+    """Steps (K,) and values (K, P, d) of quantity[0..d-1] of one experiment's (k, path) grid."""
+    cols = [c for c in frame.columns if _COLUMN.match(c) and _split(c)[0] == quantity]
+    frame = frame.sort_values(["k", "path"], kind="stable")          # tables are stored path-major
+    ks = frame["k"].unique().astype(np.int64)
+    return ks, frame[cols].to_numpy(np.float64).reshape(len(ks), -1, len(cols))
+
+
+def _line(rec, entity: str, ks: np.ndarray, values: np.ndarray, name: str, color=None, width: float = 1.5) -> None:
+    """One named scalar series (K,) on the timeline k."""
+    rec.log(entity, rr.SeriesLines(names=[name], colors=[color] if color is not None else None, widths=[width]),
+            static=True)
+    rec.send_columns(entity, indexes=[rr.TimeColumn("k", sequence=ks)],
+                     columns=rr.Scalars.columns(scalars=np.asarray(values, np.float64)))
+
+
+def rms_band(q: np.ndarray, z: float = 1.96) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """sqrt(E||q_k||^2) over the finite paths of q (K, P, n) and its 95% band, each (K,): the normal
+    interval of the mean of ||q_k||^2 over paths, mapped through the square root."""
+    sq = np.sum(q ** 2, axis=-1)
+    sq = np.where(np.isfinite(sq), sq, np.nan)
+    count = np.sum(np.isfinite(sq), axis=1)
+    with np.errstate(all="ignore"):
+        mean = np.nanmean(sq, axis=1)
+        half = z * np.nanstd(sq, axis=1, ddof=1) / np.sqrt(count)
+    half = np.where(count > 1, half, np.nan)
+    return np.sqrt(mean), np.sqrt(np.maximum(mean - half, 0.0)), np.sqrt(mean + half)
+
+
+def _log10(values: np.ndarray) -> np.ndarray:
+    with np.errstate(all="ignore"):
+        return np.where(values > 0, np.log10(values), np.nan)
+
+
+LOOP_COLORS = {"closed_loop": (31, 119, 180), "open_loop": (214, 39, 40)}
+STATE_PATHS = 3
+
+
+def write_summary(rec: rr.RecordingStream, tables: dict[str, pd.DataFrame], trajectories: pd.DataFrame,
+                  summary: dict, *, window: tuple[int, int] | None = None, xi_true: np.ndarray | None = None,
+                  squares: dict[str, np.ndarray] | None = None) -> None:
+    """The summary entities of a run (see the module docstring) from its tables and the recorded
+    paths `trajectories`; the rms band from `squares` (loop -> ||q_k||^2 (K+1, P)) when given."""
+    exact, gains = tables["exact"], tables["gains"]
+    selected = gains[gains["selected"]]
+    lam = float(selected["lam"].iloc[0]) if len(selected) else np.nan
+    traj = trajectories[trajectories["experiment"] != "identification"]
+    for loop, frame in traj.groupby("experiment", sort=False):
+        color = LOOP_COLORS.get(loop)
+        ks, q = _values(frame, "q")
+        if squares is not None and loop in squares:
+            sq = squares[loop]
+            ks = np.arange(sq.shape[0], dtype=np.int64)
+            mean, low, high = rms_band(np.sqrt(sq)[..., None])
+        else:
+            mean, low, high = rms_band(q)
+        ex = exact[exact["experiment"] == loop]
+        lines = [("mean", ks, mean, f"{loop} sqrt(E|q|^2)", 2.0), ("band_low", ks, low, f"{loop} 95% band", 0.7),
+                 ("band_high", ks, high, f"{loop} 95% band", 0.7)]
+        if len(ex):
+            lines.append(("exact", ex["k"].to_numpy(np.int64), ex["rms"].to_numpy(), f"{loop} exact (state feedback)",
+                          1.0))
+            if loop == "closed_loop" and np.isfinite(lam):
+                lines.append(("lambda_k", ex["k"].to_numpy(np.int64), ex["rms"].iloc[0] * lam ** ex["k"].to_numpy(),
+                              f"lambda^k, lambda = {lam:.4f}", 1.0))
+        for name, k, v, label, width in lines:
+            _line(rec, f"/summary/rms/{loop}/{name}", k, v, label, color, width)
+            _line(rec, f"/summary/log10_rms/{loop}/{name}", k, _log10(v), label, color, width)
+        if loop == "closed_loop":
+            _, x = _values(frame, "x_filt_mean")
+            _, std = _values(frame, "x_filt_std")
+            for i in range(q.shape[-1]):
+                for j in range(min(STATE_PATHS, q.shape[1])):
+                    base = f"/summary/state/q{i}/path{j}"
+                    _line(rec, f"{base}/q", ks, q[:, j, i], f"q[{i}] path {j}", (200, 200, 200), 1.5)
+                    _line(rec, f"{base}/mean", ks, x[:, j, i], f"x_k|k[{i}] path {j}", color, 1.5)
+                    _line(rec, f"{base}/upper", ks, x[:, j, i] + std[:, j, i], "mean + spread", color, 0.5)
+                    _line(rec, f"{base}/lower", ks, x[:, j, i] - std[:, j, i], "mean - spread", color, 0.5)
+    _xi(rec, tables, window, xi_true)
+    rec.log("/summary/report", rr.TextDocument(report_markdown(tables, summary), media_type="text/markdown"),
+            static=True)
+
+
+def _xi(rec, tables: dict, window, xi_true) -> None:
+    """xi_{k|k} of the identification run, the true and modeled means, the window's histograms."""
+    ident, model = tables["identification"], tables["model"]
+    if not len(ident):
+        return
+    ks, xi = _values(ident[ident["path"] == 0], "xi_filt_mean")
+    modeled = model[model["quantity"] == "mean"].sort_values("row")["value"].to_numpy()
+    k0, k1 = window if window is not None else (int(ks[0]), int(ks[-1]))
+    inside = (ks >= k0) & (ks <= k1)
+    palette = [(31, 119, 180), (255, 127, 14), (44, 160, 44), (148, 103, 189), (140, 86, 75), (227, 119, 194)]
+    for i in range(xi.shape[-1]):
+        color = palette[i % len(palette)]
+        _line(rec, f"/summary/xi/xi{i}/estimate", ks, xi[:, 0, i], f"xi_k|k[{i}]", color, 1.5)
+        if i < len(modeled):     # drawn over the modeling window only: it marks the window
+            _line(rec, f"/summary/xi/xi{i}/modeled_mean", ks[inside], np.full(inside.sum(), modeled[i]),
+                  f"modeled mean[{i}] (k = {k0}..{k1})", color, 3.0)
+        if xi_true is not None and i < len(xi_true) and np.isfinite(xi_true[i]):
+            _line(rec, f"/summary/xi/xi{i}/true_mean", ks, np.full(len(ks), xi_true[i]), f"true mean[{i}]",
+                  (200, 200, 200), 1.0)
+        samples = xi[inside, 0, i]
+        samples = samples[np.isfinite(samples)]
+        if len(samples):
+            counts, edges = np.histogram(samples, bins=min(15, max(len(samples) // 4, 1)))
+            rec.log(f"/summary/xi_histogram/xi{i}", rr.BarChart(counts, abscissa=(edges[:-1] + edges[1:]) / 2,
+                                                                widths=np.diff(edges), color=color), static=True)
+
+
+def _fmt(v) -> str:
+    if isinstance(v, (float, np.floating)):
+        return "n/a" if not np.isfinite(v) else f"{v:.4g}"
+    return str(v)
+
+
+def report_markdown(tables: dict[str, pd.DataFrame], summary: dict) -> str:
+    """The run's gain, statuses and key metrics as a markdown document."""
+    s = summary
+    lines = [f"# {s.get('plant', 'plant')} / model {s.get('model', '')}", "",
+             f"- modeling: **{s.get('modeling_status', 'n/a')}**"
+             + (f", xi mean {np.round(s['xi_mean'], 4).tolist()}, nbar {s.get('nbar')}" if "xi_mean" in s else ""),
+             f"- gain {s.get('gain_method')}: **{s.get('synthesis_status', 'n/a')}**, lambda {_fmt(s.get('lam'))}, "
+             f"exact rate on the true plant {_fmt(s.get('rate_plant'))}"]
+    for loop in ("closed_loop", "open_loop"):
+        if f"{loop}_rate" in s:
+            r = s[f"{loop}_rate"]
+            lines.append(f"- {loop.replace('_', ' ')}: **{s.get(f'{loop}_status')}**, rate {_fmt(r[0])} "
+                         f"[{_fmt(r[1])}, {_fmt(r[2])}] over k = {s.get('rate_window')}")
+    gains = tables["gains"]
+    chosen = gains[gains["selected"]]
+    if len(chosen):
+        cols = [c for c in gains.columns if c.startswith("F[")]
+        idx = [tuple(int(v) for v in c[2:-1].split(",")) for c in cols]
+        m, n = max(i for i, _ in idx) + 1, max(j for _, j in idx) + 1
+        F = chosen[cols].to_numpy(float).reshape(m, n)
+        lines += ["", "## Gain F (u = F x)", "", "| | " + " | ".join(f"x{j}" for j in range(n)) + " |",
+                  "|---" * (n + 1) + "|"]
+        lines += [f"| u{i} | " + " | ".join(_fmt(v) for v in F[i]) + " |" for i in range(m)]
+    lines += ["", "## Designs", "", "| distribution | method | status | lam | rate on plant |", "|---|---|---|---|---|"]
+    lines += [f"| {r.distribution} | {r.method} | {r.status} | {_fmt(r.lam)} | {_fmt(r.rate_plant)} |"
+              for r in gains.itertuples()]
+    metrics = tables["metrics"]
+    if len(metrics):
+        cols = ["experiment", "status", "rate", "rate_low", "rate_high", "failed_fraction", "x_rmse", "xi_rmse"]
+        cols = [c for c in cols if c in metrics.columns]
+        lines += ["", "## Metrics", "", "| " + " | ".join(cols) + " |", "|---" * len(cols) + "|"]
+        lines += ["| " + " | ".join(_fmt(v) for v in row) + " |" for row in metrics[cols].itertuples(index=False)]
+    return "\n".join(lines) + "\n"
+
+
+def _summary_tabs(tables: dict[str, pd.DataFrame], trajectories: pd.DataFrame) -> list:
+    """The summary and states tabs of the default blueprint."""
+    loops = list(trajectories["experiment"].unique())
+    p = sum(1 for c in tables["identification"].columns if c.startswith("xi_filt_mean["))
+    n = sum(1 for c in trajectories.columns if _COLUMN.match(c) and _split(c)[0] == "q")
+    legend = rrb.PlotLegend(corner=rrb.Corner2D.RightTop, visible=True)
+    summary = rrb.Grid(
+        rrb.TimeSeriesView(name="log10 sqrt(E|q_k|^2): band, exact, lambda^k", origin="/summary/log10_rms",
+                           plot_legend=legend),
+        rrb.TimeSeriesView(name="sqrt(E|q_k|^2)", origin="/summary/rms", plot_legend=legend),
+        rrb.TimeSeriesView(name="xi estimates (identification), true and modeled means", origin="/summary/xi",
+                           plot_legend=legend),
+        rrb.Horizontal(*(rrb.BarChartView(name=f"xi[{i}] samples in the window", origin=f"/summary/xi_histogram/xi{i}")
+                         for i in range(p))) if p else rrb.TextDocumentView(origin="/summary/report"),
+        rrb.TextDocumentView(name="report", origin="/summary/report"),
+        name="summary", grid_columns=2,
+    )
+    states = rrb.Grid(*(rrb.TimeSeriesView(name=f"closed loop q[{i}] and x_k|k +- spread ({STATE_PATHS} paths)",
+                                           origin=f"/summary/state/q{i}", plot_legend=rrb.PlotLegend(visible=False))
+                        for i in range(n)), name="states") if "closed_loop" in loops else None
+    return [summary] + ([states] if states is not None else [])
+
+
+def read_series(path, entity: str, index: str = "k") -> tuple[np.ndarray, np.ndarray]:
+    """Steps (timeline `index`: k, or job in a sweep's summary.rrd) and scalar values of one series
+    entity of an .rrd (e.g. /summary/rms/closed_loop/mean), read with Rerun's own reader."""
+    store = rr.chunk.RrdReader(Path(path)).store().stream().filter(content=[entity]).collect()
+    column = store.schema().column_for(entity, _SCALARS).name
+    table = store.reader(index=index).to_arrow_table().sort_by(index)
+    cells = table.column(column).combine_chunks()
+    present = cells.is_valid().to_numpy(zero_copy_only=False)
+    return table.column(index).to_numpy()[present], cells.filter(present).flatten().to_numpy(zero_copy_only=False)
+
+
+# ------------------------------------------------------------------------------------ sweeps
+SWEEP_METRICS = ("metrics.lam", "metrics.rate_plant", "metrics.closed_loop_rate", "metrics.closed_loop_rate_low",
+                 "metrics.closed_loop_rate_high", "metrics.open_loop_rate", "metrics.closed_loop_failed_fraction")
+
+
+def write_sweep_recording(sweep_dir, table: pd.DataFrame | None = None) -> Path:
+    """<sweep>/summary.rrd: on the timeline `job`, the key metrics (points) and every numeric swept
+    parameter (a `search` table's changed params) of each job, and a markdown table of the jobs."""
+    from .runs import changed, search
+    sweep_dir = Path(sweep_dir)
+    table = search(sweep_dir) if table is None else table
+    table = table.sort_values("job", ignore_index=True)
+    jobs = table["job"].to_numpy(np.int64)
+    swept = changed(table)
+    numeric = [c for c in swept if pd.api.types.is_numeric_dtype(table[c]) and not pd.api.types.is_bool_dtype(table[c])]
+    metrics = [c for c in SWEEP_METRICS if c in table.columns]
+    blueprint = rrb.Blueprint(rrb.Grid(
+        rrb.TimeSeriesView(name="metrics by job", origin="/sweep/metrics",
+                           plot_legend=rrb.PlotLegend(corner=rrb.Corner2D.RightTop, visible=True)),
+        rrb.TimeSeriesView(name="swept parameters by job", origin="/sweep/params",
+                           plot_legend=rrb.PlotLegend(corner=rrb.Corner2D.RightTop, visible=True)),
+        rrb.TextDocumentView(name="jobs", origin="/sweep/jobs"), name=f"sweep {sweep_dir.name}"))
+    path = sweep_dir / "summary.rrd"
+    tmp = sweep_dir / ".summary.rrd.tmp"
+    with rr.RecordingStream("rdsexp", recording_id=f"sweep/{sweep_dir.name}") as rec:
+        rec.save(tmp, default_blueprint=blueprint)
+        for group, columns in (("metrics", metrics), ("params", numeric)):
+            for c in columns:
+                entity = f"/sweep/{group}/{rr.escape_entity_path_part(c.split('.', 1)[1])}"
+                rec.log(entity, rr.SeriesPoints(names=[c.split(".", 1)[1]], marker_sizes=[4.0]), static=True)
+                rec.send_columns(entity, indexes=[rr.TimeColumn("job", sequence=jobs)],
+                                 columns=rr.Scalars.columns(scalars=table[c].to_numpy(np.float64)))
+        cols = ["job", "status", *swept, *metrics]
+        lines = [f"# sweep {sweep_dir.name}", "", "| " + " | ".join(c.split(".", 1)[-1] for c in cols) + " |",
+                 "|---" * len(cols) + "|"]
+        lines += ["| " + " | ".join(_fmt(v) for v in row) + " |" for row in table[cols].itertuples(index=False)]
+        rec.log("/sweep/jobs", rr.TextDocument("\n".join(lines) + "\n", media_type="text/markdown"), static=True)
+    tmp.replace(path)
+    return path

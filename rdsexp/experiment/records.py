@@ -166,6 +166,9 @@ class ParquetSink:
         import pyarrow as pa
         import pyarrow.parquet as pq
         table = pa.Table.from_pandas(rows, preserve_index=False)
+        if rows.attrs:        # schema metadata (rdsexp.experiment.schema), where pandas' to_parquet puts it
+            table = table.replace_schema_metadata({**table.schema.metadata,
+                                                   b"PANDAS_ATTRS": json.dumps(rows.attrs).encode()})
         tmp = tmp_name(self.directory / f"{name}.parquet")
         try:
             if name not in self.writers:

@@ -1,12 +1,19 @@
-"""Run catalog: `rdsexp-runs list [DIR] | show RUN | verify RUN | check [DIR]`.
+"""Run catalog: `rdsexp-runs list [DIR] | show RUN|SWEEP | diff A B | view RUN|SWEEP | verify RUN |
+check [DIR]`, and the Python API `search` / `load` (`rdsexp.runs.search(...)`, like MLflow's search_runs).
 
 A run is a directory with a run.json (see `rdsexp.experiment.records`); RUN is its path or its id
-(a directory name under outputs/, or SWEEP/JOB for a sweep job). Damaged records are skipped with
-one warning line each, or reported as damaged (see `rdsexp.experiment.store`).
+(a directory name under outputs/, or SWEEP/JOB for a sweep job); a SWEEP is a sweep directory or
+its name under outputs/sweeps/. Damaged records are skipped with one warning line each, or
+reported as damaged (see `rdsexp.experiment.store`).
 """
 from __future__ import annotations
 
 import argparse
+import json
+import os
+import re
+import shutil
+import subprocess
 import sys
 from pathlib import Path
 
@@ -17,8 +24,8 @@ from omegaconf import OmegaConf
 from . import records, store
 
 DEFAULT_ROOT = Path("outputs")
-__all__ = ["DEFAULT_ROOT", "catalog", "check", "cli", "compare_tables", "find_complete", "find_runs", "main", "resolve",
-           "verify", "write_sweep_summary"]
+__all__ = ["DEFAULT_ROOT", "catalog", "check", "cli", "compare_tables", "diff", "find_complete", "find_runs", "load",
+           "main", "resolve", "search", "verify", "write_sweep_summary"]
 
 
 def find_runs(root: Path) -> list[tuple[Path, dict]]:
@@ -35,13 +42,10 @@ def find_complete(root: Path, config_hash: str, version: str) -> Path | None:
 
 def resolve(run: str, root: Path = DEFAULT_ROOT) -> Path:
     """A run directory from a path or an id; SystemExit with one line if there is none."""
-    path = Path(run)
-    if (path / "run.json").exists():
-        return path
-    matches = [p for p, info in find_runs(root) if info.get("id") == run or p.name == run]
-    if len(matches) != 1:
-        sys.exit(f"rdsexp.runs: {'no' if not matches else 'more than one'} run {run!r} under {root}")
-    return matches[0]
+    try:
+        return locate(run, root)
+    except LookupError as err:
+        sys.exit(f"rdsexp.runs: {err}")
 
 
 def catalog(root: Path) -> pd.DataFrame:
@@ -60,6 +64,247 @@ def catalog(root: Path) -> pd.DataFrame:
                      "created": info.get("created"), "config_hash": (info.get("config_hash") or "")[:12],
                      "code": ((info.get("code") or {}).get("version") or "")[:12], "dir": str(run_dir)})
     return pd.DataFrame(rows)
+
+
+# ------------------------------------------------------------------------------------ search
+BASE = ["id", "sweep", "sweep_id", "job", "status", "created", "code", "config_hash", "dir"]
+# summary entries that are settings or nested records rather than numbers of the run
+_NOT_METRICS = ("plant", "model", "gain_method", "rate_window", "reference", "designs", "identification_feedback")
+SHOWN = ["metrics.lam", "metrics.rate_plant", "metrics.closed_loop_rate", "metrics.closed_loop_status"]
+
+
+def run_params(run_dir: Path) -> dict:
+    """{"params.<dotted.key>": value} for every resolved scalar of the run's config
+    (.hydra/config.yaml); a flat list of at most 8 scalars (rate_window) as its JSON text."""
+    path = Path(run_dir) / ".hydra" / "config.yaml"
+    if not path.exists():
+        return {}
+    cfg = OmegaConf.load(path)
+    try:
+        node = OmegaConf.to_container(cfg, resolve=True)
+    except Exception:     # noqa: BLE001 -- an interpolation this version cannot resolve: the raw values
+        node = OmegaConf.to_container(cfg, resolve=False)
+    out = {}
+
+    def walk(tree: dict, prefix: str) -> None:
+        for name, value in tree.items():
+            if isinstance(value, dict):
+                walk(value, f"{prefix}{name}.")
+            elif isinstance(value, list):
+                if len(value) <= 8 and all(v is None or isinstance(v, (bool, int, float, str)) for v in value):
+                    out[f"params.{prefix}{name}"] = json.dumps(value)
+            else:
+                out[f"params.{prefix}{name}"] = value
+    walk(node, "")
+    return out
+
+
+def run_metrics(info: dict) -> dict:
+    """{"metrics.<name>": value}: the key numbers and statuses of run.json's summary, flattened
+    (closed_loop_rate, _low, _high; xi_mean[i]; closed_loop_failed_fraction, ...) and seconds."""
+    s = info.get("summary") or {}
+    out = {}
+    for name, value in s.items():
+        if name in _NOT_METRICS:
+            continue
+        if name.endswith("_rate") and isinstance(value, list) and len(value) == 3:
+            out[name], out[f"{name}_low"], out[f"{name}_high"] = value
+        elif isinstance(value, dict):
+            out |= {f"{name}_{k}": v for k, v in value.items()}
+        elif isinstance(value, list):
+            out |= {f"{name}[{i}]": v for i, v in enumerate(value)}
+        else:
+            out[name] = value
+    for loop in ("closed_loop", "open_loop"):
+        if f"{loop}_status" in s:
+            out.setdefault(f"{loop}_failed_fraction", 0.0)
+    out["seconds"] = info.get("seconds")
+    return {f"metrics.{k}": (np.nan if v is None else v) for k, v in out.items()}
+
+
+def search(root=DEFAULT_ROOT, where: str | None = None) -> pd.DataFrame:
+    """One row per run under root (oldest first), like MLflow's search_runs: id, sweep (its config
+    name), sweep_id (its directory), job, status, created, code (version), config_hash, dir,
+    `metrics.<name>` (key numbers of run.json's summary, `run_metrics`) and `params.<dotted.key>`
+    (every resolved scalar config value, `run_params`).
+
+    where: a filter over these columns, e.g. ``"params.enkf.q_scale >= 1 and metrics.lam < 0.9"``
+    (pandas query syntax; `=` also compares; a name without its params./metrics. prefix is found)."""
+    rows = []
+    for run_dir, info in find_runs(Path(root)):
+        sweep = info.get("sweep") or {}
+        rows.append({"id": info.get("id"), "sweep": sweep.get("name"),
+                     "sweep_id": Path(sweep["dir"]).name if sweep.get("dir") else None, "job": sweep.get("job"),
+                     "status": info.get("status"), "created": info.get("created"),
+                     "code": (info.get("code") or {}).get("version"), "config_hash": info.get("config_hash"),
+                     "dir": str(run_dir), **run_metrics(info), **run_params(run_dir)})
+    table = pd.DataFrame(rows, columns=BASE if not rows else None)
+    if len(table):
+        metrics = [c for c in table.columns if c.startswith("metrics.")]
+        params = sorted(c for c in table.columns if c.startswith("params."))
+        table = table[BASE + metrics + params]
+        table["job"] = table["job"].astype("Int64")
+    return query(table, where) if where else table
+
+
+def column(table: pd.DataFrame, name: str) -> str:
+    """The column `name` names: itself, params.NAME, metrics.NAME or the one column ending in .NAME."""
+    for candidate in (name, f"params.{name}", f"metrics.{name}"):
+        if candidate in table.columns:
+            return candidate
+    ends = [c for c in table.columns if c.endswith(f".{name}")]
+    if len(ends) == 1:
+        return ends[0]
+    raise ValueError(f"{name!r} names {'no' if not ends else 'more than one'} column"
+                     + (f" ({', '.join(ends)})" if ends else ""))
+
+
+def query(table: pd.DataFrame, where: str) -> pd.DataFrame:
+    """Rows of a `search` table that satisfy `where` (see `search`); ValueError naming a bad column."""
+    parts = re.split(r"""("[^"]*"|'[^']*')""", where)      # leave quoted strings alone
+    for i in range(0, len(parts), 2):
+        text = re.sub(r"(?<![=!<>])=(?![=])", "==", parts[i])
+        parts[i] = re.sub(r"(?<![\w.`])([A-Za-z_]\w*(?:\.\w+|\[\d+\])*)",
+                          lambda m: _name(table, m.group(1)), text)
+    try:
+        return table.query("".join(parts), engine="python").reset_index(drop=True)
+    except (pd.errors.UndefinedVariableError, SyntaxError, TypeError, KeyError) as err:
+        raise ValueError(f"where {where!r}: {err}") from None
+
+
+def _name(table: pd.DataFrame, token: str) -> str:
+    if token in ("and", "or", "not", "in", "True", "False", "None", "nan"):
+        return token
+    try:
+        return f"`{column(table, token)}`"
+    except ValueError:
+        return token if "." not in token else f"`{token}`"
+
+
+def changed(table: pd.DataFrame) -> list[str]:
+    """The params columns whose value is not the same in every row (like `dvc exp show`)."""
+    return [c for c in table.columns if c.startswith("params.") and table[c].astype(str).nunique() > 1]
+
+
+def load(run, table: str, long: bool = False, root=DEFAULT_ROOT) -> pd.DataFrame:
+    """A stored table of one run with the run's id as a first column `run`.
+
+    run: a run directory, an id, or a row of `search`. table: trajectories, identification, paths,
+    model, gains, metrics, exact or members. long: trajectories, identification and members in
+    long form, one row per (experiment, path, [member,] k, quantity, index) with its `value`
+    (quantity "x_filt_mean", index i of the column "x_filt_mean[i]")."""
+    run_dir = Path(run["dir"]) if isinstance(run, pd.Series) else locate(str(run), Path(root))
+    info = store.read_run(run_dir)
+    tables = info.get("tables") or {}
+    if table not in tables:
+        raise ValueError(f"table {table!r}: run {info.get('id')} has {', '.join(tables) or 'no tables'}")
+    frame = store.read_table(run_dir, info, table)         # checked against run.json's hash
+    frame.insert(0, "run", info.get("id"))
+    if not long:
+        return frame
+    if table not in ("trajectories", "identification", "members"):
+        raise ValueError(f"long=True: {table!r} is not a trajectory table (trajectories, identification, members)")
+    keys = [c for c in frame.columns if "[" not in c]
+    out = frame.melt(id_vars=keys, var_name="column", value_name="value")
+    parts = out["column"].str.extract(r"^(?P<quantity>.+)\[(?P<index>\d+)\]$")
+    out = out.drop(columns="column").assign(quantity=parts["quantity"], index=parts["index"].astype(np.int64))
+    order = [c for c in ("run", "experiment", "path", "member", "k") if c in keys]
+    return out[[*order, "quantity", "index", "value"]]       # column by column, as melted
+
+
+def locate(run: str, root: Path = DEFAULT_ROOT) -> Path:
+    """A run directory from a path or an id; LookupError with one line if there is none."""
+    path = Path(run)
+    if (path / "run.json").exists():
+        return path
+    matches = [p for p, info in find_runs(root) if info.get("id") == run or p.name == run]
+    if len(matches) != 1:
+        raise LookupError(f"{'no' if not matches else 'more than one'} run {run!r} under {root}")
+    return matches[0]
+
+
+def locate_sweep(sweep: str, root: Path = DEFAULT_ROOT) -> Path | None:
+    """A sweep directory from its path, its directory name, or its config name (the latest sweep of
+    that name); None if `sweep` names no sweep."""
+    path = Path(sweep)
+    if path.is_dir() and not (path / "run.json").exists() and (
+            (path / "multirun.yaml").exists() or any(path.glob("*/run.json"))):
+        return path
+    runs = find_runs(root)
+    dirs = [p.parent for p, info in runs if str(info.get("id") or "").startswith(f"{sweep}/")]
+    if not dirs:
+        dirs = [p.parent for p, info in runs if (info.get("sweep") or {}).get("name") == sweep]
+    return dirs[-1] if dirs else None
+
+
+def diff(a: str, b: str, root=DEFAULT_ROOT) -> pd.DataFrame:
+    """Differences between two runs or two sweeps, one row each: (what, key, a, b).
+
+    Runs: every param and metric that differs, the code version and the tables whose content differs.
+    Sweeps: params that are constant within each but differ between them, the swept params with
+    their values, the jobs' statuses, and every metric that differs between jobs with the same swept
+    values (key "metric @ param=value, ...")."""
+    root = Path(root)
+    sweeps = [locate_sweep(x, root) if not (Path(x) / "run.json").exists() else None for x in (a, b)]
+    if all(sweeps):
+        return _diff_sweeps(search(sweeps[0]), search(sweeps[1]))
+    one, two = (search(locate(x, root).parent).pipe(lambda t, x=x: t[t["dir"] == str(locate(x, root))])
+                for x in (a, b))
+    keys = [c for c in [*one.columns, *two.columns] if c.startswith(("params.", "metrics."))]
+    rows = _diff_rows(one.iloc[0], two.iloc[0], [*sorted(keys, key=lambda c: not c.startswith("params.")),
+                                                 "code"], skip=("metrics.seconds",))
+    tables = {x: records.read_json(locate(x, root) / "run.json").get("tables") or {} for x in (a, b)}
+    for name in sorted(set(tables[a]) | set(tables[b])):
+        ha, hb = ((tables[x].get(name) or {}).get("sha256") for x in (a, b))
+        if ha != hb:
+            rows.append({"what": "table", "key": name, "a": (ha or "missing")[:12], "b": (hb or "missing")[:12]})
+    return pd.DataFrame(rows, columns=["what", "key", "a", "b"])
+
+
+def _same(x, y) -> bool:
+    if isinstance(x, float) and isinstance(y, float) and np.isnan(x) and np.isnan(y):
+        return True
+    return bool(x == y) if not (pd.isna(x) is True or pd.isna(y) is True) else (pd.isna(x) is pd.isna(y))
+
+
+def _diff_rows(ra: pd.Series, rb: pd.Series, keys: list[str], suffix: str = "", skip=()) -> list[dict]:
+    """Rows (what, key, a, b) of the keys whose values differ (seconds: timings are not results)."""
+    rows = []
+    for key in (k for k in dict.fromkeys(keys) if k not in skip):
+        x, y = ra.get(key, np.nan), rb.get(key, np.nan)
+        if not _same(x, y):
+            what = key.split(".")[0] if "." in key else key
+            rows.append({"what": what.removesuffix("s") if what in ("params", "metrics") else what,
+                         "key": key.split(".", 1)[-1] + suffix, "a": x, "b": y})
+    return rows
+
+
+def _diff_sweeps(ta: pd.DataFrame, tb: pd.DataFrame) -> pd.DataFrame:
+    rows = []
+    params = sorted({c for c in [*ta.columns, *tb.columns] if c.startswith("params.")})
+    swept = [p for p in params if p in changed(ta) or p in changed(tb)]
+    for p in params:
+        if p in swept:
+            values = [sorted(t[p].astype(str).unique()) if p in t else ["missing"] for t in (ta, tb)]
+            rows.append({"what": "swept", "key": p.removeprefix("params."), "a": ", ".join(values[0]),
+                         "b": ", ".join(values[1])})
+        else:
+            x, y = (t[p].iloc[0] if p in t and len(t) else np.nan for t in (ta, tb))
+            if not _same(x, y):
+                rows.append({"what": "param", "key": p.removeprefix("params."), "a": x, "b": y})
+    status = [", ".join(f"{n} {s}" for s, n in t["status"].value_counts().items()) for t in (ta, tb)]
+    rows.append({"what": "jobs", "key": "status", "a": status[0], "b": status[1]})
+    key = [p for p in swept if p in ta and p in tb]
+    metrics = sorted({c for c in [*ta.columns, *tb.columns] if c.startswith("metrics.")} - {"metrics.seconds"})
+    if key:
+        merged = ta.astype({k: str for k in key}).merge(tb.astype({k: str for k in key}), on=key,
+                                                         suffixes=("@a", "@b"))
+        for _, row in merged.iterrows():
+            at = " @ " + ", ".join(f"{k.removeprefix('params.')}={row[k]}" for k in key)
+            ra = pd.Series({m: row.get(f"{m}@a", row.get(m, np.nan)) for m in metrics})
+            rb = pd.Series({m: row.get(f"{m}@b", row.get(m, np.nan)) for m in metrics})
+            rows += _diff_rows(ra, rb, metrics, at)
+    return pd.DataFrame(rows, columns=["what", "key", "a", "b"])
 
 
 def write_sweep_summary(sweep_dir: Path) -> Path:
@@ -168,23 +413,65 @@ def main(argv=None) -> int:
     sub = parser.add_subparsers(dest="command", required=True)
     p_list = sub.add_parser("list", help="table of runs under DIR (default outputs/)")
     p_list.add_argument("dir", nargs="?", default=str(DEFAULT_ROOT))
+    p_list.add_argument("--where", help='filter, e.g. "enkf.q_scale >= 1 and status == \'complete\'"')
+    p_list.add_argument("--sort", help="column to sort by (--sort=-NAME: descending)")
+    p_list.add_argument("--columns", help="comma-separated columns (params./metrics. prefix optional; all: every one)")
+    p_list.add_argument("--changed", action="store_true", help="also the params that vary between the runs")
+    p_list.add_argument("--csv", action="store_true", help="CSV with full column names")
     p_check = sub.add_parser("check", help="list damaged or inconsistent records under DIR (default outputs/)")
     p_check.add_argument("dir", nargs="?", default=str(DEFAULT_ROOT))
     p_check.add_argument("--quarantine", action="store_true",
                          help="move damaged records to DIR/quarantine/ (nothing is deleted), rebuild summaries")
-    for name, text in (("show", "run.json and metrics of one run"), ("verify", "re-run and compare tables")):
+    for name, text in (("show", "run.json and metrics of a run, or a sweep's jobs"),
+                       ("verify", "re-run and compare tables"), ("view", "open the recording(s) in the Rerun viewer")):
         p = sub.add_parser(name, help=text)
         p.add_argument("run")
         p.add_argument("--root", default=str(DEFAULT_ROOT))
+    p_diff = sub.add_parser("diff", help="config and metric differences of two runs or two sweeps")
+    p_diff.add_argument("a")
+    p_diff.add_argument("b")
+    p_diff.add_argument("--root", default=str(DEFAULT_ROOT))
     args = parser.parse_args(argv)
+    try:
+        return _command(args)
+    except (ValueError, LookupError) as err:
+        print(f"rdsexp-runs: {err}", file=sys.stderr)
+        return 2
+
+
+def _command(args) -> int:
     if args.command == "list":
-        table = catalog(Path(args.dir))
-        cols = ["id", "sweep", "overrides", "seed", "status", "method", "synthesis", "lam", "rate", "loop", "seconds"]
-        print(table[cols].to_string(index=False) if len(table) else f"no runs under {args.dir}")
+        table = search(Path(args.dir), args.where)
+        if not len(table):
+            print(f"no runs under {args.dir}" + (f" with {args.where}" if args.where else ""))
+            return 0
+        if args.sort:
+            key = column(table, args.sort.lstrip("-"))
+            table = table.sort_values(key, ascending=not args.sort.startswith("-"), kind="stable")
+        if args.columns == "all":
+            cols = list(table.columns)
+        elif args.columns:
+            cols = [column(table, c.strip()) for c in args.columns.split(",") if c.strip()]
+        else:
+            cols = ["id", "status", *(changed(table) if args.changed else ["params.gain.method"]),
+                    *(c for c in SHOWN if c in table.columns)]
+            cols = [c for c in dict.fromkeys(cols) if c in table.columns]
+        _print(table[cols], args.csv)
         return 0
     if args.command == "check":
         return check(Path(args.dir), move=args.quarantine)
-    run_dir = resolve(args.run, Path(args.root))
+    if args.command == "diff":
+        differences = diff(args.a, args.b, Path(args.root))
+        print(differences.to_string(index=False) if len(differences) else "no differences")
+        return 0
+    root = Path(args.root)
+    sweep = locate_sweep(args.run, root) if not (Path(args.run) / "run.json").exists() else None
+    if args.command == "view":
+        return view(sweep if sweep is not None else locate(args.run, root))
+    if sweep is not None and args.command == "show":
+        show_sweep(sweep)
+        return 0
+    run_dir = locate(args.run, root)
     try:
         info = store.read_run(run_dir)
     except store.DamagedRecord as err:
@@ -201,6 +488,52 @@ def main(argv=None) -> int:
                 pass                                  # named above
         return 0
     return 0 if verify(run_dir) else 1
+
+
+def _print(table: pd.DataFrame, csv: bool) -> None:
+    """A search table as text (short column names, 4 significant digits) or as CSV (full names)."""
+    if csv:
+        sys.stdout.write(table.to_csv(index=False))
+        return
+    short = {c: c.split(".", 1)[1] if c.startswith(("params.", "metrics.")) else c for c in table.columns}
+    print(table.rename(columns=short).to_string(index=False, float_format=lambda v: f"{v:.4g}",
+                                                 na_rep="-"))
+
+
+def show_sweep(sweep_dir: Path) -> None:
+    """The sweep's directory, name, command-line overrides, job statuses and per job the swept params
+    and key metrics."""
+    table = search(sweep_dir)
+    cfg = OmegaConf.load(sweep_dir / "multirun.yaml") if (sweep_dir / "multirun.yaml").exists() else None
+    overrides = list(OmegaConf.select(cfg, "hydra.overrides.task") or []) if cfg is not None else []
+    names = sorted(set(table["sweep"].dropna())) if len(table) else []
+    print(f"sweep {sweep_dir.name}: {', '.join(names) or 'unnamed'}, {len(table)} jobs "
+          f"({', '.join(f'{n} {s}' for s, n in table['status'].value_counts().items()) if len(table) else 'none'})")
+    print(f"  directory: {sweep_dir}")
+    print(f"  overrides: {' '.join(overrides) or '(none)'}")
+    if (sweep_dir / "summary.rrd").exists():
+        print(f"  view: rdsexp-runs view {sweep_dir}")
+    if len(table):
+        cols = ["job", "status", *changed(table), *(c for c in SHOWN if c in table.columns)]
+        _print(table.sort_values("job")[list(dict.fromkeys(cols))], csv=False)
+
+
+def view(target: Path) -> int:
+    """Open a run's recording.rrd, or a sweep's summary.rrd, in the Rerun viewer; without a display
+    (or without the `rerun` command) print the command instead."""
+    name = "recording.rrd" if (target / "run.json").exists() else "summary.rrd"
+    path = target / name
+    if not path.exists():
+        print(f"rdsexp-runs: no {name} in {target} (tracking.recording=false, or a sweep without a summary)",
+              file=sys.stderr)
+        return 1
+    exe = shutil.which("rerun")
+    command = [exe or "rerun", str(path)]
+    display = sys.platform in ("darwin", "win32") or os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")
+    if exe is None or not display:
+        print(" ".join(command))
+        return 0
+    return subprocess.call(command)
 
 
 def cli() -> None:

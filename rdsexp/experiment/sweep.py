@@ -11,7 +11,7 @@ from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
-from .config import ConfigError, build
+from .config import ConfigError, build, check_overrides
 from .records import WriteError, atomic_write_bytes
 from .runs import write_sweep_summary
 
@@ -35,7 +35,9 @@ def validate_sweep(points: list[list[str]]) -> None:
     from hydra import compose
     for overrides in points:
         try:
-            build(compose(config_name="config", overrides=overrides))
+            cfg = compose(config_name="config", overrides=overrides)
+            check_overrides(cfg, overrides)
+            build(cfg)
         except ConfigError as err:
             print(f"rdsexp: config error in sweep job {' '.join(overrides)}: {err}", file=sys.stderr)
             sys.exit(2)
@@ -56,6 +58,8 @@ class SweepSummary(Callback):
         writable_or_exit(Path(config.hydra.sweep.dir))
         points = sweep_points(config)
         validate_sweep(points)
+        from .cli import STATE
+        STATE["started"] = True           # from here on, Hydra's errors are not config errors (exit 1, not 2)
         _SWEEP_BARS[os.getpid()] = tqdm(total=len(points), desc="sweep", unit="job", disable=None, file=sys.stderr)
 
     def on_job_end(self, config: DictConfig, job_return, **kwargs) -> None:
@@ -73,6 +77,11 @@ class SweepSummary(Callback):
             print(f"rdsexp: {err}", file=sys.stderr)
             sys.exit(1)
         print(f"sweep summary: {path}")
+        try:                              # the sweep's own recording: metrics against the swept params
+            from .recording import write_sweep_recording
+            print(f"sweep recording: {write_sweep_recording(path.parent)}")
+        except Exception as err:          # noqa: BLE001 -- a view, never the end of a sweep
+            print(f"rdsexp: no sweep recording ({type(err).__name__}: {err})", file=sys.stderr)
         table = pd.read_parquet(path)
         status = table["status"] if "status" in table else pd.Series([], dtype=object)
         failed = status[status != "complete"].value_counts()

@@ -1,0 +1,133 @@
+"""The run tables' data dictionary: what every column means and its unit.
+
+Each table a run writes carries it in its parquet schema metadata (pandas `DataFrame.attrs`,
+restored by `pd.read_parquet`; stored under the key ``PANDAS_ATTRS`` for other readers) as
+``{"rdsexp": {"run": id, "table": name, "columns": {column: {"description", "unit"}}}}``.
+`python -m rdsexp.experiment.schema` prints the dictionary as docs/data_dictionary.md.
+
+Vector quantities are one column per component, ``q[i]`` (i = 0..n-1); the gain F (m x n) is one
+column per entry, ``F[i,j]`` (u_i = sum_j F[i,j] x_j). Missing values are null (NaN for numbers).
+"""
+from __future__ import annotations
+
+import re
+
+import pandas as pd
+
+_TRAJECTORY = {
+    "experiment": ("which simulation: identification, closed_loop or open_loop", None),
+    "k": ("time step k = 0..horizon", "step"),
+    "path": ("sample path j (own plant and EnKF random streams)", None),
+    "member": ("ensemble member (0..M-1)", None),
+    "q[i]": ("plant state q_k, component i", "state"),
+    "y[i]": ("measured output y_k, component i", "output"),
+    "u[i]": ("applied input u_k = F x_{k|k-1} + d_k, component i", "input"),
+    "x_pred_mean[i]": ("EnKF predicted mean x_{k|k-1} (ensemble mean), component i", "state"),
+    "x_pred_std[i]": ("EnKF predicted spread (ensemble standard deviation) of x, component i", "state"),
+    "x_filt_mean[i]": ("EnKF filtered mean x_{k|k}, component i", "state"),
+    "x_filt_std[i]": ("EnKF filtered spread of x, component i", "state"),
+    "xi_pred_mean[i]": ("EnKF predicted mean xi_{k|k-1} of the model's random parameters, component i", "xi"),
+    "xi_pred_std[i]": ("EnKF predicted spread of xi, component i", "xi"),
+    "xi_filt_mean[i]": ("EnKF filtered mean xi_{k|k}, component i (the modeling data, eq. sample-mean)", "xi"),
+    "xi_filt_std[i]": ("EnKF filtered spread of xi, component i", "xi"),
+    "x_filt[i]": ("filtered ensemble member's x, component i", "state"),
+    "xi_filt[i]": ("filtered ensemble member's xi, component i", "xi"),
+}
+COLUMNS: dict[str, dict[str, tuple[str, str | None]]] = {
+    "trajectories": _TRAJECTORY,
+    "identification": _TRAJECTORY,
+    "members": _TRAJECTORY,
+    "paths": {
+        "experiment": _TRAJECTORY["experiment"], "path": _TRAJECTORY["path"],
+        "failed_at": ("step at which the path failed (-1: never)", "step"),
+        "failure": ("why the path failed (e.g. diverged); null if it did not", None),
+    },
+    "model": {
+        "quantity": ("mean, cov, second_moment of the modeled xi, or Gbar (eq. Gbar)", None),
+        "row": ("matrix row (0 for the mean vector)", None),
+        "col": ("matrix column", None),
+        "value": ("entry of the matrix", None),
+    },
+    "gains": {
+        "distribution": ("moments designed on: identified (from the EnKF), reported (a paper's), fixed", None),
+        "method": ("synthesis method (rdsexp.numerics.synthesis.METHODS) or fixed", None),
+        "selected": ("the gain the closed loop used", None),
+        "status": ("design status (optimal, designed, infeasible, not_applicable, failed: ...)", None),
+        "lam": ("decay rate lambda the design reports (mean-square rate on its moments)", "1/step"),
+        "lam_lower": ("certified lower end of the bisection bracket on lambda", "1/step"),
+        "lower_certified": ("whether lam_lower is proven (infeasible LMI)", None),
+        "nbar": ("rank of Gbar (number of independent random directions)", None),
+        "rate_model": ("exact mean-square rate of F on the design moments", "1/step"),
+        "rate_plant": ("exact mean-square rate of F on the true plant distribution", "1/step"),
+        "lq_cost_q0_plant": ("exact LQ cost sum E(|q|^2 + |u|^2) from the plant's q0, true plant", None),
+        "lq_cost_plant": ("exact LQ cost averaged over x0 ~ N(0, I), true plant", None),
+        "h2_plant": ("H2 norm from d (on u) to [x; F x], true plant", None),
+        "lq_cost_model": ("exact LQ cost averaged over x0 ~ N(0, I), design moments", None),
+        "h2_model": ("H2 norm from d to [x; F x], design moments", None),
+        "lam_box": ("robust_box's certified rate over the box of xi (NaN for other methods)", "1/step"),
+        "max_width": ("robust_box with find_max_width: largest box width with a certified rate (NaN otherwise)",
+                      None),
+        "min_infeasible_width": ("robust_box with find_max_width: smallest width proven infeasible (NaN otherwise)",
+                                 None),
+        "F[i,j]": ("gain entry (row i = input, column j = state), u = F x; NaN without a gain", None),
+    },
+    "metrics": {
+        "experiment": _TRAJECTORY["experiment"],
+        "status": ("ok, or failed when some path diverged", None),
+        "rate": ("empirical rate: fitted decay of sqrt(E|q_k|^2) over k_from..k_to", "1/step"),
+        "rate_low": ("lower end of the rate's 95% interval", "1/step"),
+        "rate_high": ("upper end of the rate's 95% interval", "1/step"),
+        "k_from": ("first step of the rate window", "step"),
+        "k_to": ("last step of the rate window", "step"),
+        "paths": ("number of sample paths", None),
+        "failed_fraction": ("fraction of paths that failed", None),
+        "x_error_rms": ("RMS of x_{k|k-1} - q_k over steps and paths", "state"),
+        "q_rms_final": ("sqrt(E|q_K|^2) at the last step", "state"),
+        "x_rmse": ("RMSE of x_{k|k} against q_k, k = 1..K", "state"),
+        "x_spread_error": ("spread/error ratio of x (1: spread matches error)", None),
+        "xi_rmse": ("RMSE of xi_{k|k} against the true xi (NaN if not defined)", "xi"),
+        "xi_spread_error": ("spread/error ratio of xi", None),
+    },
+    "exact": {
+        "experiment": ("closed_loop (selected gain) or open_loop (F = 0), ideal state feedback", None),
+        "k": _TRAJECTORY["k"],
+        "rms": ("exact sqrt(E|q_k|^2) on the true plant distribution", "state"),
+    },
+}
+_INDEX = re.compile(r"\[\d+(,\d+)?\]$")
+
+
+def describe(table: str, column: str) -> dict:
+    """{"description", "unit"} of a column of table `table` (q[3] is described as q[i], F[0,2] as F[i,j])."""
+    generic = _INDEX.sub(lambda m: "[i,j]" if m.group(1) else "[i]", column)
+    description, unit = COLUMNS.get(table, {}).get(generic, (None, None))
+    return {"description": description, "unit": unit}
+
+
+def attach(table: str, frame: pd.DataFrame, run: str) -> pd.DataFrame:
+    """frame with its schema metadata (run id, table name, column descriptions) in frame.attrs."""
+    frame.attrs = {"rdsexp": {"run": run, "table": table,
+                              "columns": {c: describe(table, c) for c in frame.columns}}}
+    return frame
+
+
+def markdown() -> str:
+    """docs/data_dictionary.md: every table's columns, descriptions and units."""
+    lines = ["# Data dictionary of a run's tables", "",
+             "Generated by `python -m rdsexp.experiment.schema` from `rdsexp/experiment/schema.py`; every",
+             "table also carries these descriptions and the run id in its parquet schema metadata",
+             "(`pd.read_parquet(path).attrs[\"rdsexp\"]`). `rdsexp.runs.load(run, table)` adds the run id",
+             "as a column `run`. Vector quantities are one column per component `q[i]`; the gain F (m x n) is",
+             "one column per entry `F[i,j]` (u = F x). Missing values are null (NaN for numbers).", ""]
+    for table, columns in COLUMNS.items():
+        if table in ("identification", "members"):
+            continue
+        title = "trajectories, identification, members" if table == "trajectories" else table
+        lines += [f"## {title}", "", "| column | description | unit |", "|---|---|---|"]
+        lines += [f"| `{c}` | {d} | {u or ''} |" for c, (d, u) in columns.items()]
+        lines.append("")
+    return "\n".join(lines)
+
+
+if __name__ == "__main__":
+    print(markdown(), end="")

@@ -1,0 +1,158 @@
+"""rdsexp.runs: search, list, diff, show and load over stored run directories."""
+import json
+
+import numpy as np
+import pandas as pd
+import pytest
+from conftest import rdsexp
+from hydra import compose, initialize_config_module
+from omegaconf import OmegaConf
+
+from rdsexp import runs
+
+
+def fake_run(root, sweep, job, overrides, summary, tables=None):
+    """A run directory as the runner writes it: .hydra/config.yaml (the composed config) and run.json."""
+    run_dir = root / sweep / str(job)
+    (run_dir / ".hydra").mkdir(parents=True)
+    with initialize_config_module(config_module="rdsexp.conf", version_base="1.3"):
+        OmegaConf.save(compose("config", overrides=overrides), run_dir / ".hydra" / "config.yaml")
+    info = {"id": f"{sweep}/{job}", "status": "complete", "created": f"2026-01-01T00:{sweep}:{job:02d}",
+            "sweep": {"dir": str(root / sweep), "job": job, "name": "noise"}, "config_hash": f"h{sweep}{job}",
+            "code": {"version": "abc"}, "summary": summary, "tables": tables or {}, "seconds": 1.0 + job}
+    (run_dir / "run.json").write_text(json.dumps(info))
+    return run_dir
+
+
+def summary(lam, rate, status="ok"):
+    return {"plant": "paper", "gain_method": "proposed", "lam": lam, "xi_mean": [0.4, 0.2],
+            "closed_loop_status": status, "closed_loop_rate": [rate, rate - 0.01, rate + 0.01], "designs": {}}
+
+
+@pytest.fixture(scope="module")
+def root(tmp_path_factory):
+    root = tmp_path_factory.mktemp("outputs")
+    for sweep, seed in (("A", 0), ("B", 1)):
+        for job, q in enumerate((0.25, 1.0, 4.0)):
+            fake_run(root, sweep, job, [f"enkf.q_scale={q}", f"seed={seed}"],
+                     summary(0.8 + 0.01 * job + 0.001 * seed, 0.9 + 0.02 * job, "ok" if q < 4 else "failed"))
+    return root
+
+
+def test_search_has_params_and_metrics_per_run(root):
+    table = runs.search(root)
+    assert list(table["id"]) == [f"{s}/{j}" for s in "AB" for j in range(3)]
+    assert list(table["params.enkf.q_scale"]) == [0.25, 1.0, 4.0] * 2
+    assert list(table["params.seed"]) == [0, 0, 0, 1, 1, 1]
+    assert table["params.enkf.ensemble_size"].eq(300).all() and table["params.gain.method"].eq("proposed").all()
+    assert table["params.closed_loop.rate_window"].eq("[0.6, 0.8]").all()      # short lists as text
+    np.testing.assert_allclose(table["metrics.closed_loop_rate_low"], table["metrics.closed_loop_rate"] - 0.01)
+    assert list(table["metrics.xi_mean[1]"]) == [0.2] * 6 and list(table["job"]) == [0, 1, 2] * 2
+    assert "params.plant.A" not in table        # matrices are not scalars
+    grouped = table.groupby("params.enkf.q_scale")["metrics.closed_loop_rate"].mean()
+    np.testing.assert_allclose(grouped.to_numpy(), [0.9, 0.92, 0.94])
+
+
+@pytest.mark.parametrize("where, ids", [
+    ("params.enkf.q_scale >= 1 and metrics.lam < 0.8115", ["A/1", "B/1"]),
+    ("enkf.q_scale = 4 and closed_loop_status == 'failed'", ["A/2", "B/2"]),      # short names, `=`
+    ("seed == 1 and lam > 0.815", ["B/2"]),
+])
+def test_search_where(root, where, ids):
+    assert list(runs.search(root, where)["id"]) == ids
+
+
+def test_bad_where_is_one_line(root):
+    with pytest.raises(ValueError, match="where 'nosuch > 1'"):
+        runs.search(root, "nosuch > 1")
+
+
+def test_list_changed_sort_columns_csv(root, tmp_path):
+    out = rdsexp("list", str(root), "--changed", "--sort=-closed_loop_rate", "--where", "seed == 0",
+                 cwd=tmp_path, module="rdsexp.runs").stdout.splitlines()
+    assert out[0].split() == ["id", "status", "enkf.q_scale", "lam", "closed_loop_rate", "closed_loop_status"]
+    assert [line.split()[0] for line in out[1:]] == ["A/2", "A/1", "A/0"]
+    csv = rdsexp("list", str(root), "--columns", "enkf.q_scale,seed,lam", "--csv", cwd=tmp_path,
+                 module="rdsexp.runs").stdout
+    table = pd.read_csv(pd.io.common.StringIO(csv))
+    assert list(table.columns) == ["params.enkf.q_scale", "params.seed", "metrics.lam"] and len(table) == 6
+    bad = rdsexp("list", str(root), "--sort", "nosuch", cwd=tmp_path, module="rdsexp.runs", check=False)
+    assert bad.returncode == 2 and bad.stderr.strip() == "rdsexp-runs: 'nosuch' names no column"
+
+
+def test_diff_runs_and_sweeps(root, tmp_path):
+    rows = runs.diff(str(root / "A" / "0"), str(root / "A" / "2"))
+    got = {(r.what, r.key): (r.a, r.b) for r in rows.itertuples()}
+    assert got[("param", "enkf.q_scale")] == (0.25, 4.0) and got[("metric", "closed_loop_status")] == ("ok", "failed")
+    assert ("metric", "seconds") not in got and ("param", "seed") not in got
+    assert runs.diff(str(root / "A" / "1"), str(root / "A" / "1")).empty
+    rows = runs.diff(str(root / "A"), str(root / "B"))
+    got = {(r.what, r.key): (r.a, r.b) for r in rows.itertuples()}
+    assert got[("param", "seed")] == (0, 1)
+    assert got[("swept", "enkf.q_scale")] == ("0.25, 1.0, 4.0", "0.25, 1.0, 4.0")
+    assert got[("metric", "lam @ enkf.q_scale=4.0")] == pytest.approx((0.82, 0.821))
+    assert not any(k.startswith("closed_loop_rate") for _, k in got)      # equal in both sweeps
+    out = rdsexp("diff", "A", "B", "--root", str(root), cwd=tmp_path, module="rdsexp.runs").stdout
+    assert "lam @ enkf.q_scale=0.25" in out
+
+
+def test_show_sweep(root, tmp_path):
+    out = rdsexp("show", "B", "--root", str(root), cwd=tmp_path, module="rdsexp.runs").stdout.splitlines()
+    assert out[0] == "sweep B: noise, 3 jobs (3 complete)"
+    assert out[3].split() == ["job", "status", "enkf.q_scale", "lam", "closed_loop_rate", "closed_loop_status"]
+
+
+def test_load_adds_run_id_and_long_form(small_run):
+    wide = runs.load(small_run, "trajectories")
+    info = json.loads((small_run / "run.json").read_text())
+    assert wide["run"].eq(info["id"]).all() and list(wide.columns[:4]) == ["run", "experiment", "k", "path"]
+    long = runs.load(small_run, "trajectories", long=True)
+    assert list(long.columns) == ["run", "experiment", "path", "k", "quantity", "index", "value"]
+    values = [c for c in wide.columns if "[" in c]
+    assert len(long) == len(wide) * len(values)
+    pick = long[(long["experiment"] == "closed_loop") & (long["path"] == 2) & (long["k"] == 7)
+                & (long["quantity"] == "x_filt_mean") & (long["index"] == 3)]["value"]
+    want = wide[(wide["experiment"] == "closed_loop") & (wide["path"] == 2) & (wide["k"] == 7)]["x_filt_mean[3]"]
+    assert pick.tolist() == want.tolist()
+    with pytest.raises(ValueError, match="not a trajectory table"):
+        runs.load(small_run, "gains", long=True)
+    with pytest.raises(ValueError, match="table 'nosuch'"):
+        runs.load(small_run, "nosuch")
+
+
+def test_tables_carry_run_id_and_described_columns(small_run):
+    info = json.loads((small_run / "run.json").read_text())
+    for name, meta in info["tables"].items():
+        frame = pd.read_parquet(small_run / meta["file"])
+        attrs = frame.attrs["rdsexp"]
+        assert attrs["run"] == info["id"] and attrs["table"] == name
+        assert list(attrs["columns"]) == list(frame.columns)
+        missing = [c for c, d in attrs["columns"].items() if not d["description"]]
+        assert not missing, (name, missing)
+    gains = pd.read_parquet(small_run / "gains.parquet")
+    m, n = 1, 6                                   # the paper's plant
+    assert [c for c in gains.columns if c.startswith("F[")] == [f"F[0,{j}]" for j in range(n)][: m * n]
+    paths = pd.read_parquet(small_run / "paths.parquet")
+    assert paths.loc[paths["failed_at"] < 0, "failure"].isna().all()
+
+
+def test_data_dictionary_in_docs_is_current():
+    from conftest import REPO
+
+    from rdsexp.experiment import schema
+    assert (REPO / "docs" / "data_dictionary.md").read_text() == schema.markdown()
+
+
+def test_sweep_recording_and_view(root, tmp_path, monkeypatch):
+    for name in ("DISPLAY", "WAYLAND_DISPLAY"):        # no display: `view` prints the command
+        monkeypatch.delenv(name, raising=False)
+    from rdsexp.experiment.recording import read_series, write_sweep_recording
+    path = write_sweep_recording(root / "A")
+    assert path == root / "A" / "summary.rrd"
+    table = runs.search(root / "A")
+    jobs, lam = read_series(path, "/sweep/metrics/lam", index="job")
+    assert list(jobs) == [0, 1, 2] and lam.tolist() == table["metrics.lam"].tolist()
+    _, q = read_series(path, "/sweep/params/enkf.q_scale", index="job")
+    assert q.tolist() == [0.25, 1.0, 4.0]
+    out = rdsexp("view", "A", "--root", str(root), cwd=tmp_path, module="rdsexp.runs").stdout
+    assert out.split()[-1] == str(path) and "rerun" in out.split()[0]
