@@ -21,13 +21,15 @@ from tqdm.contrib.logging import logging_redirect_tqdm
 from ..numerics.analysis import empirical_rate, h2_norm, lq_cost, ms_rate, second_moments
 from ..numerics.enkf import truth_map
 from ..numerics.modeling import model_distribution, nominal_gain, one_line
+from ..numerics.online import OnlineController, rates
 from ..numerics.simulation import Trajectories, simulate
 from ..numerics.synthesis import METHODS, SynthesisResult, synthesize
 from ..numerics.systems import MomentModel
 from .config import Experiment
 
 log = logging.getLogger("rdsexp")
-SPAWN_KEYS = {"identification": (0,), "closed_loop": (1,), "open_loop": (1,)}
+# the online loop shares the closed loop's seeds: the same plant samples and EnKF noise, a paired comparison
+SPAWN_KEYS = {"identification": (0,), "closed_loop": (1,), "open_loop": (1,), "online": (1,)}
 TABLES = ("trajectories", "identification", "paths", "model", "gains", "metrics", "exact")
 
 
@@ -105,6 +107,12 @@ def run_experiment(exp: Experiment) -> Outcome:
                 with bar, logging_redirect_tqdm():
                     loops[name] = simulate(exp.plant, exp.enkf, F=F, seed=root(name), progress=step, **settings)
 
+    online = None
+    if exp.controller == "online":
+        with timed(timings, "online"):
+            online, summary["online_initial"] = online_loop(exp, root("online"), keep, sim)
+            loops["online"] = online[0]
+
     with timed(timings, "metrics"):
         tables = {
             "trajectories": pd.concat([trajectory_table(name, tr) for name, tr in loops.items()],
@@ -116,6 +124,8 @@ def run_experiment(exp: Experiment) -> Outcome:
             "metrics": metrics_table(exp, loops),
             "exact": exact_table(exp, chosen),
         }
+    if online is not None:
+        add_online_tables(exp, tables, online, chosen, summary)
     summary.update(_summary(exp, dist, chosen, tables))
     timings["synthesis_by_method"] = {f"{source}/{method}": round(res.seconds, 4)
                                       for (source, method), (_, res) in designs.items()}
@@ -124,6 +134,91 @@ def run_experiment(exp: Experiment) -> Outcome:
         members = pd.concat([members_table(name, tr, exp) for name, tr in {"identification": ident, **loops}.items()],
                             ignore_index=True)
     return Outcome(tables=tables, summary=summary, timings=timings, members=members)
+
+
+def online_loop(exp: Experiment, seed, keep: bool, sim: dict) -> tuple[tuple[Trajectories, OnlineController], dict]:
+    """The online (learning-type) closed loop: per-path gains re-designed from the path's own xi_{k|k}."""
+    m, n = exp.model.m, exp.model.n
+    info = {"initial": exp.online_initial if isinstance(exp.online_initial, str) else "given"}
+    F0 = exp.online_initial if not isinstance(exp.online_initial, str) else np.zeros((m, n))
+    if exp.online_initial == "nominal":
+        res = nominal_gain(exp.plant, exp.xi_guess)
+        info |= {"method": res.method, "status": res.status, "rate_at_guess": res.lam}
+        if res.F is not None and np.all(np.isfinite(res.F)) and res.lam < 1:
+            F0 = res.F
+        else:
+            info["used"] = "zero (no stabilizing nominal gain)"
+    K = exp.disturbance.shape[0] - 1
+    controller = OnlineController(exp.model, exp.online, F0, paths=exp.paths, horizon=K)
+    bar, step = _progress("online", K + 1)
+    with bar, logging_redirect_tqdm():
+        tr = simulate(exp.plant, exp.enkf, F=F0, d=exp.disturbance, paths=exp.paths, seed=seed,
+                      filter_sees_d=exp.filter_sees_disturbance, keep_members=keep, progress=step,
+                      controller=controller, **sim)
+    return (tr, controller), info
+
+
+def add_online_tables(exp: Experiment, tables: dict, online, chosen, summary: dict) -> None:
+    """The `controller` table, the gain index in `trajectories`, per-path and summary metrics of the
+    online loop against the offline design of the same seed and the optimum on the true plant."""
+    tr, controller = online
+    d = controller.decisions()
+    P, p, m, n = controller.P, exp.model.p, exp.model.m, exp.model.n
+    Abar, Bbar = exp.plant.moment_factors(None)
+    with np.errstate(all="ignore"):
+        rate_plant = rates(Abar, Bbar, np.nan_to_num(d.F, nan=np.inf)) if len(d.k) else np.zeros(0)
+        rate_plant[~np.all(np.isfinite(d.F), axis=(1, 2))] = np.nan
+        initial_plant = rates(Abar, Bbar, controller.F0)
+    rows = {"path": np.concatenate([np.arange(P), d.path]), "k": np.concatenate([np.full(P, -1), d.k]),
+            "adopted": np.concatenate([np.ones(P, bool), d.adopted]),
+            "reason": np.concatenate([np.full(P, "initial", dtype=object), d.reason]),
+            "rate_model": np.concatenate([np.full(P, np.nan), d.rate_model]),
+            "rate_current": np.concatenate([np.full(P, np.nan), d.rate_current]),
+            "rate_plant": np.concatenate([initial_plant, rate_plant])}
+    rows |= _columns("mean", np.concatenate([np.full((P, p), np.nan), d.mean]))
+    rows |= {f"cov[{i},{j}]": np.concatenate([np.full(P, np.nan), d.cov[:, i, j]]) for i in range(p) for j in range(p)}
+    rows |= _columns("F", np.concatenate([controller.F0, d.F]).reshape(-1, m * n))
+    table = pd.DataFrame(rows)          # the initial gains (k = -1: in use from k = 0), then in order of k
+    # gain index: the initial gain is 0, then a path's adopted gains in order (-1: not adopted)
+    table.insert(4, "gain_index", np.where(table["adopted"], table.groupby("path")["adopted"].cumsum() - 1, -1))
+    table = table.sort_values(["path", "k"], kind="stable", ignore_index=True)
+    tables["controller"] = table
+
+    # the gain in use per (k, path) as F[i] columns (the recording draws them as the gain history):
+    # online rows from the gain index, the offline closed loop its fixed F, the open loop 0
+    traj = tables["trajectories"]
+    gains = np.zeros((len(traj), m * n))
+    experiment = traj["experiment"].to_numpy()
+    on = experiment == "online"
+    history = controller.gain_history()
+    paths_k = traj["path"].to_numpy()[on]
+    gains[on] = np.stack([history[j][i].ravel() for j, i in zip(paths_k, tr.gain_index.ravel())]) if on.any() else 0
+    if chosen is not None and chosen.F is not None:
+        gains[experiment == "closed_loop"] = chosen.F.ravel()
+    traj[[f"F[{i}]" for i in range(m * n)]] = gains
+    # per path: the first step at which it holds a gain stable in mean square on the true plant
+    # (-1: never) and the exact true rate of its final gain
+    adopted = table[table["adopted"]]
+    final = adopted.groupby("path")["rate_plant"].last().reindex(range(P)).to_numpy()
+    stable = adopted[adopted["rate_plant"] < 1].groupby("path")["k"].min().reindex(range(P))
+    first = np.where(stable.isna(), -1, stable.fillna(0).to_numpy() + 1).astype(int)
+    paths = tables["paths"]
+    extra = pd.DataFrame({"experiment": "online", "path": np.arange(P), "first_stable_k": first,
+                          "final_rate_plant": final})
+    tables["paths"] = paths.merge(extra, on=["experiment", "path"], how="left")
+    optimum = safe_synthesize(exp.plant, exp.plant.check_distribution(None), "policy_iteration", {})
+    offline = safe_rate(exp.plant, None, chosen.F) if chosen is not None and chosen.F is not None else np.nan
+    q = np.nanpercentile(final, [10, 50, 90]) if np.isfinite(final).any() else [np.nan] * 3
+    online_metrics = {"final_rate_plant_q10": q[0], "final_rate_plant_median": q[1], "final_rate_plant_q90": q[2],
+                      "final_stable_fraction": float(np.mean(final < 1)),
+                      "first_stable_k_median": float(np.median(first[first >= 0])) if (first >= 0).any() else np.nan,
+                      "never_stable_fraction": float(np.mean(first < 0)),
+                      "adoptions_per_path": float(d.adopted.sum() / P),
+                      "offline_rate_plant": offline, "optimal_rate_plant": optimum.lam}
+    metrics = tables["metrics"]
+    for name, value in online_metrics.items():
+        metrics[name] = np.where(metrics["experiment"] == "online", value, np.nan)
+    summary["online"] = {k: (None if not np.isfinite(v) else float(v)) for k, v in online_metrics.items()}
 
 
 def safe_synthesize(model, moments, method: str, options: dict) -> SynthesisResult:
