@@ -98,6 +98,23 @@ def moment_factors(system: AffineRandomSystem, mean: np.ndarray, cov: np.ndarray
     return np.einsum("jri,inl->jrnl", G, system.A), np.einsum("jri,inl->jrnl", G, system.B)
 
 
+def symmetric_part(L: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """The operators L (U, n^2, n^2) on row-major vec(X), restricted to symmetric X: (U, d, d), d = n(n+1)/2,
+    in the coordinates X_ij, i <= j, and the (d, n^2) map back to vec(X).
+
+    For T(X) = sum_r Acl_r X Acl_r^T (and its adjoint), Sym is invariant and holds the PSD Perron
+    eigenvector, so the restriction has the same spectral radius; its eigenproblem is (d / n^2)^3 ~ 1/5
+    of the cost for n >= 4."""
+    i, j = np.triu_indices(n)
+    rows, cols_ij, cols_ji = i * n + j, i * n + j, j * n + i
+    Lr = L[:, rows]
+    out = Lr[:, :, cols_ij] + np.where(i != j, 1.0, 0.0) * Lr[:, :, cols_ji]
+    back = np.zeros((i.size, n * n))
+    back[np.arange(i.size), cols_ij] = 1.0
+    back[np.arange(i.size), cols_ji] = 1.0
+    return out, back
+
+
 def rates(Abar: np.ndarray, Bbar: np.ndarray, F: np.ndarray) -> np.ndarray:
     """Exact mean-square rates sqrt(rho(sum_r Acl_r (x) Acl_r)) of per-path gains F (P, m, n).
 
@@ -110,7 +127,7 @@ def rates(Abar: np.ndarray, Bbar: np.ndarray, F: np.ndarray) -> np.ndarray:
     ok = np.all(np.isfinite(Acl), axis=(1, 2, 3))
     if n <= DENSE_MAX_N:
         L = np.einsum("jrab,jrcd->jacbd", Acl[ok], Acl[ok]).reshape(-1, n * n, n * n)
-        out[ok] = np.sqrt(np.abs(np.linalg.eigvals(L)).max(axis=1)) if len(L) else []
+        out[ok] = np.sqrt(np.abs(np.linalg.eigvals(symmetric_part(L, n)[0])).max(axis=1)) if len(L) else []
     else:
         out[ok] = [np.sqrt(perron(a)[0]) for a in Acl[ok]]
     return out
@@ -133,10 +150,18 @@ def policy_iteration_batch(Abar: np.ndarray, Bbar: np.ndarray, F0: np.ndarray, *
             break
         Acl = Abar[idx] + Bbar[idx] @ F[idx, None]
         L = np.einsum("jrab,jrcd->jbdac", Acl, Acl).reshape(-1, n * n, n * n)   # vec(Acl^T X Acl), row-major
-        w, V = np.linalg.eig(L)
-        i = np.argmax(w.real, axis=1)
-        new = np.sqrt(np.clip(w.real[np.arange(idx.size), i], 0.0, None))
-        X = V[np.arange(idx.size), :, i].real.reshape(-1, n, n)
+        # Perron root from the eigenvalues only, its eigenvector by two steps of inverse iteration
+        # from vec(I) (which is not orthogonal to it): 5x faster than eigenvectors of the whole stack
+        # on symmetric X only (`symmetric_part`)
+        S, back = symmetric_part(L, n)
+        rho = np.linalg.eigvals(S).real.max(axis=1)
+        new = np.sqrt(np.clip(rho, 0.0, None))
+        shifted = S - (rho * (1 + 1e-9) + 1e-300)[:, None, None] * np.eye(S.shape[1])
+        v = np.broadcast_to(np.eye(n)[np.triu_indices(n)], (idx.size, S.shape[1]))
+        for _ in range(2):
+            v = np.linalg.solve(shifted, v[..., None])[..., 0]
+            v /= np.abs(v).max(axis=1, keepdims=True)
+        X = (v @ back).reshape(-1, n, n)
         X = (X + X.transpose(0, 2, 1)) / 2
         X *= (np.sign(np.trace(X, axis1=1, axis2=2)) / np.abs(X).max(axis=(1, 2)))[:, None, None]
         done = (lam[idx] - new <= tol * np.maximum(new, 1e-300)) & (it > 0)
