@@ -93,8 +93,10 @@ def moment_factors(system: AffineRandomSystem, mean: np.ndarray, cov: np.ndarray
     W = np.empty((P, p + 1, p + 1))
     W[:, 0, 0], W[:, 0, 1:], W[:, 1:, 0] = 1.0, mean, mean
     W[:, 1:, 1:] = cov + mean[:, :, None] * mean[:, None, :]
-    w, V = np.linalg.eigh(W)
-    G = np.sqrt(np.clip(w, 0.0, None))[:, :, None] * V.transpose(0, 2, 1)       # (P, p+1, p+1)
+    G = np.full_like(W, np.nan)                    # paths whose moments overflowed stay NaN (a status later)
+    ok = np.all(np.isfinite(W), axis=(1, 2))
+    w, V = np.linalg.eigh(W[ok])
+    G[ok] = np.sqrt(np.clip(w, 0.0, None))[:, :, None] * V.transpose(0, 2, 1)   # (P, p+1, p+1)
     return np.einsum("jri,inl->jrnl", G, system.A), np.einsum("jri,inl->jrnl", G, system.B)
 
 
@@ -133,6 +135,29 @@ def rates(Abar: np.ndarray, Bbar: np.ndarray, F: np.ndarray) -> np.ndarray:
     return out
 
 
+def _perron_symmetric(S: np.ndarray, start: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Largest real eigenvalue (U,) and an eigenvector (U, d) of each S (U, d, d).
+
+    The eigenvalues alone, then two steps of inverse iteration from `start` (vec(I), which is not
+    orthogonal to the PSD Perron eigenvector): 5x faster than all eigenvectors of the stack. Where
+    the shifted system is singular to working precision (e.g. rho = 0), all eigenvectors instead."""
+    rho = np.linalg.eigvals(S).real.max(axis=1)
+    scale = np.abs(S).max(axis=(1, 2))
+    shifted = S - (rho + 1e-9 * np.maximum(np.abs(rho), scale) + 1e-300)[:, None, None] * np.eye(S.shape[1])
+    v = np.broadcast_to(start, (S.shape[0], S.shape[1]))
+    try:
+        for _ in range(2):
+            v = np.linalg.solve(shifted, v[..., None])[..., 0]
+            v = v / np.abs(v).max(axis=1, keepdims=True)
+        if np.all(np.isfinite(v)):
+            return rho, v
+    except np.linalg.LinAlgError:
+        pass
+    w, V = np.linalg.eig(S)
+    i = np.argmax(w.real, axis=1)
+    return w.real[np.arange(len(S)), i], V[np.arange(len(S)), :, i].real
+
+
 def policy_iteration_batch(Abar: np.ndarray, Bbar: np.ndarray, F0: np.ndarray, *, max_iter: int = 200,
                            tol: float = 1e-13) -> np.ndarray:
     """`synthesis.riccati.policy_iteration` for P models at once: gains (P, m, n) from F0 (P, m, n).
@@ -154,13 +179,8 @@ def policy_iteration_batch(Abar: np.ndarray, Bbar: np.ndarray, F0: np.ndarray, *
         # from vec(I) (which is not orthogonal to it): 5x faster than eigenvectors of the whole stack
         # on symmetric X only (`symmetric_part`)
         S, back = symmetric_part(L, n)
-        rho = np.linalg.eigvals(S).real.max(axis=1)
+        rho, v = _perron_symmetric(S, np.eye(n)[np.triu_indices(n)])
         new = np.sqrt(np.clip(rho, 0.0, None))
-        shifted = S - (rho * (1 + 1e-9) + 1e-300)[:, None, None] * np.eye(S.shape[1])
-        v = np.broadcast_to(np.eye(n)[np.triu_indices(n)], (idx.size, S.shape[1]))
-        for _ in range(2):
-            v = np.linalg.solve(shifted, v[..., None])[..., 0]
-            v /= np.abs(v).max(axis=1, keepdims=True)
         X = (v @ back).reshape(-1, n, n)
         X = (X + X.transpose(0, 2, 1)) / 2
         X *= (np.sign(np.trace(X, axis1=1, axis2=2)) / np.abs(X).max(axis=(1, 2)))[:, None, None]
@@ -235,8 +255,9 @@ class OnlineController:
         idx = np.flatnonzero(alive & np.all(np.isfinite(samples), axis=(0, 2)))
         if idx.size == 0:
             return None
-        mean, cov = weighted_moments(samples[:, idx], w)
-        Abar, Bbar = moment_factors(self.system, mean, cov)
+        with np.errstate(all="ignore"):
+            mean, cov = weighted_moments(samples[:, idx], w)
+            Abar, Bbar = moment_factors(self.system, mean, cov)
         F_new, failed = self._design(idx, mean, cov, Abar, Bbar)
         with np.errstate(all="ignore"):
             rate_new = rates(Abar, Bbar, np.nan_to_num(F_new))
@@ -260,12 +281,18 @@ class OnlineController:
         """Gains (U, m, n) for the paths idx and a failure text per path ("" if designed)."""
         s, m, n = self.settings, self.system.m, self.system.n
         failed = np.full(idx.size, "", dtype=object)
-        if s.method == "policy_iteration" and set(s.options) <= {"max_iter", "tol"}:
-            with np.errstate(all="ignore"):
-                F = policy_iteration_batch(Abar, Bbar, self.F[idx], **s.options)
-        else:
-            F = np.full((idx.size, m, n), np.nan)
-            for u in range(idx.size):
+        finite = np.all(np.isfinite(Abar), axis=(1, 2, 3)) & np.all(np.isfinite(Bbar), axis=(1, 2, 3))
+        failed[~finite] = "failed: the modeled moments are not finite"
+        F = np.full((idx.size, m, n), np.nan)
+        batched = s.method == "policy_iteration" and set(s.options) <= {"max_iter", "tol"}
+        if batched and finite.any():
+            try:
+                with np.errstate(all="ignore"):
+                    F[finite] = policy_iteration_batch(Abar[finite], Bbar[finite], self.F[idx[finite]], **s.options)
+            except (np.linalg.LinAlgError, ValueError):     # e.g. an eigensolver that did not converge:
+                batched = False                              # path by path below, failures as statuses
+        if not batched:
+            for u in np.flatnonzero(finite):
                 try:
                     with np.errstate(all="ignore"):
                         res = synthesize(self.system, MomentModel(mean=mean[u], cov=cov[u]), s.method, **s.options)
