@@ -28,6 +28,10 @@ def decay(ax, run: report.Run) -> None:
         k = np.arange(q.shape[0])
         ax.fill_between(k, low, high, color=color, alpha=0.2, lw=0)
         ax.semilogy(k, mid, color=color, ls=ls, label=label)
+        alive = run.table("paths").query("experiment == @experiment")["failed_at"].to_numpy() < 0
+        if not alive.all() and alive.any():          # a few diverging paths dominate the mean square
+            ax.semilogy(k, report.rms_with_band(q[:, alive])[0], color=color, ls="--",
+                        label=f"{label.split(' (')[0]}, the {alive.mean():.0%} of paths not diverged")
     ax.set_xlabel("$k$")
     ax.set_ylabel(r"$\sqrt{E\|q_k\|^2}$")
     ax.set_title(f"seed {run.get('seed')}, {int(run.get('closed_loop.paths'))} paths")

@@ -218,6 +218,10 @@ def add_online_tables(exp: Experiment, tables: dict, online, chosen, summary: di
                       "first_stable_k_median": float(np.median(first[first >= 0])) if (first >= 0).any() else np.nan,
                       "never_stable_fraction": float(np.mean(first < 0)),
                       "adoptions_per_path": float(d.adopted.sum() / P),
+                      # the k-window rate over the paths that did not diverge (the `rate` column is NaN
+                      # as soon as one path diverged)
+                      "rate_not_diverged": empirical_rate(tr.q[:, tr.failed_at < 0], *exp.rate_window)[0]
+                      if (tr.failed_at < 0).any() else np.nan,
                       "offline_rate_plant": offline, "optimal_rate_plant": optimum.lam}
     metrics = tables["metrics"]
     for name, value in online_metrics.items():
