@@ -1,12 +1,12 @@
 """EnKF variants against ensemble size M: closed-loop rate, diverged fraction and xi RMSE.
 
-From the latest `filters` sweep (conf/sweep/filters.yaml), per filter (variant, inflation rho,
-relaxation alpha) and M, over seeds: the empirical k = 60..80 closed-loop rate (mean with a 95%
-t-interval over the seeds whose loop kept every path; an open marker where some seed diverged),
-the fraction of closed-loop paths that diverged (mean over seeds), and the RMSE of the filtered
-xi against the true xi. Also a table (filters_frontier) and the sentence: the smallest M at which
-each filter's rate is within 0.01 of the stochastic EnKF at M = 300 (no inflation, no relaxation)
-with no path diverged in any seed.
+From the latest `filters` sweep (conf/sweep/filters.yaml) of each plant (files filters_<plant>.*),
+per filter (variant, inflation rho, relaxation alpha) and M, over seeds: the empirical k = 60..80
+closed-loop rate (mean with a 95% t-interval over the seeds whose loop kept every path; an open
+marker where some seed diverged), the fraction of closed-loop paths that diverged (mean over
+seeds), and the RMSE of the filtered xi against the true xi. Also a table (filters_<plant>_frontier)
+and the sentence: the smallest M at which each filter's rate is within 0.01 of the stochastic EnKF
+at M = 300 (no inflation, no relaxation) with no path diverged in any seed.
 
     python experiments/fig_filters.py [--root outputs] [--out outputs/report]
 """
@@ -79,14 +79,15 @@ def frontier(stats: pd.DataFrame) -> tuple[pd.DataFrame, float, str]:
 
 
 STYLE = {"stochastic": "black", "etkf": "0.5"}
-MARKERS = {(1.0, 0.0): ("o", "-"), (1.1, 0.0): ("s", "--"), (1.0, 0.1): ("^", ":"), (1.1, 0.1): ("D", "-.")}
+MARKERS = [("o", "-"), ("s", "--"), ("^", ":"), ("D", "-."), ("v", "-"), ("x", "--")]
 
 
-def draw(stats: pd.DataFrame, ref: float):
-    fig, axes = report.figure(report.PAGE_WIDTH, 2.5, 1, 3)
+def draw(stats: pd.DataFrame, ref: float, plant: str):
+    fig, axes = report.figure(report.PAGE_WIDTH, 2.6, 1, 3)
+    options = sorted({(r.inflation, r.relaxation) for r in stats.itertuples()})     # one marker per (rho, alpha)
     for (v, rho, a), g in stats.groupby(["variant", "inflation", "relaxation"]):
         g = g.sort_values("M")
-        marker, ls = MARKERS.get((rho, a), ("x", "-"))
+        marker, ls = MARKERS[options.index((rho, a)) % len(MARKERS)]
         kw = dict(color=STYLE.get(v, "0.3"), ls=ls, marker=marker, ms=3, label=label(v, rho, a))
         clean = g["seeds_diverged"] == 0
         axes[0].errorbar(g["M"], g["rate"], yerr=[g["rate"] - g["rate_low"], g["rate_high"] - g["rate"]],
@@ -106,23 +107,39 @@ def draw(stats: pd.DataFrame, ref: float):
         ax.set_title(title)
     axes[1].set_ylim(-0.02, 1.02)
     axes[0].legend(frameon=False, fontsize=5.5)
+    fig.suptitle(f"plant {plant}", fontsize=8)
     return fig
 
 
 def main(argv=None):
     args = report.arguments(__doc__.splitlines()[0], argv)
-    runs = report.load_runs(args.root, SWEEP)
-    if not runs:
+    by_plant = latest_per_plant(report.load_runs(args.root))
+    if not by_plant:
         raise SystemExit(f"no stored `{SWEEP}` sweep under {args.root}: run `rdsexp +sweep={SWEEP}` first")
-    report.check_versions(runs, args.allow_mixed)
-    stats = summary(points(runs))
-    table, ref, sentence = frontier(stats)
-    paths = report.save_figure(draw(stats, ref), args.out, NAME, runs, __file__)
-    report.write_table(stats, args.out, f"{NAME}_summary", runs, __file__)
-    report.write_table(table, args.out, f"{NAME}_frontier", runs, __file__)
-    records.atomic_write_bytes(args.out / f"{NAME}_frontier.txt", (sentence + "\n").encode())
-    print(sentence)
+    paths = []
+    for plant, runs in sorted(by_plant.items()):
+        report.check_versions(runs, args.allow_mixed)
+        stats = summary(points(runs))
+        table, ref, sentence = frontier(stats)
+        name = f"{NAME}_{plant}"
+        paths += report.save_figure(draw(stats, ref, plant), args.out, name, runs, __file__)
+        report.write_table(stats, args.out, f"{name}_summary", runs, __file__)
+        report.write_table(table, args.out, f"{name}_frontier", runs, __file__)
+        sentence = f"Plant {plant}: {sentence}"
+        records.atomic_write_bytes(args.out / f"{name}_frontier.txt", (sentence + "\n").encode())
+        print(sentence)
     return paths
+
+
+def latest_per_plant(runs: list[report.Run]) -> dict[str, list[report.Run]]:
+    """plant name -> the runs of the latest `filters` sweep on that plant."""
+    runs = [r for r in runs if (r.info.get("sweep") or {}).get("name") == SWEEP]
+    out = {}
+    for plant in {r.get("plant.name") for r in runs}:
+        mine = [r for r in runs if r.get("plant.name") == plant]
+        latest = max(r.info["sweep"]["dir"] for r in mine)
+        out[plant] = [r for r in mine if r.info["sweep"]["dir"] == latest]
+    return out
 
 
 if __name__ == "__main__":

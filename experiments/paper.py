@@ -4,7 +4,9 @@
 
 Finds the latest stored `paper`, `ensemble_size`, `noise`, `window`, `identification_input` and
 `closed_loop_rate` sweeps under --root; a missing one is run first (`python -m rdsexp
-+sweep=NAME`, said on the terminal). Then every figure and table is drawn from the stored parquet
++sweep=NAME`, said on the terminal). The pole_sets study (exact rates of pole-placement gains, no
+Monte Carlo) is computed from the configs; the robust_width figure and table are drawn when its sweep
+is stored (`python -m rdsexp +sweep=robust_width`). Then every figure and table is drawn from the stored parquet
 tables only; re-running on the same runs rewrites identical files and simulates nothing. Refuses
 runs of different code versions unless --allow-mixed. Last, index.md: one page with every figure
 (in the paper's order, then any other figure present), its caption and the tables.
@@ -19,7 +21,9 @@ import fig_estimation
 import fig_gains
 import fig_sweeps
 import identification_input
+import pole_sets
 import reproduction_table
+import robust_width
 
 from rdsexp import report
 from rdsexp.experiment import records
@@ -33,6 +37,9 @@ PAGE = (("figure", "estimation", "Identification run (Sec. V-A, Fig. estimation)
         ("table", "closed_loop_rate", "The closed-loop rate k = 60..80 by gain source and EnKF input"),
         ("figure", "gain_comparison", "Gain comparison (Sec. V-B)"),
         ("table", "gain_comparison", None),
+        ("table", "pole_sets", "Pole placement with other poles (Sec. V-B), exact rates"),
+        ("figure", "robust_width", "Robust box design against the box width (Sec. V-B)"),
+        ("table", "robust_width", None),
         ("table", "reproduction_inputs", "Paper vs rdsexp: inputs configured as the paper says"),
         ("table", "reproduction", "Paper vs rdsexp: results computed"),
         ("figure", "sweeps", "Sweeps beyond the paper"))
@@ -76,7 +83,8 @@ def main(argv=None) -> None:
     args = report.arguments(__doc__.splitlines()[0], argv)
     ensure_sweeps(args.root)
     common = ["--root", str(args.root), "--out", str(args.out)] + (["--allow-mixed"] if args.allow_mixed else [])
-    for script in (fig_estimation, fig_decay, fig_gains, fig_sweeps, identification_input, closed_loop_rate):
+    for script in (fig_estimation, fig_decay, fig_gains, fig_sweeps, identification_input, closed_loop_rate,
+                   pole_sets, robust_width):
         script.main(common)
     _, results = reproduction_table.main(common)
     counts = reproduction_table.verdict_counts(results)

@@ -215,7 +215,8 @@ def is_input(key: str) -> bool:
     return key.startswith(INPUT_KEYS)
 
 
-def build(runs: list[report.Run], ident_runs=(), rate_runs=()) -> tuple[pd.DataFrame, pd.DataFrame]:
+def build(runs: list[report.Run], ident_runs=(), rate_runs=(), robust_runs=(), pole_sets=None) \
+        -> tuple[pd.DataFrame, pd.DataFrame]:
     """(inputs, results): configured settings (no verdict) and computed results (verdicts)."""
     s = Sources(runs)
     inputs, results = [], []
@@ -232,6 +233,7 @@ def build(runs: list[report.Run], ident_runs=(), rate_runs=()) -> tuple[pd.DataF
             results.append({"number": key, "paper": paper_text, "rdsexp": text, "difference": diff,
                             "verdict": verdict, "reason": reason})
     results += extra_rows(s, list(ident_runs), list(rate_runs))
+    results += design_rows(list(robust_runs), pole_sets)
     return pd.DataFrame(inputs), pd.DataFrame(results)
 
 
@@ -268,6 +270,52 @@ def extra_rows(s: Sources, ident_runs: list[report.Run], rate_runs: list[report.
     return rows
 
 
+def design_rows(robust_runs: list[report.Run], pole_sets: pd.DataFrame | None) -> list[dict]:
+    """Sec. V-B's sentences on other poles and on robust control, measured (robust_width sweep, pole_sets table)."""
+    import robust_width
+    rows = []
+    if pole_sets is not None:
+        paper = pole_sets[pole_sets["plant"] == "paper"].set_index("basis")
+        if len(paper):
+            row = paper.loc["reported"] if "reported" in paper.index else paper.iloc[0]
+            none = row["ms_stabilizing"] == 0
+            rows.append({"number": "pole_placement.other_poles", "paper": "other poles also fail to stabilize",
+                         "rdsexp": f"{row['ms_stabilizing']}/{row['sets']} random pole sets give a mean-square "
+                                   f"stabilizing gain on the true plant ({row['ms_stabilizing_fraction']:.1%}, 95% "
+                                   f"[{row['fraction_low']:.1%}, {row['fraction_high']:.1%}]; designed on the "
+                                   f"{row.name} moments, exact rates)", "difference": np.nan,
+                         "verdict": REPRODUCED if none else DIFFERS,
+                         "reason": "" if none else
+                         f"most fail as the paper says, but not all: the best sampled set reaches the exact rate "
+                         f"{row['best_rate_plant']:.4f} (proposed {row['proposed_rate_plant']:.4f}); which poles work "
+                         f"cannot be told from the mean model (pole_sets.csv)"})
+    if robust_runs:
+        o = robust_width.outcome(robust_width.per_run(robust_runs))
+        lo_w, hi_w, lo_u, hi_u = o["boundary"]
+        full = o["widest_infeasible"] == o["widest_seeds"]
+        rows.append({"number": "robust_control.full_range", "paper": "impossible (LMI infeasible)",
+                     "rdsexp": f"box mean +- {o['widest']:g} std infeasible in {o['widest_infeasible']}/"
+                               f"{o['widest_seeds']} seeds; feasible up to {lo_w:.3g}-{hi_w:.3g} std, proven "
+                               f"infeasible from {lo_u:.3g}-{hi_u:.3g} std (range over seeds)", "difference": np.nan,
+                     "verdict": REPRODUCED if full else DIFFERS,
+                     "reason": "" if full else "the widest swept box is quadratically stabilizable in some seeds"})
+        useless = o["faster_than_open"] == 0
+        rows.append({"number": "robust_control.narrowed", "paper": "unstable or convergence not improved",
+                     "rdsexp": f"{o['feasible_runs']} feasible (width, seed) runs: exact rate on the true plant "
+                               f"{o['rate_plant_range'][0]:.4f}-{o['rate_plant_range'][1]:.4f} (proposed "
+                               f"{o['proposed_range'][0]:.4f}-{o['proposed_range'][1]:.4f}, slower in "
+                               f"{o['slower_than_proposed']}); EnKF loop faster than the open loop in "
+                               f"{o['faster_than_open']}", "difference": np.nan,
+                     "verdict": REPRODUCED if useless else DIFFERS,
+                     "reason": "" if useless else
+                     f"narrowed boxes can give stable loops faster than the open loop ({o['faster_than_open']} of "
+                     f"{o['feasible_runs']} runs), "
+                     + ("none faster than the proposed gain" if o["slower_than_proposed"] == o["feasible_runs"] else
+                        f"{o['feasible_runs'] - o['slower_than_proposed']} even faster than the proposed gain")
+                     + " (robust_width table)"})
+    return rows
+
+
 def verdict_counts(results: pd.DataFrame) -> pd.Series:
     """Verdicts of the computed results only (configured inputs carry none)."""
     return results["verdict"].value_counts()
@@ -280,10 +328,13 @@ def main(argv=None):
     runs = report.paper_runs(args)
     ident = report.load_runs(args.root, identification_input.SWEEP)
     rate = report.load_runs(args.root, closed_loop_rate.SWEEP)
-    report.check_versions(runs + ident + rate, args.allow_mixed)
-    inputs, results = build(runs, ident, rate)
+    import robust_width
+    robust = report.load_runs(args.root, robust_width.SWEEP)
+    pole_sets = args.out / "pole_sets.csv"            # written by experiments/pole_sets.py (exact, no runs)
+    report.check_versions(runs + ident + rate + robust, args.allow_mixed)
+    inputs, results = build(runs, ident, rate, robust, pd.read_csv(pole_sets) if pole_sets.exists() else None)
     report.write_table(inputs, args.out, INPUTS_NAME, runs, __file__)
-    report.write_table(results, args.out, NAME, runs + ident + rate, __file__)
+    report.write_table(results, args.out, NAME, runs + ident + rate + robust, __file__)
     return inputs, results
 
 

@@ -208,7 +208,7 @@ def test_robust_box_width_zero_equals_nominal_lmi(seed):
     dist = rx.MomentModel(mean=[0.0], cov=[[0.04]])                 # A(mean) = T A0 T^T
     box = rx.synthesize(system, dist, "robust_box", width=0.0, tol=1e-7)
     nominal = rx.synthesize(system, dist, "nominal_lmi")
-    assert box.status == "box_optimal" and nominal.status == "optimal"
+    assert box.status == "box_optimal" and nominal.status == "optimal_on_mean_model"
     assert box.info["lam_box"] == pytest.approx(nominal.lam, abs=1e-4)
     assert box.info["lam_box"] == pytest.approx(0.7, abs=1e-4) and box.info["lam_box"] >= 0.7 - 1e-9
     A, B, _, _ = system.at(dist.mean)
@@ -220,7 +220,7 @@ def test_robust_box_on_paper_model_width_zero_is_the_nominal_case():
     system, dist = rx.paper.model(), rx.paper.modeled_distribution()
     box = rx.synthesize(system, dist, "robust_box", width=0.0)
     nominal = rx.synthesize(system, dist, "nominal_lmi")
-    assert box.status == nominal.status == "infimum_not_attained"
+    assert box.status == "infimum_not_attained" and nominal.status == "infimum_not_attained_on_mean_model"
     assert box.info["vertices"] == 1
     assert rx.ms_rate(system, dist, box.F) > 1 and rx.ms_rate(system, dist, nominal.F) > 1
 
@@ -251,3 +251,56 @@ def test_robust_box_polytope_and_max_width():
 def test_bad_design_options(method, options, message):
     with pytest.raises(ValueError, match=message):
         rx.synthesize(rx.paper.model(), rx.paper.modeled_distribution(), method, **options)
+
+
+# ----------------------------------------------------------------------------- pole sets, costs, table
+def test_random_pole_sets_lie_in_the_disc_closed_under_conjugation_and_are_placed():
+    from rdsexp.numerics.synthesis.classical import random_pole_sets
+    rng = np.random.default_rng(3)
+    sets = random_pole_sets(rng, 5, 300)
+    assert sets.shape == (300, 5) and np.all(np.abs(sets) < 1)
+    for poles in sets:                                        # the conjugates are the same multiset
+        np.testing.assert_allclose(np.sort_complex(poles), np.sort_complex(poles.conj()), atol=0)
+    pairs = (np.abs(sets.imag) > 0).sum(axis=1) // 2
+    assert set(pairs) == {0, 1, 2}                            # every number of pairs occurs
+    np.testing.assert_array_equal(sets, random_pole_sets(np.random.default_rng(3), 5, 300))
+    assert random_pole_sets(rng, 1, 4).imag.max() == 0        # n = 1: real poles only
+    for poles in sets[:20]:                                   # pole placement puts the mean loop there
+        system, dist = random_system(rng, 5, 2, 2)
+        res = rx.synthesize(system, dist, "pole_placement", poles=poles)
+        A, B, _, _ = system.at(dist.mean)
+        np.testing.assert_allclose(np.sort_complex(np.linalg.eigvals(A + B @ res.F)), np.sort_complex(poles),
+                                   atol=1e-6)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_exact_costs_equal_the_single_cost_functions(seed):
+    from rdsexp.numerics.analysis import exact_costs
+    rng = np.random.default_rng(300 + seed)
+    system, dist = random_system(rng, 3, 2, 2, a_scale=0.5 + seed)    # seed 2: often not ms stable
+    F = 0.2 * rng.normal(size=(2, 3))
+    x0, Bw = rng.normal(size=3), rng.normal(size=(3, 2))
+    got = exact_costs(system, dist, F, x0, state_weight=2.0, input_weight=0.5)
+    assert got["lq_cost_x0"] == lq_cost(system, dist, F, x0, state_weight=2.0, input_weight=0.5)
+    assert got["lq_cost"] == lq_cost(system, dist, F, state_weight=2.0, input_weight=0.5)
+    assert got["h2"] == h2_norm(system, dist, F, state_weight=2.0, input_weight=0.5)
+    assert exact_costs(system, dist, F, disturbance=Bw)["h2"] == h2_norm(system, dist, F, disturbance=Bw)
+    assert np.isnan(exact_costs(system, dist, F)["lq_cost_x0"])
+
+
+def test_gains_table_reports_the_box_width_bracket():
+    from types import SimpleNamespace
+
+    from rdsexp.experiment.pipeline import gains_table
+    rng = np.random.default_rng(7)
+    system, dist = random_system(rng, 2, 1, 1)
+    plant = rx.AffineRandomSystem(A=system.A, B=system.B, xi_dist=dist)
+    exp = SimpleNamespace(model=system, plant=plant, q0=np.ones(2))
+    designs = {("identified", m): (dist, rx.synthesize(system, dist, m, **opts))
+               for m, opts in (("robust_box", {"width": 0.5, "find_max_width": True}), ("ms_lqr", {}))}
+    table = gains_table(exp, designs, ("identified", "robust_box")).set_index("method")
+    box = designs[("identified", "robust_box")][1]
+    assert table.loc["robust_box", "max_width"] == box.info["max_width"]
+    assert table.loc["robust_box", "min_infeasible_width"] == box.info["min_infeasible_width"]
+    assert box.info["max_width"] <= box.info["min_infeasible_width"]
+    assert np.isnan(table.loc["ms_lqr", "max_width"]) and np.isnan(table.loc["ms_lqr", "lam_box"])

@@ -119,6 +119,7 @@ def test_tampered_table_is_refused(root, tmp_path):
     shutil.copytree(run.dir, copy)
     frame = pd.read_parquet(copy / "metrics.parquet")
     frame.loc[0, "rate"] = 0.5
+    (copy / "metrics.parquet").chmod(0o644)               # stored read-only: an edit is deliberate
     frame.to_parquet(copy / "metrics.parquet", index=False)
     with pytest.raises(report.LineageError, match="does not match the hash"):
         report.Run(copy).table("metrics")

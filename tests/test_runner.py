@@ -72,9 +72,13 @@ def test_run_directory_contents(small_run):
 
 
 def test_recording_equals_parquet_tables(small_run):
-    """The .rrd read back with Rerun's own reader equals the identification + trajectory tables."""
+    """The .rrd read back with Rerun's own reader equals the identification + trajectory tables
+    (stored path-major, recorded step by step)."""
     stored = pd.concat([pd.read_parquet(small_run / "identification.parquet"),
                         pd.read_parquet(small_run / "trajectories.parquet")], ignore_index=True)
+    order = stored["experiment"].map({e: i for i, e in enumerate(stored["experiment"].unique())})
+    stored = stored.assign(_e=order).sort_values(["_e", "k", "path"], kind="stable").drop(columns="_e")
+    stored = stored.reset_index(drop=True)
     recorded = read_recording(small_run / "recording.rrd")
     pd.testing.assert_frame_equal(recorded, stored, check_dtype=False)
 
@@ -86,6 +90,7 @@ def test_verify_passes_on_fresh_run_and_fails_on_tampered_table(small_run, tmp_p
     shutil.copytree(small_run, tampered)
     table = pd.read_parquet(tampered / "metrics.parquet")
     table.loc[0, "rate"] += 1e-9
+    (tampered / "metrics.parquet").chmod(0o644)           # stored read-only: an edit is deliberate
     table.to_parquet(tampered / "metrics.parquet", index=False)
     proc = rdsexp("verify", str(tampered), cwd=tmp_path, module="rdsexp.runs", check=False)
     assert proc.returncode == 1

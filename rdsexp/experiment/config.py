@@ -72,7 +72,16 @@ def _covariance(cfg, name: str, dim: int) -> np.ndarray:
     try:
         return check_covariance(name, get(cfg, name), dim)
     except (ValueError, TypeError) as err:
-        raise ConfigError(str(err)) from None
+        text = one_line_text(err)
+        raise ConfigError(text if text.startswith(f"{name}:") else
+                          f"{name}: {get(cfg, name)!r} is not allowed, expected a scalar, {dim} diagonal entries "
+                          f"or a ({dim}, {dim}) matrix of numbers") from None
+
+
+def one_line_text(err: BaseException) -> str:
+    """The first line of an exception's message."""
+    lines = str(err).strip().splitlines()
+    return lines[0] if lines else type(err).__name__
 
 
 def system_from(cfg, group: str, xi=None) -> AffineRandomSystem:
@@ -177,6 +186,10 @@ class Experiment:
     controller: str = "offline"
     online: OnlineSettings | None = None
     online_initial: str | np.ndarray = "zero"   # zero | nominal | an (m, n) gain
+    # scale (issue 12): paths per chunk (None: from a memory budget), worker processes, paths recorded
+    chunk_paths: int | None = None
+    workers: int = 1
+    recorded_paths: int = 200
 
 
 def build(cfg) -> Experiment:
@@ -280,6 +293,10 @@ def build(cfg) -> Experiment:
     reference = plain(OmegaConf.select(cfg, "plant.reference"))
     if reference is not None and not isinstance(reference, dict):
         raise ConfigError(f"plant.reference: {reference!r} is not allowed, expected null or a mapping")
+    chunk = get(cfg, "closed_loop.chunk_paths")
+    chunk = None if chunk is None else _number(chunk, "closed_loop.chunk_paths", integer=True, low=1)
+    workers = _number(get(cfg, "closed_loop.workers"), "closed_loop.workers", integer=True, low=1)
+    recorded_paths = _number(get(cfg, "tracking.recorded_paths"), "tracking.recorded_paths", integer=True, low=0)
     level = get(cfg, "tracking.level")
     if level not in TRACKING_LEVELS:
         raise ConfigError(f"tracking.level: {level!r} is not allowed, expected one of {', '.join(TRACKING_LEVELS)}")
@@ -295,7 +312,8 @@ def build(cfg) -> Experiment:
                       tracking=level, recording=flags["tracking.recording"] and level != "off",
                       plant_name=plant_name, model_name=model_name, reference=reference,
                       design_options=design_options, identification_feedback=feedback, identification_gain=F_id,
-                      xi_guess=xi_guess, controller=controller, online=online, online_initial=online_initial)
+                      xi_guess=xi_guess, chunk_paths=chunk, workers=workers, recorded_paths=recorded_paths,
+                      controller=controller, online=online, online_initial=online_initial)
 
 
 CONTROLLERS = ("offline", "online")
@@ -347,12 +365,17 @@ def _controller(cfg, model: AffineRandomSystem, K: int) -> tuple[str, OnlineSett
 
 
 def _process_noise(cfg, n: int, p: int) -> np.ndarray:
-    """enkf.Q: {x: scale, xi: scale} (times I_n and I_p), or a scalar, diagonal or full (n+p) matrix."""
+    """enkf.Q: {x: scale, xi: scale, matrix: null} -> diag(x I_n, xi I_p); a non-null `matrix` (a
+    scalar, n + p diagonal entries or a full (n+p, n+p) matrix) replaces the scales. A conf file may
+    also give enkf.Q itself as such a matrix."""
     Q = get(cfg, "enkf.Q")
     if not isinstance(Q, dict):
         return _covariance(cfg, "enkf.Q", n + p)
-    if set(Q) != {"x", "xi"}:
-        raise ConfigError(f"enkf.Q: {Q!r} is not allowed, expected {{x: scale, xi: scale}} or a matrix")
+    if not {"x", "xi"} <= set(Q) <= {"x", "xi", "matrix"}:
+        raise ConfigError(f"enkf.Q: {Q!r} is not allowed, expected {{x: scale, xi: scale, matrix: null or a "
+                          f"scalar, {n + p} diagonal entries or ({n + p}, {n + p})}}")
+    if Q.get("matrix") is not None:
+        return _covariance(cfg, "enkf.Q.matrix", n + p)
     scales = [_number(Q[part], f"enkf.Q.{part}", low=0) for part in ("x", "xi")]
     return np.diag(np.repeat(scales, [n, p]))
 

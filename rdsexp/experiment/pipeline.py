@@ -18,29 +18,36 @@ import pandas as pd
 from tqdm import tqdm
 from tqdm.contrib.logging import logging_redirect_tqdm
 
-from ..numerics.analysis import empirical_rate, h2_norm, lq_cost, ms_rate, second_moments
-from ..numerics.enkf import truth_map
+from ..numerics.analysis import empirical_rate_sq, exact_costs, ms_rate, second_moments
 from ..numerics.modeling import model_distribution, nominal_gain, one_line
 from ..numerics.online import OnlineController, rates
 from ..numerics.simulation import Trajectories, simulate
 from ..numerics.synthesis import METHODS, SynthesisResult, synthesize
 from ..numerics.systems import MomentModel
 from .config import Experiment
+from .montecarlo import LoopSummary, chunk_size, run_chunks
 
 log = logging.getLogger("rdsexp")
 # the online loop shares the closed loop's seeds: the same plant samples and EnKF noise, a paired comparison
 SPAWN_KEYS = {"identification": (0,), "closed_loop": (1,), "open_loop": (1,), "online": (1,)}
+# a path's failure reason (Trajectories.failure) in words, for the summary
+FAILURES = {"diverged": "the plant state diverged", "filter_diverged": "the EnKF estimate diverged",
+            "singular_innovation": "the EnKF innovation covariance was singular"}
 TABLES = ("trajectories", "identification", "paths", "model", "gains", "metrics", "exact")
+STREAMED = ("trajectories", "members")        # written chunk by chunk through a sink
 
 
 @dataclass
 class Outcome:
-    """What a run computed: tables by name, a flat summary of key numbers, seconds per stage."""
+    """What a run computed: tables by name (the streamed ones only without a sink), a flat summary
+    of key numbers, seconds per stage, and the rows the recording shows (identification and the
+    first tracking.recorded_paths paths of each loop)."""
 
     tables: dict[str, pd.DataFrame]
     summary: dict
     timings: dict = field(default_factory=dict)
-    members: pd.DataFrame | None = None
+    recorded: pd.DataFrame | None = None
+    recorded_members: pd.DataFrame | None = None
 
 
 @contextmanager
@@ -48,7 +55,12 @@ def timed(timings: dict, stage: str):
     """Time the block into timings[stage] and log the stage with its seconds (rdsexp.log)."""
     start = time.perf_counter()
     log.info("%s ...", stage)
-    yield
+    try:
+        yield
+    except Exception as err:
+        if not hasattr(err, "rdsexp_stage"):      # the innermost stage, for the run's failure status
+            err.rdsexp_stage = stage
+        raise
     timings[stage] = round(time.perf_counter() - start, 4)
     log.info("%s done in %.3f s", stage, timings[stage])
 
@@ -59,8 +71,12 @@ def _progress(desc: str, total: int):
     return bar, lambda k: bar.update(1)
 
 
-def run_experiment(exp: Experiment) -> Outcome:
-    """Compute every stage of the experiment; numerical failures become statuses in the tables."""
+def run_experiment(exp: Experiment, sink=None) -> Outcome:
+    """Compute every stage of the experiment; numerical failures become statuses in the tables.
+
+    The large tables (STREAMED: trajectories, members) go to `sink.append(name, rows)` chunk by
+    chunk (records.ParquetSink writes them as they come); without a sink they are collected and
+    returned in Outcome.tables with the others."""
     timings, summary = {}, {}
     root = lambda stage: np.random.SeedSequence(exp.seed, spawn_key=SPAWN_KEYS[stage])
     sim = dict(q0=exp.q0, psi0=exp.psi0, P0=exp.P0, ensemble_size=exp.ensemble_size)
@@ -75,7 +91,9 @@ def run_experiment(exp: Experiment) -> Outcome:
         xi = ident.xi(ident.psi_filt_mean)[:, 0]
         if ident.status != "ok" or not np.all(np.isfinite(xi[exp.K0:exp.K0 + exp.K1 + 1])):
             dist = None
-            summary["modeling_status"] = f"identification {ident.failure[0]} at k = {ident.failed_at[0]}"
+            reason = ident.failure[0] or "the filtered xi is not finite"
+            k_fail = ident.failed_at[0] if ident.failed_at[0] >= 0 else "window"
+            summary["modeling_status"] = f"identification failed at k = {k_fail}: {FAILURES.get(reason, reason)}"
         else:
             dist = model_distribution(xi, exp.K0, exp.K1)
             summary["modeling_status"] = "ok"
@@ -96,52 +114,90 @@ def run_experiment(exp: Experiment) -> Outcome:
             designs[selected] = (moments, SynthesisResult("fixed", exp.gain_F, rate, "fixed", nbar=nbar))
         chosen = designs.get(selected, (None, None))[1]
 
-    loops = {}
+    # closed and open loop in chunks of paths: rows go to the sink chunk by chunk, the metrics keep a
+    # LoopSummary per loop, the recording a bounded sample of paths (montecarlo.py)
+    sink = MemorySink() if sink is None else sink
+    loops, sample, sample_members = {}, [], []
+    if keep:
+        sample_members.append(members_table("identification", ident))
+        sink.append("members", sample_members[0])
     if chosen is not None and chosen.F is not None:
-        settings = dict(d=exp.disturbance, paths=exp.paths, filter_sees_d=exp.filter_sees_disturbance,
-                        keep_members=keep, **sim)
+        settings = dict(d=exp.disturbance, filter_sees_d=exp.filter_sees_disturbance, **sim)
         runs = [("closed_loop", chosen.F)] + ([("open_loop", None)] if exp.open_loop else [])
         for name, F in runs:
             with timed(timings, name):
-                bar, step = _progress(name.replace("_", " "), exp.disturbance.shape[0])
+                bar, _ = _progress(name.replace("_", " "), exp.paths * exp.disturbance.shape[0])
+                parts, members = [], None
                 with bar, logging_redirect_tqdm():
-                    loops[name] = simulate(exp.plant, exp.enkf, F=F, seed=root(name), progress=step, **settings)
+                    for first, tr in run_chunks(exp, dict(settings, F=F, seed=root(name)), keep_members=keep,
+                                                workers=exp.workers, progress=bar.update):
+                        rows = trajectory_table(name, tr, first)
+                        if exp.controller == "online":     # the gain in use, as in the online rows
+                            rows = with_gains(rows, np.zeros((exp.model.m, exp.model.n)) if F is None else F)
+                        sink.append("trajectories", rows)
+                        sample.append(rows[rows["path"] < exp.recorded_paths])
+                        if keep:
+                            members = members_table(name, tr, first)
+                            sink.append("members", members)
+                            sample_members.append(members[members["path"] < exp.recorded_paths])
+                        parts.append(LoopSummary.of(tr, exp))
+                        tr = rows = members = None          # free the chunk before the next
+                loops[name] = LoopSummary.concat(parts)
+    if not loops:                              # no gain to simulate: the table's columns, no rows
+        sink.append("trajectories", trajectory_table("closed_loop", None, exp=exp))
 
     online = None
     if exp.controller == "online":
         with timed(timings, "online"):
-            online, summary["online_initial"] = online_loop(exp, root("online"), keep, sim)
+            online, summary["online_initial"] = online_loop(exp, root("online"), keep, sim, sink, sample,
+                                                            sample_members)
             loops["online"] = online[0]
 
     with timed(timings, "metrics"):
         tables = {
-            "trajectories": pd.concat([trajectory_table(name, tr) for name, tr in loops.items()],
-                                      ignore_index=True) if loops else trajectory_table("closed_loop", None, exp),
             "identification": trajectory_table("identification", ident),
-            "paths": path_table({"identification": ident, **loops}),
+            "paths": path_table({"identification": LoopSummary.of(ident, exp), **loops}),
             "model": model_table(exp, dist),
             "gains": gains_table(exp, designs, selected),
             "metrics": metrics_table(exp, loops),
             "exact": exact_table(exp, chosen),
         }
+        if isinstance(sink, MemorySink):
+            tables |= sink.tables()
     if online is not None:
         add_online_tables(exp, tables, online, chosen, summary)
     summary.update(_summary(exp, dist, chosen, tables))
     timings["synthesis_by_method"] = {f"{source}/{method}": round(res.seconds, 4)
                                       for (source, method), (_, res) in designs.items()}
-    members = None
-    if keep:
-        members = pd.concat([members_table(name, tr, exp) for name, tr in {"identification": ident, **loops}.items()],
-                            ignore_index=True)
-    return Outcome(tables=tables, summary=summary, timings=timings, members=members)
+    recorded = pd.concat([tables["identification"], *sample], ignore_index=True)
+    recorded_members = pd.concat(sample_members, ignore_index=True) if keep else None
+    return Outcome(tables=tables, summary=summary, timings=timings, recorded=recorded,
+                   recorded_members=recorded_members)
 
 
-def online_loop(exp: Experiment, seed, keep: bool, sim: dict) -> tuple[tuple[Trajectories, OnlineController], dict]:
-    """The online (learning-type) closed loop: per-path gains re-designed from the path's own xi_{k|k}."""
+class MemorySink:
+    """Collects the streamed tables' rows in memory; `tables()` gives them whole (tests, tracking off)."""
+
+    def __init__(self):
+        self.parts: dict[str, list[pd.DataFrame]] = {}
+
+    def append(self, name: str, rows: pd.DataFrame) -> None:
+        self.parts.setdefault(name, []).append(rows)
+
+    def tables(self) -> dict[str, pd.DataFrame]:
+        return {name: pd.concat(parts, ignore_index=True) for name, parts in self.parts.items()}
+
+
+def online_loop(exp: Experiment, seed, keep: bool, sim: dict, sink, sample: list, sample_members: list):
+    """The online (learning-type) closed loop: per-path gains re-designed from the path's own xi_{k|k}.
+
+    In chunks of paths like the other loops (one controller per chunk: a path's decisions depend on
+    its own estimates only), rows streamed to the sink with the gain in use (F[i]). Returns
+    ((LoopSummary, [(first_path, controller)]), info for the summary)."""
     m, n = exp.model.m, exp.model.n
     info = {"initial": exp.online_initial if isinstance(exp.online_initial, str) else "given"}
     F0 = exp.online_initial if not isinstance(exp.online_initial, str) else np.zeros((m, n))
-    if exp.online_initial == "nominal":
+    if isinstance(exp.online_initial, str) and exp.online_initial == "nominal":
         res = nominal_gain(exp.plant, exp.xi_guess)
         info |= {"method": res.method, "status": res.status, "rate_at_guess": res.lam}
         if res.F is not None and np.all(np.isfinite(res.F)) and res.lam < 1:
@@ -149,53 +205,75 @@ def online_loop(exp: Experiment, seed, keep: bool, sim: dict) -> tuple[tuple[Tra
         else:
             info["used"] = "zero (no stabilizing nominal gain)"
     K = exp.disturbance.shape[0] - 1
-    controller = OnlineController(exp.model, exp.online, F0, paths=exp.paths, horizon=K)
-    bar, step = _progress("online", K + 1)
+    size = chunk_size(exp, keep_members=keep)
+    parts, controllers = [], []
+    bar, _ = _progress("online", exp.paths * (K + 1))
     with bar, logging_redirect_tqdm():
-        tr = simulate(exp.plant, exp.enkf, F=F0, d=exp.disturbance, paths=exp.paths, seed=seed,
-                      filter_sees_d=exp.filter_sees_disturbance, keep_members=keep, progress=step,
-                      controller=controller, **sim)
-    return (tr, controller), info
+        for first in range(0, exp.paths, size):
+            count = min(size, exp.paths - first)
+            controller = OnlineController(exp.model, exp.online, F0, paths=count, horizon=K)
+            tr = simulate(exp.plant, exp.enkf, F=F0, d=exp.disturbance, paths=count, first_path=first, seed=seed,
+                          filter_sees_d=exp.filter_sees_disturbance, keep_members=keep,
+                          progress=lambda k, c=count: bar.update(c), controller=controller, **sim)
+            history = controller.gain_history()
+            in_use = np.stack([history[j][tr.gain_index[:, j]] for j in range(count)])     # (P, K+1, m, n)
+            rows = with_gains(trajectory_table("online", tr, first), in_use.reshape(count * (K + 1), m, n))
+            sink.append("trajectories", rows)
+            sample.append(rows[rows["path"] < exp.recorded_paths])
+            if keep:
+                members = members_table("online", tr, first)
+                sink.append("members", members)
+                sample_members.append(members[members["path"] < exp.recorded_paths])
+            parts.append(LoopSummary.of(tr, exp))
+            controllers.append((first, controller))
+    return (LoopSummary.concat(parts), controllers), info
+
+
+def with_gains(rows: pd.DataFrame, F: np.ndarray) -> pd.DataFrame:
+    """rows with the gain in use as columns F[i] (i over the row-major (m, n) gain).
+
+    F: (len(rows), m, n), one gain per row, or (m, n), the same gain on every row."""
+    F = np.asarray(F, dtype=float)
+    flat = F.reshape(len(rows), -1) if F.ndim == 3 else np.broadcast_to(F.ravel(), (len(rows), F.size))
+    return rows.assign(**{f"F[{i}]": flat[:, i] for i in range(flat.shape[1])})
 
 
 def add_online_tables(exp: Experiment, tables: dict, online, chosen, summary: dict) -> None:
-    """The `controller` table, the gain index in `trajectories`, per-path and summary metrics of the
-    online loop against the offline design of the same seed and the optimum on the true plant."""
-    tr, controller = online
-    d = controller.decisions()
-    P, p, m, n = controller.P, exp.model.p, exp.model.m, exp.model.n
+    """The `controller` table (every decision), per-path and summary metrics of the online loop
+    against the offline design of the same seed and the optimum on the true plant.
+
+    online: (LoopSummary, [(first_path, OnlineController)]) from `online_loop`."""
+    loop, controllers = online
+    P, p, m, n = loop.failed_at.size, exp.model.p, exp.model.m, exp.model.n
     Abar, Bbar = exp.plant.moment_factors(None)
-    with np.errstate(all="ignore"):
-        rate_plant = rates(Abar, Bbar, np.nan_to_num(d.F, nan=np.inf)) if len(d.k) else np.zeros(0)
-        rate_plant[~np.all(np.isfinite(d.F), axis=(1, 2))] = np.nan
-        initial_plant = rates(Abar, Bbar, controller.F0)
-    rows = {"path": np.concatenate([np.arange(P), d.path]), "k": np.concatenate([np.full(P, -1), d.k]),
-            "adopted": np.concatenate([np.ones(P, bool), d.adopted]),
-            "reason": np.concatenate([np.full(P, "initial", dtype=object), d.reason]),
-            "rate_model": np.concatenate([np.full(P, np.nan), d.rate_model]),
-            "rate_current": np.concatenate([np.full(P, np.nan), d.rate_current]),
-            "rate_plant": np.concatenate([initial_plant, rate_plant])}
-    rows |= _columns("mean", np.concatenate([np.full((P, p), np.nan), d.mean]))
-    rows |= {f"cov[{i},{j}]": np.concatenate([np.full(P, np.nan), d.cov[:, i, j]]) for i in range(p) for j in range(p)}
-    rows |= _columns("F", np.concatenate([controller.F0, d.F]).reshape(-1, m * n))
-    table = pd.DataFrame(rows)          # the initial gains (k = -1: in use from k = 0), then in order of k
+    frames = []
+    for offset, controller in controllers:
+        d, count = controller.decisions(), controller.P
+        with np.errstate(all="ignore"):
+            rate_plant = rates(Abar, Bbar, np.nan_to_num(d.F, nan=np.inf)) if len(d.k) else np.zeros(0)
+            rate_plant[~np.all(np.isfinite(d.F), axis=(1, 2))] = np.nan
+            initial_plant = rates(Abar, Bbar, controller.F0)
+        rows = {"path": offset + np.concatenate([np.arange(count), d.path]),
+                "k": np.concatenate([np.full(count, -1), d.k]),
+                "adopted": np.concatenate([np.ones(count, bool), d.adopted]),
+                "reason": np.concatenate([np.full(count, "initial", dtype=object), d.reason]),
+                "rate_model": np.concatenate([np.full(count, np.nan), d.rate_model]),
+                "rate_current": np.concatenate([np.full(count, np.nan), d.rate_current]),
+                "rate_plant": np.concatenate([initial_plant, rate_plant])}
+        mean = np.concatenate([np.full((count, p), np.nan), d.mean])
+        rows |= {f"mean[{i}]": mean[:, i] for i in range(p)}
+        rows |= {f"cov[{i},{j}]": np.concatenate([np.full(count, np.nan), d.cov[:, i, j]])
+                 for i in range(p) for j in range(p)}
+        F = np.concatenate([controller.F0, d.F]).reshape(-1, m * n)
+        rows |= {f"F[{i}]": F[:, i] for i in range(m * n)}
+        frames.append(pd.DataFrame(rows))   # the initial gains (k = -1: in use from k = 0), then in order of k
+    table = pd.concat(frames, ignore_index=True)
     # gain index: the initial gain is 0, then a path's adopted gains in order (-1: not adopted)
     table.insert(4, "gain_index", np.where(table["adopted"], table.groupby("path")["adopted"].cumsum() - 1, -1))
     table = table.sort_values(["path", "k"], kind="stable", ignore_index=True)
     tables["controller"] = table
+    adopted_count = int((table["adopted"] & (table["k"] >= 0)).sum())
 
-    # the gain in use per (k, path) as F[i] columns (the recording draws them as the gain history):
-    # online rows from the gain index, the offline closed loop its fixed F, the open loop 0
-    traj = tables["trajectories"]
-    gains = np.zeros((len(traj), m * n))
-    experiment = traj["experiment"].to_numpy()
-    on = experiment == "online"
-    history = controller.gain_history()
-    paths_k = traj["path"].to_numpy()[on]
-    gains[on] = np.stack([history[j][i].ravel() for j, i in zip(paths_k, tr.gain_index.ravel())]) if on.any() else 0
-    if chosen is not None and chosen.F is not None:
-        gains[experiment == "closed_loop"] = chosen.F.ravel()
-    traj[[f"F[{i}]" for i in range(m * n)]] = gains
     # per path: the first step at which it holds a gain stable in mean square on the true plant
     # (-1: never) and the exact true rate of its final gain
     adopted = table[table["adopted"]]
@@ -212,16 +290,18 @@ def add_online_tables(exp: Experiment, tables: dict, online, chosen, summary: di
     optimum = min((safe_synthesize(exp.plant, truth, method, {}) for method in ("proposed", "policy_iteration")),
                   key=lambda res: res.lam if np.isfinite(res.lam) else np.inf)
     offline = safe_rate(exp.plant, None, chosen.F) if chosen is not None and chosen.F is not None else np.nan
+    window = exp.rate_window
     q = np.nanpercentile(final, [10, 50, 90]) if np.isfinite(final).any() else [np.nan] * 3
     online_metrics = {"final_rate_plant_q10": q[0], "final_rate_plant_median": q[1], "final_rate_plant_q90": q[2],
                       "final_stable_fraction": float(np.mean(final < 1)),
                       "first_stable_k_median": float(np.median(first[first >= 0])) if (first >= 0).any() else np.nan,
                       "never_stable_fraction": float(np.mean(first < 0)),
-                      "adoptions_per_path": float(d.adopted.sum() / P),
+                      "adoptions_per_path": adopted_count / P,
                       # the k-window rate over the paths that did not diverge (the `rate` column is NaN
                       # as soon as one path diverged)
-                      "rate_not_diverged": empirical_rate(tr.q[:, tr.failed_at < 0], *exp.rate_window)[0]
-                      if (tr.failed_at < 0).any() else np.nan,
+                      "rate_not_diverged": empirical_rate_sq(*(loop.sq[k, loop.failed_at < 0] for k in window),
+                                                             window[1] - window[0])[0]
+                      if (loop.failed_at < 0).any() else np.nan,
                       "offline_rate_plant": offline, "optimal_rate_plant": optimum.lam}
     metrics = tables["metrics"]
     for name, value in online_metrics.items():
@@ -288,12 +368,16 @@ def safe_rate(system, dist, F) -> float:
 
 # ------------------------------------------------------------------------------------ tables
 def _columns(name: str, values: np.ndarray) -> dict:
-    """{"name[i]": values[..., i].ravel()} for the last axis of values."""
+    """{"name[i]": values[..., i]} for the last axis of values (K+1, P, ...), flattened path-major
+    (path, then k, then the rest) so that the rows of consecutive chunks of paths line up."""
+    values = np.moveaxis(values, 1, 0)
     return {f"{name}[{i}]": values[..., i].ravel() for i in range(values.shape[-1])}
 
 
-def trajectory_table(experiment: str, tr: Trajectories | None, exp: Experiment | None = None) -> pd.DataFrame:
-    """One row per (k, path): plant q, y, u and EnKF mean/spread of x and xi before/after filtering."""
+def trajectory_table(experiment: str, tr: Trajectories | None, first_path: int = 0,
+                     exp: Experiment | None = None) -> pd.DataFrame:
+    """One row per (path, k), paths first_path.. in order: plant q, y, u and the EnKF's mean and
+    spread of x and xi before and after filtering."""
     if tr is None:                       # no gain to simulate: an empty table with the usual columns
         n, p, ny, m = exp.model.n, exp.model.p, exp.model.ny, exp.model.m
         shape = lambda d: np.zeros((0, 0, d))
@@ -301,8 +385,8 @@ def trajectory_table(experiment: str, tr: Trajectories | None, exp: Experiment |
                           psi_pred_std=shape(n + p), psi_filt_mean=shape(n + p), psi_filt_std=shape(n + p),
                           failed_at=np.zeros(0, int), failure=np.zeros(0, object), n=n)
     steps, P = tr.q.shape[:2]
-    cols = {"experiment": np.full(steps * P, experiment), "k": np.repeat(np.arange(steps), P),
-            "path": np.tile(np.arange(P), steps)}
+    cols = {"experiment": np.full(steps * P, experiment), "k": np.tile(np.arange(steps), P),
+            "path": np.repeat(first_path + np.arange(P), steps)}
     cols.update(_columns("q", tr.q) | _columns("y", tr.y) | _columns("u", tr.u))
     for stage in ("pred", "filt"):
         for stat in ("mean", "std"):
@@ -311,20 +395,20 @@ def trajectory_table(experiment: str, tr: Trajectories | None, exp: Experiment |
     return pd.DataFrame(cols)
 
 
-def members_table(experiment: str, tr: Trajectories, exp: Experiment) -> pd.DataFrame:
-    """Every filtered ensemble member: one row per (k, path, member) (tracking level `full`)."""
+def members_table(experiment: str, tr: Trajectories, first_path: int = 0) -> pd.DataFrame:
+    """Every filtered ensemble member: one row per (path, k, member) (tracking level `full`)."""
     steps, P, M, _ = tr.members.shape
-    cols = {"experiment": np.full(steps * P * M, experiment), "k": np.repeat(np.arange(steps), P * M),
-            "path": np.tile(np.repeat(np.arange(P), M), steps), "member": np.tile(np.arange(M), steps * P)}
+    cols = {"experiment": np.full(steps * P * M, experiment), "k": np.tile(np.repeat(np.arange(steps), M), P),
+            "path": np.repeat(first_path + np.arange(P), steps * M), "member": np.tile(np.arange(M), steps * P)}
     cols.update(_columns("x_filt", tr.x(tr.members)) | _columns("xi_filt", tr.xi(tr.members)))
     return pd.DataFrame(cols)
 
 
-def path_table(runs: dict[str, Trajectories]) -> pd.DataFrame:
+def path_table(loops: dict[str, LoopSummary]) -> pd.DataFrame:
     """Per path: the step it failed at (-1: never) and why."""
-    return pd.DataFrame([{"experiment": name, "path": j, "failed_at": int(tr.failed_at[j]),
-                          "failure": str(tr.failure[j])}
-                         for name, tr in runs.items() for j in range(tr.failed_at.size)])
+    return pd.DataFrame([{"experiment": name, "path": j, "failed_at": int(loop.failed_at[j]),
+                          "failure": str(loop.failure[j])}
+                         for name, loop in loops.items() for j in range(loop.failed_at.size)])
 
 
 def model_table(exp: Experiment, dist) -> pd.DataFrame:
@@ -341,7 +425,8 @@ def model_table(exp: Experiment, dist) -> pd.DataFrame:
 def gains_table(exp: Experiment, designs: dict, selected: tuple[str, str]) -> pd.DataFrame:
     """Per (distribution, method): status, lam (design), bracket, nbar, exact rates, LQ costs and H2
     norms on the design moments and on the true plant (`performance`), robust_box's certified box rate
-    (lam_box, NaN for other methods), F. designs: {(source, method): (moments, SynthesisResult)};
+    (lam_box) and, with find_max_width, the largest certified and smallest proven-infeasible box widths
+    (max_width, min_infeasible_width; NaN otherwise), F. designs: {(source, method): (moments, SynthesisResult)};
     `selected` is the (source, method) the closed loop used (gain.source; ("fixed", "fixed") for a given F).
 
     Only reproducible numbers go into tables; synthesis times are in run.json's timings."""
@@ -357,6 +442,8 @@ def gains_table(exp: Experiment, designs: dict, selected: tuple[str, str]) -> pd
                      "rate_plant": safe_rate(exp.plant, None, F) if found else np.nan,
                      **performance(exp, moments, F if found and moments is not None else None),
                      "lam_box": res.info.get("lam_box", np.nan),
+                     "max_width": res.info.get("max_width", np.nan),
+                     "min_infeasible_width": res.info.get("min_infeasible_width", np.nan),
                      **{f"F[{i}]": v for i, v in enumerate(F.ravel())}})
     return pd.DataFrame(rows)
 
@@ -368,52 +455,41 @@ def performance(exp: Experiment, moments, F) -> dict:
     keys = ("lq_cost_q0_plant", "lq_cost_plant", "h2_plant", "lq_cost_model", "h2_model")
     if F is None or not np.all(np.isfinite(F)):
         return dict.fromkeys(keys, np.nan)
-    return {"lq_cost_q0_plant": lq_cost(exp.plant, None, F, exp.q0), "lq_cost_plant": lq_cost(exp.plant, None, F),
-            "h2_plant": h2_norm(exp.plant, None, F), "lq_cost_model": lq_cost(exp.model, moments, F),
-            "h2_model": h2_norm(exp.model, moments, F)}
+    plant, model = exact_costs(exp.plant, None, F, exp.q0), exact_costs(exp.model, moments, F)
+    return {"lq_cost_q0_plant": plant["lq_cost_x0"], "lq_cost_plant": plant["lq_cost"], "h2_plant": plant["h2"],
+            "lq_cost_model": model["lq_cost"], "h2_model": model["h2"]}
 
 
-def metrics_table(exp: Experiment, loops: dict[str, Trajectories]) -> pd.DataFrame:
-    """Per loop: empirical rate over rate_window with its 95% interval, failures, estimation error."""
+def metrics_table(exp: Experiment, loops: dict[str, LoopSummary]) -> pd.DataFrame:
+    """Per loop: empirical rate over rate_window with its 95% interval, failures, estimation quality.
+
+    x_error_rms: RMS of the predicted x_{k|k-1} against q_k (k >= 0); x_rmse, xi_rmse: RMS of the
+    filtered x_{k|k}, xi_{k|k} against q_k and the true xi (k >= 1; the true xi at k is T s_{k-1} + t
+    from `truth_map`, NaN when the model's xi has no value in the plant's terms); *_spread_error:
+    sqrt(mean sum std^2) / RMSE (1: the ensemble spread matches its error). Means are over every
+    finite (step, path)."""
     k_from, k_to = exp.rate_window
     rows = []
-    for name, tr in loops.items():
-        rate, low, high = empirical_rate(tr.q, k_from, k_to)
-        err = tr.x(tr.psi_pred_mean) - tr.q
-        rows.append({"experiment": name, "status": tr.status, "rate": rate, "rate_low": low, "rate_high": high,
-                     "k_from": k_from, "k_to": k_to, "paths": tr.q.shape[1],
-                     "failed_fraction": float(np.mean(tr.failed_at >= 0)),
-                     "x_error_rms": float(np.sqrt(np.nanmean(np.sum(err ** 2, axis=-1)))),
-                     "q_rms_final": float(np.sqrt(np.mean(np.sum(tr.q[-1] ** 2, axis=-1)))),
-                     **estimation_quality(exp, tr)})
+    for name, loop in loops.items():
+        rate, low, high = empirical_rate_sq(loop.sq[k_from], loop.sq[k_to], k_to - k_from)
+        x_rmse, xi_rmse = loop.rms_of("x_err"), loop.rms_of("xi_err")
+        rows.append({"experiment": name, "status": loop.status, "rate": rate, "rate_low": low, "rate_high": high,
+                     "k_from": k_from, "k_to": k_to, "paths": loop.sq.shape[1],
+                     "failed_fraction": float(np.mean(loop.failed_at >= 0)),
+                     "x_error_rms": loop.rms_of("x_pred_err"),
+                     "q_rms_final": float(np.sqrt(np.mean(loop.sq[-1]))),
+                     "x_rmse": x_rmse, "x_spread_error": _ratio(loop.rms_of("x_var"), x_rmse),
+                     "xi_rmse": xi_rmse, "xi_spread_error": _ratio(loop.rms_of("xi_var"), xi_rmse)})
     return pd.DataFrame(rows, columns=["experiment", "status", "rate", "rate_low", "rate_high", "k_from", "k_to",
                                        "paths", "failed_fraction", "x_error_rms", "q_rms_final", *ESTIMATION])
 
 
+def _ratio(a: float, b: float) -> float:
+    """a / b, NaN when b is 0 (no error to compare the spread with, e.g. p = 0)."""
+    return a / b if b != 0 else float("nan")
+
+
 ESTIMATION = ("x_rmse", "x_spread_error", "xi_rmse", "xi_spread_error")
-
-
-def estimation_quality(exp: Experiment, tr: Trajectories) -> dict:
-    """RMSE sqrt(mean ||e||^2) of the filtered x_{k|k} against q_k and of xi_{k|k} against the true
-    xi, over steps k = 1..K and paths not failed, and the spread/error ratio sqrt(mean sum std^2) / RMSE
-    (1: the ensemble spread matches its error). The true xi at k is T s_{k-1} + t, the coefficients
-    that moved the plant into q_k, with (T, t) from `truth_map` (NaN when the model's xi has no
-    value in the plant's terms)."""
-    def rmse_ratio(err, std):
-        rmse = np.sqrt(np.nanmean(np.sum(err ** 2, axis=-1)))
-        return float(rmse), float(np.sqrt(np.nanmean(np.sum(std ** 2, axis=-1))) / rmse)
-    out = dict.fromkeys(ESTIMATION, np.nan)
-    if tr.q.shape[0] < 2:
-        return out
-    with np.errstate(all="ignore"):
-        out["x_rmse"], out["x_spread_error"] = rmse_ratio(tr.x(tr.psi_filt_mean)[1:] - tr.q[1:],
-                                                         tr.x(tr.psi_filt_std)[1:])
-        truth = truth_map(exp.model, exp.plant) if tr.s is not None else None
-        if truth is not None:
-            T, t = truth
-            out["xi_rmse"], out["xi_spread_error"] = rmse_ratio(tr.xi(tr.psi_filt_mean)[1:] - (tr.s[:-1] @ T.T + t),
-                                                               tr.xi(tr.psi_filt_std)[1:])
-    return out
 
 
 def exact_table(exp: Experiment, chosen: SynthesisResult | None) -> pd.DataFrame:
@@ -446,8 +522,10 @@ def _summary(exp: Experiment, dist, chosen, tables: dict) -> dict:
         s[f"{row.experiment}_rate"] = [row.rate, row.rate_low, row.rate_high]
         failed = paths[(paths["experiment"] == row.experiment) & (paths["failed_at"] >= 0)]["failed_at"]
         if len(failed):
+            reasons = paths[(paths["experiment"] == row.experiment) & (paths["failed_at"] >= 0)]["failure"]
             s[f"{row.experiment}_failed"] = {"fraction": row.failed_fraction, "first_k": int(failed.min()),
-                                             "median_k": float(failed.median())}
+                                             "median_k": float(failed.median()),
+                                             "reasons": {str(r): int(c) for r, c in reasons.value_counts().items()}}
     if exp.reference is not None:
         s["reference"] = exp.reference
     return s

@@ -122,6 +122,7 @@ def write_recording(
         rec.save(Path(path), default_blueprint=blueprint)
         rec.send_property(_PROPERTY, rr.AnyValues(experiments=experiments, columns=columns))
         for experiment, frame in trajectories.groupby("experiment", sort=False):
+            frame = frame.sort_values(["k", "path"], kind="stable")       # tables are stored path-major
             ks = _steps(frame, frame["path"].to_numpy(), f"trajectories[{experiment!r}]")
             values = frame[columns].to_numpy(np.float64)
             for j, (quantity, i) in enumerate(split):
@@ -130,6 +131,7 @@ def write_recording(
             member_columns = [c for c in members.columns if c not in MEMBER_KEYS]
             n_members = int(members["member"].max()) + 1
             for experiment, frame in members.groupby("experiment", sort=False):
+                frame = frame.sort_values(["k", "path", "member"], kind="stable")
                 instance = frame["path"].to_numpy() * n_members + frame["member"].to_numpy()
                 ks = _steps(frame, instance, f"members[{experiment!r}]")
                 values = frame[member_columns].to_numpy(np.float64)

@@ -1,7 +1,8 @@
-"""Run catalog: `rdsexp-runs list [DIR] | show RUN | verify RUN`.
+"""Run catalog: `rdsexp-runs list [DIR] | show RUN | verify RUN | check [DIR]`.
 
 A run is a directory with a run.json (see `rdsexp.experiment.records`); RUN is its path or its id
-(a directory name under outputs/, or SWEEP/JOB for a sweep job).
+(a directory name under outputs/, or SWEEP/JOB for a sweep job). Damaged records are skipped with
+one warning line each, or reported as damaged (see `rdsexp.experiment.store`).
 """
 from __future__ import annotations
 
@@ -13,26 +14,23 @@ import numpy as np
 import pandas as pd
 from omegaconf import OmegaConf
 
-from . import records
+from . import records, store
 
 DEFAULT_ROOT = Path("outputs")
-__all__ = ["DEFAULT_ROOT", "catalog", "cli", "compare_tables", "find_complete", "find_runs", "main", "resolve",
+__all__ = ["DEFAULT_ROOT", "catalog", "check", "cli", "compare_tables", "find_complete", "find_runs", "main", "resolve",
            "verify", "write_sweep_summary"]
 
 
 def find_runs(root: Path) -> list[tuple[Path, dict]]:
-    """(run directory, its run.json) for every run under root, oldest first; each file read once."""
-    runs = [(p.parent, records.read_json(p)) for p in Path(root).rglob("run.json")]
-    return sorted(runs, key=lambda run: run[1].get("created", ""))
+    """(run directory, its run.json) for every readable run under root, oldest first; each file
+    read once, each damaged one named in a warning line and skipped."""
+    return store.read_runs(root)[0]
 
 
 def find_complete(root: Path, config_hash: str, version: str) -> Path | None:
-    """A complete, not itself reused, run under root with this config hash and code version."""
-    for run_dir, info in find_runs(root):
-        if (info.get("status") == "complete" and info.get("config_hash") == config_hash
-                and (info.get("code") or {}).get("version") == version and not info.get("reused_from")):
-            return run_dir
-    return None
+    """An intact, complete, not itself reused run in the store `root` with this config hash and
+    code version (through the store's reuse index)."""
+    return store.find_reusable(root, config_hash, version)
 
 
 def resolve(run: str, root: Path = DEFAULT_ROOT) -> Path:
@@ -51,7 +49,8 @@ def catalog(root: Path) -> pd.DataFrame:
     rows = []
     for run_dir, info in find_runs(root):
         s = info.get("summary") or {}
-        rate = s.get("closed_loop_rate") or [np.nan]
+        rate = s.get("closed_loop_rate")
+        rate = rate if isinstance(rate, list) and rate else [rate if isinstance(rate, float) else np.nan]
         rows.append({"id": info.get("id"), "sweep": (info.get("sweep") or {}).get("name"),
                      "overrides": " ".join(o for o in info.get("overrides", []) if not o.startswith("+sweep=")),
                      "seed": (info.get("seed") or {}).get("root"), "status": info.get("status"),
@@ -64,14 +63,25 @@ def catalog(root: Path) -> pd.DataFrame:
 
 
 def write_sweep_summary(sweep_dir: Path) -> Path:
-    """Rebuild <sweep>/summary.parquet (and .csv) from the jobs' run.json files on disk."""
-    table = catalog(sweep_dir)
-    if len(table):
-        table.insert(0, "job", [int(Path(d).name) if Path(d).name.isdigit() else -1 for d in table["dir"]])
-        table = table.sort_values("job", ignore_index=True)
+    """Rebuild <sweep>/summary.parquet (and .csv) from the jobs' run.json files on disk.
+
+    Jobs finishing at once (joblib, Ray, Slurm workers) rebuild one after the other under a lock on
+    <sweep>/.summary.lock, so the last rebuild has seen every job that finished before it: without
+    it a slow rebuild could overwrite a newer one with fewer jobs."""
+    import fcntl
     path = Path(sweep_dir) / "summary.parquet"
-    records.write_table(path, table)
-    records.atomic_write_bytes(path.with_suffix(".csv"), table.to_csv(index=False).encode())
+    try:
+        lock = open(Path(sweep_dir) / ".summary.lock", "a")
+    except OSError as err:
+        raise records.WriteError(path, err) from err
+    with lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        table = catalog(sweep_dir)
+        if len(table):
+            table.insert(0, "job", [int(Path(d).name) if Path(d).name.isdigit() else -1 for d in table["dir"]])
+            table = table.sort_values("job", ignore_index=True)
+        records.write_table(path, table)
+        records.atomic_write_bytes(path.with_suffix(".csv"), table.to_csv(index=False).encode())
     return path
 
 
@@ -96,22 +106,32 @@ def compare_tables(stored: pd.DataFrame, fresh: pd.DataFrame) -> list[str]:
 
 
 def verify(run_dir: Path) -> bool:
-    """Re-execute a stored run from its recorded config and seed; compare every table."""
+    """Re-execute a stored run from its recorded config and seed; compare every table. A damaged
+    file (missing, unreadable, modified after the run) is reported as such and fails verify."""
     from .config import build
     from .pipeline import run_experiment
-    info = records.read_json(run_dir / "run.json")
+    info = store.read_run(run_dir)
+    damaged = store.run_damage(run_dir, info)
+    for problem in damaged:
+        print(f"damaged: {run_dir / problem}")
+    if not (run_dir / ".hydra" / "config.yaml").is_file():
+        print("verify: cannot re-run without .hydra/config.yaml (damaged)")
+        return False
     cfg = OmegaConf.load(run_dir / ".hydra" / "config.yaml")
     code = records.code_version()["version"]
     if code != (info.get("code") or {}).get("version"):
-        print(f"note: the run was made with code {info.get('code', {}).get('version')}, this is {code}")
+        print(f"note: the run was made with code {(info.get('code') or {}).get('version')}, this is {code}")
     outcome = run_experiment(build(cfg))
-    ok = True
-    for name, meta in (info.get("tables") or {}).items():
-        fresh = outcome.members if name == "members" else outcome.tables.get(name)
-        stored = pd.read_parquet(run_dir / meta["file"])
+    ok = not damaged
+    for name in (info.get("tables") or {}):
+        fresh = outcome.tables.get(name)
+        try:
+            stored = store.read_table(run_dir, info, name)
+        except store.DamagedRecord as err:
+            print(f"{name:15s} DAMAGED: {err.path.name}: {err.reason}")
+            ok = False
+            continue
         problems = compare_tables(stored, fresh) if fresh is not None else ["not produced by the re-run"]
-        if records.table_hash(stored) != meta["sha256"]:
-            problems.insert(0, "stored file does not match the hash in run.json (modified after the run)")
         print(f"{name:15s} {'identical' if not problems else 'DIFFERS'}")
         for p in problems:
             print(f"    {p}")
@@ -120,11 +140,38 @@ def verify(run_dir: Path) -> bool:
     return ok
 
 
+def check(root: Path, move: bool = False) -> int:
+    """`rdsexp-runs check [DIR] [--quarantine]`: list every damaged or inconsistent record under a
+    store; with `move`, quarantine them and rebuild the summaries concerned. Exit code: 1 when
+    something was found and left in place, else 0."""
+    findings = store.check(root)
+    for finding in findings:
+        print(finding.line())
+    if not findings:
+        print(f"check: {root}: no damaged or inconsistent record")
+        return 0
+    if not move:
+        print(f"check: {root}: {len(findings)} damaged or inconsistent; `--quarantine` moves the damaged records "
+              f"to {Path(root) / store.QUARANTINE} and rebuilds the summaries")
+        return 1
+    moves, rebuilt = store.quarantine(root, findings)
+    for source, target in moves:
+        print(f"moved {source} -> {target}")
+    for path in rebuilt:
+        print(f"rebuilt {path}")
+    print(f"check: {root}: {len(moves)} moved to quarantine, {len(rebuilt)} summaries rebuilt, index rebuilt")
+    return 0
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="rdsexp-runs", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
     p_list = sub.add_parser("list", help="table of runs under DIR (default outputs/)")
     p_list.add_argument("dir", nargs="?", default=str(DEFAULT_ROOT))
+    p_check = sub.add_parser("check", help="list damaged or inconsistent records under DIR (default outputs/)")
+    p_check.add_argument("dir", nargs="?", default=str(DEFAULT_ROOT))
+    p_check.add_argument("--quarantine", action="store_true",
+                         help="move damaged records to DIR/quarantine/ (nothing is deleted), rebuild summaries")
     for name, text in (("show", "run.json and metrics of one run"), ("verify", "re-run and compare tables")):
         p = sub.add_parser(name, help=text)
         p.add_argument("run")
@@ -135,12 +182,23 @@ def main(argv=None) -> int:
         cols = ["id", "sweep", "overrides", "seed", "status", "method", "synthesis", "lam", "rate", "loop", "seconds"]
         print(table[cols].to_string(index=False) if len(table) else f"no runs under {args.dir}")
         return 0
+    if args.command == "check":
+        return check(Path(args.dir), move=args.quarantine)
     run_dir = resolve(args.run, Path(args.root))
+    try:
+        info = store.read_run(run_dir)
+    except store.DamagedRecord as err:
+        print(f"rdsexp.runs: damaged: {err}", file=sys.stderr)
+        return 1
     if args.command == "show":
-        info = records.read_json(run_dir / "run.json")
         print(OmegaConf.to_yaml({k: v for k, v in info.items() if k not in ("environment", "traceback")}))
-        if (run_dir / "metrics.parquet").exists():
-            print(pd.read_parquet(run_dir / "metrics.parquet").to_string(index=False))
+        for problem in store.run_damage(run_dir, info) if info.get("status") == "complete" else []:
+            print(f"damaged: {run_dir / problem}")
+        if "metrics" in (info.get("tables") or {}):
+            try:
+                print(store.read_table(run_dir, info, "metrics").to_string(index=False))
+            except store.DamagedRecord:
+                pass                                  # named above
         return 0
     return 0 if verify(run_dir) else 1
 

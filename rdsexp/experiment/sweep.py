@@ -6,11 +6,13 @@ import os
 import sys
 from pathlib import Path
 
+import pandas as pd
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
 from .config import ConfigError, build
+from .records import WriteError, atomic_write_bytes
 from .runs import write_sweep_summary
 
 _SWEEP_BARS: dict[int, tqdm] = {}      # the sweep's progress bar, in the process that launched it
@@ -43,9 +45,15 @@ class SweepSummary(Callback):
     """Hydra callback: validates every job's config before the first runs, shows a progress bar over
     the jobs and writes the summary table once all have returned.
 
-    Each job also rebuilds the summary when it ends, so a sweep that is killed still has one."""
+    Each job also rebuilds the summary when it ends, so a sweep that is killed still has one.
+    A run or sweep whose directory cannot be written stops before any work with one line (exit 1);
+    a sweep in which a job did not complete exits 1 after its summary, with one line."""
+
+    def on_run_start(self, config: DictConfig, **kwargs) -> None:
+        writable_or_exit(Path(config.hydra.run.dir))
 
     def on_multirun_start(self, config: DictConfig, **kwargs) -> None:
+        writable_or_exit(Path(config.hydra.sweep.dir))
         points = sweep_points(config)
         validate_sweep(points)
         _SWEEP_BARS[os.getpid()] = tqdm(total=len(points), desc="sweep", unit="job", disable=None, file=sys.stderr)
@@ -59,5 +67,31 @@ class SweepSummary(Callback):
         bar = _SWEEP_BARS.pop(os.getpid(), None)
         if bar is not None:
             bar.close()
-        path = write_sweep_summary(Path(config.hydra.sweep.dir))
+        try:
+            path = write_sweep_summary(Path(config.hydra.sweep.dir))
+        except WriteError as err:
+            print(f"rdsexp: {err}", file=sys.stderr)
+            sys.exit(1)
         print(f"sweep summary: {path}")
+        table = pd.read_parquet(path)
+        status = table["status"] if "status" in table else pd.Series([], dtype=object)
+        failed = status[status != "complete"].value_counts()
+        if len(failed):
+            counts = ", ".join(f"{n} {s}" for s, n in failed.items())
+            print(f"rdsexp: sweep {path.parent}: {failed.sum()} of {len(status)} jobs did not complete ({counts}); "
+                  f"see {path.with_suffix('.csv')}", file=sys.stderr)
+            sys.exit(1)
+
+
+def writable_or_exit(directory: Path) -> None:
+    """Create `directory` and write a file into it, or exit 1 with one line (a read-only or full
+    file system, no permission) before Hydra or any job starts writing."""
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+        atomic_write_bytes(directory / ".write_test", b"")
+        (directory / ".write_test").unlink()
+    except (OSError, WriteError) as err:
+        reason = err.strerror if isinstance(err, OSError) and err.strerror else str(err)
+        print(f"rdsexp: cannot write {directory}: {reason}" if isinstance(err, OSError) else f"rdsexp: {err}",
+              file=sys.stderr)
+        sys.exit(1)

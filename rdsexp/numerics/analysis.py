@@ -126,11 +126,15 @@ def empirical_rate(q: np.ndarray, k_from: int, k_to: int, level: float = 0.95) -
     paper, which used k = 60 -> 80); the interval is the delta-method interval for the log ratio of
     the two correlated means. Returns (rate, low, high); NaN when a path is not finite at either step.
     """
-    a = np.sum(q[k_to] ** 2, axis=-1)
-    b = np.sum(q[k_from] ** 2, axis=-1)
+    return empirical_rate_sq(np.sum(q[k_from] ** 2, axis=-1), np.sum(q[k_to] ** 2, axis=-1), k_to - k_from, level)
+
+
+def empirical_rate_sq(b: np.ndarray, a: np.ndarray, span: int, level: float = 0.95) -> tuple[float, float, float]:
+    """`empirical_rate` from the per-path ||q_{k_from}||^2 = b (P,) and ||q_{k_to}||^2 = a (P,);
+    span = k_to - k_from (what a run split into chunks of paths keeps)."""
     if not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))) or a.mean() <= 0 or b.mean() <= 0:
         return float("nan"), float("nan"), float("nan")
-    P, span = a.size, 2.0 * (k_to - k_from)
+    P, span = a.size, 2.0 * span
     log_ratio = np.log(a.mean()) - np.log(b.mean())
     # gradient of log(mean a) - log(mean b) applied to the per-path pairs
     g = a / a.mean() - b / b.mean()
@@ -159,8 +163,10 @@ def weight(name: str, value, dim: int) -> np.ndarray:
     except (TypeError, ValueError):
         raise ValueError(f"{name}: {value!r} is not allowed, expected a number > 0 or a ({dim}, {dim}) "
                          "matrix") from None
-    if W.ndim == 0:
-        W = W * np.eye(dim)
+    if W.ndim == 0:                 # w I: positive definite iff w > 0 (no eigenvalue check needed)
+        if not (np.isfinite(W) and W > 0):
+            raise ValueError(f"{name}: must be symmetric positive definite (a number > 0), got {value!r}")
+        return float(W) * np.eye(dim)
     if W.shape != (dim, dim) or not np.all(np.isfinite(W)):
         raise ValueError(f"{name}: shape {W.shape} is not allowed, expected a number > 0 or a finite ({dim}, {dim}) "
                          "matrix")
@@ -243,6 +249,32 @@ def h2_norm(system: AffineRandomSystem, dist: MomentModel | None, F, *, disturba
             raise ValueError(f"disturbance: shape {Bw.shape}, expected a finite (n = {system.n}, q) matrix")
         Bw = Bw[None]
     return float(np.sqrt(max(np.einsum("rji,jk,rki->", Bw, P, Bw), 0.0)))
+
+
+def exact_costs(system: AffineRandomSystem, dist: MomentModel | None, F, x0=None, *, disturbance=None,
+                state_weight=1.0, input_weight=1.0) -> dict:
+    """{"lq_cost_x0", "lq_cost", "h2"}: `lq_cost` from x0 (NaN if x0 is None) and averaged over
+    x0 ~ N(0, I), and `h2_norm`, from one cost matrix P (one linear solve instead of three). inf when
+    not mean-square stable."""
+    P = cost_matrix(system, dist, F, state_weight=state_weight, input_weight=input_weight)
+    if not np.all(np.isfinite(P)):
+        return {"lq_cost_x0": float("inf") if x0 is not None else float("nan"), "lq_cost": float("inf"),
+                "h2": float("inf")}
+    if disturbance is None:
+        _, Bw = system.moment_factors(dist)
+    else:
+        Bw = np.asarray(disturbance, dtype=float)
+        if Bw.ndim != 2 or Bw.shape[0] != system.n or not np.all(np.isfinite(Bw)):
+            raise ValueError(f"disturbance: shape {Bw.shape}, expected a finite (n = {system.n}, q) matrix")
+        Bw = Bw[None]
+    out = {"lq_cost_x0": float("nan"), "lq_cost": float(np.trace(P)),
+           "h2": float(np.sqrt(max(np.einsum("rji,jk,rki->", Bw, P, Bw), 0.0)))}
+    if x0 is not None:
+        x0 = np.asarray(x0, dtype=float)
+        if x0.shape != (system.n,):
+            raise ValueError(f"x0: shape {x0.shape}, expected ({system.n},)")
+        out["lq_cost_x0"] = float(x0 @ P @ x0)
+    return out
 
 
 # ----------------------------------------------------------- rate estimators beside empirical_rate

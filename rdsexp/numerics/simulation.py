@@ -26,7 +26,7 @@ from .enkf import EnKF, check_covariance, component_major, ensemble_mean, sqrtm_
 from .systems import AffineRandomSystem, _finite_array
 
 PLANT, ENKF = 0, 1            # SeedSequence spawn-key slots per purpose
-DIVERGENCE_BOUND = 1e6        # |q| or |ensemble mean| beyond this marks a path diverged
+DIVERGENCE_BOUND = 1e6        # |q| (or |ensemble mean|) beyond this marks a path (or its filter) diverged
 
 
 def path_generators(seed, purpose: int, paths) -> list[np.random.Generator]:
@@ -43,7 +43,8 @@ class Trajectories:
     q: plant state, y: output, u: input applied to the plant (F x_{k|k-1} + d_k),
     psi_pred_* / psi_filt_*: ensemble mean and spread (std over members, ddof 1) of psi_{k|k-1}
     and psi_{k|k}; split with `x(...)`/`xi(...)`. failed_at (P,): first step whose values are
-    not kept (-1 if none); failure (P,): "" / "diverged" / "singular_innovation". Values of a
+    not kept (-1 if none); failure (P,): "" / "diverged" (the plant state) / "filter_diverged" (the
+    EnKF mean only) / "singular_innovation". Values of a
     failed path from failed_at on are NaN. members: filtered ensembles (K+1, P, M, n+p) if kept.
     s: the plant's coefficients (K+1, P, p_plant), s_k moving q_k to q_{k+1} (all steps drawn).
     gain_index (K+1, P): with a controller, how many gains path j had adopted before step k (0: the
@@ -114,15 +115,17 @@ def check_settings(plant: AffineRandomSystem, enkf: EnKF, F, d, q0, psi0, P0, pa
 
 
 def simulate(plant: AffineRandomSystem, enkf: EnKF, *, F=None, d, q0, psi0, P0=None, ensemble_size: int,
-             paths: int, seed, filter_sees_d: bool = True, keep_members: bool = False,
+             paths: int, seed, first_path: int = 0, filter_sees_d: bool = True, keep_members: bool = False,
              block: int = 16, bound: float = DIVERGENCE_BOUND, progress=None,
              controller: GainController | None = None) -> Trajectories:
     """Closed loop (open loop when F is None) of `plant` observed by `enkf`, P = `paths` sample paths.
 
     d: (K+1, m) external input added on u_k (horizon K = len(d) - 1); q0: (n,) plant initial state;
     psi0, P0: mean (n+p,) and covariance of the initial ensemble psi_{0|-1} (P0 = 0: every member
-    at psi0, as in the paper). filter_sees_d: the EnKF is told the applied input u_k (True) or only
-    F x_{k|k-1} (False). block: steps of noise drawn per generator call (does not change results).
+    at psi0, as in the paper). first_path: index of the first of the P paths, so that a run split into
+    chunks of paths (first_path = 0, P1, P1 + P2, ...) gives exactly the paths of one batch.
+    filter_sees_d: the EnKF is told the applied input u_k (True) or only F x_{k|k-1} (False).
+    block: steps of noise drawn per generator call (does not change results).
     progress: optional callable(k) called once per step (a progress bar's update).
     F: None (open loop), one gain (m, n) or one per path (P, m, n). controller: changes per-path
     gains between steps (`GainController.update`, called after filtering at every step k < K);
@@ -134,12 +137,14 @@ def simulate(plant: AffineRandomSystem, enkf: EnKF, *, F=None, d, q0, psi0, P0=N
         raise ValueError(f"ensemble_size: {M}, must be >= 2 (the EnKF needs a sample covariance)")
     if P < 1:
         raise ValueError(f"paths: {P}, must be >= 1")
+    if first_path < 0:
+        raise ValueError(f"first_path: {first_path}, must be >= 0")
     if block < 1:
         raise ValueError(f"block: {block}, must be >= 1")
     model, dim, ny = enkf.model, enkf.dim, enkf.model.ny
 
-    plant_rngs = path_generators(seed, PLANT, range(P))
-    enkf_rngs = path_generators(seed, ENKF, range(P))
+    plant_rngs = path_generators(seed, PLANT, range(first_path, first_path + P))
+    enkf_rngs = path_generators(seed, ENKF, range(first_path, first_path + P))
     s = np.stack([plant.xi_dist.sample(g, (K + 1,)) for g in plant_rngs], axis=1)    # (K+1, P, p_plant)
     A_s, B_s, C_s, D_s = plant.at(s)
     # ensembles psi_{k|k-1}, psi_{k|k} and the EnKF's scratch, reused at every step (see EnKF._predict)
@@ -188,9 +193,10 @@ def simulate(plant: AffineRandomSystem, enkf: EnKF, *, F=None, d, q0, psi0, P0=N
                     pending = drawer.submit(draw, k + block)
             e_v, e_w = noise[:, k % block, :, :nv], noise[:, k % block, :, nv:]
             mean_pred = ensemble_mean(psi)                                          # eq. (state-pred1)
-            # a path whose state or ensemble left the bound (or is not finite) stops here
-            fail(~(np.all(np.abs(q) <= bound, axis=1) & np.all(np.abs(mean_pred) <= bound, axis=1)),
-                 k, "diverged")
+            # a path whose state or ensemble left the bound (or is not finite) stops here; the
+            # reason says which: the plant ("diverged") or only the EnKF's estimate
+            fail(~np.all(np.abs(q) <= bound, axis=1), k, "diverged")
+            fail(~np.all(np.abs(mean_pred) <= bound, axis=1), k, "filter_diverged")
             q[~alive], psi[~alive], mean_pred[~alive] = 0.0, 0.0, 0.0    # no overflow on failed paths
             # eq. (sf-enkf) + d_k, one product per path: the rounding of a single (P, n) @ (n, m)
             # product depends on P (paths=1 gave other last bits)
@@ -222,6 +228,22 @@ def simulate(plant: AffineRandomSystem, enkf: EnKF, *, F=None, d, q0, psi0, P0=N
             q = (A_s[k] @ q[..., None])[..., 0] + (B_s[k] @ u[..., None])[..., 0]
             enkf._predict(filtered, u_filter, e_w, out=psi)
     return out
+
+
+def bytes_per_path(plant: AffineRandomSystem, enkf: EnKF, *, ensemble_size: int, horizon: int,
+                   keep_members: bool = False, block: int = 16) -> int:
+    """Bytes `simulate` holds per path (the arrays above, float64), to size chunks of paths.
+
+    Plant coefficients and matrices per step, the result arrays (K+1 steps), the ensembles and
+    their scratch, and the two noise buffers of `block` steps; members (K+1, M, n+p) if kept.
+    """
+    M, K1, model, dim = int(ensemble_size), int(horizon) + 1, enkf.model, enkf.dim
+    n, m, ny = model.n, model.m, model.ny
+    per_step = plant.xi_dist.p if plant.xi_dist is not None else 0
+    per_step += n * n + n * m + ny * n + ny * m + n + ny + m + 4 * dim + (M * dim if keep_members else 0)
+    ensembles = M * (3 * dim + ny + 1)
+    noise = 2 * min(block, K1) * M * (enkf.output_noise_dim + dim)
+    return 8 * (K1 * per_step + ensembles + noise)
 
 
 def simulate_state_feedback(system: AffineRandomSystem, F, *, d, x0, paths: int, seed) -> np.ndarray:

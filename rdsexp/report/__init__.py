@@ -18,7 +18,7 @@ import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 from omegaconf import OmegaConf  # noqa: E402
 
-from ..experiment import records  # noqa: E402
+from ..experiment import records, store  # noqa: E402
 
 COLUMN_WIDTH, PAGE_WIDTH = 3.5, 7.16        # IEEE column and page widths, inches
 STYLE = {"font.size": 8, "axes.titlesize": 8, "axes.labelsize": 8, "legend.fontsize": 7, "xtick.labelsize": 7,
@@ -74,8 +74,14 @@ class Run:
 
 
 def load_runs(root: Path, sweep: str | None = None) -> list[Run]:
-    """Complete runs under root (optionally of one sweep name), the latest sweep of that name only."""
-    runs = [Run(p.parent) for p in sorted(Path(root).rglob("run.json"))]
+    """Complete runs under root (optionally of one sweep name), the latest sweep of that name only.
+    A damaged run (run.json or a table unreadable, missing or modified) is named in one warning
+    line and left out."""
+    runs = []
+    for run_dir, info in sorted(store.intact_runs(root), key=lambda run: str(run[0])):
+        run = Run(run_dir)
+        run.info = info                                  # read once (cached_property)
+        runs.append(run)
     runs = [r for r in runs if r.info.get("status") == "complete" and r.info.get("tables")]
     if sweep is not None:
         runs = [r for r in runs if (r.info.get("sweep") or {}).get("name") == sweep]
@@ -101,7 +107,9 @@ def select(runs: list[Run], **where) -> list[Run]:
 def lineage(runs: list[Run], script: str, **extra) -> dict:
     """What an output was drawn from: the runs whose tables it read (ids, table hashes), script, code version."""
     used = [r for r in runs if r.used]
-    return {"script": script, "code_version": check_versions(used, allow_mixed=True),
+    # an output computed from configs alone (no stored run, e.g. pole_sets) names the code that made it
+    version = check_versions(used, allow_mixed=True) if used else records.code_version()["version"]
+    return {"script": script, "code_version": version,
             "runs": [{"id": r.id, "dir": str(r.dir), "tables": dict(sorted(r.used.items()))} for r in used], **extra}
 
 
@@ -160,7 +168,7 @@ def rms_with_band(q: np.ndarray, level_z: float = 1.96) -> tuple[np.ndarray, np.
 
 def trajectory_array(table: pd.DataFrame, experiment: str, quantity: str) -> np.ndarray:
     """(K+1, P, dim) array of QUANTITY[i] columns of one experiment of a trajectories table."""
-    rows = table[table["experiment"] == experiment]
+    rows = table[table["experiment"] == experiment].sort_values(["k", "path"], kind="stable")
     cols = sorted((c for c in table.columns if c.startswith(quantity + "[")),
                   key=lambda c: int(c[len(quantity) + 1:-1]))
     steps, paths = rows["k"].nunique(), rows["path"].nunique()
@@ -179,12 +187,12 @@ def seed_interval(values, level: float = 0.95) -> tuple[float, float, float, int
     return float(v.mean()), float(v.mean() - half), float(v.mean() + half), int(v.size)
 
 
-def write_table(frame: pd.DataFrame, out_dir: Path, name: str, runs: list[Run], script: str) -> None:
-    """A report table as CSV and markdown, with its lineage JSON."""
+def write_table(frame: pd.DataFrame, out_dir: Path, name: str, runs: list[Run], script: str, **extra) -> None:
+    """A report table as CSV and markdown, with its lineage JSON (plus `extra` entries)."""
     out_dir.mkdir(parents=True, exist_ok=True)
     records.atomic_write_bytes(out_dir / f"{name}.csv", frame.to_csv(index=False).encode())
     records.atomic_write_bytes(out_dir / f"{name}.md", _markdown(frame).encode())
-    records.write_json(out_dir / f"{name}.json", lineage(runs, script, outputs=[f"{name}.csv", f"{name}.md"]))
+    records.write_json(out_dir / f"{name}.json", lineage(runs, script, outputs=[f"{name}.csv", f"{name}.md"], **extra))
 
 
 def _markdown(frame: pd.DataFrame) -> str:

@@ -34,6 +34,9 @@ METHODS = {
     "robust_box": robust_box,
     "ms_lqr": ms_lqr,
 }
+# what a design may raise on a system it cannot handle numerically (LinAlgError, ArpackError and
+# cvxpy's SolverError derive from these); a failure becomes the status `failed: <reason>`
+NUMERICAL_FAILURES = (np.linalg.LinAlgError, ArithmeticError, RuntimeError)
 POSITIVE_OPTIONS = ("tol", "max_iter", "x_cond_limit", "state_weight", "input_weight")
 
 __all__ = ["METHODS", "STATUSES", "SynthesisResult", "check_options", "check_poles", "synthesize"]
@@ -46,7 +49,12 @@ def synthesize(system: AffineRandomSystem, dist: MomentModel | None, method: str
     dist = system.check_distribution(dist)
     design = METHODS[method]
     start = time.perf_counter()
-    res = design(system, dist, **options)
+    try:
+        res = design(system, dist, **options)
+    except NUMERICAL_FAILURES as err:           # arguments were checked above: this is the system's numerics
+        text = str(err).strip().splitlines()
+        res = SynthesisResult(method, None, float("nan"), f"failed: {type(err).__name__}: {text[0] if text else ''}",
+                              nbar=system.Gbar(dist).shape[0])
     res.seconds = time.perf_counter() - start
     return res
 
@@ -65,6 +73,8 @@ def check_options(method: str, options: dict, system: AffineRandomSystem) -> Non
     for name, value in options.items():
         if name == "poles":
             check_poles(value, system)
+        elif name == "seed" and not isinstance(value, bool):
+            raise ValueError(f"seed: {value!r} is not allowed, expected true or false")
         elif name in POSITIVE_OPTIONS and not (isinstance(value, (int, float)) and not isinstance(value, bool)
                                                and np.isfinite(value) and value > 0):
             raise ValueError(f"{name}: {value!r} is not allowed, expected a number > 0")

@@ -8,7 +8,8 @@ import numpy as np
 from ..analysis import ms_rate
 from ..systems import AffineRandomSystem, MomentModel
 
-STATUSES = ("optimal", "not_ms_stabilizable", "infimum_not_attained", "solver_failed", "designed")
+STATUSES = ("optimal", "not_ms_stabilizable", "infimum_not_attained", "solver_failed", "designed", "not_converged",
+            "not_applicable", "failed: <reason>")      # nominal_lmi adds `_on_mean_model` to what it certifies
 
 
 @dataclass

@@ -16,6 +16,8 @@ from ..analysis import ms_rate
 from ..systems import AffineRandomSystem, MomentModel
 from .base import SynthesisResult
 
+SEED_MARGIN = 3e-8           # above the seed's upper end: the trial lambda of the confirming solve
+
 
 @dataclass
 class Trial:
@@ -31,7 +33,7 @@ class Trial:
 
 def certified_bisection(system: AffineRandomSystem, dist: MomentModel, solve: Callable[[float], Trial], *,
                         method: str, nbar: int, tol: float = 1e-7, max_iter: int = 60,
-                        x_cond_limit: float = 1e6) -> SynthesisResult:
+                        x_cond_limit: float = 1e6, bracket: tuple[float, float] | None = None) -> SynthesisResult:
     """Minimise lambda over an LMI family by bisection on lambda^2 with a certified upper end.
 
     The upper end `lam` is always the exact rate of a gain in hand on `dist`: F = 0 (the open loop)
@@ -40,10 +42,24 @@ def certified_bisection(system: AffineRandomSystem, dist: MomentModel, solve: Ca
     one probes just below the new upper end (lam - tol); otherwise the interval is halved in
     lambda^2. A trial whose gain does not confirm it raises the lower end; that lower end is
     certified when the solver proved the LMI infeasible there.
+
+    bracket (lower, upper): a certified bracket of the optimum from elsewhere (policy iteration's,
+    whose lower end is proven without an SDP): the lower end is taken as proven, and one solve at
+    upper + SEED_MARGIN returns a gain whose exact rate confirms the upper end, closing the bracket
+    in one solve; where it does not, the bisection goes on from [lower, best rate in hand].
+    (A solve just below the lower end cannot prove the LMI infeasible there: the solver's margin t
+    is within its accuracy, about 1e-9, of 0 on both sides of the optimum.)
     """
     best_F = np.zeros((system.m, system.n))
     lam = ms_rate(system, dist, best_F)
     lo, certified, best_X, solves, confirmed = 0.0, True, None, 0, True
+    if bracket is not None and 0 < bracket[0] <= bracket[1] < lam:
+        result = solve(bracket[1] + SEED_MARGIN)
+        solves += 1
+        if result.F is not None and (rate := ms_rate(system, dist, result.F)) < lam:
+            lam, best_F, best_X = rate, result.F, result.X
+        lo = min(bracket[0], lam)
+        confirmed = lam - lo > tol                  # not closed: the bisection probes below lam first
     while lam - lo > tol and solves < max_iter:
         trial = max(lam - tol / 2, 0.0) if confirmed else np.sqrt((lo ** 2 + lam ** 2) / 2)
         solves += 1

@@ -69,12 +69,10 @@ def _box_problem(n: int, m: int, V: int):
         H = A[v] @ X + B[v] @ Y
         lmis.append(cp.bmat([[lam2 * X - t * np.eye(n), H.T], [H, X]]) >> 0)
     problem = cp.Problem(cp.Maximize(t), lmis + [cp.trace(X) == 1])
-    lam2.value = 1.0                                   # compile now (see lmi._lmi_problem)
+    lam2.value = 1.0                                   # compile now, no solve (see lmi._lmi_problem)
     for v in range(V):
         A[v].value, B[v].value = np.eye(n), np.zeros((n, m))
-    with warnings.catch_warnings():                           # only the compilation matters here
-        warnings.simplefilter("ignore")
-        problem.solve(solver=cp.CLARABEL)
+    problem.get_problem_data(cp.CLARABEL)
     return problem, lam2, A, B, X, Y, t
 
 
@@ -90,7 +88,7 @@ def _solver(system: AffineRandomSystem, vertices: np.ndarray):
         try:
             with warnings.catch_warnings():                       # inaccuracy is a status here
                 warnings.simplefilter("ignore")
-                problem.solve(solver=cp.CLARABEL)
+                problem.solve(solver=cp.CLARABEL, warm_start=False)    # a fresh solver: see lmi._lmi_problem
             status = problem.status
         except cp.error.SolverError:
             status = "solver_error"

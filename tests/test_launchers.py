@@ -1,0 +1,72 @@
+"""Sweeps through other Hydra launchers (issue 12): joblib workers, submitit (the Slurm code path,
+run locally) and a local Ray cluster give the tables of the basic launcher, and the sweep summary
+lists every job however many finish at once."""
+import importlib.util
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pandas as pd
+import pytest
+from conftest import SMALL, rdsexp
+
+SEEDS = "seed=0,1,2,3,4,5,6,7"           # many short jobs, so that some finish together
+TINY = [*SMALL, "closed_loop.open_loop=false"]
+
+
+def sweep(tmp_path, name, *args):
+    cwd = tmp_path / name
+    cwd.mkdir()
+    rdsexp("-m", *args, *TINY, cwd=cwd, timeout=900)
+    (sweep_dir,) = (cwd / "outputs" / "sweeps").iterdir()
+    return sweep_dir
+
+
+def table_hashes(sweep_dir: Path) -> dict:
+    """{seed: {table: sha256}} of every job of a sweep."""
+    out = {}
+    for run_json in sweep_dir.glob("*/run.json"):
+        info = json.loads(run_json.read_text())
+        assert info["status"] == "complete", info.get("error")
+        out[next(o for o in info["overrides"] if o.startswith("seed="))] = {k: v["sha256"] for k, v in info["tables"].items()}
+    return out
+
+
+@pytest.fixture(scope="module")
+def basic(tmp_path_factory):
+    return table_hashes(sweep(tmp_path_factory.mktemp("basic"), "basic", SEEDS))
+
+
+def test_joblib_workers_give_the_basic_tables_and_a_complete_summary(tmp_path, basic):
+    sweep_dir = sweep(tmp_path, "joblib", "hydra/launcher=joblib", "hydra.launcher.n_jobs=2", SEEDS)
+    assert table_hashes(sweep_dir) == basic
+    summary = pd.read_parquet(sweep_dir / "summary.parquet")
+    assert sorted(summary["job"]) == list(range(8)) and (summary["status"] == "complete").all()
+
+
+def test_submitit_local_gives_the_basic_tables(tmp_path, basic):
+    # hydra/launcher=slurm uses the same submitit code path; submitit_local runs it without Slurm
+    sweep_dir = sweep(tmp_path, "submitit", "hydra/launcher=submitit_local", "seed=0,1")
+    hashes = table_hashes(sweep_dir)
+    assert hashes == {k: basic[k] for k in hashes} and len(hashes) == 2
+
+
+@pytest.mark.skipif(importlib.util.find_spec("hydra_plugins.hydra_ray_launcher") is None,
+                    reason='needs the ray extra: pip install ".[ray]"')
+def test_ray_cluster_gives_the_basic_tables(tmp_path, basic):
+    ray = shutil.which("ray", path=str(Path(sys.executable).parent)) or "ray"
+    start = subprocess.run([ray, "start", "--head", "--num-cpus=2", "--include-dashboard=false",
+                            "--disable-usage-stats"], capture_output=True, text=True, timeout=300)
+    assert start.returncode == 0, start.stderr
+    try:
+        # the workers of a running cluster do not share this process's working directory: the sweep
+        # directory is given as an absolute path (on a cluster: on a file system every node sees)
+        sweep_dir = sweep(tmp_path, "ray", "hydra/launcher=ray_cluster", "hydra.launcher.ray.init.address=auto",
+                          f"hydra.sweep.dir={tmp_path / 'ray' / 'outputs' / 'sweeps' / 'x'}",
+                          "hydra.launcher.ray.remote.num_cpus=1", "seed=0,1,2")
+    finally:
+        subprocess.run([ray, "stop", "--force"], capture_output=True, timeout=300)
+    hashes = table_hashes(sweep_dir)
+    assert hashes == {k: basic[k] for k in hashes} and len(hashes) == 3
