@@ -233,3 +233,15 @@ def test_online_run_records_the_controller_table(tmp_path):
         assert online[(online["path"] == path) & (online["k"] == k + 1)]["F[0]"].item() == F0
     assert {"closed_loop", "open_loop", "online"} <= set(metrics.index)
     assert 0 < metrics.loc["online", "optimal_rate_plant"] <= metrics.loc["online", "offline_rate_plant"]
+
+
+def test_online_loop_does_not_depend_on_chunks_of_paths(hydra_context):
+    """One controller per chunk of paths: the decisions and rows equal those of one batch, bit for bit."""
+    from rdsexp.experiment.pipeline import run_experiment
+    small = [o for o in SMALL if not o.startswith("closed_loop.horizon")] + ["closed_loop.horizon=40"]
+    tables = [run_experiment(build(compose("config", overrides=small + [
+        "controller=online", "controller.warmup=5", "controller.period=10", "closed_loop.open_loop=false", chunk])))
+        .tables for chunk in ("closed_loop.chunk_paths=4", "closed_loop.chunk_paths=3")]
+    pd.testing.assert_frame_equal(tables[0]["controller"], tables[1]["controller"])
+    pd.testing.assert_frame_equal(tables[0]["trajectories"], tables[1]["trajectories"])
+    assert (tables[0]["controller"]["k"] >= 0).any()
