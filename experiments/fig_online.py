@@ -77,6 +77,7 @@ def online_table(runs: list[report.Run]) -> pd.DataFrame:
         rows.append({"period": r.get("controller.period"), "window": r.get("controller.window"),
                      "warmup": r.get("controller.warmup"), "offline_rate": m.loc["closed_loop", "rate"],
                      "online_rate": m.loc["online", "rate"],
+                     "online_rate_not_diverged": m.loc["online"].get("rate_not_diverged", np.nan),
                      "online_failed": m.loc["online", "failed_fraction"],
                      "final_true_rate_median": m.loc["online", "final_rate_plant_median"],
                      "final_stable_fraction": m.loc["online", "final_stable_fraction"],
