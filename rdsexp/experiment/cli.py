@@ -318,7 +318,7 @@ def print_summary(info: dict, run_dir: Path) -> None:
               if m != s.get("gain_method") and st not in ("optimal", "designed")}
     if others:
         lines.append("  other designs: " + ", ".join(f"{m} {st}" for m, st in others.items()))
-    for loop, label in (("closed_loop", "closed loop"), ("open_loop", "open loop  ")):
+    for loop, label in (("closed_loop", "closed loop"), ("open_loop", "open loop  "), ("online", "online     ")):
         if f"{loop}_status" not in s:
             continue
         line = f"  {label} rate k={k_from}..{k_to}: {interval(s.get(f'{loop}_rate'))}"
@@ -333,6 +333,13 @@ def print_summary(info: dict, run_dir: Path) -> None:
             if reasons:
                 line += ": " + ", ".join(f"{FAILURES.get(r, r)} on {c}" for r, c in reasons.items())
         lines.append(line)
+    if s.get("online"):                                   # controller=online (issue 9)
+        o = s["online"]
+        fmt = lambda v: "nan" if v is None else f"{v:.4f}"
+        lines.append(f"  online final gains: exact rate on the true plant median {fmt(o['final_rate_plant_median'])} "
+                     f"(10-90% {fmt(o['final_rate_plant_q10'])}-{fmt(o['final_rate_plant_q90'])}), "
+                     f"{100 * o['final_stable_fraction']:.0f}% stable, {o['adoptions_per_path']:.1f} adoptions per "
+                     f"path; offline gain {fmt(o['offline_rate_plant'])}, optimum {fmt(o['optimal_rate_plant'])}")
     lines.append(f"  run directory: {run_dir}")
     if (run_dir / "recording.rrd").exists():
         lines.append(f"  view: rerun {run_dir / 'recording.rrd'}")

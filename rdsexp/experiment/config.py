@@ -15,6 +15,7 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 from ..numerics.distributions import from_spec
 from ..numerics.enkf import VARIANTS, EnKF, check_covariance
 from ..numerics.modeling import mls_input
+from ..numerics.online import MEMORIES, OnlineSettings
 from ..numerics.synthesis import METHODS, check_options
 from ..numerics.systems import AffineRandomSystem, MomentModel
 
@@ -181,6 +182,10 @@ class Experiment:
     identification_feedback: str = "none"   # none | nominal | auto | given
     identification_gain: np.ndarray | None = None       # (m, n) when feedback is a given F
     xi_guess: np.ndarray | None = None      # nominal guess of the plant's xi (prior knowledge), (p_plant,)
+    # controller (issue 9): offline (the paper's two phases) or online (learning-type, beside offline)
+    controller: str = "offline"
+    online: OnlineSettings | None = None
+    online_initial: str | np.ndarray = "zero"   # zero | nominal | an (m, n) gain
     # scale (issue 12): paths per chunk (None: from a memory budget), worker processes, paths recorded
     chunk_paths: int | None = None
     workers: int = 1
@@ -296,6 +301,8 @@ def build(cfg) -> Experiment:
     if level not in TRACKING_LEVELS:
         raise ConfigError(f"tracking.level: {level!r} is not allowed, expected one of {', '.join(TRACKING_LEVELS)}")
 
+    controller, online, online_initial = _controller(cfg, model, K)
+
     return Experiment(plant=plant, model=model, reported=reported, enkf=enkf, ensemble_size=M, q0=q0, psi0=psi0, P0=P0,
                       identification_input=u_id, K0=K0, K1=K1, gain_method=method, gain_options=options,
                       gain_source=gain_source, gain_F=gain_F,
@@ -305,7 +312,56 @@ def build(cfg) -> Experiment:
                       tracking=level, recording=flags["tracking.recording"] and level != "off",
                       plant_name=plant_name, model_name=model_name, reference=reference,
                       design_options=design_options, identification_feedback=feedback, identification_gain=F_id,
-                      xi_guess=xi_guess, chunk_paths=chunk, workers=workers, recorded_paths=recorded_paths)
+                      xi_guess=xi_guess, chunk_paths=chunk, workers=workers, recorded_paths=recorded_paths,
+                      controller=controller, online=online, online_initial=online_initial)
+
+
+CONTROLLERS = ("offline", "online")
+ONLINE_KEYS = {"type", "initial", "warmup", "period", "memory", "window", "forgetting", "method", "options",
+               "safeguard"}
+
+
+def _controller(cfg, model: AffineRandomSystem, K: int) -> tuple[str, OnlineSettings | None, str | np.ndarray]:
+    """controller.type (offline | online; default offline) and the online controller's settings."""
+    node = plain(OmegaConf.select(cfg, "controller")) or {"type": "offline"}
+    kind = node.get("type", "offline") if isinstance(node, dict) else node
+    if kind not in CONTROLLERS:
+        raise ConfigError(f"controller.type: {kind!r} is not allowed, expected one of {', '.join(CONTROLLERS)}")
+    if kind == "offline":
+        return kind, None, "zero"
+    extra = sorted(set(node) - ONLINE_KEYS)
+    if extra:
+        raise ConfigError(f"controller: {extra!r} is not allowed, expected keys among {', '.join(sorted(ONLINE_KEYS))}")
+    ints = {name: _number(get(cfg, f"controller.{name}"), f"controller.{name}", integer=True, low=low)
+            for name, low in (("warmup", 0), ("period", 1), ("window", 2))}
+    memory = get(cfg, "controller.memory")
+    if memory not in MEMORIES:
+        raise ConfigError(f"controller.memory: {memory!r} is not allowed, expected one of {', '.join(MEMORIES)}")
+    if memory == "window" and ints["window"] > K:
+        raise ConfigError(f"controller.window: {ints['window']} is not allowed, longer than closed_loop.horizon = {K}")
+    forgetting = _number(get(cfg, "controller.forgetting"), "controller.forgetting", low=0, low_open=True, high=1)
+    if forgetting == 1:
+        raise ConfigError("controller.forgetting: 1 is not allowed, expected a number in (0, 1) (memory=all keeps all)")
+    method = get(cfg, "controller.method")
+    if method not in METHODS:
+        raise ConfigError(f"controller.method: {method!r} is not allowed, expected one of {', '.join(METHODS)}")
+    options = get(cfg, "controller.options") or {}
+    if not isinstance(options, dict):
+        raise ConfigError(f"controller.options: {options!r} is not allowed, expected a mapping")
+    safeguard = get(cfg, "controller.safeguard")
+    if not isinstance(safeguard, bool):
+        raise ConfigError(f"controller.safeguard: {safeguard!r} is not allowed, expected true or false")
+    with key("controller.options"):
+        settings = OnlineSettings(memory=memory, forgetting=forgetting, method=method, options=options,
+                                  safeguard=safeguard, **ints).check(model, K)
+    initial = get(cfg, "controller.initial")
+    if isinstance(initial, list):
+        with key("controller.initial"):
+            initial = model.check_gain(initial)
+    elif initial not in ("zero", "nominal"):
+        raise ConfigError(f"controller.initial: {initial!r} is not allowed, expected zero, nominal or a gain "
+                          f"[[...]] of shape (m, n) = {(model.m, model.n)}")
+    return kind, settings, initial
 
 
 def _process_noise(cfg, n: int, p: int) -> np.ndarray:

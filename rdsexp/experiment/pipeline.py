@@ -20,14 +20,16 @@ from tqdm.contrib.logging import logging_redirect_tqdm
 
 from ..numerics.analysis import empirical_rate_sq, exact_costs, ms_rate, second_moments
 from ..numerics.modeling import model_distribution, nominal_gain, one_line
+from ..numerics.online import OnlineController, rates
 from ..numerics.simulation import Trajectories, simulate
 from ..numerics.synthesis import METHODS, SynthesisResult, synthesize
 from ..numerics.systems import MomentModel
 from .config import Experiment
-from .montecarlo import LoopSummary, run_chunks
+from .montecarlo import LoopSummary, chunk_size, run_chunks
 
 log = logging.getLogger("rdsexp")
-SPAWN_KEYS = {"identification": (0,), "closed_loop": (1,), "open_loop": (1,)}
+# the online loop shares the closed loop's seeds: the same plant samples and EnKF noise, a paired comparison
+SPAWN_KEYS = {"identification": (0,), "closed_loop": (1,), "open_loop": (1,), "online": (1,)}
 # a path's failure reason (Trajectories.failure) in words, for the summary
 FAILURES = {"diverged": "the plant state diverged", "filter_diverged": "the EnKF estimate diverged",
             "singular_innovation": "the EnKF innovation covariance was singular"}
@@ -131,6 +133,8 @@ def run_experiment(exp: Experiment, sink=None) -> Outcome:
                     for first, tr in run_chunks(exp, dict(settings, F=F, seed=root(name)), keep_members=keep,
                                                 workers=exp.workers, progress=bar.update):
                         rows = trajectory_table(name, tr, first)
+                        if exp.controller == "online":     # the gain in use, as in the online rows
+                            rows = with_gains(rows, np.zeros((exp.model.m, exp.model.n)) if F is None else F)
                         sink.append("trajectories", rows)
                         sample.append(rows[rows["path"] < exp.recorded_paths])
                         if keep:
@@ -143,6 +147,13 @@ def run_experiment(exp: Experiment, sink=None) -> Outcome:
     if not loops:                              # no gain to simulate: the table's columns, no rows
         sink.append("trajectories", trajectory_table("closed_loop", None, exp=exp))
 
+    online = None
+    if exp.controller == "online":
+        with timed(timings, "online"):
+            online, summary["online_initial"] = online_loop(exp, root("online"), keep, sim, sink, sample,
+                                                            sample_members)
+            loops["online"] = online[0]
+
     with timed(timings, "metrics"):
         tables = {
             "identification": trajectory_table("identification", ident),
@@ -154,6 +165,8 @@ def run_experiment(exp: Experiment, sink=None) -> Outcome:
         }
         if isinstance(sink, MemorySink):
             tables |= sink.tables()
+    if online is not None:
+        add_online_tables(exp, tables, online, chosen, summary)
     summary.update(_summary(exp, dist, chosen, tables))
     timings["synthesis_by_method"] = {f"{source}/{method}": round(res.seconds, 4)
                                       for (source, method), (_, res) in designs.items()}
@@ -174,6 +187,127 @@ class MemorySink:
 
     def tables(self) -> dict[str, pd.DataFrame]:
         return {name: pd.concat(parts, ignore_index=True) for name, parts in self.parts.items()}
+
+
+def online_loop(exp: Experiment, seed, keep: bool, sim: dict, sink, sample: list, sample_members: list):
+    """The online (learning-type) closed loop: per-path gains re-designed from the path's own xi_{k|k}.
+
+    In chunks of paths like the other loops (one controller per chunk: a path's decisions depend on
+    its own estimates only), rows streamed to the sink with the gain in use (F[i]). Returns
+    ((LoopSummary, [(first_path, controller)]), info for the summary)."""
+    m, n = exp.model.m, exp.model.n
+    info = {"initial": exp.online_initial if isinstance(exp.online_initial, str) else "given"}
+    F0 = exp.online_initial if not isinstance(exp.online_initial, str) else np.zeros((m, n))
+    if isinstance(exp.online_initial, str) and exp.online_initial == "nominal":
+        res = nominal_gain(exp.plant, exp.xi_guess)
+        info |= {"method": res.method, "status": res.status, "rate_at_guess": res.lam}
+        if res.F is not None and np.all(np.isfinite(res.F)) and res.lam < 1:
+            F0 = res.F
+        else:
+            info["used"] = "zero (no stabilizing nominal gain)"
+    K = exp.disturbance.shape[0] - 1
+    size = chunk_size(exp, keep_members=keep)
+    parts, controllers = [], []
+    bar, _ = _progress("online", exp.paths * (K + 1))
+    with bar, logging_redirect_tqdm():
+        for first in range(0, exp.paths, size):
+            count = min(size, exp.paths - first)
+            controller = OnlineController(exp.model, exp.online, F0, paths=count, horizon=K)
+            tr = simulate(exp.plant, exp.enkf, F=F0, d=exp.disturbance, paths=count, first_path=first, seed=seed,
+                          filter_sees_d=exp.filter_sees_disturbance, keep_members=keep,
+                          progress=lambda k, c=count: bar.update(c), controller=controller, **sim)
+            history = controller.gain_history()
+            in_use = np.stack([history[j][tr.gain_index[:, j]] for j in range(count)])     # (P, K+1, m, n)
+            rows = with_gains(trajectory_table("online", tr, first), in_use.reshape(count * (K + 1), m, n))
+            sink.append("trajectories", rows)
+            sample.append(rows[rows["path"] < exp.recorded_paths])
+            if keep:
+                members = members_table("online", tr, first)
+                sink.append("members", members)
+                sample_members.append(members[members["path"] < exp.recorded_paths])
+            parts.append(LoopSummary.of(tr, exp))
+            controllers.append((first, controller))
+    return (LoopSummary.concat(parts), controllers), info
+
+
+def with_gains(rows: pd.DataFrame, F: np.ndarray) -> pd.DataFrame:
+    """rows with the gain in use as columns F[i] (i over the row-major (m, n) gain).
+
+    F: (len(rows), m, n), one gain per row, or (m, n), the same gain on every row."""
+    F = np.asarray(F, dtype=float)
+    flat = F.reshape(len(rows), -1) if F.ndim == 3 else np.broadcast_to(F.ravel(), (len(rows), F.size))
+    return rows.assign(**{f"F[{i}]": flat[:, i] for i in range(flat.shape[1])})
+
+
+def add_online_tables(exp: Experiment, tables: dict, online, chosen, summary: dict) -> None:
+    """The `controller` table (every decision), per-path and summary metrics of the online loop
+    against the offline design of the same seed and the optimum on the true plant.
+
+    online: (LoopSummary, [(first_path, OnlineController)]) from `online_loop`."""
+    loop, controllers = online
+    P, p, m, n = loop.failed_at.size, exp.model.p, exp.model.m, exp.model.n
+    Abar, Bbar = exp.plant.moment_factors(None)
+    frames = []
+    for offset, controller in controllers:
+        d, count = controller.decisions(), controller.P
+        with np.errstate(all="ignore"):
+            rate_plant = rates(Abar, Bbar, np.nan_to_num(d.F, nan=np.inf)) if len(d.k) else np.zeros(0)
+            rate_plant[~np.all(np.isfinite(d.F), axis=(1, 2))] = np.nan
+            initial_plant = rates(Abar, Bbar, controller.F0)
+        rows = {"path": offset + np.concatenate([np.arange(count), d.path]),
+                "k": np.concatenate([np.full(count, -1), d.k]),
+                "adopted": np.concatenate([np.ones(count, bool), d.adopted]),
+                "reason": np.concatenate([np.full(count, "initial", dtype=object), d.reason]),
+                "rate_model": np.concatenate([np.full(count, np.nan), d.rate_model]),
+                "rate_current": np.concatenate([np.full(count, np.nan), d.rate_current]),
+                "rate_plant": np.concatenate([initial_plant, rate_plant])}
+        mean = np.concatenate([np.full((count, p), np.nan), d.mean])
+        rows |= {f"mean[{i}]": mean[:, i] for i in range(p)}
+        rows |= {f"cov[{i},{j}]": np.concatenate([np.full(count, np.nan), d.cov[:, i, j]])
+                 for i in range(p) for j in range(p)}
+        F = np.concatenate([controller.F0, d.F]).reshape(-1, m * n)
+        rows |= {f"F[{i}]": F[:, i] for i in range(m * n)}
+        frames.append(pd.DataFrame(rows))   # the initial gains (k = -1: in use from k = 0), then in order of k
+    table = pd.concat(frames, ignore_index=True)
+    # gain index: the initial gain is 0, then a path's adopted gains in order (-1: not adopted)
+    table.insert(4, "gain_index", np.where(table["adopted"], table.groupby("path")["adopted"].cumsum() - 1, -1))
+    table = table.sort_values(["path", "k"], kind="stable", ignore_index=True)
+    tables["controller"] = table
+    adopted_count = int((table["adopted"] & (table["k"] >= 0)).sum())
+
+    # per path: the first step at which it holds a gain stable in mean square on the true plant
+    # (-1: never) and the exact true rate of its final gain
+    adopted = table[table["adopted"]]
+    final = adopted.groupby("path")["rate_plant"].last().reindex(range(P)).to_numpy()
+    stable = adopted[adopted["rate_plant"] < 1].groupby("path")["k"].min().reindex(range(P))
+    first = np.where(stable.isna(), -1, stable.fillna(0).to_numpy() + 1).astype(int)
+    paths = tables["paths"]
+    extra = pd.DataFrame({"experiment": "online", "path": np.arange(P), "first_stable_k": first,
+                          "final_rate_plant": final})
+    tables["paths"] = paths.merge(extra, on=["experiment", "path"], how="left")
+    # the optimal rate on the true plant: the better of Theorem 2's bisection and policy iteration
+    # (policy iteration from F = 0 can stall on an open-loop unstable plant)
+    truth = exp.plant.check_distribution(None)
+    optimum = min((safe_synthesize(exp.plant, truth, method, {}) for method in ("proposed", "policy_iteration")),
+                  key=lambda res: res.lam if np.isfinite(res.lam) else np.inf)
+    offline = safe_rate(exp.plant, None, chosen.F) if chosen is not None and chosen.F is not None else np.nan
+    window = exp.rate_window
+    q = np.nanpercentile(final, [10, 50, 90]) if np.isfinite(final).any() else [np.nan] * 3
+    online_metrics = {"final_rate_plant_q10": q[0], "final_rate_plant_median": q[1], "final_rate_plant_q90": q[2],
+                      "final_stable_fraction": float(np.mean(final < 1)),
+                      "first_stable_k_median": float(np.median(first[first >= 0])) if (first >= 0).any() else np.nan,
+                      "never_stable_fraction": float(np.mean(first < 0)),
+                      "adoptions_per_path": adopted_count / P,
+                      # the k-window rate over the paths that did not diverge (the `rate` column is NaN
+                      # as soon as one path diverged)
+                      "rate_not_diverged": empirical_rate_sq(*(loop.sq[k, loop.failed_at < 0] for k in window),
+                                                             window[1] - window[0])[0]
+                      if (loop.failed_at < 0).any() else np.nan,
+                      "offline_rate_plant": offline, "optimal_rate_plant": optimum.lam}
+    metrics = tables["metrics"]
+    for name, value in online_metrics.items():
+        metrics[name] = np.where(metrics["experiment"] == "online", value, np.nan)
+    summary["online"] = {k: (None if not np.isfinite(v) else float(v)) for k, v in online_metrics.items()}
 
 
 def safe_synthesize(model, moments, method: str, options: dict) -> SynthesisResult:

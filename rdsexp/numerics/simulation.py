@@ -6,6 +6,8 @@ One step k, for all P paths at once:
     psi_{k|k} = filter(psi_{k|k-1}, u_k, y_k)        output prediction + filtering
     q_{k+1} = A(s_k) q_k + B(s_k) u_k,  psi_{k+1|k} = predict(psi_{k|k}, u_k)
 F = 0 gives the open loop (and, with an M-sequence as d, the identification run).
+F may be one gain (m, n) or one per path (P, m, n); a `controller` (e.g. the online, learning-type
+controller of `online.py`) may change the per-path gains between steps k and k+1 from psi_{k|k}.
 
 Randomness: path j of a run with root SeedSequence `seed` draws its plant coefficients from
 SeedSequence(entropy, spawn_key=seed.spawn_key + (PLANT, j)) and its EnKF noise from
@@ -15,6 +17,7 @@ from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 from threadpoolctl import threadpool_limits
@@ -44,6 +47,8 @@ class Trajectories:
     EnKF mean only) / "singular_innovation". Values of a
     failed path from failed_at on are NaN. members: filtered ensembles (K+1, P, M, n+p) if kept.
     s: the plant's coefficients (K+1, P, p_plant), s_k moving q_k to q_{k+1} (all steps drawn).
+    gain_index (K+1, P): with a controller, how many gains path j had adopted before step k (0: the
+    initial gain) -- the gain in use at k is that path's gain_index-th adopted one; None without.
     """
 
     q: np.ndarray
@@ -58,6 +63,7 @@ class Trajectories:
     n: int
     members: np.ndarray | None = None
     s: np.ndarray | None = None
+    gain_index: np.ndarray | None = None
 
     @property
     def status(self) -> str:
@@ -72,7 +78,15 @@ class Trajectories:
         return a[..., self.n:]
 
 
-def check_settings(plant: AffineRandomSystem, enkf: EnKF, F, d, q0, psi0, P0) -> tuple:
+class GainController(Protocol):
+    """What `simulate` asks of a controller that changes the per-path gains during the loop."""
+
+    def update(self, k: int, psi_filt_mean: np.ndarray, alive: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        """After filtering at step k: psi_{k|k} means (P, n+p) and alive (P,) -> None (no change) or
+        (paths (U,) int, gains (U, m, n)): the gains those paths use from step k+1 on."""
+
+
+def check_settings(plant: AffineRandomSystem, enkf: EnKF, F, d, q0, psi0, P0, paths: int = 1) -> tuple:
     """Validate and convert the simulation inputs; one-line ValueError naming the argument."""
     model = enkf.model
     if plant.xi_dist is None:
@@ -80,7 +94,13 @@ def check_settings(plant: AffineRandomSystem, enkf: EnKF, F, d, q0, psi0, P0) ->
     if (plant.n, plant.m, plant.ny) != (model.n, model.m, model.ny):
         raise ValueError(f"plant: (n, m, ny) = {(plant.n, plant.m, plant.ny)} does not match the "
                          f"EnKF model's {(model.n, model.m, model.ny)}")
-    F = np.zeros((model.m, model.n)) if F is None else model.check_gain(F)
+    if F is not None and np.ndim(F) == 3:            # one gain per path
+        F = _finite_array("F", F, 3)
+        if F.shape != (paths, model.m, model.n):
+            raise ValueError(f"F: shape {F.shape}, expected (m, n) = {(model.m, model.n)} or (paths, m, n) = "
+                             f"{(paths, model.m, model.n)}")
+    else:
+        F = np.zeros((model.m, model.n)) if F is None else model.check_gain(F)
     d = _finite_array("d", np.asarray(d, dtype=float).reshape(len(d), -1), 2)
     if d.shape[1] != model.m or d.shape[0] < 1:
         raise ValueError(f"d: shape {d.shape}, expected (K+1, m = {model.m})")
@@ -96,7 +116,8 @@ def check_settings(plant: AffineRandomSystem, enkf: EnKF, F, d, q0, psi0, P0) ->
 
 def simulate(plant: AffineRandomSystem, enkf: EnKF, *, F=None, d, q0, psi0, P0=None, ensemble_size: int,
              paths: int, seed, first_path: int = 0, filter_sees_d: bool = True, keep_members: bool = False,
-             block: int = 16, bound: float = DIVERGENCE_BOUND, progress=None) -> Trajectories:
+             block: int = 16, bound: float = DIVERGENCE_BOUND, progress=None,
+             controller: GainController | None = None) -> Trajectories:
     """Closed loop (open loop when F is None) of `plant` observed by `enkf`, P = `paths` sample paths.
 
     d: (K+1, m) external input added on u_k (horizon K = len(d) - 1); q0: (n,) plant initial state;
@@ -106,8 +127,11 @@ def simulate(plant: AffineRandomSystem, enkf: EnKF, *, F=None, d, q0, psi0, P0=N
     filter_sees_d: the EnKF is told the applied input u_k (True) or only F x_{k|k-1} (False).
     block: steps of noise drawn per generator call (does not change results).
     progress: optional callable(k) called once per step (a progress bar's update).
+    F: None (open loop), one gain (m, n) or one per path (P, m, n). controller: changes per-path
+    gains between steps (`GainController.update`, called after filtering at every step k < K);
+    then F is each path's initial gain and out.gain_index counts the adopted gains.
     """
-    F, d, q0, psi0, P0 = check_settings(plant, enkf, F, d, q0, psi0, P0)
+    F, d, q0, psi0, P0 = check_settings(plant, enkf, F, d, q0, psi0, P0, paths)
     M, P, K = int(ensemble_size), int(paths), d.shape[0] - 1
     if M < 2:
         raise ValueError(f"ensemble_size: {M}, must be >= 2 (the EnKF needs a sample covariance)")
@@ -134,6 +158,11 @@ def simulate(plant: AffineRandomSystem, enkf: EnKF, *, F=None, d, q0, psi0, P0=N
                        members=nan(M, dim) if keep_members else None, s=s)
     q = np.broadcast_to(q0, (P, plant.n)).copy()
     alive = np.ones(P, dtype=bool)
+    if controller is not None:
+        # per-path gains (P, m, n): the same product per path as one shared (m, n) gain, bit for bit
+        F = np.broadcast_to(F, (P, model.m, model.n)).copy()
+        out.gain_index = np.zeros((K + 1, P), dtype=np.int64)
+        adopted = np.zeros(P, dtype=np.int64)
     # EnKF noise, `block` steps at a time from each path's own stream, drawn by a helper thread
     # into one of two buffers while this thread filters with the other (numpy's generators release
     # the GIL); each stream is still consumed in order, so results do not depend on the threading
@@ -186,7 +215,16 @@ def simulate(plant: AffineRandomSystem, enkf: EnKF, *, F=None, d, q0, psi0, P0=N
             if progress is not None:
                 progress(k)
             if k == K:
+                if controller is not None:
+                    out.gain_index[k] = adopted
                 break
+            if controller is not None:
+                out.gain_index[k] = adopted
+                change = controller.update(k, np.where(keep, a.filt_mean, np.nan), alive.copy())
+                if change is not None:                  # the new gains act from step k+1 on
+                    idx, gains = change
+                    F[idx] = gains
+                    adopted[idx] += 1
             q = (A_s[k] @ q[..., None])[..., 0] + (B_s[k] @ u[..., None])[..., 0]
             enkf._predict(filtered, u_filter, e_w, out=psi)
     return out

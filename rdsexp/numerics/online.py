@@ -1,0 +1,327 @@
+"""The online, learning-type controller the paper's Conclusions point to.
+
+During feedback control the EnKF keeps estimating xi (eq. psi-x-xi-i), so each path's controller
+can model the distribution of xi from its own filtered estimates xi_{k|k} and re-design its gain:
+
+    u_k = F_k x_{k|k-1}                      eq. (sf-enkf) with a gain that changes over time
+    at k = warmup + j * period (j >= 1):     moments of xi from xi_{k'|k'}, warmup < k' <= k
+                                             (the last `window` of them, all, or weighted by
+                                             forgetting^(k - k')), eq. (sample-mean) per path
+                                             F_new = design(model, moments) by `method`
+                                             adopted from k+1 on if lam(F_new) < 1 and
+                                             lam(F_new) < lam(F_k), both exact rates on the new
+                                             moments (the safeguard; can be switched off)
+
+No identification run. `OnlineController` is what `simulation.simulate(controller=...)` calls
+after filtering; every decision (adopted or not, and why) is kept in `decisions()`.
+The default method, policy iteration, is run batched over paths (stacked eigenproblems, warm-
+started from the gain in use); any other method of `synthesis.METHODS` is called path by path.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .analysis import DENSE_MAX_N, perron
+from .modeling import one_line
+from .synthesis import METHODS, check_options, synthesize
+from .systems import AffineRandomSystem, MomentModel
+
+MEMORIES = ("window", "all", "exponential")
+REASONS = ("adopted", "adopted_unchecked", "not_stabilizing", "no_improvement", "failed")
+
+
+@dataclass(frozen=True)
+class OnlineSettings:
+    """When and how the online controller re-designs (see the module docstring).
+
+    warmup: estimates xi_{k|k} with k <= warmup are not used (the EnKF has not converged yet);
+    period: steps between re-designs; memory: "window" (the last `window` estimates), "all"
+    (every estimate since warm-up) or "exponential" (all, weighted forgetting^(k - k'));
+    method / options: a `synthesis.METHODS` design; safeguard: adopt only certified improvements.
+    """
+
+    warmup: int = 20
+    period: int = 10
+    memory: str = "window"
+    window: int = 30
+    forgetting: float = 0.95
+    method: str = "policy_iteration"
+    options: dict = field(default_factory=dict)
+    safeguard: bool = True
+
+    def check(self, system: AffineRandomSystem, horizon: int | None = None) -> OnlineSettings:
+        """One-line ValueError naming the setting; returns self."""
+        for name, low in (("warmup", 0), ("period", 1), ("window", 2)):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, np.integer)) and not isinstance(value, bool) and value >= low):
+                raise ValueError(f"{name}: {value!r} is not allowed, expected an integer >= {low}")
+        if self.memory not in MEMORIES:
+            raise ValueError(f"memory: {self.memory!r} is not allowed, expected one of {', '.join(MEMORIES)}")
+        if not (isinstance(self.forgetting, (int, float)) and 0 < self.forgetting < 1):
+            raise ValueError(f"forgetting: {self.forgetting!r} is not allowed, expected a number in (0, 1)")
+        if horizon is not None and self.memory == "window" and self.window > horizon:
+            raise ValueError(f"window: {self.window} is not allowed, longer than the horizon {horizon}")
+        if not isinstance(self.safeguard, bool):
+            raise ValueError(f"safeguard: {self.safeguard!r} is not allowed, expected true or false")
+        check_options(self.method, dict(self.options), system)       # unknown method / option
+        return self
+
+    def updates(self, horizon: int) -> np.ndarray:
+        """The steps k < horizon after whose filtering a re-design happens."""
+        return np.arange(self.warmup + self.period, horizon, self.period)
+
+
+# ------------------------------------------------------------------ batched moments and rates
+def weighted_moments(xi: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-path weighted mean (P, p) and covariance (P, p, p) of samples xi (N, P, p), weights w (N,).
+
+    With equal weights this is eq. (sample-mean), the 1/N covariance of `MomentModel.from_samples`."""
+    w = w / w.sum()
+    mean = np.einsum("t,tjp->jp", w, xi)
+    dev = xi - mean
+    return mean, np.einsum("t,tjp,tjq->jpq", w, dev, dev)
+
+
+def moment_factors(system: AffineRandomSystem, mean: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(Abar (P, p+1, n, n), Bbar (P, p+1, n, m)) with sum_r Abar_r (x) Abar_r = E[A(xi) (x) A(xi)] etc.
+
+    The batched `AffineRandomSystem.moment_factors`: rows diag(sqrt(w)) V^T of W = E[[1; xi][1; xi]^T]
+    per path, with every row kept (a zero eigenvalue gives a zero row, which adds nothing)."""
+    P, p = mean.shape
+    W = np.empty((P, p + 1, p + 1))
+    W[:, 0, 0], W[:, 0, 1:], W[:, 1:, 0] = 1.0, mean, mean
+    W[:, 1:, 1:] = cov + mean[:, :, None] * mean[:, None, :]
+    G = np.full_like(W, np.nan)                    # paths whose moments overflowed stay NaN (a status later)
+    ok = np.all(np.isfinite(W), axis=(1, 2))
+    w, V = np.linalg.eigh(W[ok])
+    G[ok] = np.sqrt(np.clip(w, 0.0, None))[:, :, None] * V.transpose(0, 2, 1)   # (P, p+1, p+1)
+    return np.einsum("jri,inl->jrnl", G, system.A), np.einsum("jri,inl->jrnl", G, system.B)
+
+
+def symmetric_part(L: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """The operators L (U, n^2, n^2) on row-major vec(X), restricted to symmetric X: (U, d, d), d = n(n+1)/2,
+    in the coordinates X_ij, i <= j, and the (d, n^2) map back to vec(X).
+
+    For T(X) = sum_r Acl_r X Acl_r^T (and its adjoint), Sym is invariant and holds the PSD Perron
+    eigenvector, so the restriction has the same spectral radius; its eigenproblem is (d / n^2)^3 ~ 1/5
+    of the cost for n >= 4."""
+    i, j = np.triu_indices(n)
+    rows, cols_ij, cols_ji = i * n + j, i * n + j, j * n + i
+    Lr = L[:, rows]
+    out = Lr[:, :, cols_ij] + np.where(i != j, 1.0, 0.0) * Lr[:, :, cols_ji]
+    back = np.zeros((i.size, n * n))
+    back[np.arange(i.size), cols_ij] = 1.0
+    back[np.arange(i.size), cols_ji] = 1.0
+    return out, back
+
+
+def rates(Abar: np.ndarray, Bbar: np.ndarray, F: np.ndarray) -> np.ndarray:
+    """Exact mean-square rates sqrt(rho(sum_r Acl_r (x) Acl_r)) of per-path gains F (P, m, n).
+
+    Abar (P, r, n, n) / Bbar (P, r, n, m), or one (r, n, n) / (r, n, m) for every path. Dense stacked
+    eigenvalues up to n = DENSE_MAX_N (what `analysis.ms_rate` computes, batched), `perron` beyond."""
+    F = np.asarray(F, dtype=float)
+    Acl = Abar + Bbar @ F[:, None] if Abar.ndim == 4 else Abar[None] + Bbar[None] @ F[:, None]
+    P, _, n, _ = Acl.shape
+    out = np.full(P, np.inf)
+    ok = np.all(np.isfinite(Acl), axis=(1, 2, 3))
+    if n <= DENSE_MAX_N:
+        L = np.einsum("jrab,jrcd->jacbd", Acl[ok], Acl[ok]).reshape(-1, n * n, n * n)
+        out[ok] = np.sqrt(np.abs(np.linalg.eigvals(symmetric_part(L, n)[0])).max(axis=1)) if len(L) else []
+    else:
+        out[ok] = [np.sqrt(perron(a)[0]) for a in Acl[ok]]
+    return out
+
+
+def _perron_symmetric(S: np.ndarray, start: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Largest real eigenvalue (U,) and an eigenvector (U, d) of each S (U, d, d).
+
+    The eigenvalues alone, then two steps of inverse iteration from `start` (vec(I), which is not
+    orthogonal to the PSD Perron eigenvector): 5x faster than all eigenvectors of the stack. Where
+    the shifted system is singular to working precision (e.g. rho = 0), all eigenvectors instead."""
+    rho = np.linalg.eigvals(S).real.max(axis=1)
+    scale = np.abs(S).max(axis=(1, 2))
+    shifted = S - (rho + 1e-9 * np.maximum(np.abs(rho), scale) + 1e-300)[:, None, None] * np.eye(S.shape[1])
+    v = np.broadcast_to(start, (S.shape[0], S.shape[1]))
+    try:
+        for _ in range(2):
+            v = np.linalg.solve(shifted, v[..., None])[..., 0]
+            v = v / np.abs(v).max(axis=1, keepdims=True)
+        if np.all(np.isfinite(v)):
+            return rho, v
+    except np.linalg.LinAlgError:
+        pass
+    w, V = np.linalg.eig(S)
+    i = np.argmax(w.real, axis=1)
+    return w.real[np.arange(len(S)), i], V[np.arange(len(S)), :, i].real
+
+
+def policy_iteration_batch(Abar: np.ndarray, Bbar: np.ndarray, F0: np.ndarray, *, max_iter: int = 200,
+                           tol: float = 1e-13) -> np.ndarray:
+    """`synthesis.riccati.policy_iteration` for P models at once: gains (P, m, n) from F0 (P, m, n).
+
+    Per path: P_j = Perron eigenvector of X -> sum_r Acl_r^T X Acl_r, then
+    F = -E[B^T P B]^+ E[B^T P A]; the rate never increases; a path stops when it no longer decreases
+    by tol (relative)."""
+    F = np.array(F0, dtype=float)
+    Pn, _, n, m = Bbar.shape
+    lam = np.full(Pn, np.inf)
+    active = np.ones(Pn, dtype=bool)
+    for it in range(max_iter):
+        idx = np.flatnonzero(active)
+        if idx.size == 0:
+            break
+        Acl = Abar[idx] + Bbar[idx] @ F[idx, None]
+        L = np.einsum("jrab,jrcd->jbdac", Acl, Acl).reshape(-1, n * n, n * n)   # vec(Acl^T X Acl), row-major
+        # Perron root from the eigenvalues only, its eigenvector by two steps of inverse iteration
+        # from vec(I) (which is not orthogonal to it): 5x faster than eigenvectors of the whole stack
+        # on symmetric X only (`symmetric_part`)
+        S, back = symmetric_part(L, n)
+        rho, v = _perron_symmetric(S, np.eye(n)[np.triu_indices(n)])
+        new = np.sqrt(np.clip(rho, 0.0, None))
+        X = (v @ back).reshape(-1, n, n)
+        X = (X + X.transpose(0, 2, 1)) / 2
+        X *= (np.sign(np.trace(X, axis1=1, axis2=2)) / np.abs(X).max(axis=(1, 2)))[:, None, None]
+        done = (lam[idx] - new <= tol * np.maximum(new, 1e-300)) & (it > 0)
+        lam[idx] = np.minimum(lam[idx], new)
+        active[idx[done]] = False
+        go = idx[~done]
+        if go.size == 0:
+            break
+        Xg, Ag, Bg = X[~done], Abar[go], Bbar[go]
+        BPB = np.einsum("jrai,jab,jrbl->jil", Bg, Xg, Bg)
+        BPA = np.einsum("jrai,jab,jrbl->jil", Bg, Xg, Ag)
+        F[go] = -np.linalg.pinv(BPB) @ BPA                   # minimum-norm minimiser if singular
+    return F
+
+
+# ------------------------------------------------------------------------------ the controller
+@dataclass
+class Decisions:
+    """Every re-design, one row per (update step, path): arrays over U rows.
+
+    k: the step after whose filtering it happened (the gain acts from k+1); mean (U, p), cov (U, p, p):
+    the modeled moments; F (U, m, n): the designed gain (NaN if none); rate_model: its exact rate on
+    the modeled moments; rate_current: the exact rate of the gain in use on the same moments;
+    adopted and reason (REASONS; "failed: ..." with the method's error)."""
+
+    k: np.ndarray
+    path: np.ndarray
+    mean: np.ndarray
+    cov: np.ndarray
+    F: np.ndarray
+    rate_model: np.ndarray
+    rate_current: np.ndarray
+    adopted: np.ndarray
+    reason: np.ndarray
+
+
+class OnlineController:
+    """Per-path online re-design (the module docstring); pass it to `simulate(controller=...)`.
+
+    system: the model the EnKF and the designs use (n, m, its xi of dimension p); F0: (m, n) or
+    (P, m, n) initial gains; horizon: K, the last step. Deterministic (draws no random numbers).
+    """
+
+    def __init__(self, system: AffineRandomSystem, settings: OnlineSettings, F0, *, paths: int, horizon: int):
+        self.system, self.settings = system, settings.check(system, horizon)
+        self.P, self.K = int(paths), int(horizon)
+        n, m = system.n, system.m
+        self.F = np.broadcast_to(np.asarray(F0, dtype=float), (self.P, m, n)).copy()   # gains in use
+        self.F0 = self.F.copy()
+        self.xi = np.full((self.K + 1, self.P, system.p), np.nan)                  # xi_{k|k}, k = 0..K
+        self._rows: list[dict] = []
+        self._updates = set(settings.updates(self.K).tolist())
+
+    def weights(self, k: int) -> tuple[int, np.ndarray]:
+        """(first step, weights (k - first + 1,)) of the estimates the model at step k uses."""
+        s = self.settings
+        first = s.warmup + 1
+        if s.memory == "window":
+            first = max(first, k - s.window + 1)
+        t = np.arange(first, k + 1)
+        w = s.forgetting ** (k - t) if s.memory == "exponential" else np.ones(t.size)
+        return first, w
+
+    def update(self, k: int, psi_filt_mean: np.ndarray, alive: np.ndarray):
+        """Store xi_{k|k} (P, n+p -> the last p); at a re-design step return (paths, new gains)."""
+        self.xi[k] = psi_filt_mean[:, self.system.n:]
+        if k not in self._updates:
+            return None
+        first, w = self.weights(k)
+        samples = self.xi[first:k + 1]
+        idx = np.flatnonzero(alive & np.all(np.isfinite(samples), axis=(0, 2)))
+        if idx.size == 0:
+            return None
+        with np.errstate(all="ignore"):
+            mean, cov = weighted_moments(samples[:, idx], w)
+            Abar, Bbar = moment_factors(self.system, mean, cov)
+        F_new, failed = self._design(idx, mean, cov, Abar, Bbar)
+        with np.errstate(all="ignore"):
+            rate_new = rates(Abar, Bbar, np.nan_to_num(F_new))
+            rate_new[failed != ""] = np.nan
+            rate_cur = rates(Abar, Bbar, self.F[idx])
+        if self.settings.safeguard:
+            adopt = (failed == "") & (rate_new < 1) & (rate_new < rate_cur)
+            reason = np.where(failed != "", failed, np.where(
+                adopt, "adopted", np.where(rate_new >= 1, "not_stabilizing", "no_improvement")))
+        else:
+            adopt = failed == ""
+            reason = np.where(adopt, "adopted_unchecked", failed)
+        self._rows.append(dict(k=np.full(idx.size, k), path=idx, mean=mean, cov=cov, F=F_new, rate_model=rate_new,
+                               rate_current=rate_cur, adopted=adopt, reason=reason.astype(object)))
+        if not adopt.any():
+            return None
+        self.F[idx[adopt]] = F_new[adopt]
+        return idx[adopt], F_new[adopt]
+
+    def _design(self, idx, mean, cov, Abar, Bbar) -> tuple[np.ndarray, np.ndarray]:
+        """Gains (U, m, n) for the paths idx and a failure text per path ("" if designed)."""
+        s, m, n = self.settings, self.system.m, self.system.n
+        failed = np.full(idx.size, "", dtype=object)
+        finite = np.all(np.isfinite(Abar), axis=(1, 2, 3)) & np.all(np.isfinite(Bbar), axis=(1, 2, 3))
+        failed[~finite] = "failed: the modeled moments are not finite"
+        F = np.full((idx.size, m, n), np.nan)
+        batched = s.method == "policy_iteration" and set(s.options) <= {"max_iter", "tol"}
+        if batched and finite.any():
+            try:
+                with np.errstate(all="ignore"):
+                    F[finite] = policy_iteration_batch(Abar[finite], Bbar[finite], self.F[idx[finite]], **s.options)
+            except (np.linalg.LinAlgError, ValueError):     # e.g. an eigensolver that did not converge:
+                batched = False                              # path by path below, failures as statuses
+        if not batched:
+            for u in np.flatnonzero(finite):
+                try:
+                    with np.errstate(all="ignore"):
+                        res = synthesize(self.system, MomentModel(mean=mean[u], cov=cov[u]), s.method, **s.options)
+                    if res.F is None:
+                        failed[u] = f"failed: {res.status}"
+                    else:
+                        F[u] = res.F
+                except Exception as err:       # noqa: BLE001 -- one path's failed design is its status
+                    failed[u] = f"failed: {one_line(err)}"
+        bad = (failed == "") & ~np.all(np.isfinite(F), axis=(1, 2))
+        failed[bad] = "failed: the gain is not finite"
+        return F, failed
+
+    def decisions(self) -> Decisions:
+        """Every decision so far, in order of (k, path)."""
+        p, m, n = self.system.p, self.system.m, self.system.n
+        if not self._rows:
+            empty = {"mean": (0, p), "cov": (0, p, p), "F": (0, m, n)}
+            return Decisions(k=np.zeros(0, int), path=np.zeros(0, int), **{a: np.zeros(s) for a, s in empty.items()},
+                             rate_model=np.zeros(0), rate_current=np.zeros(0), adopted=np.zeros(0, bool),
+                             reason=np.zeros(0, object))
+        return Decisions(**{name: np.concatenate([r[name] for r in self._rows]) for name in self._rows[0]})
+
+    def gain_history(self) -> list[np.ndarray]:
+        """Per path j: its gains in order of adoption, (1 + adoptions, m, n); row i is the gain in use
+        where `Trajectories.gain_index` is i."""
+        d = self.decisions()
+        return [np.concatenate([self.F0[j][None], d.F[(d.path == j) & d.adopted]]) for j in range(self.P)]
+
+
+__all__ = ["Decisions", "MEMORIES", "METHODS", "OnlineController", "OnlineSettings", "moment_factors",
+           "policy_iteration_batch", "rates", "weighted_moments"]

@@ -1,0 +1,247 @@
+"""The online (learning-type) controller: per-path gains in the Monte Carlo, re-design, safeguard, config."""
+import numpy as np
+import pandas as pd
+import pytest
+from conftest import SMALL, rdsexp
+from hydra import compose, initialize_config_module
+
+import rdsexp as rx
+from rdsexp.experiment.config import ConfigError, build
+from rdsexp.numerics.distributions import from_spec
+from rdsexp.numerics.enkf import EnKF
+from rdsexp.numerics.online import (
+    OnlineController,
+    OnlineSettings,
+    moment_factors,
+    policy_iteration_batch,
+    rates,
+    weighted_moments,
+)
+from rdsexp.numerics.simulation import simulate
+
+paper = rx.paper
+ARRAYS = ("q", "y", "u", "psi_pred_mean", "psi_pred_std", "psi_filt_mean", "psi_filt_std", "failed_at")
+
+
+def kron_rate(system, mean, cov, F):
+    """Independent exact rate: E[Acl (x) Acl] = sum_il W_il Acl_i (x) Acl_l with W = E[[1; xi][1; xi]^T]."""
+    W = np.block([[np.ones((1, 1)), mean[None]], [mean[:, None], cov + np.outer(mean, mean)]])
+    Acl = system.A + system.B @ F
+    L = sum(W[i, j] * np.kron(Acl[i], Acl[j]) for i in range(len(W)) for j in range(len(W)))
+    return np.sqrt(np.abs(np.linalg.eigvals(L)).max())
+
+
+def random_system(rng, n, m, p, degenerate=False):
+    A = [rng.normal(size=(n, n)) / np.sqrt(n)] + [0.3 * rng.normal(size=(n, n)) / np.sqrt(n) for _ in range(p)]
+    B = [rng.normal(size=(n, m))] + [(0.0 if degenerate else 0.3) * rng.normal(size=(n, m)) for _ in range(p)]
+    L = 0.5 * rng.normal(size=(p, p))
+    if degenerate:
+        L[:, 0] = 0.0                                  # a singular covariance: xi_1 deterministic
+    xi = from_spec({"family": "normal", "mean": (0.3 * rng.normal(size=p)).tolist(),
+                                     "cov": (L @ L.T).tolist()})
+    return rx.AffineRandomSystem(A=A, B=B, xi_dist=xi)
+
+
+def test_batched_rates_and_policy_iteration_match_the_single_path_ones():
+    """`rates` against a dense Kronecker eigenvalue, `policy_iteration_batch` against `policy_iteration`,
+    over random and degenerate systems, with and without covariance."""
+    for seed in range(8):
+        rng = np.random.default_rng(seed)
+        n, m, p = int(rng.integers(2, 5)), int(rng.integers(1, 3)), int(rng.integers(1, 4))
+        system = random_system(rng, n, m, p, degenerate=seed % 2 == 1)
+        P = 4
+        mean = 0.3 * rng.normal(size=(P, p))
+        L = 0.4 * rng.normal(size=(P, p, p))
+        cov = L @ L.transpose(0, 2, 1)
+        cov[0] = np.outer(L[0, 0], L[0, 0])                    # a singular covariance (rank one)
+        Abar, Bbar = moment_factors(system, mean, cov)
+        F = rng.normal(size=(P, m, n))
+        for j, r in enumerate(rates(Abar, Bbar, F)):
+            assert r == pytest.approx(kron_rate(system, mean[j], cov[j], F[j]), rel=1e-9)
+        Fb = policy_iteration_batch(Abar, Bbar, np.zeros((P, m, n)))
+        for j in range(P):
+            single = rx.synthesize(system, rx.MomentModel(mean=mean[j], cov=cov[j]), "policy_iteration")
+            assert kron_rate(system, mean[j], cov[j], Fb[j]) == pytest.approx(single.lam, rel=1e-8, abs=1e-12)
+
+
+def test_weighted_moments_are_the_sample_moments_with_equal_weights():
+    xi = np.random.default_rng(0).normal(size=(30, 3, 2))
+    mean, cov = weighted_moments(xi, np.ones(30))
+    for j in range(3):
+        ref = rx.MomentModel.from_samples(xi[:, j])
+        np.testing.assert_allclose(mean[j], ref.mean, rtol=1e-13)
+        np.testing.assert_allclose(cov[j], ref.cov, rtol=1e-12, atol=1e-15)
+
+
+def closed_loop(F, paths=4, M=20, horizon=30, controller=None):
+    return simulate(paper.plant(), EnKF(paper.model(), paper.Q, paper.R), F=F, d=paper.disturbance(horizon),
+                    q0=paper.q0, psi0=paper.psi0, ensemble_size=M, paths=paths, seed=3, filter_sees_d=False,
+                    controller=controller)
+
+
+def test_period_beyond_the_horizon_is_the_fixed_gain_closed_loop_bit_for_bit():
+    fixed = closed_loop(paper.F_proposed)
+    ctrl = OnlineController(paper.model(), OnlineSettings(warmup=0, period=31, window=10), paper.F_proposed,
+                            paths=4, horizon=30)
+    online = closed_loop(paper.F_proposed, controller=ctrl)
+    for name in ARRAYS:
+        np.testing.assert_array_equal(getattr(online, name), getattr(fixed, name), err_msg=name)
+    assert np.all(online.gain_index == 0) and len(ctrl.decisions().k) == 0
+    # per-path gains without a controller, all equal: the same loop too
+    same = closed_loop(np.broadcast_to(paper.F_proposed, (4, 1, 6)))
+    np.testing.assert_array_equal(same.q, fixed.q)
+
+
+def test_adopted_gains_act_from_the_next_step_on():
+    """With updates, u_k = F_k x_{k|k-1} holds with each path's gain in use at k (from gain_index)."""
+    ctrl = OnlineController(paper.model(), OnlineSettings(warmup=5, period=5, memory="all", safeguard=False),
+                            np.zeros((1, 6)), paths=3, horizon=30)
+    tr = closed_loop(np.zeros((1, 6)), paths=3, controller=ctrl)
+    history = ctrl.gain_history()
+    assert tr.gain_index.max() > 0
+    d = paper.disturbance(30)
+    for j in range(3):
+        F = history[j][tr.gain_index[:, j]]                                  # (K+1, m, n)
+        u = (F @ tr.x(tr.psi_pred_mean)[:, j, :, None])[..., 0] + d
+        np.testing.assert_allclose(tr.u[:, j], u, rtol=1e-12, atol=1e-12)
+    first = ctrl.decisions().k.min()
+    assert np.all(tr.gain_index[:first + 1] == 0)
+
+
+def feed(system, settings, K, paths, seed, F0=None):
+    """Run the controller on samples of the true xi in place of the EnKF's xi_{k|k}."""
+    rng = np.random.default_rng(seed)
+    ctrl = OnlineController(system, settings, np.zeros((system.m, system.n)) if F0 is None else F0,
+                            paths=paths, horizon=K)
+    for k in range(K):
+        xi = system.xi_dist.sample(rng, (paths,))
+        ctrl.update(k, np.concatenate([np.zeros((paths, system.n)), xi], axis=1), np.ones(paths, bool))
+    return ctrl
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_converges_to_the_true_optimum_on_true_samples(seed):
+    """Fed the true distribution's samples, the final gain's exact rate on the true plant is within
+    1e-3 of the optimal mean-square rate (policy iteration on the true distribution)."""
+    rng = np.random.default_rng(100 + seed)
+    systems = [paper.plant()] if seed == 0 else []
+    while not systems:
+        s = random_system(rng, 3, 1 + seed % 2, 2, degenerate=seed == 3)
+        if rx.synthesize(s, None, "policy_iteration").lam < 0.98:    # stabilizable in mean square
+            systems.append(s)
+    system = systems[0]
+    optimum = rx.synthesize(system, None, "policy_iteration").lam
+    ctrl = feed(system, OnlineSettings(warmup=10, period=400, memory="all"), K=3000, paths=3, seed=seed)
+    for F in (h[-1] for h in ctrl.gain_history()):
+        assert rx.ms_rate(system, None, F) == pytest.approx(optimum, abs=1e-3)
+
+
+@pytest.mark.parametrize("memory", ["window", "exponential"])
+def test_safeguard_never_adopts_a_gain_not_certified_on_the_current_model(memory):
+    """Few noisy samples (models far from the truth, often not stabilizable): every adopted gain has an
+    exact rate (checked independently) < 1 and below the gain in use; without the safeguard all are taken."""
+    rng = np.random.default_rng(7)
+    checked = 0
+    for trial in range(6):
+        system = random_system(rng, 3, 1, 2, degenerate=trial % 3 == 2)
+        system = rx.AffineRandomSystem(A=system.A * 1.3, B=system.B, xi_dist=system.xi_dist)  # often unstable
+        settings = OnlineSettings(warmup=2, period=3, memory=memory, window=4, forgetting=0.7)
+        ctrl = feed(system, settings, K=40, paths=5, seed=trial)
+        d = ctrl.decisions()
+        assert set(d.reason) <= {"adopted", "not_stabilizing", "no_improvement"}
+        current = {j: ctrl.F0[j] for j in range(5)}
+        for i in range(len(d.k)):
+            j = d.path[i]
+            exact_new = kron_rate(system, d.mean[i], d.cov[i], d.F[i])
+            exact_cur = kron_rate(system, d.mean[i], d.cov[i], current[j])
+            assert d.rate_model[i] == pytest.approx(exact_new, rel=1e-8)
+            assert d.rate_current[i] == pytest.approx(exact_cur, rel=1e-8)
+            if d.adopted[i]:
+                assert exact_new < 1 and exact_new < exact_cur
+                current[j] = d.F[i]
+                checked += 1
+            else:
+                assert exact_new >= 1 or exact_new >= exact_cur * (1 - 1e-12)
+        unchecked = feed(system, OnlineSettings(**{**settings.__dict__, "safeguard": False}), K=40, paths=5,
+                         seed=trial).decisions()
+        assert unchecked.adopted.all() and set(unchecked.reason) == {"adopted_unchecked"}
+    assert checked > 0
+
+
+def test_other_methods_path_by_path():
+    ctrl = feed(paper.plant(), OnlineSettings(warmup=5, period=20, memory="all", method="lqr_mean"), K=30,
+                paths=2, seed=0)
+    d = ctrl.decisions()
+    assert len(d.k) == 2 and np.all(np.isfinite(d.F))
+    for i in range(2):
+        assert d.rate_model[i] == pytest.approx(kron_rate(paper.plant(), d.mean[i], d.cov[i], d.F[i]), rel=1e-8)
+
+
+# ------------------------------------------------------------------------------ config and runner
+@pytest.fixture
+def hydra_context():
+    with initialize_config_module(config_module="rdsexp.conf", version_base="1.3"):
+        yield
+
+
+@pytest.mark.parametrize("overrides, message", [
+    ("controller=online controller.period=0", "controller.period: 0 is not allowed, expected an integer >= 1"),
+    ("controller=online controller.memory=window controller.window=101",
+     "controller.window: 101 is not allowed, longer than closed_loop.horizon = 100"),
+    ("controller=online controller.method=magic", "controller.method: 'magic' is not allowed, expected one of"),
+    ("controller=online controller.memory=forever", "controller.memory: 'forever' is not allowed"),
+    ("controller=online controller.initial=random", "controller.initial: 'random' is not allowed"),
+    ("controller=online controller.forgetting=1.0", "controller.forgetting: 1 is not allowed"),
+    ("controller=online controller.safeguard=maybe", "controller.safeguard: 'maybe' is not allowed"),
+    ("controller=online +controller.options.max_iter=-1", "controller.options: max_iter: -1 is not allowed"),
+    ("controller.type=hybrid", "controller.type: 'hybrid' is not allowed"),
+])
+def test_bad_controller_config_is_one_line(hydra_context, overrides, message):
+    with pytest.raises(ConfigError) as err:
+        build(compose("config", overrides=overrides.split()))
+    assert str(err.value).startswith(message), str(err.value)
+    assert "\n" not in str(err.value)
+
+
+def test_offline_is_the_default_and_online_builds(hydra_context):
+    assert build(compose("config")).controller == "offline"
+    exp = build(compose("config", overrides=["controller=online"]))
+    assert exp.controller == "online" and exp.online.method == "policy_iteration" and exp.online.safeguard
+
+
+def test_cli_period_zero_exits_2(tmp_path):
+    proc = rdsexp("controller=online", "controller.period=0", cwd=tmp_path, check=False)
+    assert proc.returncode == 2
+    assert proc.stderr.strip() == ("rdsexp: config error: controller.period: 0 is not allowed, "
+                                   "expected an integer >= 1")
+
+
+def test_online_run_records_the_controller_table(tmp_path):
+    small = [o for o in SMALL if not o.startswith("closed_loop.horizon")] + ["closed_loop.horizon=40"]
+    rdsexp(*small, "controller=online", "controller.warmup=5", "controller.period=10", "tracking.recording=false",
+           cwd=tmp_path)
+    (run,) = (tmp_path / "outputs" / "runs").iterdir()
+    table = pd.read_parquet(run / "controller.parquet")
+    traj = pd.read_parquet(run / "trajectories.parquet")
+    metrics = pd.read_parquet(run / "metrics.parquet").set_index("experiment")
+    assert set(table["k"]) == {-1, 15, 25, 35}                      # initial gain, then warmup + j period
+    assert len(table[table["k"] == -1]) == 4 and (table["F[0]"][table["k"] == -1] == 0).all()
+    # the gain in use in the trajectories is the path's adopted gain from the step after its update
+    online = traj[traj["experiment"] == "online"]
+    adopted = table[table["adopted"] & (table["k"] >= 0)]
+    for path, k, F0 in zip(adopted["path"], adopted["k"], adopted["F[0]"]):
+        assert online[(online["path"] == path) & (online["k"] == k + 1)]["F[0]"].item() == F0
+    assert {"closed_loop", "open_loop", "online"} <= set(metrics.index)
+    assert 0 < metrics.loc["online", "optimal_rate_plant"] <= metrics.loc["online", "offline_rate_plant"]
+
+
+def test_online_loop_does_not_depend_on_chunks_of_paths(hydra_context):
+    """One controller per chunk of paths: the decisions and rows equal those of one batch, bit for bit."""
+    from rdsexp.experiment.pipeline import run_experiment
+    small = [o for o in SMALL if not o.startswith("closed_loop.horizon")] + ["closed_loop.horizon=40"]
+    tables = [run_experiment(build(compose("config", overrides=small + [
+        "controller=online", "controller.warmup=5", "controller.period=10", "closed_loop.open_loop=false", chunk])))
+        .tables for chunk in ("closed_loop.chunk_paths=4", "closed_loop.chunk_paths=3")]
+    pd.testing.assert_frame_equal(tables[0]["controller"], tables[1]["controller"])
+    pd.testing.assert_frame_equal(tables[0]["trajectories"], tables[1]["trajectories"])
+    assert (tables[0]["controller"]["k"] >= 0).any()
