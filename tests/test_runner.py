@@ -10,11 +10,13 @@ from conftest import REPO, SMALL, rdsexp
 from hydra import compose, initialize_config_module
 from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
 from hydra.core.override_parser.overrides_parser import OverridesParser
+from omegaconf import OmegaConf
 
 import rdsexp as rx
 from rdsexp.experiment import pipeline
-from rdsexp.experiment.config import build
+from rdsexp.experiment.config import build, check_overrides
 from rdsexp.experiment.recording import read_recording
+from rdsexp.experiment.sweep import compose_points
 
 SWEEPS = sorted(p.stem for p in (REPO / "conf" / "sweep").glob("*.yaml"))
 GROUPS = {g: sorted(p.stem for p in (REPO / "conf" / g).glob("*.yaml"))
@@ -40,10 +42,25 @@ def sweep_points(sweep):
 
 @pytest.mark.parametrize("sweep", SWEEPS)
 def test_every_sweep_point_composes_and_validates(sweep):
-    points = sweep_points(sweep)
+    points = [[f"+sweep={sweep}", *overrides] for overrides in sweep_points(sweep)]
     assert len(points) >= 3
-    for overrides in points:
-        build(compose("config", overrides=[f"+sweep={sweep}", *overrides]))
+    for overrides, cfg in compose_points(points):
+        check_overrides(cfg, overrides)
+        build(cfg)
+
+
+def test_composing_once_per_group_choice_equals_a_full_compose():
+    """The sweep validation's shortcut (group choices composed once, value overrides applied on top)
+    gives every job exactly Hydra's config, for group and value overrides of every kind mixed."""
+    points = [["+sweep=gain_methods", "gain=robust_box", "gain.options.width=0.5", "seed=3"],
+              ["+sweep=gain_methods", "gain=proposed", "seed=4", "enkf.ensemble_size=20"],
+              ["plant=dropout", "enkf.Q.x=2.0", "+tracking.note=hello", "closed_loop.paths=7"],
+              ["plant=dropout", "~closed_loop.open_loop", "identification.K1=30"],
+              ["controller=online", "controller.period=5", "seed=1"]]
+    got = list(compose_points(points))
+    assert len(got) == len(points)
+    for overrides, cfg in got:
+        assert OmegaConf.to_container(cfg) == OmegaConf.to_container(compose("config", overrides=overrides))
 
 
 def test_yaml_plant_and_model_are_the_papers():

@@ -120,9 +120,9 @@ def run_damage(run_dir: Path, info: dict) -> list[str]:
     return problems
 
 
-def read_table(run_dir: Path, info: dict, name: str) -> pd.DataFrame:
+def read_table(run_dir: Path, info: dict, name: str, check_hash: bool = True) -> pd.DataFrame:
     """A stored table, checked against run.json's content hash; DamagedRecord (file, reason) if it
-    is missing, unreadable or modified after the run."""
+    is missing, unreadable or (with `check_hash`) modified after the run."""
     import pyarrow as pa
     meta = (info.get("tables") or {}).get(name)
     if not isinstance(meta, dict) or not isinstance(meta.get("file"), str):
@@ -134,7 +134,7 @@ def read_table(run_dir: Path, info: dict, name: str) -> pd.DataFrame:
         raise DamagedRecord(path, "missing") from None
     except (OSError, pa.ArrowException, ValueError) as err:
         raise DamagedRecord(path, f"unreadable ({_one_line(err)})") from None
-    if meta.get("sha256") and records.table_hash(table) != meta["sha256"]:
+    if check_hash and meta.get("sha256") and records.table_hash(table) != meta["sha256"]:
         raise DamagedRecord(path, "modified after the run (does not match the hash in run.json)")
     return table
 

@@ -30,17 +30,43 @@ def sweep_points(config: DictConfig) -> list[list[str]]:
     return BasicSweeper.split_arguments(parser.parse_overrides(list(params.values())), max_batch_size=None)[0]
 
 
+def compose_points(points: list[list[str]]):
+    """Yield (overrides, composed config) for every job, composing once per choice of config groups.
+
+    Hydra composes the defaults (the group choices) first and applies the value overrides last, so
+    a composition of the group choices alone with each job's value overrides applied on top is the
+    job's config (tests/test_runner.py checks it against a full compose); a sweep of 200 points over
+    `enkf.*` values then composes once instead of 200 times."""
+    from hydra import compose
+    from hydra._internal.config_loader_impl import ConfigLoaderImpl
+    from hydra.core.global_hydra import GlobalHydra
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    loader, parser = GlobalHydra.instance().config_loader(), OverridesParser.create()
+    is_group: dict[str, bool] = {}
+    composed: dict[tuple, DictConfig] = {}
+    for overrides in points:
+        parsed = parser.parse_overrides(list(overrides))
+        for o in parsed:
+            if o.key_or_group not in is_group:
+                is_group[o.key_or_group] = bool(loader.get_group_options(o.key_or_group))
+        groups = tuple(o.input_line for o in parsed if is_group[o.key_or_group])
+        values = [o for o in parsed if not (is_group[o.key_or_group] or o.key_or_group.startswith("hydra."))]
+        if groups not in composed:
+            composed[groups] = compose(config_name="config", overrides=list(groups))
+        cfg = composed[groups].copy()
+        ConfigLoaderImpl._apply_overrides_to_config(values, cfg)
+        yield overrides, cfg
+
+
 def validate_sweep(points: list[list[str]]) -> None:
     """Compose and validate every job's config before the first job runs; exit 2 on the first bad one."""
-    from hydra import compose
-    for overrides in points:
-        try:
-            cfg = compose(config_name="config", overrides=overrides)
+    try:
+        for overrides, cfg in compose_points(points):
             check_overrides(cfg, overrides)
             build(cfg)
-        except ConfigError as err:
-            print(f"rdsexp: config error in sweep job {' '.join(overrides)}: {err}", file=sys.stderr)
-            sys.exit(2)
+    except ConfigError as err:
+        print(f"rdsexp: config error in sweep job {' '.join(overrides)}: {err}", file=sys.stderr)
+        sys.exit(2)
 
 
 class SweepSummary(Callback):
@@ -55,9 +81,9 @@ class SweepSummary(Callback):
         writable_or_exit(Path(config.hydra.run.dir))
 
     def on_multirun_start(self, config: DictConfig, **kwargs) -> None:
-        writable_or_exit(Path(config.hydra.sweep.dir))
         points = sweep_points(config)
-        validate_sweep(points)
+        validate_sweep(points)            # a config error leaves nothing behind, not even the sweep dir
+        writable_or_exit(Path(config.hydra.sweep.dir))
         from .cli import STATE
         STATE["started"] = True           # from here on, Hydra's errors are not config errors (exit 1, not 2)
         _SWEEP_BARS[os.getpid()] = tqdm(total=len(points), desc="sweep", unit="job", disable=None, file=sys.stderr)
