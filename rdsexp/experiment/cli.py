@@ -282,8 +282,9 @@ def print_summary(info: dict, run_dir: Path) -> None:
     beside = lambda name: f" ({ref.get('source', 'paper')} {ref[name]})" if name in ref else ""
     unstable = lambda rate: rate is not None and not rate < 1          # NaN too: not shown to be stable
     k_from, k_to = s.get("rate_window") or (None, None)
-    lines = [f"rdsexp run {info.get('id')}: {info.get('status')}",
-             f"  plant {s.get('plant')}, model {s.get('model')}"]
+    lines = [f"rdsexp run {info.get('id')}: {info.get('status')}"]
+    if s.get("plant"):                    # a run that failed before its summary has none
+        lines.append(f"  plant {s['plant']}, model {s.get('model')}")
     if info.get("error"):
         lines.append(f"  failed: {info['error']} (traceback in run.json and rdsexp.log)")
     ident = s.get("identification_feedback") or {}

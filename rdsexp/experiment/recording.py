@@ -228,10 +228,10 @@ def rms_band(q: np.ndarray, z: float = 1.96) -> tuple[np.ndarray, np.ndarray, np
     sq = np.sum(q ** 2, axis=-1)
     sq = np.where(np.isfinite(sq), sq, np.nan)
     count = np.sum(np.isfinite(sq), axis=1)
-    with np.errstate(all="ignore"):
-        mean = np.nanmean(sq, axis=1)
-        half = z * np.nanstd(sq, axis=1, ddof=1) / np.sqrt(count)
-    half = np.where(count > 1, half, np.nan)
+    with np.errstate(all="ignore"):       # steps where no path is finite give NaN, silently
+        mean = np.nansum(sq, axis=1) / count
+        var = np.nansum((sq - mean[:, None]) ** 2, axis=1) / (count - 1)
+        half = np.where(count > 1, z * np.sqrt(var / count), np.nan)
     return np.sqrt(mean), np.sqrt(np.maximum(mean - half, 0.0)), np.sqrt(mean + half)
 
 
@@ -292,8 +292,8 @@ def write_summary(rec: rr.RecordingStream, tables: dict[str, pd.DataFrame], traj
 def _xi(rec, tables: dict, window, xi_true) -> None:
     """xi_{k|k} of the identification run, the true and modeled means, the window's histograms."""
     ident, model = tables["identification"], tables["model"]
-    if not len(ident):
-        return
+    if not len(ident) or not any(c.startswith("xi_filt_mean[") for c in ident.columns):
+        return                            # no identification run, or no xi to estimate (p = 0)
     ks, xi = _values(ident[ident["path"] == 0], "xi_filt_mean")
     modeled = model[model["quantity"] == "mean"].sort_values("row")["value"].to_numpy()
     k0, k1 = window if window is not None else (int(ks[0]), int(ks[-1]))

@@ -129,4 +129,6 @@ def writable_or_exit(directory: Path) -> None:
         reason = err.strerror if isinstance(err, OSError) and err.strerror else str(err)
         print(f"rdsexp: cannot write {directory}: {reason}" if isinstance(err, OSError) else f"rdsexp: {err}",
               file=sys.stderr)
+        from .cli import STATE
+        STATE["started"] = True           # a write error (exit 1), not a config error
         sys.exit(1)

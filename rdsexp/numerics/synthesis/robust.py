@@ -32,7 +32,7 @@ MAX_WIDTH = 1024.0          # find_max_width stops doubling here
 def box_vertices(dist: MomentModel, width: float) -> np.ndarray:
     """Vertices (V, p) of the box mean +- width * std(xi), duplicates (zero spread) removed."""
     std = np.sqrt(np.clip(np.diag(dist.cov), 0.0, None))
-    signs = np.array(list(itertools.product((-1.0, 1.0), repeat=dist.p))).reshape(-1, dist.p)
+    signs = np.array(list(itertools.product((-1.0, 1.0), repeat=dist.p)), float).reshape(2 ** dist.p, dist.p)
     return np.unique(dist.mean + width * signs * std, axis=0)
 
 
