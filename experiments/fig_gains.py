@@ -134,7 +134,7 @@ def draw_trajectories(ax, runs: list[report.Run], summary: pd.DataFrame) -> None
     ax.set_xlabel("$k$")
     ax.set_ylabel(r"$\sqrt{E\|q_k\|^2}$")
     ax.plot([], [], ls="none", marker="x", color="black", label="leaves the plot\n(diverged / off scale)")
-    ax.legend(frameon=False, fontsize=5.5)
+    ax.legend(frameon=False, fontsize=5.5, ncols=2, loc="upper center", bbox_to_anchor=(0.5, -0.2))  # below
 
 
 def draw_rates(ax, summary: pd.DataFrame) -> None:
@@ -154,7 +154,7 @@ def draw_rates(ax, summary: pd.DataFrame) -> None:
         inside = np.isfinite(emp) & (emp <= RATE_TOP)
         err = np.nan_to_num(np.array([emp - lo, hi - emp])[:, inside])
         ax.errorbar(x[inside], emp[inside], yerr=err, ls="none", marker=marker, color=color, ms=3, capsize=2,
-                    label=plant)
+                    label=f"plant {plant}")
         ax.plot(x[~inside], np.full((~inside).sum(), RATE_TOP), ls="none", marker=marker, color=color, ms=3,
                 clip_on=False)
     ax.axhline(1.0, color="0.6", lw=0.6)
@@ -163,12 +163,12 @@ def draw_rates(ax, summary: pd.DataFrame) -> None:
     ax.set_ylabel("mean-square rate")
     ax.plot([], [], ls="none", marker="o", mfc="white", color="black", label="open: exact, true plant")
     ax.plot([], [], ls="none", marker="o", color="black", label="filled: EnKF loop, 95%")
-    ax.legend(frameon=False, fontsize=5, ncols=2, loc="best")
+    ax.legend(frameon=False, fontsize=5, loc="upper left", bbox_to_anchor=(1.0, 1.0))     # outside the data
 
 
 def draw(runs: list[report.Run], summary: pd.DataFrame, all_plants: pd.DataFrame | None = None):
     """(a) trajectories on the first plant's runs, (b) rates of every plant in all_plants (default: summary)."""
-    fig, (a, b) = report.figure(report.PAGE_WIDTH, 3.2, 1, 2, width_ratios=[1.1, 1])
+    fig, (a, b) = report.figure(report.PAGE_WIDTH, 3.4, 1, 2, width_ratios=[1.1, 1])
     draw_trajectories(a, runs, summary)
     draw_rates(b, summary if all_plants is None else all_plants)
     a.set_title(f"(a) closed loop, plant {summary['plant'].iloc[0]}")
@@ -176,7 +176,9 @@ def draw(runs: list[report.Run], summary: pd.DataFrame, all_plants: pd.DataFrame
     return fig
 
 
-def caption(runs: list[report.Run], summary: pd.DataFrame, all_plants: pd.DataFrame) -> str:
+def caption(runs: list[report.Run], summary: pd.DataFrame, all_plants: pd.DataFrame | None = None) -> str:
+    all_plants = summary if all_plants is None else all_plants
+    window = report.first_seed(runs).info["summary"]["rate_window"]      # resolved steps
     seeds = sorted({r.get("seed") for r in runs})
     first = min(seeds)
     paths = report.first_seed(runs).get("closed_loop.paths")
@@ -184,8 +186,9 @@ def caption(runs: list[report.Run], summary: pd.DataFrame, all_plants: pd.DataFr
             f"identified moments. (a) plant {summary['plant'].iloc[0]}, curves of seed {first} ({paths} paths "
             f"each), shaded: 95% band over paths; a cross marks where a curve leaves the plot (a path diverged, or "
             f"above {CEILING:g}). (b) open: exact mean-square rate of the gain on the true plant; filled: EnKF "
-            f"closed-loop rate k = 60..80, mean and 95% t-interval over seeds (one seed: over its paths); at the "
-            f"top: above {RATE_TOP:g} or no finite rate. Plants: {', '.join(dict.fromkeys(all_plants['plant']))}. "
+            f"closed-loop rate k = {window[0]}..{window[1]}, mean and 95% t-interval over seeds (one seed: over "
+            f"its paths); at the top: above {RATE_TOP:g} or no finite rate. "
+            f"Plants: {', '.join(dict.fromkeys(all_plants['plant']))}. "
             f"The table below is over the seeds of each plant's sweep (paper: seeds {', '.join(map(str, seeds))}).")
     for group in overlapping(summary):
         rate = summary.set_index("method").loc[group, "rate_true_plant"].mean()
