@@ -195,6 +195,8 @@ def hydra_context():
     ("controller=online controller.safeguard=maybe", "controller.safeguard: 'maybe' is not allowed"),
     ("controller=online +controller.options.max_iter=-1", "controller.options: max_iter: -1 is not allowed"),
     ("controller.type=hybrid", "controller.type: 'hybrid' is not allowed"),
+    ("+controller.period=5", "controller.period: not read by controller=offline"),
+    ("controller=online +controller.perod=5", "controller: ['perod'] is not allowed"),
 ])
 def test_bad_controller_config_is_one_line(hydra_context, overrides, message):
     with pytest.raises(ConfigError) as err:

@@ -328,6 +328,10 @@ def _controller(cfg, model: AffineRandomSystem, K: int) -> tuple[str, OnlineSett
     if kind not in CONTROLLERS:
         raise ConfigError(f"controller.type: {kind!r} is not allowed, expected one of {', '.join(CONTROLLERS)}")
     if kind == "offline":
+        extra = sorted(set(node) - {"type"}) if isinstance(node, dict) else []
+        if extra:                         # e.g. +controller.period=5 without controller=online
+            raise ConfigError(f"controller.{extra[0]}: not read by controller=offline (the online controller's "
+                              f"settings need controller=online)")
         return kind, None, "zero"
     extra = sorted(set(node) - ONLINE_KEYS)
     if extra:
