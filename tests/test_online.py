@@ -227,14 +227,16 @@ def test_online_run_records_the_controller_table(tmp_path):
     traj = pd.read_parquet(run / "trajectories.parquet")
     metrics = pd.read_parquet(run / "metrics.parquet").set_index("experiment")
     assert set(table["k"]) == {-1, 15, 25, 35}                      # initial gain, then warmup + j period
-    assert len(table[table["k"] == -1]) == 4 and (table["F[0]"][table["k"] == -1] == 0).all()
+    assert len(table[table["k"] == -1]) == 4 and (table["F[0,0]"][table["k"] == -1] == 0).all()
     # the gain in use in the trajectories is the path's adopted gain from the step after its update
     online = traj[traj["experiment"] == "online"]
     adopted = table[table["adopted"] & (table["k"] >= 0)]
-    for path, k, F0 in zip(adopted["path"], adopted["k"], adopted["F[0]"]):
-        assert online[(online["path"] == path) & (online["k"] == k + 1)]["F[0]"].item() == F0
+    for path, k, F0 in zip(adopted["path"], adopted["k"], adopted["F[0,0]"]):
+        assert online[(online["path"] == path) & (online["k"] == k + 1)]["F[0,0]"].item() == F0
     assert {"closed_loop", "open_loop", "online"} <= set(metrics.index)
     assert 0 < metrics.loc["online", "optimal_rate_plant"] <= metrics.loc["online", "offline_rate_plant"]
+    for frame in (table, traj, pd.read_parquet(run / "metrics.parquet")):     # every column described
+        assert all(d["description"] for d in frame.attrs["rdsexp"]["columns"].values()), frame.attrs["rdsexp"]
 
 
 def test_online_loop_does_not_depend_on_chunks_of_paths(hydra_context):

@@ -231,12 +231,17 @@ def online_loop(exp: Experiment, seed, keep: bool, sim: dict, sink, sample: list
 
 
 def with_gains(rows: pd.DataFrame, F: np.ndarray) -> pd.DataFrame:
-    """rows with the gain in use as columns F[i] (i over the row-major (m, n) gain).
+    """rows with the gain in use as columns F[i,j] (u_i = sum_j F[i,j] x_j).
 
     F: (len(rows), m, n), one gain per row, or (m, n), the same gain on every row."""
     F = np.asarray(F, dtype=float)
-    flat = F.reshape(len(rows), -1) if F.ndim == 3 else np.broadcast_to(F.ravel(), (len(rows), F.size))
-    return rows.assign(**{f"F[{i}]": flat[:, i] for i in range(flat.shape[1])})
+    F = F if F.ndim == 3 else np.broadcast_to(F, (len(rows), *F.shape))
+    return rows.assign(**gain_columns(F))
+
+
+def gain_columns(F: np.ndarray) -> dict[str, np.ndarray]:
+    """{"F[i,j]": F[:, i, j]} of gains F (rows, m, n), the gains table's naming."""
+    return {f"F[{i},{j}]": F[:, i, j] for i in range(F.shape[1]) for j in range(F.shape[2])}
 
 
 def add_online_tables(exp: Experiment, tables: dict, online, chosen, summary: dict) -> None:
@@ -265,8 +270,7 @@ def add_online_tables(exp: Experiment, tables: dict, online, chosen, summary: di
         rows |= {f"mean[{i}]": mean[:, i] for i in range(p)}
         rows |= {f"cov[{i},{j}]": np.concatenate([np.full(count, np.nan), d.cov[:, i, j]])
                  for i in range(p) for j in range(p)}
-        F = np.concatenate([controller.F0, d.F]).reshape(-1, m * n)
-        rows |= {f"F[{i}]": F[:, i] for i in range(m * n)}
+        rows |= gain_columns(np.concatenate([controller.F0, d.F]).reshape(-1, m, n))
         frames.append(pd.DataFrame(rows))   # the initial gains (k = -1: in use from k = 0), then in order of k
     table = pd.concat(frames, ignore_index=True)
     # gain index: the initial gain is 0, then a path's adopted gains in order (-1: not adopted)
