@@ -34,8 +34,9 @@ def ms_lqr(system, dist, *, state_weight=1.0, input_weight=1.0, tol: float = 1e-
 
     state_weight Q, input_weight R: a number w > 0 (w I) or a symmetric positive definite matrix.
     Newton starts from the open loop when it is mean-square stable, else from the rate-optimal gain
-    of `policy_iteration`; if even that is not mean-square stabilizing no finite cost exists
-    (status `not_ms_stabilizable`, F None). info: cost_trace = trace(P) (the cost averaged over
+    of `policy_iteration`; if its certified lower bound on the optimal rate is >= 1 no finite cost
+    exists (status `not_ms_stabilizable`, F None; `not_converged` where no stabilizing start was
+    found but none is proven impossible). info: cost_trace = trace(P) (the cost averaged over
     x0 ~ N(0, I)), riccati_residual (max |residual| / max |P|), iterations.
     """
     n, m = system.n, system.m
@@ -43,9 +44,11 @@ def ms_lqr(system, dist, *, state_weight=1.0, input_weight=1.0, tol: float = 1e-
     F = np.zeros((m, n))
     if ms_rate(system, dist, F) >= 1:
         start = policy_iteration(system, dist)
-        if start.lam >= 1:
-            return SynthesisResult("ms_lqr", None, float("nan"), "not_ms_stabilizable", system.Gbar(dist).shape[0],
-                                   info={"rate_optimal": start.lam})
+        if start.lam >= 1:                # no finite cost only where the optimal rate is proven >= 1
+            proven = start.lower_certified and start.lam_lower >= 1
+            return SynthesisResult("ms_lqr", None, float("nan"), "not_ms_stabilizable" if proven else "not_converged",
+                                   system.Gbar(dist).shape[0], info={"rate_optimal": start.lam,
+                                                                     "rate_optimal_lower": start.lam_lower})
         F = start.F
     Abar, Bbar = system.moment_factors(dist)
     P = lyapunov(Abar + Bbar @ F, Q + F.T @ R @ F)          # the exact cost matrix of F (analysis.cost_matrix)
