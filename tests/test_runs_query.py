@@ -1,5 +1,7 @@
 """rdsexp.runs: search, list, diff, show and load over stored run directories."""
 import json
+import subprocess
+import sys
 
 import numpy as np
 import pandas as pd
@@ -156,3 +158,10 @@ def test_sweep_recording_and_view(root, tmp_path, monkeypatch):
     assert q.tolist() == [0.25, 1.0, 4.0]
     out = rdsexp("view", "A", "--root", str(root), cwd=tmp_path, module="rdsexp.runs").stdout
     assert out.split()[-1] == str(path) and "rerun" in out.split()[0]
+
+
+def test_rx_runs_is_the_catalog_imported_on_first_use():
+    code = ("import sys, rdsexp as rx; light = 'pandas' not in sys.modules; "
+            "import rdsexp.runs; assert rx.runs.load is rdsexp.runs.load and rx.runs.search; print(light)")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert proc.stdout.strip() == "True"                   # `import rdsexp` alone stays free of pandas
