@@ -89,6 +89,13 @@ def test_bad_synthesis_arguments(model, method, options, message):
         rx.synthesize(*model, method, **options)
 
 
+def test_pole_placement_without_poles_is_not_applicable(model):
+    """No hidden default poles: the paper's poles are configured (rdsexp.paper.poles), never assumed."""
+    res = rx.synthesize(*model, "pole_placement")
+    assert res.status == "not_applicable" and res.F is None and res.info["reason"] == "no poles given"
+    assert rx.synthesize(*model, "pole_placement", poles=paper.poles).status == "designed"
+
+
 @pytest.mark.parametrize("seed", range(4))
 def test_seeded_lmi_matches_full_bisection(seed):
     """Seeded by policy iteration's bracket: same status and lambda within tol, in fewer solves."""

@@ -71,7 +71,7 @@ def check_options(method: str, options: dict, system: AffineRandomSystem) -> Non
     if hasattr(METHODS[method], "check_options"):          # a method with structured options checks them itself
         return METHODS[method].check_options(options, system)
     for name, value in options.items():
-        if name == "poles":
+        if name == "poles" and value is not None:
             check_poles(value, system)
         elif name == "seed" and not isinstance(value, bool):
             raise ValueError(f"seed: {value!r} is not allowed, expected true or false")

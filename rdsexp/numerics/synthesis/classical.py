@@ -5,7 +5,7 @@ import numpy as np
 import scipy.signal
 
 from ..systems import AffineRandomSystem
-from .base import designed, mean_model
+from .base import SynthesisResult, designed, mean_model
 
 
 def check_poles(poles, system: AffineRandomSystem) -> np.ndarray:
@@ -24,8 +24,13 @@ def check_poles(poles, system: AffineRandomSystem) -> np.ndarray:
     return poles
 
 
-def pole_placement(system, dist, *, poles=(0.9, 0.8, 0.7, 0.6, 0.5, 0.4)):
-    """Place the eigenvalues of A(mean) + B(mean) F at `poles` (complex poles in conjugate pairs)."""
+def pole_placement(system, dist, *, poles=None):
+    """Place the eigenvalues of A(mean) + B(mean) F at `poles` (n,) (complex poles in conjugate pairs).
+
+    No poles, no design: status `not_applicable` (the paper's poles are `rdsexp.paper.poles`)."""
+    if poles is None:
+        return SynthesisResult("pole_placement", None, float("nan"), "not_applicable", nbar=1,
+                               info={"reason": "no poles given"})
     poles = check_poles(poles, system)
     A, B = mean_model(system, dist)
     placed = scipy.signal.place_poles(A, B, poles.real if np.all(poles.imag == 0) else poles)
