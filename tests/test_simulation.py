@@ -104,3 +104,24 @@ def test_identification_models_a_stabilising_distribution():
         res = rx.synthesize(paper.model(), dist, "policy_iteration")
         assert res.nbar == 4 and res.status == "optimal"
         assert best <= rx.ms_rate(paper.plant(), None, res.F) < best + 0.03
+
+
+def test_identification_input_options():
+    """Levels map the bits, hold repeats them, a state or seed is a phase of the same m-sequence,
+    taps that do not give a maximal sequence are refused, channels are shifted copies."""
+    bip = mls_input(126, register_length=7, amplitude=2.0)[:, 0]
+    uni = mls_input(126, register_length=7, amplitude=2.0, levels="unipolar")[:, 0]
+    assert set(bip) == {-2.0, 2.0} and np.array_equal(uni, (bip + 2.0) / 2)
+    # an m-sequence: circular autocorrelation -1 (of 127) at every nonzero lag
+    corr = np.array([np.dot(bip, np.roll(bip, lag)) / 4 for lag in range(1, 127)])
+    assert np.array_equal(corr, np.full(126, -1.0))
+    held = mls_input(60, register_length=7, amplitude=2.0, hold=3)[:, 0]
+    assert np.array_equal(held, np.repeat(bip[:21], 3)[:61])
+    for phase in (mls_input(126, register_length=7, amplitude=2.0, state=[1, 0, 1, 1, 0, 0, 1])[:, 0],
+                  mls_input(126, register_length=7, amplitude=2.0, seed=5)[:, 0]):
+        shifts = [s for s in range(127) if np.array_equal(np.roll(bip, -s), phase)]
+        assert len(shifts) == 1
+    with pytest.raises(ValueError, match="do not give a maximal-length sequence"):
+        mls_input(126, register_length=7, taps=[2])
+    two = mls_input(126, m=2, register_length=7, amplitude=2.0)
+    assert np.array_equal(two[:, 1], np.roll(bip, -(127 // 2))[:127])
