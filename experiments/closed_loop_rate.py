@@ -41,7 +41,7 @@ def group_rows(runs: list[report.Run]) -> pd.DataFrame:
     for source, told in keys:
         chosen = sorted([r for r in runs if (r.get("gain.source") or "identified") == source
                          and bool(r.get("closed_loop.filter_sees_disturbance")) == told], key=lambda r: r.get("seed"))
-        k_from, k_to = chosen[0].get("closed_loop.rate_window")
+        k_from, k_to = chosen[0].rate_window
         qs = [report.trajectory_array(r.table("trajectories"), "closed_loop", "q") for r in chosen]
         per_seed = np.array([r.table("metrics").set_index("experiment").loc["closed_loop", "rate"] for r in chosen])
         mean, lo, hi, n = report.seed_interval(per_seed)

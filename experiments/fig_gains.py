@@ -178,7 +178,7 @@ def draw(runs: list[report.Run], summary: pd.DataFrame, all_plants: pd.DataFrame
 
 def caption(runs: list[report.Run], summary: pd.DataFrame, all_plants: pd.DataFrame | None = None) -> str:
     all_plants = summary if all_plants is None else all_plants
-    window = report.first_seed(runs).info["summary"]["rate_window"]      # resolved steps
+    window = report.first_seed(runs).rate_window
     seeds = sorted({r.get("seed") for r in runs})
     first = min(seeds)
     paths = report.first_seed(runs).get("closed_loop.paths")

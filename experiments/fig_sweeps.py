@@ -91,7 +91,7 @@ def draw(sweeps: dict[str, list[report.Run]]):
 
 
 def caption(sweeps: dict[str, list[report.Run]]) -> str:
-    k_from, k_to = next((r.get("closed_loop.rate_window") for runs in sweeps.values() for r in runs), (60, 80))
+    k_from, k_to = next((r.rate_window for runs in sweeps.values() for r in runs), (60, 80))
     return ("Sweeps of the EnKF's ensemble size, of the scales of its artificial noises Q and R, and of the "
             "modeling window K1. Solid (empirical): the closed loop's two-point rate "
             f"k = {k_from}..{k_to} from the Monte Carlo paths, with the EnKF observer. Dashed (exact): the exact "

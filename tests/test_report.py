@@ -234,3 +234,12 @@ def test_figures_meet_the_print_requirements(root, written):
              for kind, name in drawn]
     positions = [page.index(item) for item in order]
     assert positions == sorted(positions)
+
+
+def test_report_uses_the_rate_window_the_run_resolved(tmp_path):
+    """The config may give the window as fractions of the horizon (the default): the report reads
+    the steps the run used, never the config's fractions."""
+    small = [o for o in SMALL if not o.startswith("closed_loop.rate_window")]
+    rdsexp(*small, "closed_loop.rate_window=[0.5,0.8]", "tracking.recording=false", cwd=tmp_path)
+    (run,) = report.load_runs(tmp_path / "outputs")
+    assert run.get("closed_loop.rate_window") == [0.5, 0.8] and run.rate_window == (15, 24)

@@ -61,6 +61,13 @@ class Run:
         """Config value at a dotted key."""
         return OmegaConf.select(self.config, key)
 
+    @property
+    def rate_window(self) -> tuple[int, int]:
+        """The closed-loop rate window (k_from, k_to) in steps, as the run resolved it (the config may
+        give fractions of the horizon)."""
+        k_from, k_to = self.info["summary"]["rate_window"]
+        return int(k_from), int(k_to)
+
     def table(self, name: str, columns: list[str] | None = None) -> pd.DataFrame:
         """A stored table (optionally some columns), verified against run.json's hash on first use."""
         meta = self.info["tables"][name]
