@@ -91,10 +91,7 @@ def caption(table: pd.DataFrame) -> str:
 
 def main(argv=None):
     args = report.arguments(__doc__.splitlines()[0], argv)
-    runs = report.load_runs(args.root, SWEEP)
-    report.check_versions(runs, args.allow_mixed)
-    if not runs:
-        raise report.LineageError(f"no stored runs of sweep {SWEEP!r} under {args.root}")
+    runs = report.sweep_runs(args.root, SWEEP, args.allow_mixed)
     table = group_rows(runs)
     report.write_table(table, args.out, NAME, runs, __file__)
     report.write_caption(args.out, NAME, caption(table))

@@ -111,10 +111,7 @@ def verdict(table: pd.DataFrame, configured: str | None = None) -> str:
 
 def main(argv=None):
     args = report.arguments(__doc__.splitlines()[0], argv)
-    runs = report.load_runs(args.root, SWEEP)
-    report.check_versions(runs, args.allow_mixed)
-    if not runs:
-        raise report.LineageError(f"no stored runs of sweep {SWEEP!r} under {args.root}")
+    runs = report.sweep_runs(args.root, SWEEP, args.allow_mixed)
     table = build(runs)
     report.write_table(table, args.out, NAME, runs, __file__)
     paper = report.load_runs(args.root, report.PAPER_SWEEP)

@@ -106,6 +106,16 @@ def check_versions(runs: list[Run], allow_mixed: bool = False) -> str:
     return versions[0] if len(versions) == 1 else "mixed:" + ",".join(versions)
 
 
+def sweep_runs(root: Path, sweep: str, allow_mixed: bool = False) -> list[Run]:
+    """The runs of the latest stored `sweep` under root, of one code version (unless allowed);
+    LineageError when there are none."""
+    runs = load_runs(root, sweep)
+    check_versions(runs, allow_mixed)
+    if not runs:
+        raise LineageError(f"no stored runs of sweep {sweep!r} under {root}")
+    return runs
+
+
 def select(runs: list[Run], **where) -> list[Run]:
     """Runs whose config matches every `key=value` (dots in keys written as __)."""
     return [r for r in runs if all(r.get(k.replace("__", ".")) == v for k, v in where.items())]
