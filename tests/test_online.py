@@ -6,7 +6,9 @@ from conftest import SMALL, rdsexp
 from hydra import compose, initialize_config_module
 
 import rdsexp as rx
+from rdsexp import runs
 from rdsexp.experiment.config import ConfigError, build
+from rdsexp.experiment.recording import read_series
 from rdsexp.numerics.distributions import from_spec
 from rdsexp.numerics.enkf import EnKF
 from rdsexp.numerics.online import (
@@ -220,8 +222,7 @@ def test_cli_period_zero_exits_2(tmp_path):
 
 def test_online_run_records_the_controller_table(tmp_path):
     small = [o for o in SMALL if not o.startswith("closed_loop.horizon")] + ["closed_loop.horizon=40"]
-    rdsexp(*small, "controller=online", "controller.warmup=5", "controller.period=10", "tracking.recording=false",
-           cwd=tmp_path)
+    rdsexp(*small, "controller=online", "controller.warmup=5", "controller.period=10", cwd=tmp_path)
     (run,) = (tmp_path / "outputs" / "runs").iterdir()
     table = pd.read_parquet(run / "controller.parquet")
     traj = pd.read_parquet(run / "trajectories.parquet")
@@ -235,6 +236,12 @@ def test_online_run_records_the_controller_table(tmp_path):
         assert online[(online["path"] == path) & (online["k"] == k + 1)]["F[0,0]"].item() == F0
     assert {"closed_loop", "open_loop", "online"} <= set(metrics.index)
     assert 0 < metrics.loc["online", "optimal_rate_plant"] <= metrics.loc["online", "offline_rate_plant"]
+    # the recording holds the gain in use (row i of F as F<i>), the long form too
+    ks, gain = read_series(run / "recording.rrd", "/online/F0/1")          # (k, path) order
+    in_use = online.pivot(index="k", columns="path", values="F[0,1]")
+    assert np.array_equal(gain, in_use.loc[np.unique(ks)].to_numpy().ravel())
+    long = runs.load(run, "trajectories", long=True)
+    assert set(long[long["quantity"] == "F0"]["index"]) == set(range(6))
     for frame in (table, traj, pd.read_parquet(run / "metrics.parquet")):     # every column described
         assert all(d["description"] for d in frame.attrs["rdsexp"]["columns"].values()), frame.attrs["rdsexp"]
 

@@ -37,7 +37,7 @@ import rerun.blueprint as rrb
 KEYS = ["experiment", "k", "path"]
 MEMBER_KEYS = ["experiment", "k", "path", "member"]
 
-_COLUMN = re.compile(r"^(?P<quantity>.+)\[(?P<index>\d+)\]$")
+_COLUMN = re.compile(r"^(?P<quantity>.+?)\[(?:(?P<row>\d+),)?(?P<index>\d+)\]$")
 _SCALARS = rr.Scalars.descriptor_scalars().component
 _PROPERTY = "rdsexp"
 # View group of a quantity, by the prefix before its first "_" (x_pred_mean -> x).
@@ -45,11 +45,12 @@ _GROUPS = {"q": "state", "x": "state", "xi": "xi", "u": "input"}
 
 
 def _split(column: str) -> tuple[str, int]:
-    """``"x_pred_mean[3]"`` -> ``("x_pred_mean", 3)``."""
+    """``"x_pred_mean[3]"`` -> ``("x_pred_mean", 3)``; a matrix entry ``"F[1,2]"`` -> ``("F1", 2)``
+    (row i of F as the quantity, its entries as the index)."""
     match = _COLUMN.match(column)
     if match is None:
-        raise ValueError(f"value column {column!r} is not named QUANTITY[i]")
-    return match["quantity"], int(match["index"])
+        raise ValueError(f"value column {column!r} is not named QUANTITY[i] or QUANTITY[i,j]")
+    return match["quantity"] + (match["row"] or ""), int(match["index"])
 
 
 def _entity(experiment: str, *parts: str | int) -> str:

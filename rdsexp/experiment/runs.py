@@ -192,7 +192,8 @@ def load(run, table: str, long: bool = False, root=DEFAULT_ROOT) -> pd.DataFrame
     run: a run directory, an id, or a row of `search`. table: trajectories, identification, paths,
     model, gains, metrics, exact or members. long: trajectories, identification and members in
     long form, one row per (experiment, path, [member,] k, quantity, index) with its `value`
-    (quantity "x_filt_mean", index i of the column "x_filt_mean[i]")."""
+    (quantity "x_filt_mean", index i of the column "x_filt_mean[i]"; the gain in use "F[i,j]": quantity
+    "F<i>", index j)."""
     run_dir = Path(run["dir"]) if isinstance(run, pd.Series) else locate(str(run), Path(root))
     info = store.read_run(run_dir)
     tables = info.get("tables") or {}
@@ -206,8 +207,9 @@ def load(run, table: str, long: bool = False, root=DEFAULT_ROOT) -> pd.DataFrame
         raise ValueError(f"long=True: {table!r} is not a trajectory table (trajectories, identification, members)")
     keys = [c for c in frame.columns if "[" not in c]
     out = frame.melt(id_vars=keys, var_name="column", value_name="value")
-    parts = out["column"].str.extract(r"^(?P<quantity>.+)\[(?P<index>\d+)\]$")
-    out = out.drop(columns="column").assign(quantity=parts["quantity"], index=parts["index"].astype(np.int64))
+    parts = out["column"].str.extract(r"^(?P<quantity>.+?)\[(?:(?P<row>\d+),)?(?P<index>\d+)\]$")
+    quantity = parts["quantity"] + parts["row"].fillna("")          # F[i,j]: quantity F<i>, index j
+    out = out.drop(columns="column").assign(quantity=quantity, index=parts["index"].astype(np.int64))
     order = [c for c in ("run", "experiment", "path", "member", "k") if c in keys]
     return out[[*order, "quantity", "index", "value"]]       # column by column, as melted
 
