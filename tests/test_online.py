@@ -240,6 +240,17 @@ def test_online_run_records_the_controller_table(tmp_path):
     ks, gain = read_series(run / "recording.rrd", "/online/F0/1")          # (k, path) order
     in_use = online.pivot(index="k", columns="path", values="F[0,1]")
     assert np.array_equal(gain, in_use.loc[np.unique(ks)].to_numpy().ravel())
+    # the online tab: median over paths of the true rate of the gain in use from each step on, and
+    # of the modeled mean at each update step, recomputed here path by path
+    ks, median = read_series(run / "recording.rrd", "/summary/online/rate_plant/online/median")
+    assert list(ks) == [0, 16, 26, 36]
+    for step, value in zip(ks, median):
+        held = [adopted_rows[adopted_rows["k"] < step]["rate_plant"].iloc[-1]
+                for _, adopted_rows in table[table["adopted"]].groupby("path")]
+        assert value == pytest.approx(np.median(held), rel=1e-12)
+    ks, median = read_series(run / "recording.rrd", "/summary/online/xi_mean/xi1/median")
+    decisions = table[table["k"] >= 0]
+    np.testing.assert_allclose(median, [np.median(decisions[decisions["k"] == k]["mean[1]"]) for k in ks], rtol=1e-12)
     long = runs.load(run, "trajectories", long=True)
     assert set(long[long["quantity"] == "F0"]["index"]) == set(range(6))
     for frame in (table, traj, pd.read_parquet(run / "metrics.parquet")):     # every column described

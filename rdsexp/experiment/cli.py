@@ -51,7 +51,7 @@ def record(run_dir: Path, outcome: Outcome, exp: Experiment, info: dict, streame
             try:
                 write_recording(tmp, outcome.recorded, recording_id=info["id"], members=outcome.recorded_members,
                                 tables=outcome.tables, summary=outcome.summary, squares=outcome.squares,
-                                window=(exp.K0, exp.K0 + exp.K1), xi_true=true_xi_mean(exp))
+                                window=(exp.K0, exp.K0 + exp.K1), **true_xi(exp))
             except OSError as err:
                 tmp.unlink(missing_ok=True)
                 raise records.WriteError(run_dir / "recording.rrd", err) from err
@@ -72,14 +72,16 @@ class _Described:
         self.sink.append(name, attach(name, rows, self.run))
 
 
-def true_xi_mean(exp: Experiment) -> np.ndarray | None:
-    """The plant's mean xi in the model's terms, T E[s] + t (`truth_map`), None if there is no such map."""
+def true_xi(exp: Experiment) -> dict:
+    """The plant's xi in the model's terms, T s + t (`truth_map`): {"xi_true": mean (p,), "xi_true_std":
+    standard deviations (p,)}, empty if there is no such map."""
     from ..numerics.enkf import truth_map
     truth = truth_map(exp.model, exp.plant)
     if truth is None:
-        return None
+        return {}
     T, t = truth
-    return T @ exp.plant.check_distribution(None).mean + t
+    dist = exp.plant.check_distribution(None)
+    return {"xi_true": T @ dist.mean + t, "xi_true_std": np.sqrt(np.maximum(np.diag(T @ dist.cov @ T.T), 0.0))}
 
 
 def _table_order(name: str) -> int:

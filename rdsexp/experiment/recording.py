@@ -5,8 +5,12 @@ sqrt(E||q_k||^2) over the paths with its 95% band, the exact ideal-loop curve an
 (linear and log10), the EnKF's xi estimates of the identification run with the true and modeled
 means (the modeled mean drawn over the modeling window k = K0..K0+K1 only), histograms of the
 window's xi samples the model was built from, and a markdown report (gain, statuses, metrics);
-a **states** tab: per state q_k and the ensemble mean +- spread over a few sample paths. The
-raw paths follow in one tab per experiment (the bounded sample the pipeline passes,
+a **states** tab: per state q_k and the ensemble mean +- spread over a few sample paths; with the
+online controller an **online** tab (`_online`, entities under ``/summary/online``), from its
+controller table: over the update steps, the median and 10-90% band over paths of the exact rate on
+the true plant of the gain in use (against the offline gain's and the optimum), of the modeled mean
+and standard deviation of each xi[i] (against the true ones), and of each entry of the gain in use
+(against the offline gain). The raw paths follow in one tab per experiment (the bounded sample the pipeline passes,
 tracking.recorded_paths per loop).
 
 The trajectories table stays the source of truth; the raw tabs mirror it as
@@ -25,6 +29,7 @@ NaN values are stored as ordinary float64 NaNs inside the batches and read back 
 from __future__ import annotations
 
 import re
+import warnings
 from collections import defaultdict
 from pathlib import Path
 
@@ -120,13 +125,15 @@ def write_recording(
     summary: dict | None = None,
     window: tuple[int, int] | None = None,
     xi_true: np.ndarray | None = None,
+    xi_true_std: np.ndarray | None = None,
     squares: dict[str, np.ndarray] | None = None,
 ) -> None:
     """Write `trajectories` (rows: (experiment, k, path) grid, P paths per step) and optionally
     `members` (rows: (experiment, k, path, member) grid, M members per path) to the .rrd `path`,
     with a default blueprint. With the run's `tables` (pipeline.TABLES but the streamed ones) and
     `summary` the recording opens on the summary tab (`write_summary`; window: (K0, K0 + K1),
-    xi_true: the true mean of xi in the model's terms, (p,), if known; squares: loop -> ||q_k||^2
+    xi_true, xi_true_std: the true mean and standard deviations of xi in the model's terms, (p,), if
+    known; squares: loop -> ||q_k||^2
     (K+1, P) over every path, else computed from the paths in `trajectories`).
     The file is complete when this returns; with ``RERUN=off`` in the environment rerun
     disables the stream and nothing is written."""
@@ -144,7 +151,7 @@ def write_recording(
         rec.send_property(_PROPERTY, rr.AnyValues(experiments=experiments, columns=columns))
         if tables is not None:
             write_summary(rec, tables, trajectories, summary or {}, window=window, xi_true=xi_true,
-                          squares=squares)
+                          xi_true_std=xi_true_std, squares=squares)
         for experiment, frame in trajectories.groupby("experiment", sort=False):
             frame = frame.sort_values(["k", "path"], kind="stable")       # tables are stored path-major
             ks = _steps(frame, frame["path"].to_numpy(), f"trajectories[{experiment!r}]")
@@ -241,13 +248,15 @@ def _log10(values: np.ndarray) -> np.ndarray:
         return np.where(values > 0, np.log10(values), np.nan)
 
 
-LOOP_COLORS = {"closed_loop": (31, 119, 180), "open_loop": (214, 39, 40)}
+LOOP_COLORS = {"closed_loop": (31, 119, 180), "open_loop": (214, 39, 40), "online": (44, 160, 44)}
+PALETTE = [(31, 119, 180), (255, 127, 14), (44, 160, 44), (148, 103, 189), (140, 86, 75), (227, 119, 194)]
+GREY = (200, 200, 200)
 STATE_PATHS = 3
 
 
 def write_summary(rec: rr.RecordingStream, tables: dict[str, pd.DataFrame], trajectories: pd.DataFrame,
                   summary: dict, *, window: tuple[int, int] | None = None, xi_true: np.ndarray | None = None,
-                  squares: dict[str, np.ndarray] | None = None) -> None:
+                  xi_true_std: np.ndarray | None = None, squares: dict[str, np.ndarray] | None = None) -> None:
     """The summary entities of a run (see the module docstring) from its tables and the recorded
     paths `trajectories`; the rms band from `squares` (loop -> ||q_k||^2 (K+1, P)) when given."""
     exact, gains = tables["exact"], tables["gains"]
@@ -281,11 +290,13 @@ def write_summary(rec: rr.RecordingStream, tables: dict[str, pd.DataFrame], traj
             for i in range(q.shape[-1]):
                 for j in range(min(STATE_PATHS, q.shape[1])):
                     base = f"/summary/state/q{i}/path{j}"
-                    _line(rec, f"{base}/q", ks, q[:, j, i], f"q[{i}] path {j}", (200, 200, 200), 1.5)
+                    _line(rec, f"{base}/q", ks, q[:, j, i], f"q[{i}] path {j}", GREY, 1.5)
                     _line(rec, f"{base}/mean", ks, x[:, j, i], f"x_k|k[{i}] path {j}", color, 1.5)
                     _line(rec, f"{base}/upper", ks, x[:, j, i] + std[:, j, i], "mean + spread", color, 0.5)
                     _line(rec, f"{base}/lower", ks, x[:, j, i] - std[:, j, i], "mean - spread", color, 0.5)
     _xi(rec, tables, window, xi_true)
+    if "controller" in tables:
+        _online(rec, tables, summary.get("online", {}), xi_true, xi_true_std)
     rec.log("/summary/report", rr.TextDocument(report_markdown(tables, summary), media_type="text/markdown"),
             static=True)
 
@@ -299,16 +310,14 @@ def _xi(rec, tables: dict, window, xi_true) -> None:
     modeled = model[model["quantity"] == "mean"].sort_values("row")["value"].to_numpy()
     k0, k1 = window if window is not None else (int(ks[0]), int(ks[-1]))
     inside = (ks >= k0) & (ks <= k1)
-    palette = [(31, 119, 180), (255, 127, 14), (44, 160, 44), (148, 103, 189), (140, 86, 75), (227, 119, 194)]
     for i in range(xi.shape[-1]):
-        color = palette[i % len(palette)]
+        color = PALETTE[i % len(PALETTE)]
         _line(rec, f"/summary/xi/xi{i}/estimate", ks, xi[:, 0, i], f"xi_k|k[{i}]", color, 1.5)
         if i < len(modeled):     # drawn over the modeling window only: it marks the window
             _line(rec, f"/summary/xi/xi{i}/modeled_mean", ks[inside], np.full(inside.sum(), modeled[i]),
                   f"modeled mean[{i}] (k = {k0}..{k1})", color, 3.0)
         if xi_true is not None and i < len(xi_true) and np.isfinite(xi_true[i]):
-            _line(rec, f"/summary/xi/xi{i}/true_mean", ks, np.full(len(ks), xi_true[i]), f"true mean[{i}]",
-                  (200, 200, 200), 1.0)
+            _line(rec, f"/summary/xi/xi{i}/true_mean", ks, np.full(len(ks), xi_true[i]), f"true mean[{i}]", GREY, 1.0)
         samples = xi[inside, 0, i]
         samples = samples[np.isfinite(samples)]
         if len(samples):
@@ -317,7 +326,69 @@ def _xi(rec, tables: dict, window, xi_true) -> None:
                                                                 widths=np.diff(edges), color=color), static=True)
 
 
+def in_use(controller: pd.DataFrame, column: str) -> tuple[np.ndarray, np.ndarray]:
+    """Steps (U,) and values (U, P) of `column` for the gain each path holds from each step on.
+
+    controller: the controller table; the initial gain (k = -1) is in use from k = 0 and a gain
+    adopted after filtering at k from k + 1, so the steps are 0 and every update step + 1."""
+    adopted = controller[controller["adopted"]]
+    wide = adopted.pivot(index="k", columns="path", values=column)
+    steps = np.union1d(wide.index.to_numpy(), controller["k"].unique())
+    return steps.astype(np.int64) + 1, wide.reindex(steps).ffill().to_numpy(np.float64)
+
+
+def modeled(controller: pd.DataFrame, column: str) -> tuple[np.ndarray, np.ndarray]:
+    """Update steps (U,) and the values (U, P) of `column` of each path's decision there."""
+    wide = controller[controller["k"] >= 0].pivot(index="k", columns="path", values=column)
+    return wide.index.to_numpy(np.int64), wide.to_numpy(np.float64)
+
+
+def _over_paths(rec, base: str, ks: np.ndarray, values: np.ndarray, label: str, color) -> None:
+    """Median and 10-90% band over paths of values (K, P), NaN (not yet modeled) ignored."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)        # steps where no path has a value
+        low, mid, high = np.nanpercentile(values, [10, 50, 90], axis=1)
+    _line(rec, f"{base}/median", ks, mid, f"{label}, median over paths", color, 2.0)
+    _line(rec, f"{base}/q10", ks, low, f"{label}, 10-90% of paths", color, 0.7)
+    _line(rec, f"{base}/q90", ks, high, f"{label}, 10-90% of paths", color, 0.7)
+
+
+def _online(rec, tables: dict, metrics: dict, xi_true, xi_true_std) -> None:
+    """The online controller's decisions over time (module docstring, online tab)."""
+    controller, gains = tables["controller"], tables["gains"]
+    ks, rate = in_use(controller, "rate_plant")
+    span = ks[[0, -1]]
+    color = LOOP_COLORS["online"]
+    _over_paths(rec, "/summary/online/rate_plant/online", ks, rate, "online gain in use", color)
+    for name, label, c in (("offline_rate_plant", "offline gain", LOOP_COLORS["closed_loop"]),
+                           ("optimal_rate_plant", "optimum on the true plant", GREY)):
+        if metrics.get(name) is not None:
+            _line(rec, f"/summary/online/rate_plant/{name}", span, np.full(2, metrics[name]),
+                  f"{label} {metrics[name]:.4f}", c, 1.0)
+    p = sum(1 for c in controller.columns if c.startswith("mean["))
+    for i in range(p):
+        color = PALETTE[i % len(PALETTE)]
+        k, mean = modeled(controller, f"mean[{i}]")
+        _over_paths(rec, f"/summary/online/xi_mean/xi{i}", k, mean, f"modeled mean[{i}]", color)
+        k, var = modeled(controller, f"cov[{i},{i}]")
+        _over_paths(rec, f"/summary/online/xi_std/xi{i}", k, np.sqrt(np.maximum(var, 0.0)), f"modeled std[{i}]",
+                    color)
+        for truth, what in ((xi_true, "mean"), (xi_true_std, "std")):
+            if truth is not None and i < len(truth) and np.isfinite(truth[i]) and len(k):
+                _line(rec, f"/summary/online/xi_{what}/xi{i}/true", k[[0, -1]], np.full(2, truth[i]),
+                      f"true {what}[{i}]", GREY, 1.0)
+    selected = gains[gains["selected"]]
+    for column in (c for c in controller.columns if c.startswith("F[")):
+        row, j = _split(column)                                   # one view per row of F
+        base = f"/summary/online/gain/{row}/{j}"
+        _over_paths(rec, f"{base}/online", *in_use(controller, column), column, PALETTE[j % len(PALETTE)])
+        if len(selected) and column in selected:
+            _line(rec, f"{base}/offline", span, np.full(2, selected[column].iloc[0]), f"offline {column}", GREY, 1.0)
+
+
 def _fmt(v) -> str:
+    if v is None:
+        return "n/a"
     if isinstance(v, (float, np.floating)):
         return "n/a" if not np.isfinite(v) else f"{v:.4g}"
     return str(v)
@@ -336,6 +407,13 @@ def report_markdown(tables: dict[str, pd.DataFrame], summary: dict) -> str:
             r = s[f"{loop}_rate"]
             lines.append(f"- {loop.replace('_', ' ')}: **{s.get(f'{loop}_status')}**, rate {_fmt(r[0])} "
                          f"[{_fmt(r[1])}, {_fmt(r[2])}] over k = {s.get('rate_window')}")
+    if "online" in s:
+        o = s["online"]
+        lines.append(f"- online controller: final gains' exact rate on the true plant median "
+                     f"{_fmt(o.get('final_rate_plant_median'))} [10-90%: {_fmt(o.get('final_rate_plant_q10'))}, "
+                     f"{_fmt(o.get('final_rate_plant_q90'))}], {_fmt(o.get('final_stable_fraction'))} of paths "
+                     f"stable; offline gain {_fmt(o.get('offline_rate_plant'))}, optimum "
+                     f"{_fmt(o.get('optimal_rate_plant'))}; {_fmt(o.get('adoptions_per_path'))} adoptions per path")
     gains = tables["gains"]
     chosen = gains[gains["selected"]]
     if len(chosen):
@@ -378,7 +456,20 @@ def _summary_tabs(tables: dict[str, pd.DataFrame], trajectories: pd.DataFrame) -
     states = rrb.Grid(*(rrb.TimeSeriesView(name=f"closed loop q[{i}] and x_k|k +- spread ({STATE_PATHS} paths)",
                                            origin=f"/summary/state/q{i}", plot_legend=rrb.PlotLegend(visible=False))
                         for i in range(n)), name="states") if "closed_loop" in loops else None
-    return [summary] + ([states] if states is not None else [])
+    tabs = [summary] + ([states] if states is not None else [])
+    if "controller" in tables:
+        rows = sorted({_split(c)[0] for c in tables["controller"].columns if c.startswith("F[")})
+        tabs.append(rrb.Grid(
+            rrb.TimeSeriesView(name="exact rate on the true plant of the gain in use", plot_legend=legend,
+                               origin="/summary/online/rate_plant"),
+            rrb.TimeSeriesView(name="modeled mean of xi (update steps) and true mean", plot_legend=legend,
+                               origin="/summary/online/xi_mean"),
+            rrb.TimeSeriesView(name="modeled std of xi (update steps) and true std", plot_legend=legend,
+                               origin="/summary/online/xi_std"),
+            *(rrb.TimeSeriesView(name=f"gain in use, row {row[1:]} of F, and the offline gain", plot_legend=legend,
+                                 origin=f"/summary/online/gain/{row}") for row in rows),
+            name="online controller", grid_columns=2))
+    return tabs
 
 
 def read_series(path, entity: str, index: str = "k") -> tuple[np.ndarray, np.ndarray]:
