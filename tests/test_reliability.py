@@ -142,6 +142,22 @@ def test_diverging_run_is_recorded_as_a_status_without_warnings(tmp_path):
     assert np.isfinite(q["q[0]"]).all()                                    # the finite part is kept
 
 
+def test_rerun_disabled_in_the_environment_gives_a_complete_run_without_recording(tmp_path, monkeypatch):
+    """RERUN=off turns Rerun's streams off: the run (and a sweep of it) still completes, with every
+    table and an intact record, only without recording.rrd."""
+    monkeypatch.setenv("RERUN", "off")
+    proc = rdsexp(*SMALL, "seed=0,1", "--multirun", cwd=tmp_path)
+    assert "sweep recording: none (Rerun disabled" in proc.stdout
+    runs = sorted(tmp_path.glob("outputs/sweeps/*/*/run.json"))
+    assert len(runs) == 2
+    for path in runs:
+        info = json.loads(path.read_text())
+        assert info["status"] == "complete" and "recording" not in info
+        assert not (path.parent / "recording.rrd").exists() and (path.parent / "trajectories.parquet").exists()
+    assert "no damaged or inconsistent record" in rdsexp("check", str(tmp_path / "outputs"), cwd=tmp_path,
+                                                         module="rdsexp.runs").stdout
+
+
 def wait_for(predicate, timeout=120.0):
     start = time.time()
     while not predicate():

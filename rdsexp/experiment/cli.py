@@ -49,13 +49,17 @@ def record(run_dir: Path, outcome: Outcome, exp: Experiment, info: dict, streame
             from .recording import write_recording  # rerun is imported only when recording
             tmp = records.tmp_name(run_dir / "recording.rrd")
             try:
-                write_recording(tmp, outcome.recorded, recording_id=info["id"], members=outcome.recorded_members,
-                                tables=outcome.tables, summary=outcome.summary, squares=outcome.squares,
-                                window=(exp.K0, exp.K0 + exp.K1), **true_xi(exp))
+                written = write_recording(tmp, outcome.recorded, recording_id=info["id"],
+                                          members=outcome.recorded_members, tables=outcome.tables,
+                                          summary=outcome.summary, squares=outcome.squares,
+                                          window=(exp.K0, exp.K0 + exp.K1), **true_xi(exp))
             except OSError as err:
                 tmp.unlink(missing_ok=True)
                 raise records.WriteError(run_dir / "recording.rrd", err) from err
-            info["recording"] = records.store_file(tmp, run_dir / "recording.rrd")
+            if written:
+                info["recording"] = records.store_file(tmp, run_dir / "recording.rrd")
+            else:                                   # RERUN=off in the environment: rerun wrote nothing
+                log.info("no recording: Rerun is disabled (RERUN=off)")
     info.update(status="complete", finished=records.now(), summary=outcome.summary, tables=hashes, timings=timings,
                 seconds=round(sum(v for v in timings.values() if isinstance(v, float)), 3))
     records.write_json(run_dir / "run.json", info)

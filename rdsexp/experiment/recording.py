@@ -127,7 +127,7 @@ def write_recording(
     xi_true: np.ndarray | None = None,
     xi_true_std: np.ndarray | None = None,
     squares: dict[str, np.ndarray] | None = None,
-) -> None:
+) -> bool:
     """Write `trajectories` (rows: (experiment, k, path) grid, P paths per step) and optionally
     `members` (rows: (experiment, k, path, member) grid, M members per path) to the .rrd `path`,
     with a default blueprint. With the run's `tables` (pipeline.TABLES but the streamed ones) and
@@ -135,8 +135,8 @@ def write_recording(
     xi_true, xi_true_std: the true mean and standard deviations of xi in the model's terms, (p,), if
     known; squares: loop -> ||q_k||^2
     (K+1, P) over every path, else computed from the paths in `trajectories`).
-    The file is complete when this returns; with ``RERUN=off`` in the environment rerun
-    disables the stream and nothing is written."""
+    The file is complete when this returns True; with ``RERUN=off`` in the environment rerun
+    disables the stream: nothing is written and this returns False."""
     columns = [c for c in trajectories.columns if c not in KEYS]
     split = [_split(c) for c in columns]
     experiments = list(trajectories["experiment"].unique())
@@ -147,6 +147,8 @@ def write_recording(
     # A private stream (not the global one) so repeated calls never share state, and leaving the
     # `with` block flushes and finalizes the file sink (footer written, file closed).
     with rr.RecordingStream(application_id, recording_id=recording_id) as rec:
+        if not rec.is_enabled():
+            return False
         rec.save(Path(path), default_blueprint=blueprint)
         rec.send_property(_PROPERTY, rr.AnyValues(experiments=experiments, columns=columns))
         if tables is not None:
@@ -169,6 +171,7 @@ def write_recording(
                 for j, column in enumerate(member_columns):
                     entity = _entity(experiment, "members", *_split(column))
                     _send(rec, entity, ks, values[:, j].reshape(len(ks), -1))
+    return True
 
 
 def _property(store: rr.chunk.LazyStore, name: str) -> list[str]:
@@ -488,9 +491,10 @@ SWEEP_METRICS = ("metrics.lam", "metrics.rate_plant", "metrics.closed_loop_rate"
                  "metrics.closed_loop_rate_high", "metrics.open_loop_rate", "metrics.closed_loop_failed_fraction")
 
 
-def write_sweep_recording(sweep_dir, table: pd.DataFrame | None = None) -> Path:
+def write_sweep_recording(sweep_dir, table: pd.DataFrame | None = None) -> Path | None:
     """<sweep>/summary.rrd: on the timeline `job`, the key metrics (points) and every numeric swept
-    parameter (a `search` table's changed params) of each job, and a markdown table of the jobs."""
+    parameter (a `search` table's changed params) of each job, and a markdown table of the jobs.
+    Returns its path, None with ``RERUN=off`` (nothing written)."""
     from .runs import changed, search
     sweep_dir = Path(sweep_dir)
     table = search(sweep_dir) if table is None else table
@@ -508,6 +512,8 @@ def write_sweep_recording(sweep_dir, table: pd.DataFrame | None = None) -> Path:
     path = sweep_dir / "summary.rrd"
     tmp = sweep_dir / ".summary.rrd.tmp"
     with rr.RecordingStream("rdsexp", recording_id=f"sweep/{sweep_dir.name}") as rec:
+        if not rec.is_enabled():
+            return None
         rec.save(tmp, default_blueprint=blueprint)
         for group, columns in (("metrics", metrics), ("params", numeric)):
             for c in columns:

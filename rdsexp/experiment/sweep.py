@@ -105,7 +105,7 @@ class SweepSummary(Callback):
         print(f"sweep summary: {path}")
         try:                              # the sweep's own recording: metrics against the swept params
             from .recording import write_sweep_recording
-            print(f"sweep recording: {write_sweep_recording(path.parent)}")
+            print(f"sweep recording: {write_sweep_recording(path.parent) or 'none (Rerun disabled: RERUN=off)'}")
         except Exception as err:          # noqa: BLE001 -- a view, never the end of a sweep
             print(f"rdsexp: no sweep recording ({type(err).__name__}: {err})", file=sys.stderr)
         table = pd.read_parquet(path)
