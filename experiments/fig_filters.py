@@ -152,17 +152,8 @@ def main(argv=None):
 
 
 def latest_per_plant(runs: list[report.Run]) -> dict[str, list[report.Run]]:
-    """plant name -> runs of the `filters` sweeps on that plant, the latest run of each point (filter
-    settings, M, seed): a study may be run as several sweeps (e.g. one per variant)."""
-    latest = {}
-    for r in sorted((r for r in runs if (r.info.get("sweep") or {}).get("name") == SWEEP),
-                    key=lambda r: r.info["created"]):
-        point = (r.get("plant.name"), *(str(r.get(k)) for k in KEYS))
-        latest[point] = r                                   # later sweeps replace earlier runs of a point
-    out = {}
-    for point, r in latest.items():
-        out.setdefault(point[0], []).append(r)
-    return out
+    """plant name -> the latest run of each point (filter settings, M, seed) of the `filters` sweeps."""
+    return report.latest_per_plant(runs, SWEEP, KEYS)
 
 
 if __name__ == "__main__":

@@ -1,20 +1,26 @@
-"""Online (learning-type) vs offline control (issue 9): figure "online" and table "online".
+"""Online (learning-type) vs offline control (issue 9), per plant: figure and table "online_PLANT"
+from the `controllers` sweeps, table "online_settings_PLANT" from the `online` sweeps.
 
-Figure, from the latest `controllers` sweep (each run holds the offline closed loop and the online
-loop of the same seed on the same plant samples): (left) sqrt(E||q_k||^2) of both loops with 95%
-bands over paths, first seed; (right) the distribution over paths and seeds of the exact rate on the
-true plant of each online path's final gain, against the offline gains' rates and the optimum.
-Table, from the latest `online` sweep (period x window x warm-up): mean over seeds of the k-window
-closed-loop rates (offline, online), the median final true rate, the fraction of paths whose final
-gain is stable on the true plant, adoptions per path, and the online loop's time relative to the
-offline closed loop's (run.json timings).
+Each run of either sweep holds the offline closed loop and the online loop of the same seed on the
+same plant samples. Figure: (left) sqrt(E||q_k||^2) of both loops with 95% bands over paths, first
+seed; (right) the distribution over paths and seeds of the exact rate on the true plant of each
+online path's final gain, against the offline gains' rates and the optimum. Tables, one row per
+controller setting (memory, period, window, warm-up): means over seeds of the k-window closed-loop
+rates, diverged fractions, the online final gains' true rates, the offline gain's true rate, and the
+online loop's time over the offline closed loop's (run.json timings); `matches`: the median final
+true rate is within --tolerance of the offline gain's and at most 1% more paths diverged. The
+caption says at which settings online matches offline and at what cost.
 
-    python experiments/fig_online.py [--root outputs] [--out outputs/report]
+    python experiments/fig_online.py [--root outputs] [--out outputs/report] [--tolerance 0.005]
 """
 import numpy as np
 import pandas as pd
 
 from rdsexp import report
+from rdsexp.experiment import records
+
+SETTING = ("controller.memory", "controller.period", "controller.window", "controller.warmup",
+           "controller.forgetting")
 
 LOOPS = {"closed_loop": ("offline (identification, then fixed F)", "black", "-"),
          "online": ("online (re-designed every period)", "tab:blue", "-")}
@@ -69,44 +75,87 @@ def distribution(ax, runs: list[report.Run]) -> str:
             f"{np.nanmedian(offline):.4f} over {offline.size} seeds; optimum {optimum:.4f}.")
 
 
-def online_table(runs: list[report.Run]) -> pd.DataFrame:
+def setting_table(runs: list[report.Run], tolerance: float) -> pd.DataFrame:
+    """One row per controller setting: means over its seeds (module docstring)."""
     rows = []
     for r in runs:
         m = r.table("metrics").set_index("experiment")
         t = r.info["timings"]
-        rows.append({"period": r.get("controller.period"), "window": r.get("controller.window"),
-                     "warmup": r.get("controller.warmup"), "offline_rate": m.loc["closed_loop", "rate"],
-                     "online_rate": m.loc["online", "rate"],
+        rows.append({**{k.split(".")[1]: r.get(k) for k in SETTING},
+                     "offline_rate": m.loc["closed_loop", "rate"], "online_rate": m.loc["online", "rate"],
                      "online_rate_not_diverged": m.loc["online"].get("rate_not_diverged", np.nan),
-                     "online_failed": m.loc["online", "failed_fraction"],
+                     "offline_diverged": m.loc["closed_loop", "failed_fraction"],
+                     "online_diverged": m.loc["online", "failed_fraction"],
                      "final_true_rate_median": m.loc["online", "final_rate_plant_median"],
                      "final_stable_fraction": m.loc["online", "final_stable_fraction"],
+                     "first_stable_k_median": m.loc["online"].get("first_stable_k_median", np.nan),
                      "adoptions_per_path": m.loc["online", "adoptions_per_path"],
                      "offline_true_rate": m.loc["online", "offline_rate_plant"],
+                     "optimal_true_rate": m.loc["online", "optimal_rate_plant"],
                      "time_online_over_offline": t["online"] / t["closed_loop"]})
     frame = pd.DataFrame(rows)
-    table = frame.groupby(["period", "window", "warmup"]).mean().reset_index()
-    table.insert(3, "seeds", frame.groupby(["period", "window", "warmup"]).size().to_numpy())
+    names = [k.split(".")[1] for k in SETTING]
+    keys = [k for k in names if frame[k].nunique() > 1] or names      # the varied ones, else the setting
+    frame = frame.drop(columns=[k for k in names if k not in keys])
+    table = frame.groupby(keys).mean(numeric_only=True).reset_index()
+    table.insert(len(keys), "seeds", frame.groupby(keys).size().to_numpy())
+    table["matches"] = ((table["final_true_rate_median"] <= table["offline_true_rate"] + tolerance)
+                        & (table["online_diverged"] <= table["offline_diverged"] + 0.01))
     return table.round(4)
 
 
+def verdict(table: pd.DataFrame, keys: list[str], tolerance: float) -> str:
+    """Where online matches offline and what it costs, else the closest setting."""
+    def name(row) -> str:
+        return ", ".join(f"{k} {row[k]}" for k in keys)
+
+    def numbers(row) -> str:
+        return (f"median final true rate {row.final_true_rate_median:.4f} vs offline {row.offline_true_rate:.4f}, "
+                f"diverged {row.online_diverged:.1%} vs {row.offline_diverged:.1%}, "
+                f"time x{row.time_online_over_offline:.2f} of the offline closed loop")
+    criterion = (f"its final gains' median exact rate on the true plant within {tolerance} of the offline "
+                 f"gain's and at most 1% more paths diverged, means over seeds")
+    match = table[table["matches"]]
+    if len(match):
+        return (f"Online matches offline ({criterion}) at {len(match)} of {len(table)} settings: "
+                + "; ".join(f"{name(r)} ({numbers(r)})" for _, r in match.iterrows()) + ".")
+    closest = table.loc[(table["final_true_rate_median"] - table["offline_true_rate"]).idxmin()]
+    return (f"Online matches offline ({criterion}) at none of {len(table)} settings; closest: "
+            f"{name(closest)} ({numbers(closest)}).")
+
+
 def main(argv=None):
-    args = report.arguments(__doc__.splitlines()[0], argv)
-    outputs = []
-    runs = report.load_runs(args.root, "controllers")
-    if runs:
+    parser = report.parser(__doc__.splitlines()[0])
+    parser.add_argument("--tolerance", type=float, default=0.005,
+                        help="largest excess of the online final gains' median true rate over the offline one")
+    args = parser.parse_args(argv)
+    stored = report.load_runs(args.root)
+    outputs, written = [], 0
+    for plant, runs in sorted(report.latest_per_plant(stored, "controllers", (*SETTING, "seed")).items()):
         report.check_versions(runs, args.allow_mixed)
         fig, (left, right) = report.figure(report.PAGE_WIDTH, 2.6, 1, 2)
         decay(left, min(runs, key=lambda r: r.get("seed")))
         text = distribution(right, runs)
-        outputs += report.save_figure(fig, args.out, "online", runs, __file__,
-                                      "Offline vs online (learning-type) control, same plant samples. " + text)
-    sweep = report.load_runs(args.root, "online")
-    if sweep:
-        report.check_versions(sweep, args.allow_mixed)
-        report.write_table(online_table(sweep), args.out, "online", sweep, __file__)
-    if not outputs and not sweep:
-        raise SystemExit("no stored `controllers` or `online` sweep under " + str(args.root))
+        name = f"online_{plant}"
+        outputs += report.save_figure(fig, args.out, name, runs, __file__,
+                                      f"Plant {plant}: offline vs online (learning-type) control, same plant "
+                                      f"samples. {text}")
+        report.write_table(setting_table(runs, args.tolerance), args.out, name, runs, __file__)
+        written += 1
+    for plant, runs in sorted(report.latest_per_plant(stored, "online", (*SETTING, "seed")).items()):
+        report.check_versions(runs, args.allow_mixed)
+        table = setting_table(runs, args.tolerance)
+        keys = list(table.columns[:list(table.columns).index("seeds")])
+        sentence = f"Plant {plant}: " + verdict(table, keys, args.tolerance)
+        name = f"online_settings_{plant}"
+        report.write_table(table, args.out, name, runs, __file__)
+        report.write_caption(args.out, name, sentence)
+        records.atomic_write_bytes(args.out / f"{name}.txt", (sentence + "\n").encode())
+        print(sentence)
+        written += 1
+    if not written:
+        raise SystemExit(f"no stored `controllers` or `online` sweep under {args.root}: run "
+                         "`python -m rdsexp +sweep=controllers` or `+sweep=online` first")
     return outputs
 
 

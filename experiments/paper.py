@@ -6,10 +6,12 @@ Finds the latest stored `paper`, `ensemble_size`, `noise`, `window`, `identifica
 `closed_loop_rate` sweeps under --root; a missing one is run first (`python -m rdsexp
 +sweep=NAME`, said on the terminal). The pole_sets study (exact rates of pole-placement gains, no
 Monte Carlo) is computed from the configs; the robust_width figure and table are drawn when its sweep
-is stored (`python -m rdsexp +sweep=robust_width`). Then every figure and table is drawn from the stored parquet
-tables only; re-running on the same runs rewrites identical files and simulates nothing. Refuses
-runs of different code versions unless --allow-mixed. Last, index.md: one page with every figure
-(in the paper's order, then any other figure present), its caption and the tables.
+is stored (`python -m rdsexp +sweep=robust_width`), and so are the filters and online-control
+studies (`+sweep=filters`, `+sweep=controllers`, `+sweep=online`, per plant). Then every figure
+and table is drawn from the stored parquet tables only; re-running on the same runs rewrites
+identical files and simulates nothing. Refuses runs of different code versions unless
+--allow-mixed. Last, index.md: one page with every figure (in the paper's order, then any other
+figure present with its table), its caption and the tables, then every other table.
 """
 import subprocess
 import sys
@@ -20,6 +22,7 @@ import fig_decay
 import fig_estimation
 import fig_filters
 import fig_gains
+import fig_online
 import fig_sweeps
 import identification_input
 import pole_sets
@@ -63,8 +66,13 @@ def index(out: Path, counts) -> str:
              "table hashes and code version). Verdicts of the computed results: "
              + ", ".join(f"{v} {n}" for v, n in counts.items()) + " (configured inputs carry no verdict).", ""]
     known = {name for kind, name, _ in PAGE if kind == "figure"}
-    others = sorted(p.stem for p in out.glob("*.png") if p.stem not in known)
-    for kind, name, heading in [*PAGE, *(("figure", n, n.replace("_", " ")) for n in others)]:
+    others = [entry for n in sorted(p.stem for p in out.glob("*.png")) if n not in known
+              for entry in (("figure", n, n.replace("_", " ")), ("table", n, None))]
+    shown = {name for _, name, _ in [*PAGE, *others]}       # then every other table, e.g. a study's per plant
+    tables = sorted(p.stem for p in out.glob("*.md") if "." not in p.stem and p.stem != "index" and p.stem not in shown)
+    others += [("table", n, n.replace("_", " ")) for n in tables]
+    captioned = set()
+    for kind, name, heading in [*PAGE, *others]:
         path = out / (f"{name}.png" if kind == "figure" else f"{name}.md")
         if not path.exists():
             continue
@@ -75,8 +83,9 @@ def index(out: Path, counts) -> str:
             lines += [f"![{name}]({name}.png)", ""]
         else:
             lines += [path.read_text().strip(), ""]
-        if cap.exists():
+        if cap.exists() and name not in captioned:
             lines += [f"*{cap.read_text().strip()}*", ""]
+            captioned.add(name)
     return "\n".join(lines)
 
 
@@ -87,8 +96,11 @@ def main(argv=None) -> None:
     for script in (fig_estimation, fig_decay, fig_gains, fig_sweeps, identification_input, closed_loop_rate,
                    pole_sets, robust_width):
         script.main(common)
-    if fig_filters.latest_per_plant(report.load_runs(args.root)):    # the filters study, when stored (not run
-        fig_filters.main(common)                                     # here: 200 runs per plant)
+    stored = report.load_runs(args.root)
+    if fig_filters.latest_per_plant(stored):         # the filters and online-control studies, when stored
+        fig_filters.main(common)                     # (not run here: 200 runs per plant)
+    if any(report.latest_per_plant(stored, sweep, ("seed",)) for sweep in ("controllers", "online")):
+        fig_online.main(common)
     _, results = reproduction_table.main(common)
     counts = reproduction_table.verdict_counts(results)
     records.atomic_write_bytes(args.out / "index.md", index(args.out, counts).encode())

@@ -267,3 +267,38 @@ def test_online_loop_does_not_depend_on_chunks_of_paths(hydra_context):
     pd.testing.assert_frame_equal(tables[0]["controller"], tables[1]["controller"])
     pd.testing.assert_frame_equal(tables[0]["trajectories"], tables[1]["trajectories"])
     assert (tables[0]["controller"]["k"] >= 0).any()
+
+
+def test_report_tables_the_controllers_sweep_per_plant(tmp_path):
+    """fig_online: per plant, a figure and a table whose numbers are the runs' metrics (means over
+    seeds), and a verdict that names exactly the settings meeting its criterion."""
+    import sys
+
+    from conftest import REPO
+    sys.path.insert(0, str(REPO / "experiments"))
+    import fig_online
+
+    from rdsexp import report
+    small = [o for o in SMALL if not o.startswith("closed_loop.horizon")] + ["closed_loop.horizon=40"]
+    rdsexp(*small, "+sweep=controllers", "seed=0,1", "controller.warmup=5",
+           "controller.period=10", "tracking.recording=false", cwd=tmp_path)
+    out = tmp_path / "report"
+    fig_online.main(["--root", str(tmp_path / "outputs"), "--out", str(out)])
+    table = pd.read_csv(out / "online_paper.csv")
+    metrics = [r.table("metrics").set_index("experiment") for r in report.load_runs(tmp_path / "outputs")]
+    assert table["seeds"].item() == 2 and (out / "online_paper.png").exists()
+    for column, (experiment, metric) in {"offline_diverged": ("closed_loop", "failed_fraction"),
+                                         "final_true_rate_median": ("online", "final_rate_plant_median"),
+                                         "offline_true_rate": ("online", "offline_rate_plant")}.items():
+        expected = np.mean([m.loc[experiment, metric] for m in metrics])
+        assert table[column].item() == pytest.approx(expected, abs=5e-5), column
+    assert "Plant paper" in (out / "online_paper.caption.md").read_text()
+
+    settings = pd.DataFrame({"period": [5, 10, 25], "final_true_rate_median": [0.86, 0.845, 0.844],
+                             "offline_true_rate": [0.844] * 3, "online_diverged": [0.0, 0.0, 0.03],
+                             "offline_diverged": [0.0] * 3, "time_online_over_offline": [2.0, 1.5, 1.2]})
+    settings["matches"] = [False, True, False]        # 0.845 within 0.005; period 25 diverges 3% more
+    text = fig_online.verdict(settings, ["period"], 0.005)
+    assert "at 1 of 3 settings: period 10 (" in text and "period 5" not in text and "period 25" not in text
+    text = fig_online.verdict(settings.assign(matches=False), ["period"], 0.005)
+    assert "at none of 3 settings; closest: period 25" in text

@@ -116,6 +116,20 @@ def sweep_runs(root: Path, sweep: str, allow_mixed: bool = False) -> list[Run]:
     return runs
 
 
+def latest_per_plant(runs: list[Run], sweep: str, keys: tuple[str, ...]) -> dict[str, list[Run]]:
+    """plant name -> the runs of every stored `sweep` on that plant, the latest run of each point
+    (the config values at `keys`): a study may be run as several sweeps (one per plant or variant),
+    and a later sweep replaces the earlier runs of the points it repeats."""
+    latest = {}
+    for r in sorted((r for r in runs if (r.info.get("sweep") or {}).get("name") == sweep),
+                    key=lambda r: r.info["created"]):
+        latest[(r.get("plant.name"), *(str(r.get(k)) for k in keys))] = r
+    out: dict[str, list[Run]] = {}
+    for point, r in latest.items():
+        out.setdefault(point[0], []).append(r)
+    return out
+
+
 def select(runs: list[Run], **where) -> list[Run]:
     """Runs whose config matches every `key=value` (dots in keys written as __)."""
     return [r for r in runs if all(r.get(k.replace("__", ".")) == v for k, v in where.items())]
@@ -238,14 +252,19 @@ def reference() -> dict:
     return OmegaConf.to_container(OmegaConf.load(REFERENCE))
 
 
-def arguments(description: str, argv=None):
-    """Common options of the report scripts: --root, --out, --allow-mixed."""
+def parser(description: str):
+    """The argument parser of the report scripts with the common options --root, --out, --allow-mixed."""
     import argparse
     parser = argparse.ArgumentParser(description=description)
     parser.add_argument("--root", type=Path, default=Path("outputs"), help="where the runs are (default outputs/)")
     parser.add_argument("--out", type=Path, default=Path("outputs/report"), help="where to write (outputs/report/)")
     parser.add_argument("--allow-mixed", action="store_true", help="allow runs made by different code versions")
-    return parser.parse_args(argv)
+    return parser
+
+
+def arguments(description: str, argv=None):
+    """The common options of the report scripts, parsed (see `parser`)."""
+    return parser(description).parse_args(argv)
 
 
 def paper_runs(args) -> list[Run]:
