@@ -193,7 +193,7 @@ def online_loop(exp: Experiment, seed, keep: bool, sim: dict, sink, sample: list
     """The online (learning-type) closed loop: per-path gains re-designed from the path's own xi_{k|k}.
 
     In chunks of paths like the other loops (one controller per chunk: a path's decisions depend on
-    its own estimates only), rows streamed to the sink with the gain in use (F[i]). Returns
+    its own estimates only), rows streamed to the sink with the gain in use (F[i,j]). Returns
     ((LoopSummary, [(first_path, controller)]), info for the summary)."""
     m, n = exp.model.m, exp.model.n
     info = {"initial": exp.online_initial if isinstance(exp.online_initial, str) else "given"}

@@ -5,6 +5,8 @@ and full state feedback; its second moments depend on the distribution of xi onl
 """
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import scipy.linalg
 import scipy.sparse.linalg
@@ -74,10 +76,12 @@ def perron(Acl: np.ndarray, *, adjoint: bool = False, v0: np.ndarray | None = No
         # (seen: 6e-4 relative on an optimal loop of the paper's model); two steps of inverse iteration
         # with the computed eigenvalue as shift restore a working-precision eigenvector
         try:
-            lu = scipy.linalg.lu_factor(L - w[i].real * (1 + 1e-13) * np.eye(n * n), check_finite=False)
-            for _ in range(2):
-                v = scipy.linalg.lu_solve(lu, v, check_finite=False)
-                v /= np.abs(v).max()
+            with warnings.catch_warnings(), np.errstate(all="ignore"):  # an exactly singular shift gives a
+                warnings.simplefilter("ignore", scipy.linalg.LinAlgWarning)  # non-finite v, caught below
+                lu = scipy.linalg.lu_factor(L - w[i].real * (1 + 1e-13) * np.eye(n * n), check_finite=False)
+                for _ in range(2):
+                    v = scipy.linalg.lu_solve(lu, v, check_finite=False)
+                    v /= np.abs(v).max()
         except (ValueError, np.linalg.LinAlgError):
             v = V[:, i].real
         if not np.all(np.isfinite(v)):
