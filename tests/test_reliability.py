@@ -147,7 +147,7 @@ def test_rerun_disabled_in_the_environment_gives_a_complete_run_without_recordin
     table and an intact record, only without recording.rrd."""
     monkeypatch.setenv("RERUN", "off")
     proc = rdsexp(*SMALL, "seed=0,1", "--multirun", cwd=tmp_path)
-    assert "sweep recording: none (Rerun disabled" in proc.stdout
+    assert "sweep recording: none (Rerun disabled" in proc.stdout and "WARN" not in proc.stderr
     runs = sorted(tmp_path.glob("outputs/sweeps/*/*/run.json"))
     assert len(runs) == 2
     for path in runs:

@@ -28,6 +28,7 @@ NaN values are stored as ordinary float64 NaNs inside the batches and read back 
 
 from __future__ import annotations
 
+import os
 import re
 import warnings
 from collections import defaultdict
@@ -47,6 +48,12 @@ _SCALARS = rr.Scalars.descriptor_scalars().component
 _PROPERTY = "rdsexp"
 # View group of a quantity, by the prefix before its first "_" (x_pred_mean -> x).
 _GROUPS = {"q": "state", "x": "state", "xi": "xi", "u": "input"}
+
+
+def disabled() -> bool:
+    """Rerun's streams are off (``RERUN=off``, ``0``, ``false`` or ``no`` in the environment): checked
+    before any stream exists, since a disabled stream warns at every call, its teardown included."""
+    return os.environ.get("RERUN", "").strip().lower() in {"off", "0", "false", "no"}
 
 
 def _split(column: str) -> tuple[str, int]:
@@ -146,9 +153,9 @@ def write_recording(
 
     # A private stream (not the global one) so repeated calls never share state, and leaving the
     # `with` block flushes and finalizes the file sink (footer written, file closed).
+    if disabled():
+        return False
     with rr.RecordingStream(application_id, recording_id=recording_id) as rec:
-        if not rec.is_enabled():
-            return False
         rec.save(Path(path), default_blueprint=blueprint)
         rec.send_property(_PROPERTY, rr.AnyValues(experiments=experiments, columns=columns))
         if tables is not None:
@@ -511,9 +518,9 @@ def write_sweep_recording(sweep_dir, table: pd.DataFrame | None = None) -> Path 
         rrb.TextDocumentView(name="jobs", origin="/sweep/jobs"), name=f"sweep {sweep_dir.name}"))
     path = sweep_dir / "summary.rrd"
     tmp = sweep_dir / ".summary.rrd.tmp"
+    if disabled():
+        return None
     with rr.RecordingStream("rdsexp", recording_id=f"sweep/{sweep_dir.name}") as rec:
-        if not rec.is_enabled():
-            return None
         rec.save(tmp, default_blueprint=blueprint)
         for group, columns in (("metrics", metrics), ("params", numeric)):
             for c in columns:
