@@ -294,11 +294,15 @@ def test_report_tables_the_controllers_sweep_per_plant(tmp_path):
         assert table[column].item() == pytest.approx(expected, abs=5e-5), column
     assert "Plant paper" in (out / "online_paper.caption.md").read_text()
 
-    settings = pd.DataFrame({"period": [5, 10, 25], "final_true_rate_median": [0.86, 0.845, 0.844],
-                             "offline_true_rate": [0.844] * 3, "online_diverged": [0.0, 0.0, 0.03],
-                             "offline_diverged": [0.0] * 3, "time_online_over_offline": [2.0, 1.5, 1.2]})
-    settings["matches"] = [False, True, False]        # 0.845 within 0.005; period 25 diverges 3% more
-    text = fig_online.verdict(settings, ["period"], 0.005)
-    assert "at 1 of 3 settings: period 10 (" in text and "period 5" not in text and "period 25" not in text
-    text = fig_online.verdict(settings.assign(matches=False), ["period"], 0.005)
-    assert "at none of 3 settings; closest: period 25" in text
+    settings = pd.DataFrame({"period": [5, 10, 25, 50], "final_true_rate_median": [0.86, 0.845, 0.844, 0.844],
+                             "offline_true_rate": [0.844] * 4, "online_rate_not_diverged": [0.80, 0.86, 0.85, 0.90],
+                             "offline_rate": [0.85] * 4, "online_diverged": [0.0, 0.0, 0.03, 0.0],
+                             "offline_diverged": [0.0] * 4, "time_online_over_offline": [2.0, 1.5, 1.2, 1.1]})
+    # 5: gains 0.016 worse; 10: within both tolerances; 25: 3% more diverged; 50: loop rate 0.05 worse
+    assert list(fig_online.matching(settings, 0.005, 0.02)) == [False, True, False, False]
+    text = fig_online.verdict(settings.assign(matches=fig_online.matching(settings, 0.005, 0.02)), ["period"],
+                              0.005, 0.02)
+    assert "at 1 of 4 settings: period 10 (" in text and not any(f"period {p} " in text for p in (5, 25, 50))
+    text = fig_online.verdict(settings.assign(matches=False), ["period"], 0.005, 0.02)
+    assert "at none of 4 settings; closest in the final gains: period 25" in text
+    assert "closest in the loop rate: period 5" in text
