@@ -157,4 +157,4 @@ def latest_per_plant(runs: list[report.Run]) -> dict[str, list[report.Run]]:
 
 
 if __name__ == "__main__":
-    main()
+    report.script(main)

@@ -206,6 +206,8 @@ def main(argv=None):
     known, rest = extra.parse_known_args(argv)
     args = report.arguments(__doc__.splitlines()[0], rest)
     per_plant = comparison_runs(args.root, known.plants.split(",") if known.plants else None)
+    if not per_plant:
+        raise report.LineageError(f"no stored runs of the sweeps {', '.join(SWEEPS)} under {args.root}")
     every = [r for runs in per_plant.values() for r in runs]
     report.check_versions(every, args.allow_mixed)
     tables = {plant: table(runs, plant) for plant, runs in per_plant.items()}
@@ -217,4 +219,4 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    main()
+    report.script(main)

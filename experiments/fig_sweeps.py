@@ -106,9 +106,11 @@ def main(argv=None):
     args = report.arguments(__doc__.splitlines()[0], argv)
     sweeps = {name: report.load_runs(args.root, name) for name, _, _ in PANELS}
     used = [r for runs in sweeps.values() for r in runs]
+    if not used:
+        raise report.LineageError(f"no stored runs of the sweeps {', '.join(sweeps)} under {args.root}")
     report.check_versions(used, args.allow_mixed)
     return report.save_figure(draw(sweeps), args.out, NAME, used, __file__, caption(sweeps))
 
 
 if __name__ == "__main__":
-    main()
+    report.script(main)

@@ -94,9 +94,11 @@ def main(argv=None) -> None:
     ensure_sweeps(args.root)
     common = ["--root", str(args.root), "--out", str(args.out)] + (["--allow-mixed"] if args.allow_mixed else [])
     for script in (fig_estimation, fig_decay, fig_gains, fig_sweeps, identification_input, closed_loop_rate,
-                   pole_sets, robust_width):
+                   pole_sets):
         script.main(common)
     stored = report.load_runs(args.root)
+    if report.load_runs(args.root, robust_width.SWEEP):
+        robust_width.main(common)
     if fig_filters.latest_per_plant(stored):         # the filters and online-control studies, when stored
         fig_filters.main(common)                     # (not run here: 200 runs per plant)
     if any(report.latest_per_plant(stored, sweep, ("seed",)) for sweep in ("controllers", "online")):
@@ -109,4 +111,4 @@ def main(argv=None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    report.script(main)

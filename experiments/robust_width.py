@@ -119,8 +119,7 @@ def main(argv=None):
     args = report.arguments(__doc__.splitlines()[0], argv)
     runs = report.load_runs(args.root, SWEEP)
     if not runs:
-        print(f"no stored {SWEEP} sweep under {args.root}: run python -m rdsexp +sweep={SWEEP}")
-        return None
+        raise report.LineageError(f"no stored {SWEEP} sweep under {args.root}: run python -m rdsexp +sweep={SWEEP}")
     report.check_versions(runs, args.allow_mixed)
     frame = per_run(runs)
     summary = table(frame)
@@ -129,4 +128,4 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    main()
+    report.script(main)

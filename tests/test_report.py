@@ -243,3 +243,19 @@ def test_report_uses_the_rate_window_the_run_resolved(tmp_path):
     rdsexp(*small, "closed_loop.rate_window=[0.5,0.8]", "tracking.recording=false", cwd=tmp_path)
     (run,) = report.load_runs(tmp_path / "outputs")
     assert run.get("closed_loop.rate_window") == [0.5, 0.8] and run.rate_window == (15, 24)
+
+
+SCRIPTS = ("closed_loop_rate", "fig_decay", "fig_estimation", "fig_filters", "fig_gains", "fig_online", "fig_sweeps",
+           "identification_input", "reproduction_table", "robust_width")
+
+
+def test_report_scripts_without_stored_runs_end_with_one_line(tmp_path):
+    """Every report script (paper.py runs missing sweeps; pole_sets needs none) on an empty store:
+    exit code 1 and one line naming what is missing, never a traceback."""
+    import subprocess
+    for name in SCRIPTS:
+        proc = subprocess.run([sys.executable, str(REPO / "experiments" / f"{name}.py"), "--root", str(tmp_path),
+                               "--out", str(tmp_path / "report")], capture_output=True, text=True, timeout=120)
+        lines = proc.stderr.strip().splitlines()
+        assert proc.returncode == 1 and len(lines) == 1 and "no stored" in lines[0], (name, proc.stderr)
+    assert not (tmp_path / "report").exists()

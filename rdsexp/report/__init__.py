@@ -31,7 +31,17 @@ matplotlib.rcParams.update(STYLE)
 
 
 class LineageError(RuntimeError):
-    """Runs that must not be mixed (different code versions) or tables that changed after the run."""
+    """Runs that must not be mixed (different code versions), tables that changed after the run, or
+    no stored runs where a script needs them."""
+
+
+def script(main) -> None:
+    """Run a report script's main: a LineageError ends it with one line on stderr and exit code 1."""
+    import sys
+    try:
+        main()
+    except LineageError as err:
+        sys.exit(f"{Path(sys.argv[0]).name}: {err}")
 
 
 @dataclass
