@@ -2,7 +2,7 @@
 from the `controllers` sweeps, table "online_settings_PLANT" from the `online` sweeps.
 
 Each run of either sweep holds the offline closed loop and the online loop of the same seed on the
-same plant samples. Figure: (left) sqrt(E||q_k||^2) of both loops with 95% bands over paths, first
+same plant samples. Figure, from the latest `controllers` sweep on the plant: (left) sqrt(E||q_k||^2) of both loops with 95% bands over paths, first
 seed; (right) the distribution over paths and seeds of the exact rate on the true plant of each
 online path's final gain, against the offline gains' rates and the optimum. Tables, one row per
 controller setting (memory, period, window, warm-up): means over seeds of the k-window closed-loop
@@ -21,7 +21,7 @@ import pandas as pd
 from rdsexp import report
 from rdsexp.experiment import records
 
-SETTING = ("controller.memory", "controller.period", "controller.window", "controller.warmup",
+SETTING = ("controller.initial", "controller.memory", "controller.period", "controller.window", "controller.warmup",
            "controller.forgetting")
 
 LOOPS = {"closed_loop": ("offline (identification, then fixed F)", "black", "-"),
@@ -77,13 +77,21 @@ def distribution(ax, runs: list[report.Run]) -> str:
             f"{np.nanmedian(offline):.4f} over {offline.size} seeds; optimum {optimum:.4f}.")
 
 
+def setting(run: report.Run) -> str:
+    """The online controller's setting of a run, in words (memory window / forgetting only where used)."""
+    memory = run.get("controller.memory")
+    extra = {"window": f" {run.get('controller.window')}", "exponential": f" {run.get('controller.forgetting')}"}
+    return (f"initial {run.get('controller.initial')}, warm-up {run.get('controller.warmup')}, period "
+            f"{run.get('controller.period')}, memory {memory}{extra.get(memory, '')}, {run.get('controller.method')}")
+
+
 def setting_table(runs: list[report.Run], tolerance: float, rate_tolerance: float) -> pd.DataFrame:
     """One row per controller setting: means over its seeds (module docstring)."""
     rows = []
     for r in runs:
         m = r.table("metrics").set_index("experiment")
         t = r.info["timings"]
-        rows.append({**{k.split(".")[1]: r.get(k) for k in SETTING},
+        rows.append({**{k.split(".")[1]: str(r.get(k)) for k in SETTING},
                      "offline_rate": m.loc["closed_loop", "rate"], "online_rate": m.loc["online", "rate"],
                      "online_rate_not_diverged": m.loc["online"].get("rate_not_diverged", np.nan),
                      "offline_diverged": m.loc["closed_loop", "failed_fraction"],
@@ -146,13 +154,15 @@ def main(argv=None):
     outputs, written = [], 0
     for plant, runs in sorted(report.latest_per_plant(stored, "controllers", (*SETTING, "seed")).items()):
         report.check_versions(runs, args.allow_mixed)
+        latest = max(r.info["sweep"]["dir"] for r in runs)          # the figure: the latest sweep's setting
+        shown = [r for r in runs if r.info["sweep"]["dir"] == latest]
         fig, (left, right) = report.figure(report.PAGE_WIDTH, 2.6, 1, 2)
-        decay(left, min(runs, key=lambda r: r.get("seed")))
-        text = distribution(right, runs)
+        decay(left, min(shown, key=lambda r: r.get("seed")))
+        text = distribution(right, shown)
         name = f"online_{plant}"
-        outputs += report.save_figure(fig, args.out, name, runs, __file__,
+        outputs += report.save_figure(fig, args.out, name, shown, __file__,
                                       f"Plant {plant}: offline vs online (learning-type) control, same plant "
-                                      f"samples. {text}")
+                                      f"samples; online {setting(shown[0])}. {text}")
         report.write_table(setting_table(runs, args.tolerance, args.rate_tolerance), args.out, name, runs, __file__)
         written += 1
     for plant, runs in sorted(report.latest_per_plant(stored, "online", (*SETTING, "seed")).items()):
