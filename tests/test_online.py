@@ -170,13 +170,19 @@ def test_safeguard_never_adopts_a_gain_not_certified_on_the_current_model(memory
     assert checked > 0
 
 
-def test_other_methods_path_by_path():
-    ctrl = feed(paper.plant(), OnlineSettings(warmup=5, period=20, memory="all", method="lqr_mean"), K=30,
+@pytest.mark.parametrize("method", ["lqr_mean", "proposed"])
+def test_other_methods_path_by_path(method):
+    """Methods without a batched form design path by path; the recorded rate is the gain's exact rate on
+    the path's model, and `proposed` reaches the model's optimum (policy iteration's, within 1e-6)."""
+    ctrl = feed(paper.plant(), OnlineSettings(warmup=5, period=20, memory="all", method=method), K=30,
                 paths=2, seed=0)
     d = ctrl.decisions()
     assert len(d.k) == 2 and np.all(np.isfinite(d.F))
     for i in range(2):
         assert d.rate_model[i] == pytest.approx(kron_rate(paper.plant(), d.mean[i], d.cov[i], d.F[i]), rel=1e-8)
+        if method == "proposed":
+            optimum = rx.synthesize(paper.plant(), rx.MomentModel(d.mean[i], d.cov[i]), "policy_iteration").lam
+            assert d.rate_model[i] == pytest.approx(optimum, abs=1e-6)
 
 
 # ------------------------------------------------------------------------------ config and runner
