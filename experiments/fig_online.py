@@ -2,15 +2,16 @@
 from the `controllers` sweeps, table "online_settings_PLANT" from the `online` sweeps.
 
 Each run of either sweep holds the offline closed loop and the online loop of the same seed on the
-same plant samples. Figure, from the latest `controllers` sweep on the plant: (left) sqrt(E||q_k||^2) of both loops with 95% bands over paths, first
-seed; (right) the distribution over paths and seeds of the exact rate on the true plant of each
-online path's final gain, against the offline gains' rates and the optimum. Tables, one row per
-controller setting (memory, period, window, warm-up): means over seeds of the k-window closed-loop
-rates, diverged fractions, the online final gains' true rates, the offline gain's true rate, and the
-online loop's time over the offline closed loop's (run.json timings); `matches`: the median final
-true rate is within --tolerance of the offline gain's, the k-window rate of the online loop's
-paths that did not diverge within --rate-tolerance of the offline loop's, and at most 1% more paths
-diverged. The caption says at which settings online matches offline and at what cost.
+same plant samples. Figure, from the latest `controllers` sweep on the plant: (left)
+sqrt(E||q_k||^2) of both loops with 95% bands over paths, first seed; (right) the distribution over
+paths and seeds of the exact rate on the true plant of each online path's final gain, against the
+offline gains' rates and the optimum. Tables, one row per controller setting (initial gain, memory,
+period, window, warm-up): means over seeds of the k-window closed-loop rates, diverged fractions,
+the online final gains' true rates, the offline gain's true rate, and the online loop's time over
+the offline closed loop's (run.json timings); `matches`: the median final true rate is within
+--tolerance of the offline gain's, the k-window rate of the online loop's paths that did not
+diverge within --rate-tolerance of the offline loop's, and at most 1% more paths diverged. The
+caption says at which settings online matches offline and at what cost.
 
     python experiments/fig_online.py [--root outputs] [--out outputs/report] [--tolerance 0.005]
                                      [--rate-tolerance 0.02]

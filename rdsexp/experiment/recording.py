@@ -6,12 +6,12 @@ sqrt(E||q_k||^2) over the paths with its 95% band, the exact ideal-loop curve an
 means (the modeled mean drawn over the modeling window k = K0..K0+K1 only), histograms of the
 window's xi samples the model was built from, and a markdown report (gain, statuses, metrics);
 a **states** tab: per state q_k and the ensemble mean +- spread over a few sample paths; with the
-online controller an **online** tab (`_online`, entities under ``/summary/online``), from its
-controller table: over the update steps, the median and 10-90% band over paths of the exact rate on
-the true plant of the gain in use (against the offline gain's and the optimum), of the modeled mean
-and standard deviation of each xi[i] (against the true ones), and of each entry of the gain in use
-(against the offline gain). The raw paths follow in one tab per experiment (the bounded sample the pipeline passes,
-tracking.recorded_paths per loop).
+online controller an **online controller** tab (`_online`, entities under ``/summary/online``),
+from its controller table: over the update steps, the median and 10-90% band over paths of the
+exact rate on the true plant of the gain in use (against the offline gain's and the optimum), of
+the modeled mean and standard deviation of each xi[i] (against the true ones), and of each entry of
+the gain in use (against the offline gain). The raw paths follow in one tab per experiment (the
+bounded sample the pipeline passes, tracking.recorded_paths per loop).
 
 The trajectories table stays the source of truth; the raw tabs mirror it as
 
@@ -140,10 +140,12 @@ def write_recording(
     with a default blueprint. With the run's `tables` (pipeline.TABLES but the streamed ones) and
     `summary` the recording opens on the summary tab (`write_summary`; window: (K0, K0 + K1),
     xi_true, xi_true_std: the true mean and standard deviations of xi in the model's terms, (p,), if
-    known; squares: loop -> ||q_k||^2
-    (K+1, P) over every path, else computed from the paths in `trajectories`).
+    known; squares: loop -> ||q_k||^2 (K+1, P) over every path, else computed from the paths in
+    `trajectories`).
     The file is complete when this returns True; with ``RERUN=off`` in the environment rerun
     disables the stream: nothing is written and this returns False."""
+    if disabled():
+        return False
     columns = [c for c in trajectories.columns if c not in KEYS]
     split = [_split(c) for c in columns]
     experiments = list(trajectories["experiment"].unique())
@@ -153,8 +155,6 @@ def write_recording(
 
     # A private stream (not the global one) so repeated calls never share state, and leaving the
     # `with` block flushes and finalizes the file sink (footer written, file closed).
-    if disabled():
-        return False
     with rr.RecordingStream(application_id, recording_id=recording_id) as rec:
         rec.save(Path(path), default_blueprint=blueprint)
         rec.send_property(_PROPERTY, rr.AnyValues(experiments=experiments, columns=columns))
@@ -503,6 +503,8 @@ def write_sweep_recording(sweep_dir, table: pd.DataFrame | None = None) -> Path 
     parameter (a `search` table's changed params) of each job, and a markdown table of the jobs.
     Returns its path, None with ``RERUN=off`` (nothing written)."""
     from .runs import changed, search
+    if disabled():
+        return None
     sweep_dir = Path(sweep_dir)
     table = search(sweep_dir) if table is None else table
     table = table.sort_values("job", ignore_index=True)
@@ -518,8 +520,6 @@ def write_sweep_recording(sweep_dir, table: pd.DataFrame | None = None) -> Path 
         rrb.TextDocumentView(name="jobs", origin="/sweep/jobs"), name=f"sweep {sweep_dir.name}"))
     path = sweep_dir / "summary.rrd"
     tmp = sweep_dir / ".summary.rrd.tmp"
-    if disabled():
-        return None
     with rr.RecordingStream("rdsexp", recording_id=f"sweep/{sweep_dir.name}") as rec:
         rec.save(tmp, default_blueprint=blueprint)
         for group, columns in (("metrics", metrics), ("params", numeric)):
