@@ -64,6 +64,49 @@ def test_policy_iteration_bracket_is_true(kind):
         assert "optimal" in statuses
 
 
+def rotated_factor(system, dist):
+    """Q Gbar with a fixed random orthogonal Q: another factor of the same E[g^T g]."""
+    G = GBAR(system, dist)
+    Q, _ = np.linalg.qr(np.random.default_rng(G.shape[0]).normal(size=(G.shape[0],) * 2))
+    return Q @ G
+
+
+def svd_factor(system, dist):
+    """The factor from the SVD of S^(1/2) U^T Gamma (W = U S U^T): the same matrix as Gbar up to rounding."""
+    dist = system.check_distribution(dist)
+    Gamma = np.concatenate([system.A.reshape(system.p + 1, -1), system.B.reshape(system.p + 1, -1)], axis=1)
+    s, U = np.linalg.eigh(dist.augmented_second_moment)
+    _, sigma, Vt = np.linalg.svd(np.sqrt(np.maximum(s, 0))[:, None] * (U.T @ Gamma), full_matrices=False)
+    keep = sigma ** 2 > 1e-10 * max((sigma ** 2).max(initial=0.0), 1e-300)
+    return sigma[keep, None] * Vt[keep]
+
+
+GBAR = rx.AffineRandomSystem.Gbar
+
+
+@pytest.mark.parametrize("factor", (rotated_factor, svd_factor))
+@pytest.mark.parametrize("kind", ("random", "zero_covariance", "deterministic", "b_mean_zero"))
+def test_lmi_bracket_is_true_for_any_factor_of_the_moments(kind, factor, monkeypatch):
+    """The unseeded LMI bisection (the fallback wherever policy iteration's seed is missing) on
+    random and degenerate systems, with Gbar replaced by another factor of the same E[g^T g] (so the
+    same problem, other rounding): the lower end holds for every gain tried, `optimal` only with a
+    closed bracket. Before the lower end was checked, the SVD factor turned the paper's mean model
+    (infimum 0) into an `optimal` 0.1647 through a solver "infeasibility" at that lambda."""
+    rng = np.random.default_rng(10 + KINDS.index(kind))
+    cases = [degenerate_system(rng, kind)[:2] for _ in range(4)]
+    monkeypatch.setattr(rx.AffineRandomSystem, "Gbar", factor)
+    for system, dist in cases:
+        res = rx.synthesize(system, dist, "proposed", seed=False)
+        if res.F is None:
+            continue
+        assert res.lam == pytest.approx(kron_rate(system, dist, res.F), rel=1e-8)
+        for F in [res.F] + [rng.normal(size=res.F.shape) * s for s in (0.1, 1, 10)]:
+            assert res.lam_lower <= kron_rate(system, dist, F) * (1 + 1e-12)
+        assert res.status != "optimal" or res.lam - res.lam_lower <= 1e-7
+    res = rx.synthesize(rx.paper.model(), rx.paper.modeled_distribution(), "nominal_lmi")
+    assert res.status == "infimum_not_attained_on_mean_model" and res.lam_lower == 0.0
+
+
 def test_policy_iteration_certifies_the_paper_optimum():
     """The issue's check: a bracket of width < 1e-8 around 0.844182889817, with a singular P."""
     res = rx.synthesize(rx.paper.model(), rx.paper.modeled_distribution(), "policy_iteration")
