@@ -58,7 +58,7 @@ def certified_bisection(system: AffineRandomSystem, dist: MomentModel, solve: Ca
     0.1647 on a mean model whose infimum is 0, depending only on which factor of Gbar^T Gbar was
     used; and a probe just below the upper end that fails to confirm it was taken as a lower end
     above the true optimum). Policy iteration started from the best gain gives an SDP-free proven
-    lower bound, and its gain where that is better; the lower end is the largest proven bound (info:
+    lower bound, and its gain where it proves that gain optimal and it is better; the lower end is the largest proven bound (info:
     lmi_lower, where the bisection had put it). Status `optimal` only when the proven bracket is
     closed (within tol), `not_converged` when it is not.
     """
@@ -91,8 +91,8 @@ def certified_bisection(system: AffineRandomSystem, dist: MomentModel, solve: Ca
         info["cond_X"] = float(np.linalg.cond(best_X))
     if lo > proven and lam < 1.0:             # the bisection moved the lower end: check it
         check = policy_iteration(system, dist, F0=best_F)
-        if check.F is not None and (rate := ms_rate(system, dist, check.F)) < lam:
-            lam, best_F = rate, check.F       # a better gain on the way: any gain certifies its rate
+        if check.status == "optimal" and (rate := ms_rate(system, dist, check.F)) < lam:
+            lam, best_F = rate, check.F       # the optimum the LMI came within tol of: its rate is certified
             info["gain_from_check"] = True
         info["lmi_lower"] = lo
         lo = min(max(proven, check.lam_lower if np.isfinite(check.lam_lower) else 0.0), lam)
