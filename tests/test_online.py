@@ -300,15 +300,20 @@ def test_report_tables_the_controllers_sweep_per_plant(tmp_path):
         assert table[column].item() == pytest.approx(expected, abs=5e-5), column
     assert "Plant paper" in (out / "online_paper.caption.md").read_text()
 
-    settings = pd.DataFrame({"period": [5, 10, 25, 50], "final_true_rate_median": [0.86, 0.845, 0.844, 0.844],
-                             "offline_true_rate": [0.844] * 4, "online_rate_not_diverged": [0.80, 0.86, 0.85, 0.90],
-                             "offline_rate": [0.85] * 4, "online_diverged": [0.0, 0.0, 0.03, 0.0],
-                             "offline_diverged": [0.0] * 4, "time_online_over_offline": [2.0, 1.5, 1.2, 1.1]})
-    # 5: gains 0.016 worse; 10: within both tolerances; 25: 3% more diverged; 50: loop rate 0.05 worse
-    assert list(fig_online.matching(settings, 0.005, 0.02)) == [False, True, False, False]
+    settings = pd.DataFrame({"period": [5, 10, 25, 50, 100],
+                             "final_true_rate_median": [0.86, 0.845, 0.844, 0.844, 0.80],
+                             "offline_true_rate": [0.844] * 5,
+                             "online_rate_not_diverged": [0.80, 0.86, 0.85, 0.90, 0.95],
+                             "offline_rate": [0.85] * 4 + [np.nan],
+                             "online_diverged": [0.0, 0.0, 0.03, 0.0, 0.1], "offline_diverged": [0.0] * 4 + [0.5],
+                             "time_online_over_offline": [2.0, 1.5, 1.2, 1.1, 1.05]})
+    # 5: gains 0.016 worse; 10: within both tolerances; 25: 3% more diverged; 50: loop rate 0.05 worse;
+    # 100: offline has no loop rate (a path diverged) and lost more paths: the fractions decide
+    assert list(fig_online.matching(settings, 0.005, 0.02)) == [False, True, False, False, True]
     text = fig_online.verdict(settings.assign(matches=fig_online.matching(settings, 0.005, 0.02)), ["period"],
                               0.005, 0.02)
-    assert "at 1 of 4 settings: period 10 (" in text and not any(f"period {p} " in text for p in (5, 25, 50))
+    assert "at 2 of 5 settings: period 100 (" in text and text.index("period 100") < text.index("period 10 (")
+    assert not any(f"period {p} " in text for p in (5, 25, 50))
     text = fig_online.verdict(settings.assign(matches=False), ["period"], 0.005, 0.02)
-    assert "at none of 4 settings; closest in the final gains: period 25" in text
+    assert "at none of 5 settings; closest in the final gains: period 100" in text
     assert "closest in the loop rate: period 5" in text

@@ -82,7 +82,7 @@ def test_closed_loop_rate_reproduces_paper():
 
 def test_mean_model_gains_fail_in_closed_loop():
     """Pole placement blows up (every path beyond the bound); the nominal-LMI gain grows: after
-    d_k stops (k = 50..100) its rate's whole 95% interval is above 1 (exact rate on the plant: 1.025)."""
+    d_k stops (k = 50..100) its rate's whole 95% interval is above 1 (exact rate on the plant: 1.035)."""
     pole = rx.synthesize(paper.model(), paper.modeled_distribution(), "pole_placement", poles=paper.poles)
     tr = run(pole.F, paths=200, M=300, horizon=100, filter_sees_d=False)
     assert np.all(tr.failed_at >= 0)

@@ -195,20 +195,14 @@ class AffineRandomSystem:
         with W = E[[1; xi][1; xi]^T]; Gbar = diag(sqrt(w)) V^T from its eigenpairs (w, V), keeping
         the nbar eigenvalues above RANK_RTOL times the largest (the numerical rank).
         Row r of Gbar is [row(Abar_r), row(Bbar_r)] (see `moment_factors`).
-        The eigenpairs come from the SVD of K = S^(1/2) U^T Gamma ((p+1, (n+m) n), W = U S U^T), since
-        Gamma^T W Gamma = K^T K: the same factor as the eigen-decomposition of the (n+m) n square
-        matrix, at the cost of a (p+1)-row SVD (n = 20: 0.5 ms instead of 30 ms).
         """
         dist = self.check_distribution(dist)
         n, m = self.n, self.m
         Gamma = np.concatenate([self.A.reshape(self.p + 1, n * n),
                                 self.B.reshape(self.p + 1, n * m)], axis=1)
-        s, U = np.linalg.eigh(dist.augmented_second_moment)
-        K = np.sqrt(np.maximum(s, 0.0))[:, None] * (U.T @ Gamma)
-        _, sigma, Vt = np.linalg.svd(K, full_matrices=False)           # singular values descending
-        w = sigma ** 2
+        w, V = np.linalg.eigh(Gamma.T @ dist.augmented_second_moment @ Gamma)
         keep = w > RANK_RTOL * max(w.max(initial=0.0), 1e-300)
-        return sigma[keep, None] * Vt[keep]
+        return np.sqrt(w[keep])[::-1, None] * V[:, keep][:, ::-1].T
 
     def moment_factors(self, dist: MomentModel | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(Abar (nbar, n, n), Bbar (nbar, n, m)) from the rows of Gbar.

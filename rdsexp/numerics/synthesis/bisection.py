@@ -42,8 +42,7 @@ def certified_bisection(system: AffineRandomSystem, dist: MomentModel, solve: Ca
     to start, then the gain of a solve whose exact rate confirms the trial lambda. Such a solve
     slightly above the optimum returns a nearly optimal gain, so after each confirmed trial the next
     one probes just below the new upper end (lam - tol); otherwise the interval is halved in
-    lambda^2. A trial whose gain does not confirm it raises the lower end; that lower end is
-    certified when the solver proved the LMI infeasible there.
+    lambda^2. A trial whose gain does not confirm it raises the lower end (checked at the end).
 
     bracket (lower, upper): a certified bracket of the optimum from elsewhere (policy iteration's,
     whose lower end is proven without an SDP): the lower end is taken as proven, and one solve at
@@ -53,14 +52,14 @@ def certified_bisection(system: AffineRandomSystem, dist: MomentModel, solve: Ca
     is within its accuracy, about 1e-9, of 0 on both sides of the optimum.)
 
     A lower end the bisection set is checked: a trial whose gain does not confirm it need not be
-    infeasible, and the solver's margin is a floating-point
-    number near its accuracy where the certificate X is ill-conditioned (seen: an "infeasible" LMI at
-    0.1647 on a mean model whose infimum is 0, depending only on which factor of Gbar^T Gbar was
-    used; and a probe just below the upper end that fails to confirm it was taken as a lower end
-    above the true optimum). Policy iteration started from the best gain gives an SDP-free proven
-    lower bound, and its gain where it proves that gain optimal and it is better; the lower end is the largest proven bound (info:
-    lmi_lower, where the bisection had put it). Status `optimal` only when the proven bracket is
-    closed (within tol), `not_converged` when it is not.
+    infeasible, and the solver's margin is a floating-point number near its accuracy where the
+    certificate X is ill-conditioned (seen: an "infeasible" LMI at 0.1647 on a mean model whose
+    infimum is 0, depending only on which factor of Gbar^T Gbar was used; and a probe just below
+    the upper end that failed to confirm it left a lower end above the true optimum). Policy
+    iteration started from the best gain gives an SDP-free proven lower bound (and its gain, where
+    it proves that gain optimal and it is better); the lower end is the largest proven bound
+    (info: lmi_lower, where the bisection had put it). Status `optimal` only when the proven
+    bracket is closed (within tol), `not_converged` when it is not.
     """
     best_F = np.zeros((system.m, system.n))
     lam = ms_rate(system, dist, best_F)
