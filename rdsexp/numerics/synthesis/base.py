@@ -18,7 +18,8 @@ class SynthesisResult:
 
     F: (m, n) gain for u = F x, or None if no gain was found. lam: the exact mean-square rate of F
     on the design distribution (so lam is certified: it is achieved). lam_lower: a lower bound on
-    the optimal rate where the method gives one (LMI infeasibility), else NaN. nbar: rank of Gbar.
+    the optimal rate where the method gives one (policy iteration's SDP-free bound, also checking
+    the LMI bisections), else NaN; lower_certified: whether it is proven. nbar: rank of Gbar.
     """
 
     method: str
