@@ -79,12 +79,13 @@ def distribution(ax, runs: list[report.Run]) -> str:
             f"{np.nanmedian(offline):.4f} over {offline.size} seeds; optimum {optimum:.4f}.")
 
 
-def setting(run: report.Run) -> str:
-    """The online controller's setting of a run, in words (memory window / forgetting only where used)."""
-    memory = run.get("controller.memory")
-    extra = {"window": f" {run.get('controller.window')}", "exponential": f" {run.get('controller.forgetting')}"}
-    return (f"initial {run.get('controller.initial')}, warm-up {run.get('controller.warmup')}, period "
-            f"{run.get('controller.period')}, memory {memory}{extra.get(memory, '')}, {run.get('controller.method')}")
+def setting(run: report.Run, skip=()) -> str:
+    """The online controller's setting of a run in words, without the keys in `skip` (short names)
+    and without the memory's unused ones (window, forgetting)."""
+    unused = {"all": ("window", "forgetting"), "window": ("forgetting",), "exponential": ("window",)}
+    skip = set(skip) | set(unused.get(run.get("controller.memory"), ()))
+    return ", ".join(f"{k.split('.')[1]} {run.get(k)}" for k in (*SETTING, "controller.method")
+                     if k.split(".")[1] not in skip)
 
 
 def setting_table(runs: list[report.Run], tolerance: float, rate_tolerance: float) -> pd.DataFrame:
@@ -181,10 +182,8 @@ def main(argv=None):
         report.check_versions(runs, args.allow_mixed)
         table = setting_table(runs, args.tolerance, args.rate_tolerance)
         keys = list(table.columns[:list(table.columns).index("seeds")])
-        unused = {"all": ("window", "forgetting"), "window": ("forgetting",), "exponential": ("window",)}
-        skip = set(keys) | set(unused.get(runs[0].get("controller.memory"), ()))
-        fixed = ", ".join(f"{k.split('.')[1]} {runs[0].get(k)}" for k in SETTING if k.split(".")[1] not in skip)
-        sentence = (f"Plant {plant} ({fixed}): " + verdict(table, keys, args.tolerance, args.rate_tolerance))
+        sentence = f"Plant {plant} ({setting(runs[0], keys)}): " + verdict(table, keys, args.tolerance,
+                                                                           args.rate_tolerance)
         name = f"online_settings_{plant}"
         report.write_table(table, args.out, name, runs, __file__)
         report.write_caption(args.out, name, sentence)

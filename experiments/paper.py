@@ -97,7 +97,7 @@ def main(argv=None) -> None:
                    pole_sets):
         script.main(common)
     stored = report.load_runs(args.root)
-    if report.load_runs(args.root, robust_width.SWEEP):
+    if any((r.info.get("sweep") or {}).get("name") == robust_width.SWEEP for r in stored):
         robust_width.main(common)
     if fig_filters.latest_per_plant(stored):         # the filters and online-control studies, when stored
         fig_filters.main(common)                     # (not run here: 200 runs per plant)

@@ -29,7 +29,6 @@ NaN values are stored as ordinary float64 NaNs inside the batches and read back 
 from __future__ import annotations
 
 import os
-import re
 import warnings
 from collections import defaultdict
 from pathlib import Path
@@ -40,10 +39,11 @@ import pyarrow as pa
 import rerun as rr
 import rerun.blueprint as rrb
 
+from .schema import split_column
+
 KEYS = ["experiment", "k", "path"]
 MEMBER_KEYS = ["experiment", "k", "path", "member"]
 
-_COLUMN = re.compile(r"^(?P<quantity>.+?)\[(?:(?P<row>\d+),)?(?P<index>\d+)\]$")
 _SCALARS = rr.Scalars.descriptor_scalars().component
 _PROPERTY = "rdsexp"
 # View group of a quantity, by the prefix before its first "_" (x_pred_mean -> x).
@@ -57,12 +57,11 @@ def disabled() -> bool:
 
 
 def _split(column: str) -> tuple[str, int]:
-    """``"x_pred_mean[3]"`` -> ``("x_pred_mean", 3)``; a matrix entry ``"F[1,2]"`` -> ``("F1", 2)``
-    (row i of F as the quantity, its entries as the index)."""
-    match = _COLUMN.match(column)
-    if match is None:
+    """(quantity, index) of a value column (`schema.split_column`), which it must be."""
+    split = split_column(column)
+    if split is None:
         raise ValueError(f"value column {column!r} is not named QUANTITY[i] or QUANTITY[i,j]")
-    return match["quantity"] + (match["row"] or ""), int(match["index"])
+    return split
 
 
 def _entity(experiment: str, *parts: str | int) -> str:
@@ -226,7 +225,7 @@ def read_recording(path) -> pd.DataFrame:
 # ------------------------------------------------------------------------------------ summary
 def _values(frame: pd.DataFrame, quantity: str) -> tuple[np.ndarray, np.ndarray]:
     """Steps (K,) and values (K, P, d) of quantity[0..d-1] of one experiment's (k, path) grid."""
-    cols = [c for c in frame.columns if _COLUMN.match(c) and _split(c)[0] == quantity]
+    cols = [c for c in frame.columns if split_column(c) and split_column(c)[0] == quantity]
     frame = frame.sort_values(["k", "path"], kind="stable")          # tables are stored path-major
     ks = frame["k"].unique().astype(np.int64)
     return ks, frame[cols].to_numpy(np.float64).reshape(len(ks), -1, len(cols))
@@ -450,7 +449,7 @@ def _summary_tabs(tables: dict[str, pd.DataFrame], trajectories: pd.DataFrame) -
     """The summary and states tabs of the default blueprint."""
     loops = list(trajectories["experiment"].unique())
     p = sum(1 for c in tables["identification"].columns if c.startswith("xi_filt_mean["))
-    n = sum(1 for c in trajectories.columns if _COLUMN.match(c) and _split(c)[0] == "q")
+    n = sum(1 for c in trajectories.columns if split_column(c) and split_column(c)[0] == "q")
     legend = rrb.PlotLegend(corner=rrb.Corner2D.RightTop, visible=True)
     summary = rrb.Grid(
         rrb.TimeSeriesView(name="log10 sqrt(E|q_k|^2): band, exact, lambda^k", origin="/summary/log10_rms",

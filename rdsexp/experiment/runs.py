@@ -21,7 +21,7 @@ import numpy as np
 import pandas as pd
 from omegaconf import OmegaConf
 
-from . import records, store
+from . import records, schema, store
 
 DEFAULT_ROOT = Path("outputs")
 __all__ = ["DEFAULT_ROOT", "catalog", "check", "cli", "compare_tables", "diff", "find_complete", "find_runs", "load",
@@ -207,7 +207,7 @@ def load(run, table: str, long: bool = False, root=DEFAULT_ROOT) -> pd.DataFrame
         raise ValueError(f"long=True: {table!r} is not a trajectory table (trajectories, identification, members)")
     keys = [c for c in frame.columns if "[" not in c]
     out = frame.melt(id_vars=keys, var_name="column", value_name="value")
-    parts = out["column"].str.extract(r"^(?P<quantity>.+?)\[(?:(?P<row>\d+),)?(?P<index>\d+)\]$")
+    parts = out["column"].str.extract(schema.VALUE_COLUMN.pattern)
     quantity = parts["quantity"] + parts["row"].fillna("")          # F[i,j]: quantity F<i>, index j
     out = out.drop(columns="column").assign(quantity=quantity, index=parts["index"].astype(np.int64))
     order = [c for c in ("run", "experiment", "path", "member", "k") if c in keys]

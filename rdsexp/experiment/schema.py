@@ -15,7 +15,7 @@ import re
 import pandas as pd
 
 _TRAJECTORY = {
-    "experiment": ("which simulation: identification, closed_loop or open_loop", None),
+    "experiment": ("which simulation: identification, closed_loop, open_loop or online", None),
     "k": ("time step k = 0..horizon", "step"),
     "path": ("sample path j (own plant and EnKF random streams)", None),
     "member": ("ensemble member (0..M-1)", None),
@@ -122,12 +122,21 @@ COLUMNS: dict[str, dict[str, tuple[str, str | None]]] = {
         "rms": ("exact sqrt(E|q_k|^2) on the true plant distribution", "state"),
     },
 }
-_INDEX = re.compile(r"\[\d+(,\d+)?\]$")
+# a value column: QUANTITY[i] (a vector component) or QUANTITY[i,j] (a matrix entry)
+VALUE_COLUMN = re.compile(r"^(?P<quantity>.+?)\[(?:(?P<row>\d+),)?(?P<index>\d+)\]$")
+
+
+def split_column(column: str) -> tuple[str, int] | None:
+    """The long form (quantity, index) of a value column, None for a key column: "x_pred_mean[3]" ->
+    ("x_pred_mean", 3); a matrix entry "F[1,2]" -> ("F1", 2) (row i of F as the quantity)."""
+    match = VALUE_COLUMN.match(column)
+    return None if match is None else (match["quantity"] + (match["row"] or ""), int(match["index"]))
 
 
 def describe(table: str, column: str) -> dict:
     """{"description", "unit"} of a column of table `table` (q[3] is described as q[i], F[0,2] as F[i,j])."""
-    generic = _INDEX.sub(lambda m: "[i,j]" if m.group(1) else "[i]", column)
+    match = VALUE_COLUMN.match(column)
+    generic = column if match is None else match["quantity"] + ("[i,j]" if match["row"] else "[i]")
     description, unit = COLUMNS.get(table, {}).get(generic, (None, None))
     return {"description": description, "unit": unit}
 
