@@ -17,7 +17,7 @@ def frame(narrow_rate=0.99, narrow_loop=0.97):
     for width, status in ((0.5, "box_optimal"), (1.0, "box_optimal"), (3.0, "infeasible")):
         for seed in (0, 1):
             ok = status != "infeasible"
-            rows.append({"width": width, "seed": seed, "status": status, "lam_box": 0.9 if ok else np.nan,
+            rows.append({"width": width, "seed": seed, "status": status, "certified": ok, "lam_box": 0.9 if ok else np.nan,
                          "rate_model": narrow_rate if ok else np.nan, "rate_plant": narrow_rate if ok else np.nan,
                          "lq_cost_plant": 10.0 if ok else np.nan, "h2_plant": 1.0 if ok else np.nan,
                          "max_width": 1.5 + 0.1 * seed, "min_infeasible_width": 1.6 + 0.1 * seed,
@@ -28,7 +28,7 @@ def frame(narrow_rate=0.99, narrow_loop=0.97):
 
 def test_robust_width_table_counts_feasible_seeds_and_averages_them():
     table = robust_width.table(frame()).set_index("width")
-    assert list(table["feasible_seeds"]) == [2, 2, 0]
+    assert list(table["certified_seeds"]) == [2, 2, 0]
     assert table.loc[1.0, "rate_true_plant"] == 0.99 and np.isnan(table.loc[3.0, "rate_true_plant"])
     assert table.loc[0.5, "enkf_low"] < table.loc[0.5, "enkf_rate"] == 0.975 < table.loc[0.5, "enkf_high"]
     np.testing.assert_allclose(robust_width.boundary(frame()), (1.5, 1.6, 1.6, 1.7), rtol=1e-12)
@@ -45,7 +45,7 @@ def test_robust_control_rows_follow_the_measurements(monkeypatch):
     assert fast["robust_control.narrowed"]["verdict"] == "differs"
     assert "4 of 4 runs" in fast["robust_control.narrowed"]["reason"]
     wide_ok = frame()
-    wide_ok.loc[wide_ok["width"] == 3.0, "status"] = "box_optimal"
+    wide_ok.loc[wide_ok["width"] == 3.0, ["status", "certified"]] = ["box_optimal", True]
     assert rows(wide_ok)["robust_control.full_range"]["verdict"] == "differs"
 
 

@@ -9,6 +9,7 @@ from rdsexp.numerics.analysis import empirical_rate
 from rdsexp.numerics.enkf import EnKF
 from rdsexp.numerics.modeling import mls_input, model_distribution
 from rdsexp.numerics.simulation import simulate
+from rdsexp.numerics.synthesis.lmi import lmi_solver
 
 paper = rx.paper
 ARRAYS = ("q", "y", "u", "psi_pred_mean", "psi_pred_std", "psi_filt_mean", "psi_filt_std", "failed_at")
@@ -81,15 +82,26 @@ def test_closed_loop_rate_reproduces_paper():
 
 
 def test_mean_model_gains_fail_in_closed_loop():
-    """Pole placement blows up (every path beyond the bound); the nominal-LMI gain grows: after
-    d_k stops (k = 50..100) its rate's whole 95% interval is above 1 (exact rate on the plant: 1.035)."""
-    pole = rx.synthesize(paper.model(), paper.modeled_distribution(), "pole_placement", poles=paper.poles)
+    """Pole placement blows up (every path beyond the bound). The nominal LMI's infimum on the mean
+    model is 0 (dead beat), not attained, so where its bisection stops is rounding (the paper's
+    0.1143 is "solver-dependent"; two factors of the same moments gave 0.1161 and 0.1647): the
+    paper's claim that its gain fails is checked for every gain (lmi-syn) on the mean model returns
+    over lambda in [0.1, 0.5] (exact rate on the plant > 1; 1.001 to 1.36 with today's factor).
+    The returned gain's loop with the observer does not decay after d_k stops (k = 50..100): its
+    rate's 95% interval reaches above 1 and stays far above the proposed gain's 0.86 (lower end > 0.95)."""
+    system, dist = paper.model(), paper.modeled_distribution()
+    pole = rx.synthesize(system, dist, "pole_placement", poles=paper.poles)
     tr = run(pole.F, paths=200, M=300, horizon=100, filter_sees_d=False)
     assert np.all(tr.failed_at >= 0)
-    nominal = rx.synthesize(paper.model(), paper.modeled_distribution(), "nominal_lmi")
-    tr = run(nominal.F, paths=200, M=300, horizon=100, filter_sees_d=False)
-    assert empirical_rate(tr.q, 50, 100)[1] > 1
+    solve = lmi_solver(system, rx.MomentModel.deterministic(dist.mean))
+    for lam in np.linspace(0.1, 0.5, 9):
+        assert rx.ms_rate(paper.plant(), None, solve(lam).F) > 1, lam
+    nominal = rx.synthesize(system, dist, "nominal_lmi")
+    assert nominal.status == "infimum_not_attained_on_mean_model"
     assert rx.ms_rate(paper.plant(), None, nominal.F) > 1
+    tr = run(nominal.F, paths=200, M=300, horizon=100, filter_sees_d=False)
+    _, lo, hi = empirical_rate(tr.q, 50, 100)
+    assert lo > 0.95 and hi > 1
 
 
 def test_identification_models_a_stabilising_distribution():

@@ -430,9 +430,10 @@ def model_table(exp: Experiment, dist) -> pd.DataFrame:
 def gains_table(exp: Experiment, designs: dict, selected: tuple[str, str]) -> pd.DataFrame:
     """Per (distribution, method): status, lam (design), bracket, nbar, exact rates, LQ costs and H2
     norms on the design moments and on the true plant (`performance`), robust_box's certified box rate
-    (lam_box) and, with find_max_width, the largest certified and smallest proven-infeasible box widths
-    (max_width, min_infeasible_width; NaN otherwise), F. designs: {(source, method): (moments, SynthesisResult)};
-    `selected` is the (source, method) the closed loop used (gain.source; ("fixed", "fixed") for a given F).
+    (lam_box), its proven lower end (lam_box_lower) and, with find_max_width, the largest certified and
+    smallest proven-infeasible box widths (max_width, min_infeasible_width; NaN otherwise), F.
+    designs: {(source, method): (moments, SynthesisResult)}; `selected` is the (source, method) the
+    closed loop used (gain.source; ("fixed", "fixed") for a given F).
 
     Only reproducible numbers go into tables; synthesis times are in run.json's timings."""
     rows = []
@@ -447,6 +448,7 @@ def gains_table(exp: Experiment, designs: dict, selected: tuple[str, str]) -> pd
                      "rate_plant": safe_rate(exp.plant, None, F) if found else np.nan,
                      **performance(exp, moments, F if found and moments is not None else None),
                      "lam_box": res.info.get("lam_box", np.nan),
+                     "lam_box_lower": res.info.get("lam_box_lower", np.nan),
                      "max_width": res.info.get("max_width", np.nan),
                      "min_infeasible_width": res.info.get("min_infeasible_width", np.nan),
                      **{f"F[{i},{j}]": v for (i, j), v in np.ndenumerate(F)}})     # F[i,j]: (m, n) unambiguous

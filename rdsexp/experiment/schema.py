@@ -66,6 +66,8 @@ COLUMNS: dict[str, dict[str, tuple[str, str | None]]] = {
         "lq_cost_model": ("exact LQ cost averaged over x0 ~ N(0, I), design moments", None),
         "h2_model": ("H2 norm from d to [x; F x], design moments", None),
         "lam_box": ("robust_box's certified rate over the box of xi (NaN for other methods)", "1/step"),
+        "lam_box_lower": ("robust_box: proven lower bound on the box rate of every gain (NaN for other methods)",
+                          "1/step"),
         "max_width": ("robust_box with find_max_width: largest box width with a certified rate (NaN otherwise)",
                       None),
         "min_infeasible_width": ("robust_box with find_max_width: smallest width proven infeasible (NaN otherwise)",

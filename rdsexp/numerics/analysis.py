@@ -136,7 +136,7 @@ def second_moments(system: AffineRandomSystem, dist: MomentModel | None, F, x0, 
     for k in range(K):                                          # a recursion in time, not over samples
         T = np.concatenate([Acl_bar, (Bbar @ d[k])[:, :, None]], axis=2)       # (nbar, n, n+1)
         Z = np.block([[second[k], mean[k][:, None]], [mean[k][None, :], np.ones((1, 1))]])
-        second[k + 1] = np.einsum("rij,jl,rkl->ik", T, Z, T)
+        second[k + 1] = np.einsum("rij,rkj->ik", T @ Z, T)          # sum_r T_r Z T_r^T
         mean[k + 1] = Acl_mu @ mean[k] + B_mu @ d[k]
     return mean, second
 

@@ -191,8 +191,9 @@ def policy_iteration_batch(Abar: np.ndarray, Bbar: np.ndarray, F0: np.ndarray, *
         if go.size == 0:
             break
         Xg, Ag, Bg = X[~done], Abar[go], Bbar[go]
-        BPB = np.einsum("jrai,jab,jrbl->jil", Bg, Xg, Bg)
-        BPA = np.einsum("jrai,jab,jrbl->jil", Bg, Xg, Ag)
+        XB, XA = Xg[:, None] @ Bg, Xg[:, None] @ Ag                     # (paths, nbar, n, m or n)
+        BPB = np.einsum("jrai,jral->jil", Bg, XB)
+        BPA = np.einsum("jrai,jral->jil", Bg, XA)
         F[go] = -np.linalg.pinv(BPB) @ BPA                   # minimum-norm minimiser if singular
     return F
 

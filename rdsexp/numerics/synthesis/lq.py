@@ -22,9 +22,10 @@ def riccati_residual(Abar, Bbar, P, Q, R) -> tuple[np.ndarray, np.ndarray]:
     """(residual (n, n) of the generalized Riccati equation at P, the gain F (m, n) it defines).
 
     Abar (nbar, n, n), Bbar (nbar, n, m): moment factors (`AffineRandomSystem.moment_factors`)."""
-    APA = np.einsum("rji,jk,rkl->il", Abar, P, Abar)
-    BPA = np.einsum("rji,jk,rkl->il", Bbar, P, Abar)
-    BPB = np.einsum("rji,jk,rkl->il", Bbar, P, Bbar)
+    PA, PB = P @ Abar, P @ Bbar                                  # sum_r M_r^T P N_r = einsum of M and P N
+    APA = np.einsum("rji,rjl->il", Abar, PA)
+    BPA = np.einsum("rji,rjl->il", Bbar, PA)
+    BPB = np.einsum("rji,rjl->il", Bbar, PB)
     F = -np.linalg.solve(R + BPB, BPA)
     return Q + APA + BPA.T @ F - P, F
 

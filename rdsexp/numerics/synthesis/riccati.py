@@ -24,7 +24,7 @@ def scaled_blocks(Abar: np.ndarray, Bbar: np.ndarray, P: np.ndarray) -> tuple[np
     g = np.sqrt(np.sum(G ** 2, axis=(0, 1)))
     g[g == 0] = 1.0
     G = G / g
-    S = np.einsum("rji,jk,rkl->il", G, P, G)
+    S = np.einsum("rji,rjl->il", G, P @ G)                       # (P @ G: one BLAS call over r)
     return (S + S.T) / 2, g
 
 

@@ -8,7 +8,11 @@ It is affine in (A, B), so it holds on the convex hull: ||x_{k+1}||_P <= lambda 
 P = X^-1 for every xi in the set. Bisection on lambda gives the smallest such lambda (`lam_box`).
 
 The bisection's upper end is the box rate certified by the gain and X in hand, checked independently
-of the solver (`box_rate`); its lower end is certified where the solver proved the LMI infeasible.
+of the solver (`box_rate`). Its lower end is proven in two SDP-free ways, never by the solver's margin
+alone: policy iteration's bound for the uniform distribution on the vertices (`vertex_floor`), and the
+solver's dual matrices where they pass an independent check (`infeasibility_proven`). Below the
+optimum the vertex LMIs are often only weakly infeasible (singular X reach margin 0: on the paper's
+model the margin is -2e-9 at every lambda below it), and then nothing proves the bisection's lower end.
 As for every method, the result's `lam` is the exact mean-square rate of the gain on the modeled
 distribution (`ms_rate`); the box's decay rate is info["lam_box"].
 """
@@ -24,6 +28,7 @@ import numpy as np
 from ..analysis import ms_rate
 from ..systems import AffineRandomSystem, MomentModel
 from .base import SynthesisResult
+from .riccati import policy_iteration
 
 MAX_VERTICES = 1024
 MAX_WIDTH = 1024.0          # find_max_width stops doubling here
@@ -77,7 +82,9 @@ def _box_problem(n: int, m: int, V: int):
 
 
 def _solver(system: AffineRandomSystem, vertices: np.ndarray):
-    """solve(lam) -> (F, X, proven_infeasible) for the vertex LMIs at lam."""
+    """solve(lam) -> (F, X, Z) for the vertex LMIs at lam: the gain Y X^-1 (m, n) and X (n, n) of the
+    solve (None if nothing usable), and its dual matrices Z (V, 2n, 2n) (None if none) for
+    `infeasibility_proven`."""
     problem, lam2, pA, pB, X, Y, t = _box_problem(system.n, system.m, len(vertices))
     A, B, _, _ = system.at(vertices)
     for v in range(len(vertices)):
@@ -93,43 +100,95 @@ def _solver(system: AffineRandomSystem, vertices: np.ndarray):
         except cp.error.SolverError:
             status = "solver_error"
         if X.value is None or status not in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE):
-            return None, None, False
+            return None, None, None
         try:
             F = np.linalg.solve(X.value.T, Y.value.T).T                  # Y X^-1
         except np.linalg.LinAlgError:
             F = None
-        return F, X.value, status == cp.OPTIMAL and t.value < 0
+        duals = [c.dual_value for c in problem.constraints[:len(vertices)]]
+        return F, X.value, None if any(d is None for d in duals) else np.array(duals, dtype=float)
 
     return solve
+
+
+def infeasibility_proven(A: np.ndarray, B: np.ndarray, lam: float, Z: np.ndarray) -> bool:
+    """Whether Z (V, 2n, 2n) proves that no X >= 0, X != 0, and Y satisfy the vertex LMIs at lam.
+
+    A (V, n, n), B (V, n, m) at the vertices; M_v = [[lam^2 X, H_v^T], [H_v, X]], H_v = A_v X + B_v Y.
+    For Z_v = [[P_v, Q_v^T], [Q_v, R_v]] >= 0 and any feasible (X, Y) scaled to tr X = 1,
+        0 <= sum_v <Z_v, M_v> = <G_X, X> + <G_Y, Y>,
+        G_X = sum_v lam^2 P_v + R_v + A_v^T Q_v + Q_v^T A_v,   G_Y = 2 sum_v B_v^T Q_v,
+    with <G_X, X> <= lambda_max(G_X). Feasibility bounds ||H_v||_2 <= lam ||X||_2 <= lam, so the part of Y
+    the LMIs see (its projection on the row space of B stacked, which alone matters) has
+    ||Y||_F <= sqrt(rank) sqrt(V) (lam + max_v ||A_v||_2) / sigma_min+(B stacked). If lambda_max(G_X)
+    plus that bound times ||G_Y||_F is negative, no feasible point exists. Z (the solver's duals) is
+    first made PSD (eigenvalues clipped, then shifted by its rounding), and the floating-point error
+    of the sums is added: the check is independent of the solver, which only proposes Z.
+    """
+    eps = np.finfo(float).eps
+    V, n, m = B.shape
+    w, U = np.linalg.eigh((Z + Z.transpose(0, 2, 1)) / 2)
+    Z = (U * np.clip(w, 0.0, None)[:, None, :]) @ U.transpose(0, 2, 1)
+    size = np.abs(w).max(axis=1)
+    shift = np.clip(-np.linalg.eigvalsh(Z).min(axis=1), 0.0, None) + 32 * n * eps * size   # Z_v + shift_v I >= 0
+    P, Q, R = Z[:, :n, :n], Z[:, n:, :n], Z[:, n:, n:]
+    AQ = A.transpose(0, 2, 1) @ Q
+    G_X = (lam ** 2 * P + R + AQ + AQ.transpose(0, 2, 1)).sum(axis=0)
+    G_Y = 2 * (B.transpose(0, 2, 1) @ Q).sum(axis=0)
+    a = np.linalg.norm(A, ord=2, axis=(1, 2))
+    rounding = 32 * n * eps * float(np.sum(size * (lam ** 2 + 1 + 2 * a)) + np.abs(G_X).sum())
+    sigma = np.linalg.svd(B.reshape(V * n, m), compute_uv=False)
+    seen = sigma > 1e-12 * sigma.max(initial=0.0)
+    y_bound = np.sqrt(seen.sum() * V) * (lam + a.max()) / sigma[seen].min() if seen.any() else 0.0
+    total = (np.linalg.eigvalsh(G_X).max() + shift.sum() * (lam ** 2 + 1) + rounding
+             + (np.linalg.norm(G_Y) + 32 * n * eps * float(np.sum(size * np.linalg.norm(B, axis=(1, 2))))) * y_bound)
+    return bool(np.isfinite(total) and total < 0)
+
+
+def vertex_floor(system: AffineRandomSystem, vertices: np.ndarray) -> float:
+    """A proven lower bound on the box rate of every gain (SDP-free): policy iteration's lam_lower for
+    xi uniform on the vertices (V, p).
+
+    A box certificate (F, X) at lambda gives Acl(v)^T X^-1 Acl(v) <= lambda^2 X^-1 at every vertex, so
+    E[Acl^T P Acl] <= lambda^2 P (P = X^-1) for every distribution on them: lambda is at least that
+    distribution's mean-square rate of F, hence at least its optimal one. Often well below the box
+    optimum (0.85 against 0.94 on the paper's box of width 1), but it needs no solver."""
+    mean = vertices.mean(axis=0)
+    dev = vertices - mean
+    lower = policy_iteration(system, MomentModel(mean=mean, cov=dev.T @ dev / len(vertices))).lam_lower
+    return float(lower) if np.isfinite(lower) else 0.0
 
 
 def box_bisection(system: AffineRandomSystem, vertices: np.ndarray, *, tol: float, max_iter: int) -> dict:
     """Smallest certified box rate over the vertex LMIs, by bisection on lambda^2.
 
-    Starts at lambda = 1 (quadratic stabilizability), then halves [lo, hi] in lambda^2. Upper end hi:
-    the certified `box_rate` of the best (F, X) in hand (often below the trial that produced it);
-    a trial whose (F, X) does not certify it raises the lower end, certified when the solver proved
-    the LMI infeasible there. Unlike `certified_bisection` no probe just below hi: the margin-maximising
-    solve returns gains whose box rate is only slightly below the trial, so such probes creep.
-    Returns {F, X, hi, lo, lo_certified, solves}; F None when no gain certifies any rate.
+    Starts at lambda = 1 (quadratic stabilizability) with the proven `vertex_floor` as lower end (no
+    solve when it is >= 1), then halves [lo, hi] in lambda^2. Upper end hi: the certified `box_rate` of
+    the best (F, X) in hand (often below the trial that produced it). A trial whose (F, X) does not
+    certify it moves the bisection's lower end lo there, and the proven lower end `proven` too where
+    `infeasibility_proven` holds. Unlike `certified_bisection` no probe just below hi: the
+    margin-maximising solve returns gains whose box rate is only slightly below the trial, so such
+    probes creep. Returns {F, X, hi, lo, proven, solves}; F None when no gain certifies any rate.
     """
-    solve = _solver(system, vertices)
+    solve, (A, B, _, _) = _solver(system, vertices), system.at(vertices)
     F_best = X_best = None
-    hi, lo, certified, trial, solves = np.inf, 0.0, True, 1.0, 0
-    while solves < max_iter:
-        F, X, infeasible = solve(trial)
+    proven = vertex_floor(system, vertices)
+    hi, lo, trial, solves = np.inf, proven, 1.0, 0
+    while solves < max_iter and lo < 1:
+        F, X, Z = solve(trial)
         solves += 1
         rate = box_rate(system, vertices, F, X) if F is not None else np.inf
         if rate < hi:                                          # any (F, X) certifies its own rate
             hi, F_best, X_best = rate, F, X
         if rate > trial:
-            lo, certified = min(trial, hi), infeasible
-        if lo > hi:                                            # a gain beat an uncertified lower end
-            lo, certified = hi, False
+            lo = min(trial, hi)
+            if Z is not None and infeasibility_proven(A, B, trial, Z):
+                proven = max(proven, trial)
+        lo = min(lo, hi)                                       # a gain beat an unproven lower end
         if hi - lo <= tol or lo >= 1:                          # bracketed, or no box rate below 1
             break
         trial = float(np.sqrt((lo ** 2 + hi ** 2) / 2))
-    return {"F": F_best, "X": X_best, "hi": hi, "lo": lo, "lo_certified": certified, "solves": solves}
+    return {"F": F_best, "X": X_best, "hi": hi, "lo": lo, "proven": min(proven, hi), "solves": solves}
 
 
 def max_feasible_width(system: AffineRandomSystem, dist: MomentModel, *, rel_tol: float = 1e-3) -> tuple[float, float]:
@@ -142,10 +201,13 @@ def max_feasible_width(system: AffineRandomSystem, dist: MomentModel, *, rel_tol
     """
     def status(width: float) -> str:
         pts = box_vertices(dist, width)
-        F, X, infeasible = _solver(system, pts)(1.0)
+        if vertex_floor(system, pts) >= 1:
+            return "infeasible"
+        F, X, Z = _solver(system, pts)(1.0)
         if F is not None and box_rate(system, pts, F, X) < 1:
             return "feasible"
-        return "infeasible" if infeasible else "unknown"
+        A, B, _, _ = system.at(pts)
+        return "infeasible" if Z is not None and infeasibility_proven(A, B, 1.0, Z) else "unknown"
 
     first = status(0.0)
     if first != "feasible":
@@ -173,13 +235,16 @@ def robust_box(system, dist, *, width=None, vertices=None, find_max_width: bool 
                max_iter: int = 60, x_cond_limit: float = 1e6):
     """Quadratic stabilization on the box mean +- width * std (default width 1) or the hull of `vertices` (V, p).
 
-    Status `box_optimal` (the smallest box rate, bracketed to tol: 1e-4 by default, since each
-    bisection step is an SDP with 2^p blocks and the box rate is a design bound; lam is exact anyway),
-    `infimum_not_attained` (the
-    bracket closes at 0 or X degenerates, e.g. a controllable single point), `infeasible` (proven
-    not quadratically stabilizable on the set: F None), `solver_failed`. lam: exact mean-square
-    rate of F on `dist`; info: lam_box, lam_box_lower (and whether certified), X, vertices,
-    solves; with find_max_width, max_width (certified) and min_infeasible_width (proven).
+    Status `box_optimal` (the smallest box rate, bracketed to tol with a proven lower end: 1e-4 by
+    default, since each bisection step is an SDP with 2^p blocks and the box rate is a design bound;
+    lam is exact anyway), `infimum_not_attained` (the bracket closes at 0 or X degenerates, e.g. a
+    controllable single point), `not_converged` (the bisection closed to tol but its lower end is not
+    proven: the LMIs below are only weakly infeasible; or no gain certifies a box rate below 1 and
+    infeasibility is not proven either, F None), `infeasible` (proven not quadratically stabilizable
+    on the set: F None), `solver_failed`. lam: exact mean-square rate of F on `dist`; info: lam_box
+    (certified by the gain and X), lam_box_lower (proven), lam_box_bisection_lower (where the
+    bisection's gains stopped certifying their trials; not a proof), X, vertices, solves; with
+    find_max_width, max_width (certified) and min_infeasible_width (proven).
     """
     if vertices is None:
         width = 1.0 if width is None else float(width)
@@ -187,8 +252,8 @@ def robust_box(system, dist, *, width=None, vertices=None, find_max_width: bool 
     else:
         pts = np.unique(np.asarray(vertices, dtype=float).reshape(-1, system.p), axis=0)
     found = box_bisection(system, pts, tol=tol, max_iter=max_iter)
-    F, X, hi, lo = found["F"], found["X"], found["hi"], found["lo"]
-    info = {"lam_box": float(hi), "lam_box_lower": float(lo), "lam_box_lower_certified": found["lo_certified"],
+    F, X, hi, lo, proven = found["F"], found["X"], found["hi"], found["lo"], found["proven"]
+    info = {"lam_box": float(hi), "lam_box_lower": float(proven), "lam_box_bisection_lower": float(lo),
             "vertices": len(pts), "solves": found["solves"]}
     if vertices is None:
         info["width"] = width
@@ -196,13 +261,15 @@ def robust_box(system, dist, *, width=None, vertices=None, find_max_width: bool 
         info["max_width"], info["min_infeasible_width"] = max_feasible_width(system, dist)
     nbar = system.Gbar(dist).shape[0]
     if hi >= 1:
-        status = "infeasible" if found["lo_certified"] and lo >= 1 else "solver_failed"
+        status = "infeasible" if proven >= 1 else "not_converged" if found["solves"] else "solver_failed"
         return SynthesisResult("robust_box", None, float("nan"), status, nbar, info=info)
     info["X"], info["cond_X"] = X, float(np.linalg.cond(X))
-    if lo <= tol or (not found["lo_certified"] and info["cond_X"] > x_cond_limit):
+    if lo <= tol or (hi - proven > tol and info["cond_X"] > x_cond_limit):
         status = "infimum_not_attained"
-    elif hi - lo <= tol:
+    elif hi - proven <= tol:
         status = "box_optimal"
+    elif hi - lo <= tol:
+        status = "not_converged"
     else:
         status = "solver_failed"
     return SynthesisResult("robust_box", F, ms_rate(system, dist, F), status, nbar, info=info)
