@@ -112,6 +112,20 @@ def test_seeded_lmi_matches_full_bisection(seed):
         assert seeded.lower_certified and seeded.lam - seeded.lam_lower <= 1e-7
 
 
+@pytest.mark.parametrize("seed", range(3))
+def test_seeded_lmi_on_a_system_no_gain_stabilizes(seed):
+    """A closed bracket above 1 from policy iteration seeds the LMI too: one solve, the same status
+    and lambda as the full bisection, and a proven lower end >= 1."""
+    rng = np.random.default_rng(70 + seed)
+    system, dist = random_model(rng, n=int(rng.integers(2, 6)), m=1, p=int(rng.integers(1, 4)))
+    system = rx.AffineRandomSystem(A=2.5 * system.A, B=0.01 * system.B)
+    seeded = rx.synthesize(system, dist, "proposed")
+    full = rx.synthesize(system, dist, "proposed", seed=False)
+    assert seeded.status == full.status == "not_ms_stabilizable"
+    assert seeded.info["seeded"] and seeded.info["solves"] == 1 < full.info["solves"]
+    assert seeded.lam == pytest.approx(full.lam, abs=1e-7) and seeded.lam_lower >= 1
+
+
 def test_lmi_results_do_not_depend_on_call_history():
     """The compiled problem is shared per size: the first solve after compiling and later ones agree bit for bit."""
     from rdsexp.numerics.synthesis import lmi

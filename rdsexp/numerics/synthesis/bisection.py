@@ -88,15 +88,15 @@ def certified_bisection(system: AffineRandomSystem, dist: MomentModel, solve: Ca
     info = {"solves": solves}
     if best_X is not None:
         info["cond_X"] = float(np.linalg.cond(best_X))
-    if lo > proven and lam < 1.0:             # the bisection moved the lower end: check it
+    if lo > proven:                           # the bisection moved the lower end: check it
         check = policy_iteration(system, dist, F0=best_F)
         if check.status == "optimal" and (rate := ms_rate(system, dist, check.F)) < lam:
             lam, best_F = rate, check.F       # the optimum the LMI came within tol of: its rate is certified
             info["gain_from_check"] = True
         info["lmi_lower"] = lo
         lo = min(max(proven, check.lam_lower if np.isfinite(check.lam_lower) else 0.0), lam)
-    if lam >= 1.0:
-        status = "not_ms_stabilizable"
+    if lam >= 1.0:                            # proven only by a lower end >= 1 or a closed bracket
+        status = "not_ms_stabilizable" if lo >= 1.0 or lam - lo <= tol else "not_converged"
     elif best_X is None:
         status = "solver_failed"
     elif lo <= tol or (not certified and info["cond_X"] > x_cond_limit):

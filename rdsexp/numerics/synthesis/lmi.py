@@ -15,7 +15,7 @@ import numpy as np
 
 from ..systems import AffineRandomSystem, MomentModel
 from .bisection import Trial, certified_bisection
-from .riccati import policy_iteration
+from .riccati import BRACKET_TOL, policy_iteration
 
 T_PROOF = 1e-8       # the margin t must be below -T_PROOF to prove infeasibility: Clarabel is accurate to ~1e-9
 
@@ -87,8 +87,8 @@ def _theorem2(system: AffineRandomSystem, dist: MomentModel, method: str, seed: 
     bracket = None
     if seed:                    # policy iteration's certified bracket (milliseconds) seeds the bisection
         pi = policy_iteration(system, dist)
-        if pi.status == "optimal":
-            bracket = (pi.lam_lower, pi.lam)
+        if np.isfinite(pi.lam) and pi.lam - pi.lam_lower <= BRACKET_TOL * pi.lam:   # closed: optimal, or
+            bracket = (pi.lam_lower, pi.lam)                                       # proven not ms-stabilizable
     res = certified_bisection(system, dist, lmi_solver(system, dist), method=method,
                               nbar=system.Gbar(dist).shape[0], bracket=bracket, **settings)
     res.info["seeded"] = bracket is not None
