@@ -103,9 +103,9 @@ def proposed(system, dist, *, tol: float = 1e-7, max_iter: int = 60, x_cond_limi
     exactly. On the paper's printed moments (eqs. ex-mean, ex-covar) taken as the covariance,
     lam = 0.844183 (paper: 0.8432); if the printed matrix is a 1/(N-1) covariance of N = 81
     samples, the 1/N one is 80/81 of it and lam = 0.843610. Both within 2e-3 of the paper.
-    seed: start from policy iteration's certified bracket (two solves when it is tight; see
-    `certified_bisection`: one solve when it is tight, the lower end proven by policy iteration's
-    SDP-free bound); False runs the plain bisection. info: solves, seeded.
+    seed: start from policy iteration's certified bracket when it is closed, below 1 or above (one
+    solve, the lower end proven by policy iteration's SDP-free bound; see `certified_bisection`);
+    False runs the plain bisection. info: solves, seeded.
     """
     return _theorem2(system, dist, "proposed", seed=seed, tol=tol, max_iter=max_iter, x_cond_limit=x_cond_limit)
 

@@ -261,7 +261,7 @@ def robust_box(system, dist, *, width=None, vertices=None, find_max_width: bool 
         info["max_width"], info["min_infeasible_width"] = max_feasible_width(system, dist)
     nbar = system.Gbar(dist).shape[0]
     if hi >= 1:
-        status = "infeasible" if proven >= 1 else "not_converged" if found["solves"] else "solver_failed"
+        status = "infeasible" if proven >= 1 else "not_converged" if np.isfinite(hi) else "solver_failed"
         return SynthesisResult("robust_box", None, float("nan"), status, nbar, info=info)
     info["X"], info["cond_X"] = X, float(np.linalg.cond(X))
     if lo <= tol or (hi - proven > tol and info["cond_X"] > x_cond_limit):
