@@ -310,13 +310,11 @@ def design_rows(robust_runs: list[report.Run], pole_sets: pd.DataFrame | None) -
                          f"cannot be told from the mean model (pole_sets.csv)"})
     if robust_runs:
         o = robust_width.outcome(robust_width.per_run(robust_runs))
-        lo_w, hi_w, lo_u, hi_u = o["boundary"]
         full = o["widest_uncertified"] == o["widest_seeds"]
         rows.append({"number": "robust_control.full_range", "paper": "impossible (no guaranteed gain)",
                      "rdsexp": f"box mean +- {o['widest']:g} std: no certified gain in {o['widest_uncertified']}/"
                                f"{o['widest_seeds']} seeds (proven infeasible in {o['widest_infeasible']}); "
-                               f"certified up to {lo_w:.3g}-{hi_w:.3g} std, proven infeasible from "
-                               f"{lo_u:.3g}-{hi_u:.3g} std (range over seeds)", "difference": np.nan,
+                               f"{o['boundaries']}", "difference": np.nan,
                      "verdict": REPRODUCED if full else DIFFERS,
                      "reason": "" if full else "the widest swept box is quadratically stabilizable in some seeds"})
         useless = o["faster_than_open"] == 0

@@ -290,6 +290,18 @@ def test_robust_box_on_paper_model_width_zero_is_the_nominal_case():
     assert rx.ms_rate(system, dist, box.F) > 1 and rx.ms_rate(system, dist, nominal.F) > 1
 
 
+def test_max_width_brackets_both_boundaries_on_the_paper_model():
+    """Between the certified and the proven boundary lie widths that nothing decides (the paper's box
+    LMIs are weakly infeasible), so the proven one is searched beyond the first width not certified."""
+    system, dist = rx.paper.model(), rx.paper.modeled_distribution()
+    lo, hi = robust.max_feasible_width(system, dist)
+    assert 0 < lo < hi < np.inf
+    assert rx.synthesize(system, dist, "robust_box", width=lo).F is not None
+    between = rx.synthesize(system, dist, "robust_box", width=(lo + hi) / 2)
+    assert between.status == "not_converged" and between.F is None
+    assert rx.synthesize(system, dist, "robust_box", width=hi).status == "infeasible"
+
+
 def test_robust_box_polytope_and_max_width():
     rng = np.random.default_rng(11)
     system, dist = random_system(rng, 2, 1, 2, a_scale=1.2)

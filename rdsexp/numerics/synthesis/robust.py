@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import itertools
 import warnings
-from functools import lru_cache
+from functools import cache, lru_cache
 
 import cvxpy as cp
 import numpy as np
@@ -194,11 +194,13 @@ def box_bisection(system: AffineRandomSystem, vertices: np.ndarray, *, tol: floa
 def max_feasible_width(system: AffineRandomSystem, dist: MomentModel, *, rel_tol: float = 1e-3) -> tuple[float, float]:
     """(largest width certified quadratically stabilizable, smallest width proven not), the box mean +- width * std.
 
-    Nested boxes: feasibility at lambda = 1 is monotone in the width, so doubling then bisection
-    brackets the boundary. A check that neither certifies nor proves counts as not certified, so
-    the second value stays the smallest width actually proven infeasible; inf when none up to
-    MAX_WIDTH was (first value NaN when even width 0 is not certified).
+    Nested boxes: certified feasibility at lambda = 1 and proven infeasibility are both monotone in
+    the width, so doubling then bisection brackets each boundary (to rel_tol); the proven one is
+    searched from the first width not certified, since between the two lie widths that neither a
+    gain certifies nor a proof excludes. Second value inf when nothing up to MAX_WIDTH is proven
+    infeasible (first value NaN when even width 0 is not certified).
     """
+    @cache
     def status(width: float) -> str:
         pts = box_vertices(dist, width)
         if vertex_floor(system, pts) >= 1:
@@ -209,26 +211,27 @@ def max_feasible_width(system: AffineRandomSystem, dist: MomentModel, *, rel_tol
         A, B, _, _ = system.at(pts)
         return "infeasible" if Z is not None and infeasibility_proven(A, B, 1.0, Z) else "unknown"
 
+    def crossing(turned, start: float, below: float) -> tuple[float, float]:
+        """(below, above) around the width where turned(width) becomes true: doubling from start,
+        then bisection; above inf when it stays false up to MAX_WIDTH."""
+        width = start
+        while not turned(width):
+            below, width = width, 2 * width
+            if width > MAX_WIDTH:
+                return below, np.inf
+        above = width
+        while above - below > rel_tol * max(below, 1.0):
+            mid = (below + above) / 2
+            below, above = (below, mid) if turned(mid) else (mid, above)
+        return below, above
+
     first = status(0.0)
     if first != "feasible":
         return float("nan"), 0.0 if first == "infeasible" else float("nan")
-    lo, upper, hi, width = 0.0, None, np.inf, 1.0        # certified / not certified / proven infeasible
-    while upper is None and width <= MAX_WIDTH:
-        s = status(width)
-        if s == "feasible":
-            lo, width = width, 2 * width
-        else:
-            upper, hi = width, width if s == "infeasible" else np.inf
-    if upper is None:
+    lo, upper = crossing(lambda w: status(w) != "feasible", 1.0, 0.0)
+    if not np.isfinite(upper):
         return float(lo), float("inf")
-    while upper - lo > rel_tol * max(lo, 1.0):
-        mid = (lo + upper) / 2
-        s = status(mid)
-        if s == "feasible":
-            lo = mid
-        else:
-            upper, hi = mid, mid if s == "infeasible" else hi
-    return float(lo), float(hi)
+    return float(lo), float(crossing(lambda w: status(w) == "infeasible", upper, lo)[1])
 
 
 def robust_box(system, dist, *, width=None, vertices=None, find_max_width: bool = False, tol: float = 1e-4,
