@@ -85,8 +85,8 @@ def test_mean_model_gains_fail_in_closed_loop():
     """Pole placement blows up (every path beyond the bound). The nominal LMI's infimum on the mean
     model is 0 (dead beat), not attained, so where its bisection stops is rounding (the paper's
     0.1143 is "solver-dependent"; two factors of the same moments gave 0.1161 and 0.1647): the
-    paper's claim that its gain fails is checked for every gain (lmi-syn) on the mean model returns
-    over lambda in [0.1, 0.5] (exact rate on the plant > 1; 1.001 to 1.36 with today's factor).
+    paper's claim that its gain fails is checked for the gains (lmi-syn) on the mean model returns at
+    9 lambdas over [0.1, 0.5], where the bisection could stop (exact rates on the plant 1.001 to 1.12).
     The returned gain's loop with the observer does not decay after d_k stops (k = 50..100): its
     rate's 95% interval reaches above 1 and stays far above the proposed gain's 0.86 (lower end > 0.95)."""
     system, dist = paper.model(), paper.modeled_distribution()
