@@ -9,7 +9,7 @@ P = X^-1 for every xi in the set. Bisection on lambda gives the smallest such la
 
 The bisection's upper end is the box rate certified by the gain and X in hand, checked independently
 of the solver (`box_rate`). Its lower end is proven in two SDP-free ways, never by the solver's margin
-alone: policy iteration's bound for the uniform distribution on the vertices (`vertex_floor`), and the
+alone: policy iteration's bound for distributions on the vertices (`vertex_floor`), and the
 solver's dual matrices where they pass an independent check (`infeasibility_proven`). Below the
 optimum the vertex LMIs are often only weakly infeasible (singular X reach margin 0: on the paper's
 model the margin is -2e-9 at every lambda below it), and then nothing proves the bisection's lower end.
@@ -25,13 +25,15 @@ from functools import cache, lru_cache
 import cvxpy as cp
 import numpy as np
 
-from ..analysis import ms_rate
+from ..analysis import ms_rate, perron
 from ..systems import AffineRandomSystem, MomentModel
 from .base import SynthesisResult
 from .riccati import policy_iteration
 
 MAX_VERTICES = 1024
 MAX_WIDTH = 1024.0          # find_max_width stops doubling here
+FLOOR_STEPS = 8             # weights tried by vertex_floor (the bound rises most in the first few)
+FLOOR_STEP_SIZE = 2.0       # of its exponentiated-gradient ascent
 
 
 def box_vertices(dist: MomentModel, width: float) -> np.ndarray:
@@ -145,18 +147,41 @@ def infeasibility_proven(A: np.ndarray, B: np.ndarray, lam: float, Z: np.ndarray
     return bool(np.isfinite(total) and total < 0)
 
 
-def vertex_floor(system: AffineRandomSystem, vertices: np.ndarray) -> float:
-    """A proven lower bound on the box rate of every gain (SDP-free): policy iteration's lam_lower for
-    xi uniform on the vertices (V, p).
+def vertex_floor(system: AffineRandomSystem, vertices: np.ndarray, steps: int = FLOOR_STEPS) -> float:
+    """A proven lower bound on the box rate of every gain (SDP-free): the largest of policy iteration's
+    lam_lower for xi distributed on the vertices (V, p) with weights w, over the weights tried.
 
     A box certificate (F, X) at lambda gives Acl(v)^T X^-1 Acl(v) <= lambda^2 X^-1 at every vertex, so
-    E[Acl^T P Acl] <= lambda^2 P (P = X^-1) for every distribution on them: lambda is at least that
-    distribution's mean-square rate of F, hence at least its optimal one. Often well below the box
-    optimum (0.85 against 0.94 on the paper's box of width 1), but it needs no solver."""
-    mean = vertices.mean(axis=0)
-    dev = vertices - mean
-    lower = policy_iteration(system, MomentModel(mean=mean, cov=dev.T @ dev / len(vertices))).lam_lower
-    return float(lower) if np.isfinite(lower) else 0.0
+    E_w[Acl^T P Acl] <= lambda^2 P (P = X^-1) for every w: lambda is at least that distribution's
+    mean-square rate of F, hence at least its optimal one. Any w gives a bound, so the weights are only
+    ascended, from uniform, by exponentiated gradient: E_w[Acl (x) Acl] = sum_v w_v Acl_v (x) Acl_v is
+    linear in w, and at the optimal loop of w the Perron root rho = lam^2 has d rho / d w_v =
+    <X, Acl_v^T P Acl_v> / <X, P> (P, X its left and right Perron vectors). On the paper's box of width
+    1: 0.846 uniform, 0.895 after 8 steps, against the box optimum 0.937."""
+    A, B, _, _ = system.at(vertices)
+    w = np.full(len(vertices), 1.0 / len(vertices))
+    best = 0.0
+    for _ in range(steps):
+        mean = w @ vertices
+        dev = vertices - mean
+        res = policy_iteration(system, MomentModel(mean=mean, cov=(dev.T * w) @ dev))
+        best = max(best, res.lam_lower if np.isfinite(res.lam_lower) else 0.0)
+        if best >= 1 or res.F is None:
+            break
+        Acl = A + B @ res.F                                                  # (V, n, n)
+        factors = np.sqrt(w)[:, None, None] * Acl
+        rho, P = perron(factors, adjoint=True)
+        _, X = perron(factors)
+        overlap = float(np.sum(X * P))
+        if not (rho > 0 and overlap > 0 and np.all(np.isfinite(P)) and np.all(np.isfinite(X))):
+            break
+        grad = np.einsum("ij,vij->v", X, Acl.transpose(0, 2, 1) @ P @ Acl) / overlap
+        step = np.clip(FLOOR_STEP_SIZE * (grad / rho - 1), -30.0, 30.0)  # sum_v w_v grad_v = rho
+        if not np.all(np.isfinite(step)):
+            break
+        w = w * np.exp(step)
+        w /= w.sum()
+    return float(best)
 
 
 def box_bisection(system: AffineRandomSystem, vertices: np.ndarray, *, tol: float, max_iter: int) -> dict:
