@@ -17,6 +17,7 @@ import numpy as np
 import pandas as pd
 
 from rdsexp import report
+from rdsexp.numerics.synthesis import robust
 
 SWEEP = NAME = "robust_width"
 RATE_TOP = 1.2
@@ -72,7 +73,7 @@ def boundary_text(frame: pd.DataFrame) -> str:
     """The two boundaries in words (ranges over seeds); inf: some seed has no proven width."""
     lo_w, hi_w, lo_u, hi_u = boundary(frame)
     proven = (f"proven infeasible from {lo_u:.3g}-{hi_u:.3g} std" if np.isfinite(lo_u)
-              else "proven infeasible at no width up to 1024 std")
+              else f"proven infeasible at no width up to {robust.MAX_WIDTH:g} std")
     return f"certified up to {lo_w:.3g}-{hi_w:.3g} std, {proven} (ranges over seeds)"
 
 

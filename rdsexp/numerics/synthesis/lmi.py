@@ -55,6 +55,18 @@ def _lmi_problem(n: int, m: int, nbar: int):
     return problem, lam2, Abar, Bbar, X, Y, t
 
 
+def solve_fresh(problem: cp.Problem) -> str:
+    """Solve a compiled problem with a fresh Clarabel solver (see `_lmi_problem`); its status, or
+    "solver_error". Inaccuracy is a status here, so the solver's warnings are silenced."""
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            problem.solve(solver=cp.CLARABEL, warm_start=False)
+        return problem.status
+    except cp.error.SolverError:
+        return "solver_error"
+
+
 def lmi_solver(system: AffineRandomSystem, dist: MomentModel) -> Callable[[float], Trial]:
     """solve(lam) -> Trial: Theorem 2's LMI (lmi-syn) at a fixed lambda with the moments of `dist`.
 
@@ -68,13 +80,7 @@ def lmi_solver(system: AffineRandomSystem, dist: MomentModel) -> Callable[[float
 
     def solve(lam: float) -> Trial:
         lam2.value = lam ** 2
-        try:
-            with warnings.catch_warnings():                              # inaccuracy is a status here
-                warnings.simplefilter("ignore")
-                problem.solve(solver=cp.CLARABEL, warm_start=False)    # a fresh solver: see _lmi_problem
-            status = problem.status
-        except cp.error.SolverError:
-            status = "solver_error"
+        status = solve_fresh(problem)
         usable = X.value is not None and status in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE)
         return Trial(F=Y.value @ np.linalg.inv(X.value) if usable else None, X=X.value if usable else None,
                      infeasible=status == cp.OPTIMAL and t.value < -T_PROOF)

@@ -19,7 +19,6 @@ distribution (`ms_rate`); the box's decay rate is info["lam_box"].
 from __future__ import annotations
 
 import itertools
-import warnings
 from functools import cache, lru_cache
 
 import cvxpy as cp
@@ -28,6 +27,7 @@ import numpy as np
 from ..analysis import ms_rate, perron
 from ..systems import AffineRandomSystem, MomentModel
 from .base import SynthesisResult
+from .lmi import solve_fresh
 from .riccati import policy_iteration
 
 MAX_VERTICES = 1024
@@ -87,20 +87,14 @@ def _solver(system: AffineRandomSystem, vertices: np.ndarray):
     """solve(lam) -> (F, X, Z) for the vertex LMIs at lam: the gain Y X^-1 (m, n) and X (n, n) of the
     solve (None if nothing usable), and its dual matrices Z (V, 2n, 2n) (None if none) for
     `infeasibility_proven`."""
-    problem, lam2, pA, pB, X, Y, t = _box_problem(system.n, system.m, len(vertices))
+    problem, lam2, pA, pB, X, Y, _ = _box_problem(system.n, system.m, len(vertices))
     A, B, _, _ = system.at(vertices)
     for v in range(len(vertices)):
         pA[v].value, pB[v].value = A[v], B[v]
 
     def solve(lam: float):
         lam2.value = lam ** 2
-        try:
-            with warnings.catch_warnings():                       # inaccuracy is a status here
-                warnings.simplefilter("ignore")
-                problem.solve(solver=cp.CLARABEL, warm_start=False)    # a fresh solver: see lmi._lmi_problem
-            status = problem.status
-        except cp.error.SolverError:
-            status = "solver_error"
+        status = solve_fresh(problem)
         if X.value is None or status not in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE):
             return None, None, None
         try:
