@@ -19,7 +19,7 @@ from pathlib import Path
 
 from hydra import compose, initialize_config_module
 
-from rdsexp.experiment import cli, pipeline
+from rdsexp.experiment import pipeline, runner
 from rdsexp.experiment.config import build
 
 COMPUTE = ("identification", "modeling", "synthesis", "closed_loop", "open_loop", "metrics")
@@ -34,7 +34,7 @@ def tracking_overhead(repeats: int) -> None:
     best = None
     for _ in range(repeats):
         with tempfile.TemporaryDirectory() as tmp:
-            info = cli.execute(cfg, Path(tmp))
+            info = runner.execute(cfg, Path(tmp))
         t = info["timings"]
         compute, track = sum(t[k] for k in COMPUTE if k in t), sum(t[k] for k in TRACKING)
         if best is None or compute + track < best[0] + best[1]:

@@ -14,7 +14,7 @@ import numpy as np
 import pandas as pd
 
 from rdsexp import report
-from rdsexp.experiment import records
+from rdsexp.experiment.store import files
 
 NAME = "filters"
 SWEEP = "filters"
@@ -146,7 +146,7 @@ def main(argv=None):
         paths += report.save_figure(draw(stats, ref, plant), args.out, name, runs, __file__, caption=sentence)
         report.write_table(stats, args.out, f"{name}_summary", runs, __file__)
         report.write_table(table, args.out, f"{name}_frontier", runs, __file__)
-        records.atomic_write_bytes(args.out / f"{name}_frontier.txt", (sentence + "\n").encode())
+        files.atomic_write_bytes(args.out / f"{name}_frontier.txt", (sentence + "\n").encode())
         print(sentence)
     return paths
 

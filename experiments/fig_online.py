@@ -21,7 +21,7 @@ import numpy as np
 import pandas as pd
 
 from rdsexp import report
-from rdsexp.experiment import records
+from rdsexp.experiment.store import files
 
 SETTING = ("controller.initial", "controller.memory", "controller.period", "controller.window", "controller.warmup",
            "controller.forgetting")
@@ -187,7 +187,7 @@ def main(argv=None):
         name = f"online_settings_{plant}"
         report.write_table(table, args.out, name, runs, __file__)
         report.write_caption(args.out, name, sentence)
-        records.atomic_write_bytes(args.out / f"{name}.txt", (sentence + "\n").encode())
+        files.atomic_write_bytes(args.out / f"{name}.txt", (sentence + "\n").encode())
         print(sentence)
         written += 1
     if not written:

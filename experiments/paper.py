@@ -30,7 +30,7 @@ import reproduction_table
 import robust_width
 
 from rdsexp import report
-from rdsexp.experiment import records
+from rdsexp.experiment.store import files
 
 SWEEPS = ("paper", "ensemble_size", "noise", "window", "identification_input", "closed_loop_rate")
 # (kind, name, heading) in the paper's order (Sec. V-A, V-B), then rdsexp's own analyses
@@ -54,8 +54,8 @@ def ensure_sweeps(root, extra_overrides=()) -> None:
         if not report.load_runs(root, sweep):
             print(f"no stored runs of sweep {sweep!r} under {root}: running python -m rdsexp +sweep={sweep}",
                   flush=True)
-            sweep_dir = f"hydra.sweep.dir={root.resolve()}/sweeps/${{now:%Y-%m-%d_%H-%M-%S-%f}}_${{uid:}}"
-            subprocess.run([sys.executable, "-m", "rdsexp", f"+sweep={sweep}", sweep_dir, *extra_overrides],
+            subprocess.run([sys.executable, "-m", "rdsexp", f"+sweep={sweep}", f"store={root.resolve()}",
+                            *extra_overrides],
                            check=True)
 
 
@@ -105,7 +105,7 @@ def main(argv=None) -> None:
         fig_online.main(common)
     _, results = reproduction_table.main(common)
     counts = reproduction_table.verdict_counts(results)
-    records.atomic_write_bytes(args.out / "index.md", index(args.out, counts).encode())
+    files.atomic_write_bytes(args.out / "index.md", index(args.out, counts).encode())
     print(counts.to_string())
     print(f"report written to {args.out}/ (one page: {args.out}/index.md)")
 

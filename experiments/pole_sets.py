@@ -29,8 +29,8 @@ from scipy import stats
 
 import rdsexp as rx
 from rdsexp import report
-from rdsexp.experiment import records
 from rdsexp.experiment.config import build
+from rdsexp.experiment.store import files
 from rdsexp.numerics.analysis import ms_rate
 from rdsexp.numerics.enkf import truth_map
 from rdsexp.numerics.synthesis.classical import random_pole_sets
@@ -133,7 +133,7 @@ def main(argv=None) -> pd.DataFrame:
     summary = pd.DataFrame(summary)
     extra = {"seed": args.seed, "count": args.count, "plants": plants}
     report.write_table(summary, args.out, NAME, [], __file__, **extra)
-    records.atomic_write_bytes(args.out / f"{ALL_NAME}.csv", pd.DataFrame(rows).to_csv(index=False).encode())
+    files.atomic_write_bytes(args.out / f"{ALL_NAME}.csv", pd.DataFrame(rows).to_csv(index=False).encode())
     print(summary.to_string(index=False))
     return summary
 

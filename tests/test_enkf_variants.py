@@ -5,7 +5,8 @@ import pytest
 from hydra import compose, initialize_config_module
 
 import rdsexp as rx
-from rdsexp.experiment.config import ConfigError, build
+from rdsexp.errors import ConfigError
+from rdsexp.experiment.config import build
 from rdsexp.numerics.enkf import EnKF, truth_map
 from rdsexp.numerics.simulation import simulate
 

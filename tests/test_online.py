@@ -7,7 +7,8 @@ from hydra import compose, initialize_config_module
 
 import rdsexp as rx
 from rdsexp import runs
-from rdsexp.experiment.config import ConfigError, build
+from rdsexp.errors import ConfigError
+from rdsexp.experiment.config import build
 from rdsexp.experiment.recording import read_series
 from rdsexp.numerics.distributions import from_spec
 from rdsexp.numerics.enkf import EnKF

@@ -13,7 +13,8 @@ from conftest import SMALL, rdsexp
 from hydra import compose, initialize_config_module
 
 import rdsexp as rx
-from rdsexp.experiment.config import ConfigError, build
+from rdsexp.errors import ConfigError
+from rdsexp.experiment.config import build
 from rdsexp.numerics.enkf import EnKF
 from rdsexp.numerics.simulation import simulate
 

@@ -11,7 +11,8 @@ from conftest import REPO, SMALL, rdsexp
 
 import rdsexp as rx
 from rdsexp import report
-from rdsexp.experiment import records
+from rdsexp.errors import DamagedRecord
+from rdsexp.experiment.store import files
 
 sys.path.insert(0, str(REPO / "experiments"))
 import fig_decay  # noqa: E402
@@ -152,7 +153,7 @@ def test_lineage_hashes_match_the_tables(written):
         for run in lineage["runs"]:
             assert run["tables"]
             for name, sha in run["tables"].items():
-                assert records.table_hash(pd.read_parquet(Path(run["dir"]) / f"{name}.parquet")) == sha
+                assert files.table_hash(pd.read_parquet(Path(run["dir"]) / f"{name}.parquet")) == sha
 
 
 def test_rerun_rewrites_identical_files_without_simulating(root, written, tmp_path):
@@ -190,7 +191,7 @@ def test_tampered_table_is_refused(root, tmp_path):
     frame.loc[0, "rate"] = 0.5
     (copy / "metrics.parquet").chmod(0o644)               # stored read-only: an edit is deliberate
     frame.to_parquet(copy / "metrics.parquet", index=False)
-    with pytest.raises(report.LineageError, match="does not match the hash"):
+    with pytest.raises(DamagedRecord, match="does not match the hash"):
         report.Run(copy).table("metrics")
 
 

@@ -9,10 +9,11 @@ import pytest
 from conftest import SMALL, rdsexp
 from hydra import compose, initialize_config_module
 
-from rdsexp.experiment import records
-from rdsexp.experiment.config import ConfigError, build
+from rdsexp.errors import ConfigError
+from rdsexp.experiment.config import build
 from rdsexp.experiment.montecarlo import chunk_size
 from rdsexp.experiment.pipeline import run_experiment
+from rdsexp.experiment.store import files
 
 # 7 paths so that chunks of 3 leave a remainder; tracking full to stream the members table too
 OVERRIDES = [o for o in SMALL if not o.startswith("closed_loop.paths")] + ["closed_loop.paths=7",
@@ -64,12 +65,12 @@ def test_chunk_size_from_the_memory_budget():
 
 def test_parquet_sink_hash_equals_whole_table_hash(tmp_path, whole):
     table = whole.tables["trajectories"]
-    sink = records.ParquetSink(tmp_path)
+    sink = files.ParquetSink(tmp_path)
     for start in range(0, len(table), 50):
         sink.append("trajectories", table.iloc[start:start + 50].reset_index(drop=True))
     assert not (tmp_path / "trajectories.parquet").exists()          # nothing under the final name yet
     meta = sink.close()["trajectories"]
-    assert meta["rows"] == len(table) and meta["sha256"] == records.table_hash(table)
+    assert meta["rows"] == len(table) and meta["sha256"] == files.table_hash(table)
     assert pq.ParquetFile(tmp_path / "trajectories.parquet").num_row_groups == -(-len(table) // 50)
     assert [p.name for p in tmp_path.iterdir()] == ["trajectories.parquet"]
 
@@ -91,7 +92,7 @@ def test_cli_streams_tables_and_verify_passes(tmp_path):
     info = json.loads((run / "run.json").read_text())
     assert info["tables"]["trajectories"]["rows"] == 2 * 5 * 31
     assert pq.ParquetFile(run / "trajectories.parquet").num_row_groups == 2 * 3   # two loops, three chunks
-    assert records.stored_table_hash(run / "trajectories.parquet") == info["tables"]["trajectories"]["sha256"]
+    assert files.stored_table_hash(run / "trajectories.parquet") == info["tables"]["trajectories"]["sha256"]
     assert not [p for p in run.iterdir() if p.name.endswith(".tmp")]
     proc = rdsexp("verify", str(run), cwd=tmp_path, module="rdsexp.runs")
     assert "verify: identical" in proc.stdout

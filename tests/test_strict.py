@@ -7,7 +7,8 @@ import pytest
 from conftest import SMALL, rdsexp
 from hydra import compose, initialize_config_module
 
-from rdsexp.experiment.config import ConfigError, check_overrides
+from rdsexp.errors import ConfigError
+from rdsexp.experiment.config import check_overrides
 
 FAST = [*SMALL, "tracking.level=off"]
 
@@ -54,12 +55,13 @@ def test_ok_run_exits_0(tmp_path):
 FAILING = """
 import sys
 import rdsexp.experiment.cli as cli
-real = cli.run_experiment
+import rdsexp.experiment.runner as runner
+real = runner.run_experiment
 def failing(exp, *args, **kwargs):      # job seed=1 fails as an unforeseen error would
     if exp.seed == 1:
         raise RuntimeError("injected failure")
     return real(exp, *args, **kwargs)
-cli.run_experiment = failing
+runner.run_experiment = failing
 sys.argv = ["rdsexp", *sys.argv[1:]]
 cli.main()
 """

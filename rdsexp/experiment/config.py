@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
+from ..errors import ConfigError, one_line
 from ..numerics.distributions import from_spec
 from ..numerics.enkf import VARIANTS, EnKF, check_covariance
 from ..numerics.modeling import mls_input
@@ -21,10 +22,6 @@ from ..numerics.systems import AffineRandomSystem, MomentModel
 
 TRACKING_LEVELS = ("off", "summary", "full")
 FEEDBACK_MODES = ("none", "nominal", "auto")     # identification.feedback, or a gain F (m x n)
-
-
-class ConfigError(ValueError):
-    """A configuration value that rdsexp cannot run with (one line: key, value, what is allowed)."""
 
 
 @contextmanager
@@ -72,16 +69,10 @@ def _covariance(cfg, name: str, dim: int) -> np.ndarray:
     try:
         return check_covariance(name, get(cfg, name), dim)
     except (ValueError, TypeError) as err:
-        text = one_line_text(err)
+        text = one_line(err, with_type=False)
         raise ConfigError(text if text.startswith(f"{name}:") else
                           f"{name}: {get(cfg, name)!r} is not allowed, expected a scalar, {dim} diagonal entries "
                           f"or a ({dim}, {dim}) matrix of numbers") from None
-
-
-def one_line_text(err: BaseException) -> str:
-    """The first line of an exception's message."""
-    lines = str(err).strip().splitlines()
-    return lines[0] if lines else type(err).__name__
 
 
 def system_from(cfg, group: str, xi=None) -> AffineRandomSystem:

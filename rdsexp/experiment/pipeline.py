@@ -18,8 +18,9 @@ import pandas as pd
 from tqdm import tqdm
 from tqdm.contrib.logging import logging_redirect_tqdm
 
+from ..errors import ConfigError, StageError, WriteError, one_line
 from ..numerics.analysis import empirical_rate_sq, exact_costs, ms_rate, second_moments
-from ..numerics.modeling import model_distribution, nominal_gain, one_line
+from ..numerics.modeling import model_distribution, nominal_gain
 from ..numerics.online import OnlineController, rates
 from ..numerics.simulation import Trajectories, simulate
 from ..numerics.synthesis import METHODS, SynthesisResult, synthesize
@@ -53,15 +54,16 @@ class Outcome:
 
 @contextmanager
 def timed(timings: dict, stage: str):
-    """Time the block into timings[stage] and log the stage with its seconds (rdsexp.log)."""
+    """Time the block into timings[stage] and log the stage with its seconds (rdsexp.log); an
+    unexpected exception inside becomes a StageError naming the innermost stage."""
     start = time.perf_counter()
     log.info("%s ...", stage)
     try:
         yield
-    except Exception as err:
-        if not hasattr(err, "rdsexp_stage"):      # the innermost stage, for the run's failure status
-            err.rdsexp_stage = stage
+    except (StageError, WriteError, ConfigError):   # named by an inner stage, or not a stage's failure
         raise
+    except Exception as err:
+        raise StageError(stage, err) from err
     timings[stage] = round(time.perf_counter() - start, 4)
     log.info("%s done in %.3f s", stage, timings[stage])
 
@@ -443,7 +445,7 @@ def gains_table(exp: Experiment, designs: dict, selected: tuple[str, str]) -> pd
         rows.append({"distribution": source, "method": method,
                      "selected": (source, method) == selected,
                      "status": res.status, "lam": res.lam, "lam_lower": res.lam_lower,
-                     "lower_certified": res.lower_certified, "nbar": res.nbar,
+                     "nbar": res.nbar,
                      "rate_model": safe_rate(exp.model, moments, F) if found and moments is not None else np.nan,
                      "rate_plant": safe_rate(exp.plant, None, F) if found else np.nan,
                      **performance(exp, moments, F if found and moments is not None else None),

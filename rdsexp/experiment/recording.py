@@ -39,7 +39,10 @@ import pyarrow as pa
 import rerun as rr
 import rerun.blueprint as rrb
 
+from ..numerics.analysis import rms_band
 from .schema import split_column
+from .store import RunStore, layout
+from .store.table import changed_params
 
 KEYS = ["experiment", "k", "path"]
 MEMBER_KEYS = ["experiment", "k", "path", "member"]
@@ -239,19 +242,6 @@ def _line(rec, entity: str, ks: np.ndarray, values: np.ndarray, name: str, color
                      columns=rr.Scalars.columns(scalars=np.asarray(values, np.float64)))
 
 
-def rms_band(q: np.ndarray, z: float = 1.96) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """sqrt(E||q_k||^2) over the finite paths of q (K, P, n) and its 95% band, each (K,): the normal
-    interval of the mean of ||q_k||^2 over paths, mapped through the square root."""
-    sq = np.sum(q ** 2, axis=-1)
-    sq = np.where(np.isfinite(sq), sq, np.nan)
-    count = np.sum(np.isfinite(sq), axis=1)
-    with np.errstate(all="ignore"):       # steps where no path is finite give NaN, silently
-        mean = np.nansum(sq, axis=1) / count
-        var = np.nansum((sq - mean[:, None]) ** 2, axis=1) / (count - 1)
-        half = np.where(count > 1, z * np.sqrt(var / count), np.nan)
-    return np.sqrt(mean), np.sqrt(np.maximum(mean - half, 0.0)), np.sqrt(mean + half)
-
-
 def _log10(values: np.ndarray) -> np.ndarray:
     with np.errstate(all="ignore"):
         return np.where(values > 0, np.log10(values), np.nan)
@@ -278,9 +268,9 @@ def write_summary(rec: rr.RecordingStream, tables: dict[str, pd.DataFrame], traj
         if squares is not None and loop in squares:
             sq = squares[loop]
             ks = np.arange(sq.shape[0], dtype=np.int64)
-            mean, low, high = rms_band(np.sqrt(sq)[..., None])
+            mean, low, high = rms_band(sq)
         else:
-            mean, low, high = rms_band(q)
+            mean, low, high = rms_band(np.sum(q ** 2, axis=-1))
         ex = exact[exact["experiment"] == loop]
         lines = [("mean", ks, mean, f"{loop} sqrt(E|q|^2)", 2.0), ("band_low", ks, low, f"{loop} 95% band", 0.7),
                  ("band_high", ks, high, f"{loop} 95% band", 0.7)]
@@ -501,14 +491,13 @@ def write_sweep_recording(sweep_dir, table: pd.DataFrame | None = None) -> Path 
     """<sweep>/summary.rrd: on the timeline `job`, the key metrics (points) and every numeric swept
     parameter (a `search` table's changed params) of each job, and a markdown table of the jobs.
     Returns its path, None with ``RERUN=off`` (nothing written)."""
-    from .runs import changed, search
     if disabled():
         return None
     sweep_dir = Path(sweep_dir)
-    table = search(sweep_dir) if table is None else table
+    table = RunStore(sweep_dir).table(params=True) if table is None else table
     table = table.sort_values("job", ignore_index=True)
     jobs = table["job"].to_numpy(np.int64)
-    swept = changed(table)
+    swept = changed_params(table)
     numeric = [c for c in swept if pd.api.types.is_numeric_dtype(table[c]) and not pd.api.types.is_bool_dtype(table[c])]
     metrics = [c for c in SWEEP_METRICS if c in table.columns]
     blueprint = rrb.Blueprint(rrb.Grid(
@@ -517,8 +506,8 @@ def write_sweep_recording(sweep_dir, table: pd.DataFrame | None = None) -> Path 
         rrb.TimeSeriesView(name="swept parameters by job", origin="/sweep/params",
                            plot_legend=rrb.PlotLegend(corner=rrb.Corner2D.RightTop, visible=True)),
         rrb.TextDocumentView(name="jobs", origin="/sweep/jobs"), name=f"sweep {sweep_dir.name}"))
-    path = sweep_dir / "summary.rrd"
-    tmp = sweep_dir / ".summary.rrd.tmp"
+    path = sweep_dir / layout.SUMMARY_RECORDING
+    tmp = sweep_dir / f".{layout.SUMMARY_RECORDING}.tmp"
     with rr.RecordingStream("rdsexp", recording_id=f"sweep/{sweep_dir.name}") as rec:
         rec.save(tmp, default_blueprint=blueprint)
         for group, columns in (("metrics", metrics), ("params", numeric)):

@@ -9,7 +9,6 @@ reported as damaged (see `rdsexp.experiment.store`).
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import re
 import shutil
@@ -21,129 +20,26 @@ import numpy as np
 import pandas as pd
 from omegaconf import OmegaConf
 
-from . import records, schema, store
+from ..errors import DamagedRecord
+from . import schema
+from .store import RunStore, layout, provenance, read_run, read_table, run_damage
+from .store.table import changed_params
 
-DEFAULT_ROOT = Path("outputs")
-__all__ = ["DEFAULT_ROOT", "catalog", "check", "cli", "compare_tables", "diff", "find_complete", "find_runs", "load",
-           "main", "resolve", "search", "verify", "write_sweep_summary"]
-
-
-def find_runs(root: Path) -> list[tuple[Path, dict]]:
-    """(run directory, its run.json) for every readable run under root, oldest first; each file
-    read once, each damaged one named in a warning line and skipped."""
-    return store.read_runs(root)[0]
-
-
-def find_complete(root: Path, config_hash: str, version: str) -> Path | None:
-    """An intact, complete, not itself reused run in the store `root` with this config hash and
-    code version (through the store's reuse index)."""
-    return store.find_reusable(root, config_hash, version)
-
-
-def resolve(run: str, root: Path = DEFAULT_ROOT) -> Path:
-    """A run directory from a path or an id; SystemExit with one line if there is none."""
-    try:
-        return locate(run, root)
-    except LookupError as err:
-        sys.exit(f"rdsexp.runs: {err}")
-
-
-def catalog(root: Path) -> pd.DataFrame:
-    """One row per run: id, sweep, overrides, seed, status, key metrics, time."""
-    rows = []
-    for run_dir, info in find_runs(root):
-        s = info.get("summary") or {}
-        rate = s.get("closed_loop_rate")
-        rate = rate if isinstance(rate, list) and rate else [rate if isinstance(rate, float) else np.nan]
-        rows.append({"id": info.get("id"), "sweep": (info.get("sweep") or {}).get("name"),
-                     "overrides": " ".join(o for o in info.get("overrides", []) if not o.startswith("+sweep=")),
-                     "seed": (info.get("seed") or {}).get("root"), "status": info.get("status"),
-                     "method": s.get("gain_method"), "synthesis": s.get("synthesis_status"),
-                     "lam": s.get("lam"), "rate": rate[0], "loop": s.get("closed_loop_status"),
-                     "seconds": info.get("seconds"),
-                     "created": info.get("created"), "config_hash": (info.get("config_hash") or "")[:12],
-                     "code": ((info.get("code") or {}).get("version") or "")[:12], "dir": str(run_dir)})
-    return pd.DataFrame(rows)
-
-
-# ------------------------------------------------------------------------------------ search
-BASE = ["id", "sweep", "sweep_id", "job", "status", "created", "code", "config_hash", "dir"]
-# summary entries that are settings or nested records rather than numbers of the run
-_NOT_METRICS = ("plant", "model", "gain_method", "rate_window", "reference", "designs", "identification_feedback")
+DEFAULT_ROOT = Path(layout.DEFAULT_ROOT)
+__all__ = ["DEFAULT_ROOT", "changed", "check", "cli", "compare_tables", "diff", "load", "main", "search", "verify"]
 SHOWN = ["metrics.lam", "metrics.rate_plant", "metrics.closed_loop_rate", "metrics.closed_loop_status"]
 
 
-def run_params(run_dir: Path) -> dict:
-    """{"params.<dotted.key>": value} for every resolved scalar of the run's config
-    (.hydra/config.yaml); a flat list of at most 8 scalars (rate_window) as its JSON text."""
-    path = Path(run_dir) / ".hydra" / "config.yaml"
-    if not path.exists():
-        return {}
-    cfg = OmegaConf.load(path)
-    try:
-        node = OmegaConf.to_container(cfg, resolve=True)
-    except Exception:     # noqa: BLE001 -- an interpolation this version cannot resolve: the raw values
-        node = OmegaConf.to_container(cfg, resolve=False)
-    out = {}
-
-    def walk(tree: dict, prefix: str) -> None:
-        for name, value in tree.items():
-            if isinstance(value, dict):
-                walk(value, f"{prefix}{name}.")
-            elif isinstance(value, list):
-                if len(value) <= 8 and all(v is None or isinstance(v, (bool, int, float, str)) for v in value):
-                    out[f"params.{prefix}{name}"] = json.dumps(value)
-            else:
-                out[f"params.{prefix}{name}"] = value
-    walk(node, "")
-    return out
-
-
-def run_metrics(info: dict) -> dict:
-    """{"metrics.<name>": value}: the key numbers and statuses of run.json's summary, flattened
-    (closed_loop_rate, _low, _high; xi_mean[i]; closed_loop_failed_fraction, ...) and seconds."""
-    s = info.get("summary") or {}
-    out = {}
-    for name, value in s.items():
-        if name in _NOT_METRICS:
-            continue
-        if name.endswith("_rate") and isinstance(value, list) and len(value) == 3:
-            out[name], out[f"{name}_low"], out[f"{name}_high"] = value
-        elif isinstance(value, dict):
-            out |= {f"{name}_{k}": v for k, v in value.items()}
-        elif isinstance(value, list):
-            out |= {f"{name}[{i}]": v for i, v in enumerate(value)}
-        else:
-            out[name] = value
-    for loop in ("closed_loop", "open_loop"):
-        if f"{loop}_status" in s:
-            out.setdefault(f"{loop}_failed_fraction", 0.0)
-    out["seconds"] = info.get("seconds")
-    return {f"metrics.{k}": (np.nan if v is None else v) for k, v in out.items()}
-
-
 def search(root=DEFAULT_ROOT, where: str | None = None) -> pd.DataFrame:
-    """One row per run under root (oldest first), like MLflow's search_runs: id, sweep (its config
-    name), sweep_id (its directory), job, status, created, code (version), config_hash, dir,
-    `metrics.<name>` (key numbers of run.json's summary, `run_metrics`) and `params.<dotted.key>`
-    (every resolved scalar config value, `run_params`).
+    """One row per run under root (oldest first), like MLflow's search_runs: the run's identity (id,
+    sweep (its config name), sweep_id (its directory), job, status, plant, model, method,
+    overrides, reused_from, created, code (version), config_hash, dir), `metrics.<name>` (key numbers
+    of run.json's summary) and `params.<dotted.key>` (every resolved scalar config value); see
+    `rdsexp.experiment.store.table`.
 
     where: a filter over these columns, e.g. ``"params.enkf.q_scale >= 1 and metrics.lam < 0.9"``
     (pandas query syntax; `=` also compares; a name without its params./metrics. prefix is found)."""
-    rows = []
-    for run_dir, info in find_runs(Path(root)):
-        sweep = info.get("sweep") or {}
-        rows.append({"id": info.get("id"), "sweep": sweep.get("name"),
-                     "sweep_id": Path(sweep["dir"]).name if sweep.get("dir") else None, "job": sweep.get("job"),
-                     "status": info.get("status"), "created": info.get("created"),
-                     "code": (info.get("code") or {}).get("version"), "config_hash": info.get("config_hash"),
-                     "dir": str(run_dir), **run_metrics(info), **run_params(run_dir)})
-    table = pd.DataFrame(rows, columns=BASE if not rows else None)
-    if len(table):
-        metrics = [c for c in table.columns if c.startswith("metrics.")]
-        params = sorted(c for c in table.columns if c.startswith("params."))
-        table = table[BASE + metrics + params]
-        table["job"] = table["job"].astype("Int64")
+    table = RunStore(root).table(params=True)
     return query(table, where) if where else table
 
 
@@ -183,7 +79,7 @@ def _name(table: pd.DataFrame, token: str) -> str:
 
 def changed(table: pd.DataFrame) -> list[str]:
     """The params columns whose value is not the same in every row (like `dvc exp show`)."""
-    return [c for c in table.columns if c.startswith("params.") and table[c].astype(str).nunique() > 1]
+    return changed_params(table)
 
 
 def load(run, table: str, long: bool = False, root=DEFAULT_ROOT) -> pd.DataFrame:
@@ -195,11 +91,11 @@ def load(run, table: str, long: bool = False, root=DEFAULT_ROOT) -> pd.DataFrame
     (quantity "x_filt_mean", index i of the column "x_filt_mean[i]"; the gain in use "F[i,j]": quantity
     "F<i>", index j)."""
     run_dir = Path(run["dir"]) if isinstance(run, pd.Series) else locate(str(run), Path(root))
-    info = store.read_run(run_dir)
+    info = read_run(run_dir)
     tables = info.get("tables") or {}
     if table not in tables:
         raise ValueError(f"table {table!r}: run {info.get('id')} has {', '.join(tables) or 'no tables'}")
-    frame = store.read_table(run_dir, info, table)         # checked against run.json's hash
+    frame = read_table(run_dir, info, table)         # checked against run.json's hash
     frame.insert(0, "run", info.get("id"))
     if not long:
         return frame
@@ -216,27 +112,13 @@ def load(run, table: str, long: bool = False, root=DEFAULT_ROOT) -> pd.DataFrame
 
 def locate(run: str, root: Path = DEFAULT_ROOT) -> Path:
     """A run directory from a path or an id; LookupError with one line if there is none."""
-    path = Path(run)
-    if (path / "run.json").exists():
-        return path
-    matches = [p for p, info in find_runs(root) if info.get("id") == run or p.name == run]
-    if len(matches) != 1:
-        raise LookupError(f"{'no' if not matches else 'more than one'} run {run!r} under {root}")
-    return matches[0]
+    return RunStore(root).locate(run)
 
 
 def locate_sweep(sweep: str, root: Path = DEFAULT_ROOT) -> Path | None:
     """A sweep directory from its path, its directory name, or its config name (the latest sweep of
     that name); None if `sweep` names no sweep."""
-    path = Path(sweep)
-    if path.is_dir() and not (path / "run.json").exists() and (
-            (path / "multirun.yaml").exists() or any(path.glob("*/run.json"))):
-        return path
-    runs = find_runs(root)
-    dirs = [p.parent for p, info in runs if str(info.get("id") or "").startswith(f"{sweep}/")]
-    if not dirs:
-        dirs = [p.parent for p, info in runs if (info.get("sweep") or {}).get("name") == sweep]
-    return dirs[-1] if dirs else None
+    return RunStore(root).locate_sweep(sweep)
 
 
 def diff(a: str, b: str, root=DEFAULT_ROOT) -> pd.DataFrame:
@@ -247,7 +129,7 @@ def diff(a: str, b: str, root=DEFAULT_ROOT) -> pd.DataFrame:
     their values, the jobs' statuses, and every metric that differs between jobs with the same swept
     values (key "metric @ param=value, ...")."""
     root = Path(root)
-    sweeps = [locate_sweep(x, root) if not (Path(x) / "run.json").exists() else None for x in (a, b)]
+    sweeps = [locate_sweep(x, root) if not layout.is_run(Path(x)) else None for x in (a, b)]
     if all(sweeps):
         return _diff_sweeps(search(sweeps[0]), search(sweeps[1]))
     one, two = (search(locate(x, root).parent).pipe(lambda t, x=x: t[t["dir"] == str(locate(x, root))])
@@ -255,7 +137,7 @@ def diff(a: str, b: str, root=DEFAULT_ROOT) -> pd.DataFrame:
     keys = [c for c in [*one.columns, *two.columns] if c.startswith(("params.", "metrics."))]
     rows = _diff_rows(one.iloc[0], two.iloc[0], [*sorted(keys, key=lambda c: not c.startswith("params.")),
                                                  "code"], skip=("metrics.seconds",))
-    tables = {x: records.read_json(locate(x, root) / "run.json").get("tables") or {} for x in (a, b)}
+    tables = {x: read_run(locate(x, root)).get("tables") or {} for x in (a, b)}
     for name in sorted(set(tables[a]) | set(tables[b])):
         ha, hb = ((tables[x].get(name) or {}).get("sha256") for x in (a, b))
         if ha != hb:
@@ -309,29 +191,6 @@ def _diff_sweeps(ta: pd.DataFrame, tb: pd.DataFrame) -> pd.DataFrame:
     return pd.DataFrame(rows, columns=["what", "key", "a", "b"])
 
 
-def write_sweep_summary(sweep_dir: Path) -> Path:
-    """Rebuild <sweep>/summary.parquet (and .csv) from the jobs' run.json files on disk.
-
-    Jobs finishing at once (joblib, Ray, Slurm workers) rebuild one after the other under a lock on
-    <sweep>/.summary.lock, so the last rebuild has seen every job that finished before it: without
-    it a slow rebuild could overwrite a newer one with fewer jobs."""
-    import fcntl
-    path = Path(sweep_dir) / "summary.parquet"
-    try:
-        lock = open(Path(sweep_dir) / ".summary.lock", "a")
-    except OSError as err:
-        raise records.WriteError(path, err) from err
-    with lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)
-        table = catalog(sweep_dir)
-        if len(table):
-            table.insert(0, "job", [int(Path(d).name) if Path(d).name.isdigit() else -1 for d in table["dir"]])
-            table = table.sort_values("job", ignore_index=True)
-        records.write_table(path, table)
-        records.atomic_write_bytes(path.with_suffix(".csv"), table.to_csv(index=False).encode())
-    return path
-
-
 def compare_tables(stored: pd.DataFrame, fresh: pd.DataFrame) -> list[str]:
     """Differences between two versions of a table, column by column; [] when identical."""
     problems = []
@@ -357,15 +216,15 @@ def verify(run_dir: Path) -> bool:
     file (missing, unreadable, modified after the run) is reported as such and fails verify."""
     from .config import build
     from .pipeline import run_experiment
-    info = store.read_run(run_dir)
-    damaged = store.run_damage(run_dir, info)
+    info = read_run(run_dir)
+    damaged = run_damage(run_dir, info)
     for problem in damaged:
         print(f"damaged: {run_dir / problem}")
-    if not (run_dir / ".hydra" / "config.yaml").is_file():
-        print("verify: cannot re-run without .hydra/config.yaml (damaged)")
+    if not (run_dir / layout.HYDRA_CONFIG).is_file():
+        print(f"verify: cannot re-run without {layout.HYDRA_CONFIG} (damaged)")
         return False
-    cfg = OmegaConf.load(run_dir / ".hydra" / "config.yaml")
-    code = records.code_version()["version"]
+    cfg = OmegaConf.load(run_dir / layout.HYDRA_CONFIG)
+    code = provenance.code_version()["version"]
     if code != (info.get("code") or {}).get("version"):
         print(f"note: the run was made with code {(info.get('code') or {}).get('version')}, this is {code}")
     outcome = run_experiment(build(cfg))
@@ -373,8 +232,8 @@ def verify(run_dir: Path) -> bool:
     for name in (info.get("tables") or {}):
         fresh = outcome.tables.get(name)
         try:        # a modified table is reported damaged above; its differences are shown too
-            stored = store.read_table(run_dir, info, name, check_hash=False)
-        except store.DamagedRecord as err:
+            stored = read_table(run_dir, info, name, check_hash=False)
+        except DamagedRecord as err:
             print(f"{name:15s} DAMAGED: {err.path.name}: {err.reason}")
             ok = False
             continue
@@ -391,7 +250,7 @@ def check(root: Path, move: bool = False) -> int:
     """`rdsexp-runs check [DIR] [--quarantine]`: list every damaged or inconsistent record under a
     store; with `move`, quarantine them and rebuild the summaries concerned. Exit code: 1 when
     something was found and left in place, else 0."""
-    findings = store.check(root)
+    findings = RunStore(root).check()
     for finding in findings:
         print(finding.line())
     if not findings:
@@ -399,9 +258,9 @@ def check(root: Path, move: bool = False) -> int:
         return 0
     if not move:
         print(f"check: {root}: {len(findings)} damaged or inconsistent; `--quarantine` moves the damaged records "
-              f"to {Path(root) / store.QUARANTINE} and rebuilds the summaries")
+              f"to {Path(root) / layout.QUARANTINE} and rebuilds the summaries")
         return 1
-    moves, rebuilt = store.quarantine(root, findings)
+    moves, rebuilt = RunStore(root).quarantine(findings)
     for source, target in moves:
         print(f"moved {source} -> {target}")
     for path in rebuilt:
@@ -467,7 +326,7 @@ def _command(args) -> int:
         print(differences.to_string(index=False) if len(differences) else "no differences")
         return 0
     root = Path(args.root)
-    sweep = locate_sweep(args.run, root) if not (Path(args.run) / "run.json").exists() else None
+    sweep = locate_sweep(args.run, root) if not layout.is_run(Path(args.run)) else None
     if args.command == "view":
         return view(sweep if sweep is not None else locate(args.run, root))
     if sweep is not None and args.command == "show":
@@ -475,18 +334,18 @@ def _command(args) -> int:
         return 0
     run_dir = locate(args.run, root)
     try:
-        info = store.read_run(run_dir)
-    except store.DamagedRecord as err:
+        info = read_run(run_dir)
+    except DamagedRecord as err:
         print(f"rdsexp.runs: damaged: {err}", file=sys.stderr)
         return 1
     if args.command == "show":
         print(OmegaConf.to_yaml({k: v for k, v in info.items() if k not in ("environment", "traceback")}))
-        for problem in store.run_damage(run_dir, info) if info.get("status") == "complete" else []:
+        for problem in run_damage(run_dir, info) if info.get("status") == "complete" else []:
             print(f"damaged: {run_dir / problem}")
         if "metrics" in (info.get("tables") or {}):
             try:
-                print(store.read_table(run_dir, info, "metrics").to_string(index=False))
-            except store.DamagedRecord:
+                print(read_table(run_dir, info, "metrics").to_string(index=False))
+            except DamagedRecord:
                 pass                                  # named above
         return 0
     return 0 if verify(run_dir) else 1
@@ -506,14 +365,14 @@ def show_sweep(sweep_dir: Path) -> None:
     """The sweep's directory, name, command-line overrides, job statuses and per job the swept params
     and key metrics."""
     table = search(sweep_dir)
-    cfg = OmegaConf.load(sweep_dir / "multirun.yaml") if (sweep_dir / "multirun.yaml").exists() else None
+    cfg = OmegaConf.load(sweep_dir / layout.MULTIRUN) if (sweep_dir / layout.MULTIRUN).exists() else None
     overrides = list(OmegaConf.select(cfg, "hydra.overrides.task") or []) if cfg is not None else []
     names = sorted(set(table["sweep"].dropna())) if len(table) else []
     print(f"sweep {sweep_dir.name}: {', '.join(names) or 'unnamed'}, {len(table)} jobs "
           f"({', '.join(f'{n} {s}' for s, n in table['status'].value_counts().items()) if len(table) else 'none'})")
     print(f"  directory: {sweep_dir}")
     print(f"  overrides: {' '.join(overrides) or '(none)'}")
-    if (sweep_dir / "summary.rrd").exists():
+    if (sweep_dir / layout.SUMMARY_RECORDING).exists():
         print(f"  view: rdsexp-runs view {sweep_dir}")
     if len(table):
         cols = ["job", "status", *changed(table), *(c for c in SHOWN if c in table.columns)]
@@ -523,7 +382,7 @@ def show_sweep(sweep_dir: Path) -> None:
 def view(target: Path) -> int:
     """Open a run's recording.rrd, or a sweep's summary.rrd, in the Rerun viewer; without a display
     (or without the `rerun` command) print the command instead."""
-    name = "recording.rrd" if (target / "run.json").exists() else "summary.rrd"
+    name = layout.RECORDING if layout.is_run(target) else layout.SUMMARY_RECORDING
     path = target / name
     if not path.exists():
         print(f"rdsexp-runs: no {name} in {target} (tracking.recording=false, or a sweep without a summary)",

@@ -56,7 +56,6 @@ COLUMNS: dict[str, dict[str, tuple[str, str | None]]] = {
         "status": ("design status (optimal, designed, infeasible, not_applicable, failed: ...)", None),
         "lam": ("decay rate lambda the design reports (mean-square rate on its moments)", "1/step"),
         "lam_lower": ("certified lower end of the bisection bracket on lambda", "1/step"),
-        "lower_certified": ("whether lam_lower is proven (SDP-free bound of policy iteration)", None),
         "nbar": ("rank of Gbar (number of independent random directions)", None),
         "rate_model": ("exact mean-square rate of F on the design moments", "1/step"),
         "rate_plant": ("exact mean-square rate of F on the true plant distribution", "1/step"),

@@ -11,9 +11,11 @@ from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
-from .config import ConfigError, build, check_overrides
-from .records import WriteError, atomic_write_bytes
-from .runs import write_sweep_summary
+from ..errors import ConfigError, RunExit, WriteError
+from .config import build, check_overrides
+from .store import write_sweep_summary
+from .store.files import atomic_write_bytes
+from .store.layout import SUMMARY_CSV
 
 _SWEEP_BARS: dict[int, tqdm] = {}      # the sweep's progress bar, in the process that launched it
 
@@ -66,7 +68,7 @@ def validate_sweep(points: list[list[str]]) -> None:
             build(cfg)
     except ConfigError as err:
         print(f"rdsexp: config error in sweep job {' '.join(overrides)}: {err}", file=sys.stderr)
-        sys.exit(2)
+        raise RunExit(2) from None
 
 
 class SweepSummary(Callback):
@@ -84,8 +86,6 @@ class SweepSummary(Callback):
         points = sweep_points(config)
         validate_sweep(points)            # a config error leaves nothing behind, not even the sweep dir
         writable_or_exit(Path(config.hydra.sweep.dir))
-        from .cli import STATE
-        STATE["started"] = True           # from here on, Hydra's errors are not config errors (exit 1, not 2)
         _SWEEP_BARS[os.getpid()] = tqdm(total=len(points), desc="sweep", unit="job", disable=None, file=sys.stderr)
 
     def on_job_end(self, config: DictConfig, job_return, **kwargs) -> None:
@@ -101,7 +101,7 @@ class SweepSummary(Callback):
             path = write_sweep_summary(Path(config.hydra.sweep.dir))
         except WriteError as err:
             print(f"rdsexp: {err}", file=sys.stderr)
-            sys.exit(1)
+            raise RunExit(1) from None
         print(f"sweep summary: {path}")
         try:                              # the sweep's own recording: metrics against the swept params
             from .recording import write_sweep_recording
@@ -114,8 +114,8 @@ class SweepSummary(Callback):
         if len(failed):
             counts = ", ".join(f"{n} {s}" for s, n in failed.items())
             print(f"rdsexp: sweep {path.parent}: {failed.sum()} of {len(status)} jobs did not complete ({counts}); "
-                  f"see {path.with_suffix('.csv')}", file=sys.stderr)
-            sys.exit(1)
+                  f"see {path.with_name(SUMMARY_CSV)}", file=sys.stderr)
+            raise RunExit(1)
 
 
 def writable_or_exit(directory: Path) -> None:
@@ -129,6 +129,4 @@ def writable_or_exit(directory: Path) -> None:
         reason = err.strerror if isinstance(err, OSError) and err.strerror else str(err)
         print(f"rdsexp: cannot write {directory}: {reason}" if isinstance(err, OSError) else f"rdsexp: {err}",
               file=sys.stderr)
-        from .cli import STATE
-        STATE["started"] = True           # a write error (exit 1), not a config error
-        sys.exit(1)
+        raise RunExit(1) from None

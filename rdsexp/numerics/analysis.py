@@ -55,7 +55,7 @@ def perron(Acl: np.ndarray, *, adjoint: bool = False, v0: np.ndarray | None = No
             (n * n, n * n), dtype=float, matvec=lambda x: (Acl @ x.reshape(n, n) @ AclT).sum(axis=0).ravel())
         start = None if v0 is None else (np.asarray(v0, dtype=float) / np.outer(scale, scale)).ravel()
         try:
-            # one eigenvalue (3x fewer products than two); only if it comes back complex (a complex
+            # one eigenvalue (fewer products than two); only if it comes back complex (a complex
             # pair of the same modulus as the real Perron root) are more asked for, to find the real one
             w, V = scipy.sparse.linalg.eigs(op, k=1, which="LM", tol=0, v0=start, maxiter=20 * n * n)
             if abs(w[0].imag) > 1e-9 * abs(w[0]):
@@ -72,9 +72,9 @@ def perron(Acl: np.ndarray, *, adjoint: bool = False, v0: np.ndarray | None = No
     i = close[np.argmin(np.abs(w[close].imag))]
     v = V[:, i].real
     if L is not None and w[i].imag == 0 and rho > 0:
-        # LAPACK's balanced eigenvectors can have residuals far above rounding on non-normal maps
-        # (seen: 6e-4 relative on an optimal loop of the paper's model); two steps of inverse iteration
-        # with the computed eigenvalue as shift restore a working-precision eigenvector
+        # LAPACK's balanced eigenvectors can have residuals far above rounding on non-normal maps;
+        # two steps of inverse iteration with the computed eigenvalue as shift restore a
+        # working-precision eigenvector
         try:
             with warnings.catch_warnings(), np.errstate(all="ignore"):  # an exactly singular shift gives a
                 warnings.simplefilter("ignore", scipy.linalg.LinAlgWarning)  # non-finite v, caught below
@@ -163,6 +163,23 @@ def empirical_rate_sq(b: np.ndarray, a: np.ndarray, span: int, level: float = 0.
     se = np.std(g, ddof=1) / np.sqrt(P) if P > 1 else np.inf
     z = stats.norm.ppf(0.5 + level / 2)
     return tuple(float(np.exp(v / span)) for v in (log_ratio, log_ratio - z * se, log_ratio + z * se))
+
+
+def rms_band(sq: np.ndarray, level: float = 0.95) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """sqrt(E||q_k||^2) over paths with its `level` interval, from sq = ||q_k||^2 (K+1, P) -> 3 x (K+1,).
+
+    At each k the mean is over the paths where ||q_k||^2 is finite. The interval is the delta-method
+    interval of log E||q_k||^2 (the standard error of the mean over paths divided by the mean),
+    mapped back through exp and the square root: positive on a log axis, and the same construction
+    as `empirical_rate_sq`'s interval of the rate. NaN where fewer than two paths are finite."""
+    sq = np.where(np.isfinite(sq), sq, np.nan)
+    count = np.sum(np.isfinite(sq), axis=1)
+    z = stats.norm.ppf(0.5 + level / 2)
+    with np.errstate(all="ignore"):       # steps where no path is finite give NaN, silently
+        mean = np.nansum(sq, axis=1) / count
+        se = np.sqrt(np.nansum((sq - mean[:, None]) ** 2, axis=1) / (count - 1) / count)
+        rel = np.where(count > 1, se / mean, np.nan)
+        return np.sqrt(mean), np.sqrt(mean * np.exp(-z * rel)), np.sqrt(mean * np.exp(z * rel))
 
 
 def rms(q: np.ndarray) -> np.ndarray:

@@ -141,8 +141,3 @@ def from_spec(spec: dict):
         raise ValueError(f"family {family} takes {{{', '.join(params[family])}}}, got {{{', '.join(spec)}}}")
     cls = {"normal": MomentModel, "uniform": Uniform, "bernoulli": Bernoulli, "discrete": Discrete}[family]
     return cls(**spec)
-
-
-def moments_of(dist) -> MomentModel:
-    """The MomentModel of a family (a MomentModel is its own)."""
-    return dist if isinstance(dist, MomentModel) else dist.moments

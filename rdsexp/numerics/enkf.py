@@ -25,8 +25,8 @@ sigma_a <- alpha sigma_f + (1 - alpha) sigma_a, by scaling the analysis anomalie
 
 Ensembles returned by `predict` and `update` are stored component-major: they are (..., M, n+p)
 views of (n+p, ..., M) arrays, so each component of all paths and members is one contiguous block
-and the elementwise work runs as single long loops (with the n+p = 9 numbers of a member
-contiguous it is several times slower). Inputs may be stored in any layout.
+and the elementwise work runs as single long loops instead of short strided ones over the n+p
+numbers of each member. Inputs may be stored in any layout.
 """
 from __future__ import annotations
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.signal
 
+from ..errors import one_line
 from .synthesis.base import SynthesisResult
 from .systems import MomentModel
 
@@ -102,9 +103,3 @@ def nominal_gain(model, xi_guess) -> SynthesisResult:
         if result.F is not None and np.all(np.isfinite(result.F)) and result.lam < 1:
             return result
     return result
-
-
-def one_line(err: BaseException) -> str:
-    """An exception as one line: its type and the first line of its message."""
-    text = str(err).strip().splitlines()
-    return f"{type(err).__name__}: {text[0] if text else ''}".rstrip(": ")

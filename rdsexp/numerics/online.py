@@ -23,8 +23,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..errors import one_line
 from .analysis import DENSE_MAX_N, perron
-from .modeling import one_line
 from .synthesis import METHODS, check_options, synthesize
 from .systems import AffineRandomSystem, MomentModel
 
@@ -139,7 +139,7 @@ def _perron_symmetric(S: np.ndarray, start: np.ndarray) -> tuple[np.ndarray, np.
     """Largest real eigenvalue (U,) and an eigenvector (U, d) of each S (U, d, d).
 
     The eigenvalues alone, then two steps of inverse iteration from `start` (vec(I), which is not
-    orthogonal to the PSD Perron eigenvector): 5x faster than all eigenvectors of the stack. Where
+    orthogonal to the PSD Perron eigenvector), cheaper than all eigenvectors of the stack. Where
     the shifted system is singular to working precision (e.g. rho = 0), all eigenvectors instead."""
     rho = np.linalg.eigvals(S).real.max(axis=1)
     scale = np.abs(S).max(axis=(1, 2))
@@ -176,7 +176,7 @@ def policy_iteration_batch(Abar: np.ndarray, Bbar: np.ndarray, F0: np.ndarray, *
         Acl = Abar[idx] + Bbar[idx] @ F[idx, None]
         L = np.einsum("jrab,jrcd->jbdac", Acl, Acl).reshape(-1, n * n, n * n)   # vec(Acl^T X Acl), row-major
         # Perron root from the eigenvalues only, its eigenvector by two steps of inverse iteration
-        # from vec(I) (which is not orthogonal to it): 5x faster than eigenvectors of the whole stack
+        # from vec(I) (which is not orthogonal to it), cheaper than eigenvectors of the whole stack,
         # on symmetric X only (`symmetric_part`)
         S, back = symmetric_part(L, n)
         rho, v = _perron_symmetric(S, np.eye(n)[np.triu_indices(n)])

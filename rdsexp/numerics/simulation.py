@@ -199,7 +199,7 @@ def simulate(plant: AffineRandomSystem, enkf: EnKF, *, F=None, d, q0, psi0, P0=N
             fail(~np.all(np.abs(mean_pred) <= bound, axis=1), k, "filter_diverged")
             q[~alive], psi[~alive], mean_pred[~alive] = 0.0, 0.0, 0.0    # no overflow on failed paths
             # eq. (sf-enkf) + d_k, one product per path: the rounding of a single (P, n) @ (n, m)
-            # product depends on P (paths=1 gave other last bits)
+            # product depends on P
             u = (F @ mean_pred[:, :model.n, None])[..., 0] + d[k]
             u_filter = u if filter_sees_d else u - d[k]
             y = (C_s[k] @ q[..., None])[..., 0] + (D_s[k] @ u[..., None])[..., 0]

@@ -6,8 +6,6 @@ names the runs, the hashes of the tables drawn from, the script and the code ver
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from functools import cached_property
 from pathlib import Path
 
 import matplotlib
@@ -18,7 +16,9 @@ import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 from omegaconf import OmegaConf  # noqa: E402
 
-from ..experiment import records, store  # noqa: E402
+from ..errors import DamagedRecord, LineageError  # noqa: E402
+from ..experiment.store import Run, RunStore, files, provenance  # noqa: E402
+from ..numerics.analysis import rms_band  # noqa: E402
 
 COLUMN_WIDTH, PAGE_WIDTH = 3.5, 7.16        # IEEE column and page widths, inches
 STYLE = {"font.size": 8, "axes.titlesize": 8, "axes.labelsize": 8, "legend.fontsize": 7, "xtick.labelsize": 7,
@@ -30,75 +30,20 @@ STYLE = {"font.size": 8, "axes.titlesize": 8, "axes.labelsize": 8, "legend.fonts
 matplotlib.rcParams.update(STYLE)
 
 
-class LineageError(RuntimeError):
-    """Runs that must not be mixed (different code versions), tables that changed after the run, or
-    no stored runs where a script needs them."""
-
-
 def script(main) -> None:
     """Run a report script's main: a LineageError ends it with one line on stderr and exit code 1."""
     import sys
     try:
         main()
-    except LineageError as err:
+    except (LineageError, DamagedRecord) as err:
         sys.exit(f"{Path(sys.argv[0]).name}: {err}")
-
-
-@dataclass
-class Run:
-    """A stored run directory: run.json, its composed config and its tables (read on demand)."""
-
-    dir: Path
-    used: dict = field(default_factory=dict)           # table name -> sha256, for lineage
-
-    @cached_property
-    def info(self) -> dict:
-        return records.read_json(self.dir / "run.json")
-
-    @cached_property
-    def config(self):
-        return OmegaConf.load(self.dir / ".hydra" / "config.yaml")
-
-    @property
-    def id(self) -> str:
-        return self.info["id"]
-
-    @property
-    def code(self) -> str:
-        return self.info["code"]["version"]
-
-    def get(self, key: str):
-        """Config value at a dotted key."""
-        return OmegaConf.select(self.config, key)
-
-    @property
-    def rate_window(self) -> tuple[int, int]:
-        """The closed-loop rate window (k_from, k_to) in steps, as the run resolved it (the config may
-        give fractions of the horizon)."""
-        k_from, k_to = self.info["summary"]["rate_window"]
-        return int(k_from), int(k_to)
-
-    def table(self, name: str, columns: list[str] | None = None) -> pd.DataFrame:
-        """A stored table (optionally some columns), verified against run.json's hash on first use."""
-        meta = self.info["tables"][name]
-        if name not in self.used:
-            full = pd.read_parquet(self.dir / meta["file"])
-            if records.table_hash(full) != meta["sha256"]:
-                raise LineageError(f"{self.dir / meta['file']}: content does not match the hash in run.json")
-            self.used[name] = meta["sha256"]
-            return full if columns is None else full[columns]
-        return pd.read_parquet(self.dir / meta["file"], columns=columns)
 
 
 def load_runs(root: Path, sweep: str | None = None) -> list[Run]:
     """Complete runs under root (optionally of one sweep name), the latest sweep of that name only.
     A damaged run (run.json or a table unreadable, missing or modified) is named in one warning
     line and left out."""
-    runs = []
-    for run_dir, info in sorted(store.intact_runs(root), key=lambda run: str(run[0])):
-        run = Run(run_dir)
-        run.info = info                                  # read once (cached_property)
-        runs.append(run)
+    runs = sorted(RunStore(root).intact(), key=lambda run: str(run.dir))
     runs = [r for r in runs if r.info.get("status") == "complete" and r.info.get("tables")]
     if sweep is not None:
         runs = [r for r in runs if (r.info.get("sweep") or {}).get("name") == sweep]
@@ -149,7 +94,7 @@ def lineage(runs: list[Run], script: str, **extra) -> dict:
     """What an output was drawn from: the runs whose tables it read (ids, table hashes), script, code version."""
     used = [r for r in runs if r.used]
     # an output computed from configs alone (no stored run, e.g. pole_sets) names the code that made it
-    version = check_versions(used, allow_mixed=True) if used else records.code_version()["version"]
+    version = check_versions(used, allow_mixed=True) if used else provenance.code_version()["version"]
     return {"script": script, "code_version": version,
             "runs": [{"id": r.id, "dir": str(r.dir), "tables": dict(sorted(r.used.items()))} for r in used], **extra}
 
@@ -164,8 +109,8 @@ def save_figure(fig, out_dir: Path, name: str, runs: list[Run], script: str, cap
     plt.close(fig)
     if caption:
         paths.append(out_dir / f"{name}.caption.md")
-        records.atomic_write_bytes(paths[-1], (caption.strip() + "\n").encode())
-    records.write_json(out_dir / f"{name}.json", lineage(runs, script, outputs=[p.name for p in paths]))
+        files.atomic_write_bytes(paths[-1], (caption.strip() + "\n").encode())
+    files.write_json(out_dir / f"{name}.json", lineage(runs, script, outputs=[p.name for p in paths]))
     return paths
 
 
@@ -196,15 +141,10 @@ def figure(width: float, height: float, nrows: int = 1, ncols: int = 1, **kw):
     return plt.subplots(nrows, ncols, figsize=(width, height), layout="constrained", **kw)
 
 
-def rms_with_band(q: np.ndarray, level_z: float = 1.96) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """sqrt(E||q_k||^2) over paths with a 95% band: q (K+1, P, n) -> 3 x (K+1,).
-
-    The band is the delta-method interval of log E||q_k||^2 (se / mean), so it stays positive on a
-    log axis."""
-    sq = np.sum(q ** 2, axis=-1)
-    mean = sq.mean(axis=1)
-    rel = sq.std(axis=1, ddof=1) / np.sqrt(sq.shape[1]) / mean
-    return np.sqrt(mean), np.sqrt(mean * np.exp(-level_z * rel)), np.sqrt(mean * np.exp(level_z * rel))
+def rms_with_band(q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """sqrt(E||q_k||^2) over paths with its 95% band: q (K+1, P, n) -> 3 x (K+1,) (`analysis.rms_band`,
+    the band the recording shows too)."""
+    return rms_band(np.sum(q ** 2, axis=-1))
 
 
 def trajectory_array(table: pd.DataFrame, experiment: str, quantity: str) -> np.ndarray:
@@ -231,15 +171,15 @@ def seed_interval(values, level: float = 0.95) -> tuple[float, float, float, int
 def write_table(frame: pd.DataFrame, out_dir: Path, name: str, runs: list[Run], script: str, **extra) -> None:
     """A report table as CSV and markdown, with its lineage JSON (plus `extra` entries)."""
     out_dir.mkdir(parents=True, exist_ok=True)
-    records.atomic_write_bytes(out_dir / f"{name}.csv", frame.to_csv(index=False).encode())
-    records.atomic_write_bytes(out_dir / f"{name}.md", _markdown(frame).encode())
-    records.write_json(out_dir / f"{name}.json", lineage(runs, script, outputs=[f"{name}.csv", f"{name}.md"], **extra))
+    files.atomic_write_bytes(out_dir / f"{name}.csv", frame.to_csv(index=False).encode())
+    files.atomic_write_bytes(out_dir / f"{name}.md", _markdown(frame).encode())
+    files.write_json(out_dir / f"{name}.json", lineage(runs, script, outputs=[f"{name}.csv", f"{name}.md"], **extra))
 
 
 def write_caption(out_dir: Path, name: str, text: str) -> Path:
     """name.caption.md beside a table or figure: the sentence that says what it shows."""
     out_dir.mkdir(parents=True, exist_ok=True)
-    records.atomic_write_bytes(out_dir / f"{name}.caption.md", (text.strip() + "\n").encode())
+    files.atomic_write_bytes(out_dir / f"{name}.caption.md", (text.strip() + "\n").encode())
     return out_dir / f"{name}.caption.md"
 
 

@@ -17,9 +17,9 @@ class SynthesisResult:
     """A gain and how it was obtained.
 
     F: (m, n) gain for u = F x, or None if no gain was found. lam: the exact mean-square rate of F
-    on the design distribution (so lam is certified: it is achieved). lam_lower: a lower bound on
-    the optimal rate where the method gives one (policy iteration's SDP-free bound, also checking
-    the LMI bisections), else NaN; lower_certified: whether it is proven. nbar: rank of Gbar.
+    on the design distribution (so lam is certified: it is achieved). lam_lower: a proven lower
+    bound on the optimal rate where the method gives one (policy iteration's SDP-free bound, also
+    checking the LMI bisections), else NaN. nbar: rank of Gbar. seconds: wall time of `synthesize`.
     """
 
     method: str
@@ -28,7 +28,6 @@ class SynthesisResult:
     status: str
     nbar: int
     lam_lower: float = float("nan")
-    lower_certified: bool = True
     seconds: float = 0.0
     info: dict = field(default_factory=dict)
 

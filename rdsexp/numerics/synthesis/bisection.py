@@ -38,28 +38,34 @@ def certified_bisection(system: AffineRandomSystem, dist: MomentModel, solve: Ca
                         x_cond_limit: float = 1e6, bracket: tuple[float, float] | None = None) -> SynthesisResult:
     """Minimise lambda over an LMI family by bisection on lambda^2 with a certified upper end.
 
-    The upper end `lam` is always the exact rate of a gain in hand on `dist`: F = 0 (the open loop)
-    to start, then the gain of a solve whose exact rate confirms the trial lambda. Such a solve
-    slightly above the optimum returns a nearly optimal gain, so after each confirmed trial the next
-    one probes just below the new upper end (lam - tol); otherwise the interval is halved in
-    lambda^2. A trial whose gain does not confirm it raises the lower end (checked at the end).
+    The upper end `lam` is always the exact rate (`ms_rate`) on `dist` of a gain in hand: F = 0
+    (the open loop) to start, then the best gain any solve returned. A solve slightly above the
+    optimum returns a nearly optimal gain, so after each trial whose gain confirms it (exact rate
+    <= trial) the next one probes just below the upper end (lam - tol/2); otherwise the interval
+    is halved in lambda^2. A trial whose gain does not confirm it raises the lower end (checked at
+    the end).
 
     bracket (lower, upper): a certified bracket of the optimum from elsewhere (policy iteration's,
     whose lower end is proven without an SDP): the lower end is taken as proven, and one solve at
     upper + SEED_MARGIN returns a gain whose exact rate confirms the upper end, closing the bracket
     in one solve; where it does not, the bisection goes on from [lower, best rate in hand].
     (A solve just below the lower end cannot prove the LMI infeasible there: the solver's margin t
-    is within its accuracy, about 1e-9, of 0 on both sides of the optimum.)
+    is within its accuracy of 0 on both sides of the optimum, see `lmi.T_PROOF`.)
 
     A lower end the bisection set is checked: a trial whose gain does not confirm it need not be
     infeasible, and the solver's margin is a floating-point number near its accuracy where the
-    certificate X is ill-conditioned (seen: an "infeasible" LMI at 0.1647 on a mean model whose
-    infimum is 0, depending only on which factor of Gbar^T Gbar was used; and a probe just below
-    the upper end that failed to confirm it left a lower end above the true optimum). Policy
-    iteration started from the best gain gives an SDP-free proven lower bound (and its gain, where
-    it proves that gain optimal and it is better); the lower end is the largest proven bound
-    (info: lmi_lower, where the bisection had put it). Status `optimal` only when the proven
-    bracket is closed (within tol), `not_converged` when it is not.
+    certificate X is ill-conditioned, so neither proves a lower end. Policy iteration started from
+    the best gain gives an SDP-free proven lower bound (and its gain, where it proves that gain
+    optimal and it is better); the lower end is the largest proven bound (info: lmi_lower, where
+    the bisection had put it).
+
+    Returns lam (exact rate of F, so achieved) and lam_lower (proven: the bracket's, policy
+    iteration's or 0). Status `optimal` only when this proven bracket is closed (within tol);
+    `not_ms_stabilizable` when lam >= 1 and the lower end is >= 1 or the bracket is closed;
+    `solver_failed` when no solve gave a gain better than the open loop; `infimum_not_attained`
+    when the lower end is <= tol or the certificate X is ill-conditioned (cond > x_cond_limit)
+    without the solver's proof of infeasibility at the last unconfirmed trial; `not_converged`
+    otherwise. info: solves, cond_X, lmi_lower, gain_from_check.
     """
     best_F = np.zeros((system.m, system.n))
     lam = ms_rate(system, dist, best_F)
@@ -94,7 +100,7 @@ def certified_bisection(system: AffineRandomSystem, dist: MomentModel, solve: Ca
             lam, best_F = rate, check.F       # the optimum the LMI came within tol of: its rate is certified
             info["gain_from_check"] = True
         info["lmi_lower"] = lo
-        lo = min(max(proven, check.lam_lower if np.isfinite(check.lam_lower) else 0.0), lam)
+        lo = min(max(proven, check.lam_lower), lam)      # policy iteration's lam_lower is finite, >= 0
     if lam >= 1.0:                            # proven only by a lower end >= 1 or a closed bracket
         status = "not_ms_stabilizable" if lo >= 1.0 or lam - lo <= tol else "not_converged"
     elif best_X is None:

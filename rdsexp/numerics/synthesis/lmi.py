@@ -17,7 +17,7 @@ from ..systems import AffineRandomSystem, MomentModel
 from .bisection import Trial, certified_bisection
 from .riccati import BRACKET_TOL, policy_iteration
 
-T_PROOF = 1e-8       # the margin t must be below -T_PROOF to prove infeasibility: Clarabel is accurate to ~1e-9
+T_PROOF = 1e-8       # the margin t must be below -T_PROOF to prove infeasibility: above Clarabel's accuracy
 
 
 @lru_cache(maxsize=8)
@@ -91,7 +91,7 @@ def lmi_solver(system: AffineRandomSystem, dist: MomentModel) -> Callable[[float
 def _theorem2(system: AffineRandomSystem, dist: MomentModel, method: str, seed: bool = True, **settings):
     """Bisection over (lmi-syn) with the moments of `dist`; settings go to `certified_bisection`."""
     bracket = None
-    if seed:                    # policy iteration's certified bracket (milliseconds) seeds the bisection
+    if seed:                    # policy iteration's certified bracket (no SDP) seeds the bisection
         pi = policy_iteration(system, dist)
         if np.isfinite(pi.lam) and pi.lam - pi.lam_lower <= BRACKET_TOL * pi.lam:   # closed: optimal, or
             bracket = (pi.lam_lower, pi.lam)                                       # proven not ms-stabilizable
@@ -106,12 +106,10 @@ def proposed(system, dist, *, tol: float = 1e-7, max_iter: int = 60, x_cond_limi
 
     Only E[[1; xi][1; xi]^T] enters (through Gbar), so the covariance normalisation matters:
     `MomentModel.from_samples` uses 1/N, which makes Gbar^T Gbar the paper's eq. (sample-mean)
-    exactly. On the paper's printed moments (eqs. ex-mean, ex-covar) taken as the covariance,
-    lam = 0.844183 (paper: 0.8432); if the printed matrix is a 1/(N-1) covariance of N = 81
-    samples, the 1/N one is 80/81 of it and lam = 0.843610. Both within 2e-3 of the paper.
-    seed: start from policy iteration's certified bracket when it is closed, below 1 or above (one
-    solve, the lower end proven by policy iteration's SDP-free bound; see `certified_bisection`);
-    False runs the plain bisection. info: solves, seeded.
+    exactly. seed: start from policy iteration's certified bracket when it is closed, below 1 or
+    above (one solve, the lower end proven by policy iteration's SDP-free bound; see
+    `certified_bisection`, which gives the statuses, lam_lower and info); False runs the plain
+    bisection. info also has seeded.
     """
     return _theorem2(system, dist, "proposed", seed=seed, tol=tol, max_iter=max_iter, x_cond_limit=x_cond_limit)
 

@@ -32,7 +32,7 @@ def greedy_gain(Abar: np.ndarray, Bbar: np.ndarray, P: np.ndarray) -> np.ndarray
     """argmin_F E[(A + B F)^T P (A + B F)] = -S_bb^+ S_ba (m, n), the minimum-norm minimiser.
 
     Eigenvalues of (scaled) S_bb below KERNEL_TOL ||P|| are rounding of exact zeros (inputs that P
-    does not see, e.g. an uncontrollable mode): inverting them would give gains with entries of 1e14
+    does not see, e.g. an uncontrollable mode): inverting them would give gains with huge entries
     that change nothing in exact arithmetic but ruin every computation with them, so they are dropped."""
     n = Abar.shape[1]
     S, g = scaled_blocks(Abar, Bbar, P)
@@ -94,13 +94,14 @@ def policy_iteration(system, dist, *, max_iter: int = 200, tol: float = 1e-9, F0
     Since T_new(P) <= T_F(P) = lam^2 P, the rate does not increase (with P > 0); every P also gives
     a certified lower bound on the optimum (`rate_lower_bound`), tight at the fixed point.
 
-    Returned: the gain with the smallest exact rate seen (F = 0 or F0 included), lam its rate (the
-    Perron root of its second-moment map, computed on the balanced closed loop), lam_lower the best
-    certified lower bound. The iteration stops when (lam - lam_lower) / lam <= tol or the rate stops
-    decreasing. Status: `optimal` (lam < 1, relative bracket width below BRACKET_TOL),
-    `not_ms_stabilizable` (lam_lower >= 1 proves it, or lam >= 1 with a closed bracket),
-    `not_converged` (the bracket stays open after max_iter or once F stops improving: e.g. an
-    infimum that no gain attains; lam and lam_lower say how far apart). info: iterations.
+    Returned: the gain with the smallest exact rate seen (F = 0 or F0 included; never None), lam
+    its rate (the Perron root of its second-moment map, computed on the balanced closed loop),
+    lam_lower the best certified lower bound (a finite number >= 0). The iteration stops when
+    (lam - lam_lower) / lam <= tol or the rate stops decreasing. Status: `optimal` (lam < 1,
+    relative bracket width below BRACKET_TOL), `not_ms_stabilizable` (lam_lower >= 1 proves it, or
+    lam >= 1 with a closed bracket), `not_converged` (the bracket stays open after max_iter or once
+    F stops improving: e.g. an infimum that no gain attains; lam and lam_lower say how far apart).
+    info: iterations, rate_error.
     """
     Abar, Bbar = system.moment_factors(dist)
     n, m = system.n, system.m

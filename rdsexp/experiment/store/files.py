@@ -1,53 +1,27 @@
-"""Run records: the run directory, run.json and its provenance, atomic writes of tables, hashing.
+"""Files of the run store: atomic writes, read-only stored tables and recordings, content hashes.
 
-A run directory holds Hydra's `.hydra/`, `run.json` (status, timings, seeds, code version,
-environment, table hashes), parquet tables, `recording.rrd` and, when the working tree was dirty,
-`uncommitted.diff`. Every file is written to a temporary name and renamed, so a killed run leaves
-either a complete file or none; `run.json` says "incomplete" until the last table is in place, and
-records the process (pid, host, start time) so that a run whose process died can be told apart.
-
-Writing fails loudly: an `OSError` on the way becomes `WriteError` (one line), the temporary file
-is removed, nothing partial is left under a final name. Tables and recordings are stored read-only
-with the sha256 of their bytes in run.json (reused runs share them by hard link, see `link_or_copy`).
-Reading a store defensively (damaged records, the check walk, the reuse index) is `store`'s job.
+Every file is written to a temporary name (".<name>.<pid>.tmp") and renamed, so a killed run leaves
+either a complete file or none. Writing fails loudly: an `OSError` on the way becomes `WriteError`
+(one line), the temporary file is removed, nothing partial is left under a final name. Tables and
+recordings are stored read-only with the sha256 of their bytes (and of their content) in run.json;
+reused runs share them by hard link (`link_or_copy`).
 """
 from __future__ import annotations
 
-import datetime as dt
 import hashlib
 import io
 import json
 import os
-import platform
 import shutil
-import socket
-import subprocess
-import sys
-from importlib import metadata
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
-from .. import __version__
-
-PACKAGES = ("rdsexp", "numpy", "scipy", "cvxpy", "clarabel", "pandas", "pyarrow", "hydra-core",
-            "omegaconf", "rerun-sdk", "matplotlib", "tqdm")
-PACKAGE = Path(__file__).resolve().parents[1]
-REPO = PACKAGE.parent          # the repository root when rdsexp runs from a checkout
-
+from ...errors import WriteError
 
 READ_ONLY = 0o444
 TMP_SUFFIX = ".tmp"                 # temporary files are ".<name>.<pid>.tmp", renamed when complete
-
-
-class WriteError(RuntimeError):
-    """A write to the run store failed (disk full, permission denied, read-only file system)."""
-
-    def __init__(self, path: Path, err: BaseException):
-        reason = err.strerror if isinstance(err, OSError) and err.strerror else str(err)
-        super().__init__(f"cannot write {path}: {reason}")
-        self.path = Path(path)
 
 
 def tmp_name(path: Path) -> Path:
@@ -208,77 +182,9 @@ class ParquetSink:
         self.writers = {}
 
 
-def config_hash(job_config: dict) -> str:
-    """sha256 of the resolved job config (canonical JSON), the identity of what a run computes."""
-    return hashlib.sha256(json.dumps(job_config, sort_keys=True, default=str).encode()).hexdigest()
-
-
-def _git(*args: str) -> str | None:
-    try:
-        out = subprocess.run(["git", "-C", str(REPO), *args], capture_output=True, text=True, timeout=10)
-    except (OSError, subprocess.TimeoutExpired):
-        return None
-    return out.stdout if out.returncode == 0 else None
-
-
-def code_version() -> dict:
-    """Git commit of the rdsexp source, dirty flag, the uncommitted diff and a version string.
-
-    version = commit, plus "+" and a hash of the diff when dirty, so two runs share a version
-    exactly when they ran the same code (untracked files under outputs/ are ignored by git).
-    An installed copy (not a checkout, e.g. `pip install .`) has version "rdsexp==<__version__>".
-    """
-    top = (_git("rev-parse", "--show-toplevel") or "").strip()
-    if not top or Path(top).resolve() != REPO:        # installed: the enclosing repository, if any, is not ours
-        return {"commit": None, "dirty": False, "version": f"rdsexp=={__version__}", "diff": ""}
-    commit = (_git("rev-parse", "HEAD") or "").strip() or None
-    status = _git("status", "--porcelain", "--untracked-files=no")
-    diff = _git("diff", "HEAD") or ""
-    dirty = bool(status and status.strip())
-    version = (commit or "unknown") + ("+" + hashlib.sha256(diff.encode()).hexdigest()[:12] if dirty else "")
-    return {"commit": commit, "dirty": dirty, "version": version, "diff": diff if dirty else ""}
-
-
-def environment() -> dict:
-    """Python, host, package versions and BLAS threading of this process."""
-    versions = {}
-    for name in PACKAGES:
-        try:
-            versions[name] = metadata.version(name)
-        except metadata.PackageNotFoundError:
-            versions[name] = None
-    try:
-        from threadpoolctl import threadpool_info
-        blas = [{k: info.get(k) for k in ("internal_api", "num_threads", "version")} for info in threadpool_info()]
-    except ImportError:
-        blas = None
-    threads = {v: os.environ.get(v) for v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")}
-    return {"python": sys.version.split()[0], "platform": platform.platform(), "host": socket.gethostname(),
-            "cpu_count": os.cpu_count(), "packages": versions, "blas": blas, "thread_env": threads}
-
-
 def read_json(path: Path) -> dict:
     with open(path) as fh:
         return json.load(fh)
-
-
-def start_time(pid: int) -> str | None:
-    """The start time of a process (Linux /proc, clock ticks since boot), None where unknown."""
-    try:
-        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[19]
-    except (OSError, IndexError):
-        return None
-
-
-def process_info() -> dict:
-    """This process as run.json records it: pid, host and start time (a reused pid is told apart)."""
-    pid = os.getpid()
-    return {"pid": pid, "host": socket.gethostname(), "start": start_time(pid)}
-
-
-def now() -> str:
-    """UTC time stamp of run.json, to the millisecond."""
-    return dt.datetime.now(dt.UTC).isoformat(timespec="milliseconds")
 
 
 def link_or_copy(source: Path, target: Path) -> None:

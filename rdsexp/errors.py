@@ -1,0 +1,59 @@
+"""rdsexp's exception types and the one-line form of any exception.
+
+Errors are for what must stop before or outside the computation (a bad configuration, a store that
+cannot be written or read); a numerical outcome (divergence, an infeasible LMI, a method that does
+not apply) is a status in a result, never an exception (docs/design.md). Every message is one line
+that names the thing (config key, file) and the reason, so that the command line can print it as
+it is. The command line maps each type to its exit code (`rdsexp.experiment.failures`).
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+
+def one_line(err: BaseException, with_type: bool = True) -> str:
+    """An exception as one line: its type (unless `with_type` is False) and its message's first line."""
+    lines = str(err).strip().splitlines()
+    text = lines[0] if lines else ""
+    if not with_type:
+        return text or type(err).__name__
+    return f"{type(err).__name__}: {text}".rstrip(": ")
+
+
+class ConfigError(ValueError):
+    """A configuration value that rdsexp cannot run with (one line: key, value, what is allowed)."""
+
+
+class WriteError(RuntimeError):
+    """A write to the run store failed (disk full, permission denied, read-only file system)."""
+
+    def __init__(self, path: Path, err: BaseException):
+        reason = err.strerror if isinstance(err, OSError) and err.strerror else str(err)
+        super().__init__(f"cannot write {path}: {reason}")
+        self.path = Path(path)
+
+
+class DamagedRecord(Exception):
+    """A stored record that cannot be read as written (one line: path and reason)."""
+
+    def __init__(self, path: Path, reason: str):
+        super().__init__(f"{path}: {reason}")
+        self.path, self.reason = Path(path), reason
+
+
+class LineageError(RuntimeError):
+    """Runs that must not be mixed (different code versions), tables that changed after the run, or
+    no stored runs where a report script needs them."""
+
+
+class StageError(RuntimeError):
+    """An unexpected exception inside a stage of a run (`cause`), with the innermost stage's name."""
+
+    def __init__(self, stage: str, cause: BaseException):
+        super().__init__(f"stage {stage}: {one_line(cause)}")
+        self.stage, self.cause = stage, cause
+
+
+class RunExit(SystemExit):
+    """The command line ends with this exit code after the run or sweep has started (1), or before
+    it with a configuration error (2); any other exit of Hydra's is a configuration error."""

@@ -1,0 +1,41 @@
+"""The one failure wrapper: an exception that ends a run becomes its status and exit code.
+
+A numerical failure is never an exception (it is a status inside the tables); what reaches here is
+a configuration the run cannot use, a store it cannot write, or a bug in a stage. The command line
+records the status in run.json, prints `message` and exits with `exit_code`; a sweep records it
+and goes on with the next job.
+
+    ConfigError   config_error   exit 2   "config error: <key>: <value> is not allowed, ..."
+    WriteError    write_error    exit 1   "cannot write <path>: <reason>"
+    StageError    error          exit 1   "stage <name>: <type>: <first line>", traceback kept
+    other         error          exit 1   "stage run: <type>: <first line>", traceback kept
+"""
+from __future__ import annotations
+
+import traceback
+from dataclasses import dataclass
+
+from ..errors import ConfigError, StageError, WriteError, one_line
+
+
+@dataclass(frozen=True)
+class Failure:
+    """How a run ended when it did not complete: run.json's status, the exit code of a single run,
+    a one-line message and, for an unexpected error, the traceback (kept in run.json and the log)."""
+
+    status: str
+    exit_code: int
+    message: str
+    traceback: str | None = None
+
+
+def failure(err: Exception) -> Failure:
+    """The Failure of an exception that ended a run (see the module's table)."""
+    if isinstance(err, ConfigError):
+        return Failure("config_error", 2, f"config error: {err}")
+    if isinstance(err, WriteError):
+        return Failure("write_error", 1, str(err))
+    trace = "".join(traceback.format_exception(err))
+    if isinstance(err, StageError):
+        return Failure("error", 1, str(err), trace)
+    return Failure("error", 1, f"stage run: {one_line(err)}", trace)

@@ -1,0 +1,156 @@
+"""One run: a composed config validated, computed through the stage pipeline and recorded in its
+run directory (run.json "incomplete" first, then the tables, the recording and the final run.json).
+
+A library function: it returns run.json's content or raises (see `failures`); the command line
+(`cli`) prints and chooses the exit code.
+"""
+from __future__ import annotations
+
+import dataclasses
+import logging
+from pathlib import Path
+
+import numpy as np
+from hydra.core.hydra_config import HydraConfig
+from hydra.types import RunMode
+from omegaconf import DictConfig, OmegaConf
+
+from ..errors import WriteError
+from .config import Experiment, build, check_overrides
+from .pipeline import SPAWN_KEYS, TABLES, Outcome, run_experiment, timed
+from .schema import attach
+from .store import RunStore, RunWriter, layout, provenance
+
+log = logging.getLogger("rdsexp")
+
+
+def record(writer: RunWriter, outcome: Outcome, exp: Experiment, info: dict, streamed: dict) -> dict:
+    """Write the remaining tables, the recording and the final run.json of the run; `streamed`:
+    the tables the pipeline already wrote through a ParquetSink. Returns the run.json content."""
+    timings = dict(outcome.timings)
+    with timed(timings, "tables"):
+        hashes = writer.store_tables({name: attach(name, table, info["id"])       # attach: schema metadata
+                                      for name, table in outcome.tables.items()})
+        hashes = dict(sorted((hashes | streamed).items(), key=lambda item: _table_order(item[0])))
+    with timed(timings, "recording"):
+        if exp.recording:
+            from .recording import write_recording  # rerun is imported only when recording
+            entry = writer.store_recording(lambda tmp: write_recording(
+                tmp, outcome.recorded, recording_id=info["id"], members=outcome.recorded_members,
+                tables=outcome.tables, summary=outcome.summary, squares=outcome.squares,
+                window=(exp.K0, exp.K0 + exp.K1), **true_xi(exp)))
+            if entry is not None:
+                info["recording"] = entry
+            else:                                   # RERUN=off in the environment: rerun wrote nothing
+                log.info("no recording: Rerun is disabled (RERUN=off)")
+    info.update(status="complete", finished=provenance.now(), summary=outcome.summary, tables=hashes,
+                timings=timings, seconds=round(sum(v for v in timings.values() if isinstance(v, float)), 3))
+    return writer.finish(info)
+
+
+class _Described:
+    """The pipeline's sink for the streamed tables, each chunk with the table's schema metadata."""
+
+    def __init__(self, sink, run: str):
+        self.sink, self.run = sink, run
+
+    def append(self, name: str, rows) -> None:
+        self.sink.append(name, attach(name, rows, self.run))
+
+
+def true_xi(exp: Experiment) -> dict:
+    """The plant's xi in the model's terms, T s + t (`truth_map`): {"xi_true": mean (p,), "xi_true_std":
+    standard deviations (p,)}, empty if there is no such map."""
+    from ..numerics.enkf import truth_map
+    truth = truth_map(exp.model, exp.plant)
+    if truth is None:
+        return {}
+    T, t = truth
+    dist = exp.plant.check_distribution(None)
+    return {"xi_true": T @ dist.mean + t, "xi_true_std": np.sqrt(np.maximum(np.diag(T @ dist.cov @ T.T), 0.0))}
+
+
+def _table_order(name: str) -> int:
+    return TABLES.index(name) if name in TABLES else len(TABLES)
+
+
+def run_info(run_dir: Path, job_config: dict, seed: int) -> tuple[dict, str]:
+    """The provenance part of run.json, known before any compute, and the uncommitted diff."""
+    code = provenance.code_version()
+    hc = HydraConfig.get() if HydraConfig.initialized() else None
+    multirun = hc is not None and hc.mode == RunMode.MULTIRUN
+    return {
+        "id": run_dir.name if not multirun else f"{Path(hc.sweep.dir).name}/{run_dir.name}",
+        "status": "incomplete", "created": provenance.now(),
+        "command": " ".join(["python -m rdsexp", *(hc.overrides.task if hc else [])]),
+        "overrides": list(hc.overrides.task) if hc else [],
+        "sweep": {"dir": str(Path(hc.sweep.dir).resolve()), "job": int(hc.job.num),
+                  "name": hc.runtime.choices.get("sweep")} if multirun else None,
+        "config_hash": provenance.config_hash(job_config),
+        "code": {k: v for k, v in code.items() if k != "diff"}
+        | {"diff_file": layout.DIFF if code["dirty"] else None},
+        "seed": {"root": seed, "spawn_keys": {k: list(v) for k, v in SPAWN_KEYS.items()},
+                 "per_path": "SeedSequence(seed, spawn_key=(*spawn_key, purpose, path)), purpose 0 plant, 1 EnKF"},
+        "environment": provenance.environment(),
+        "process": provenance.process_info(),     # tells a run whose process died from a running one
+    }, code["diff"]
+
+
+def job_config(cfg: DictConfig) -> dict:
+    """The resolved job config without the hydra node (what the run computes from; `store`, where
+    it is recorded, is not part of it)."""
+    return {k: v for k, v in OmegaConf.to_container(cfg, resolve=True).items() if k != "store"}
+
+
+def store_of(cfg: DictConfig) -> RunStore:
+    """The run store (config key `store`, relative to the directory rdsexp was started in)."""
+    from hydra.utils import to_absolute_path
+    return RunStore(to_absolute_path(str(cfg.get("store") or layout.DEFAULT_ROOT)))
+
+
+def execute(cfg: DictConfig, run_dir: Path) -> dict:
+    """Validate, compute and record one run into run_dir; returns run.json's content.
+
+    Raises ConfigError before any compute, WriteError when the store cannot be written, StageError
+    when a stage fails unexpectedly (`failures` turns each into a status). With tracking level "off"
+    nothing is written (Hydra's .hydra/ aside) and the same content is only returned."""
+    if HydraConfig.initialized():
+        check_overrides(cfg, HydraConfig.get().overrides.task)   # `+enkf.ensemble_sze=50`: a typo, not a key
+    exp = build(cfg)                                    # ConfigError before any compute
+    if OmegaConf.select(cfg, "plant.name") is None and HydraConfig.initialized():
+        # a plant file without `name:` is named by its file (plant=NAME)
+        exp = dataclasses.replace(exp, plant_name=HydraConfig.get().runtime.choices.get("plant") or "plant")
+    if exp.tracking == "off":
+        outcome = run_experiment(exp)
+        return {"id": run_dir.name, "status": "complete", "summary": outcome.summary, "timings": outcome.timings}
+    timings, writer, store = {}, RunWriter(run_dir), store_of(cfg)
+    with timed(timings, "provenance"):
+        info, diff = run_info(run_dir, job_config(cfg), exp.seed)
+        previous = reusable_run(cfg, store, info)
+        if previous is not None:
+            return writer.reuse(previous, info)
+        writer.start(info, diff)                        # run.json "incomplete" until the end
+    sink = writer.sink()
+    try:
+        outcome = run_experiment(exp, _Described(sink, info["id"]))
+    except BaseException:                   # no partial table left behind (run.json says what happened)
+        sink.abort()
+        raise
+    outcome.timings |= timings
+    with timed(outcome.timings, "streamed_tables"):
+        streamed = sink.close()
+    info = record(writer, outcome, exp, info, streamed)
+    try:                                    # the index is derived data: a run is complete without it
+        store.index(run_dir, info)
+    except WriteError as err:
+        log.warning("run %s not indexed for reuse: %s", info["id"], err)
+    return info
+
+
+def reusable_run(cfg: DictConfig, store: RunStore, info: dict) -> Path | None:
+    """In a sweep with `reuse: true`, an intact complete run of the same config hash and code version
+    in the run store (config key `store`, found through its index; never anything outside it), so
+    that a relaunched sweep skips the jobs a killed one completed."""
+    if not cfg.get("reuse") or info["sweep"] is None:
+        return None
+    return store.find_reusable(info["config_hash"], info["code"]["version"])

@@ -1,0 +1,68 @@
+"""The run store's layout: every file and folder name, defined once.
+
+    <store>/                      DEFAULT_ROOT unless the config key `store` says otherwise
+        runs/<stamp>_<uid>/       one run (RUN_DIR)
+        sweeps/<stamp>_<uid>/     one sweep: multirun.yaml, summary.parquet (+ .csv), summary.rrd
+            <job>/                one job, a run directory like any other
+        index/                    the reuse index, one small JSON file per config hash and code version
+        quarantine/               damaged records moved aside by `rdsexp-runs check --quarantine`
+
+A run directory holds RUN_JSON, Hydra's .hydra/ (HYDRA_CONFIG), one parquet file per table
+(`table_file`), RECORDING, LOG and, when the working tree was dirty, DIFF. Hydra's run and sweep
+directories are derived from this module through the resolvers `rdsexp_run_dir` and
+`rdsexp_sweep_dir` (conf/config.yaml), registered by `register_resolvers`.
+"""
+from __future__ import annotations
+
+import datetime as dt
+import uuid
+from pathlib import Path
+
+DEFAULT_ROOT = "outputs"            # conf/config.yaml's `store` (a test checks they agree)
+RUNS, SWEEPS, INDEX, QUARANTINE = "runs", "sweeps", "index", "quarantine"
+
+RUN_JSON = "run.json"
+HYDRA_DIR = ".hydra"
+HYDRA_CONFIG = f"{HYDRA_DIR}/config.yaml"
+RECORDING = "recording.rrd"
+LOG = "rdsexp.log"
+DIFF = "uncommitted.diff"
+
+MULTIRUN = "multirun.yaml"           # written by Hydra into every sweep directory
+SUMMARY = "summary.parquet"
+SUMMARY_CSV = "summary.csv"
+SUMMARY_RECORDING = "summary.rrd"
+SUMMARY_LOCK = ".summary.lock"
+INDEX_BUILT = ".built"               # in index/: the index was built from a full scan of the store
+
+
+def table_file(name: str) -> str:
+    """The file of a run's table `name`."""
+    return f"{name}.parquet"
+
+
+def is_run(directory: Path) -> bool:
+    """Whether `directory` is a run directory (it has a run.json)."""
+    return (Path(directory) / RUN_JSON).exists()
+
+
+def is_sweep(directory: Path) -> bool:
+    """Whether `directory` is a sweep directory (Hydra's multirun.yaml, or jobs with a run.json)."""
+    directory = Path(directory)
+    return directory.is_dir() and not is_run(directory) and (
+        (directory / MULTIRUN).exists() or any(directory.glob(f"*/{RUN_JSON}")))
+
+
+def _stamp() -> str:
+    # unique even for directories made in the same microsecond
+    return f"{dt.datetime.now():%Y-%m-%d_%H-%M-%S-%f}_{uuid.uuid4().hex[:8]}"
+
+
+def register_resolvers() -> None:
+    """OmegaConf resolvers for Hydra's `hydra.run.dir` and `hydra.sweep.dir`: `<store>/runs/<stamp>`
+    and `<store>/sweeps/<stamp>`. Cached, so that every job of one sweep resolves the same directory."""
+    from omegaconf import OmegaConf
+    for name, folder in (("rdsexp_run_dir", RUNS), ("rdsexp_sweep_dir", SWEEPS)):
+        if not OmegaConf.has_resolver(name):
+            OmegaConf.register_new_resolver(name, lambda root, folder=folder: f"{root}/{folder}/{_stamp()}",
+                                            use_cache=True)

@@ -1,0 +1,214 @@
+"""Reading a store safely: run.json, a run's files, and the `Run` handle.
+
+Stores live for months on shared file systems where partial files, full disks and copies from
+other machines happen, so every reader
+
+- turns a run.json it cannot read, or a table that is missing, unreadable or not what run.json
+  hashed, into a `DamagedRecord` (path and reason, one line),
+- skips that record with one warning line on stderr and goes on with the rest.
+"""
+from __future__ import annotations
+
+import json
+import os
+import sys
+from functools import cached_property
+from pathlib import Path
+
+import pandas as pd
+
+from ...errors import DamagedRecord, one_line
+from . import files
+from .layout import HYDRA_CONFIG, INDEX, QUARANTINE, RUN_JSON, table_file
+
+REQUIRED = ("id", "status")          # what every run.json of every rdsexp version has
+# fields readers use, with the type they expect (older records may lack them, not change their type)
+FIELDS = {"summary": dict, "tables": dict, "code": dict, "seed": dict, "sweep": (dict, type(None)),
+          "overrides": list, "recording": (dict, type(None))}
+
+
+def warn(err: DamagedRecord, action: str = "skipped", then: str = "") -> None:
+    """The one warning line a reader of the store prints for a record it skips."""
+    print(f"rdsexp: warning: {action} {err.path}: {err.reason}{then}", file=sys.stderr)
+
+
+# --- reading records
+
+def read_run(run_dir: Path) -> dict:
+    """The run.json of run_dir; DamagedRecord if it is missing, unreadable, partial or not an rdsexp
+    run record (no id or status, or a field readers use of another type)."""
+    path = Path(run_dir) / RUN_JSON
+    try:
+        text = path.read_bytes()
+    except FileNotFoundError:
+        raise DamagedRecord(path, "missing") from None
+    except OSError as err:
+        raise DamagedRecord(path, f"unreadable ({err.strerror or err})") from None
+    if not text.strip():
+        raise DamagedRecord(path, "empty")
+    try:
+        info = json.loads(text)
+    except (json.JSONDecodeError, UnicodeDecodeError) as err:
+        raise DamagedRecord(path, f"truncated or not JSON ({err})") from None
+    if not isinstance(info, dict) or any(k not in info for k in REQUIRED):
+        raise DamagedRecord(path, f"not an rdsexp run record (no {' or '.join(REQUIRED)})")
+    for key, kind in FIELDS.items():
+        if key in info and not isinstance(info[key], kind):
+            raise DamagedRecord(path, f"not an rdsexp run record ({key} is a {type(info[key]).__name__})")
+    return info
+
+
+def _entries(info: dict) -> list:
+    """run.json's file entries: every table, and the recording when it has one."""
+    return list((info.get("tables") or {}).values()) + ([info["recording"]] if info.get("recording") else [])
+
+
+def run_damage(run_dir: Path, info: dict) -> list[str]:
+    """What is wrong with the files of a complete run, one line each (file: reason): missing,
+    unreadable or modified tables and recording, missing .hydra/config.yaml; [] when intact.
+
+    A file recorded with its bytes' sha256 is checked by hashing the bytes; older records (content
+    hash only) by reading the parquet table and hashing its content."""
+    import pyarrow as pa
+    run_dir = Path(run_dir)
+    problems = []
+    for meta in _entries(info):
+        if not isinstance(meta, dict) or not isinstance(meta.get("file"), str):
+            problems.append(f"run.json: malformed file entry {meta!r}"[:200])
+            continue
+        path = run_dir / meta["file"]
+        try:
+            if meta.get("file_sha256"):
+                if files.file_hash(path) == meta["file_sha256"]:
+                    continue
+                if path.suffix == ".parquet":
+                    pd.read_parquet(path)           # unreadable (truncated), or readable but modified?
+                problems.append(f"{meta['file']}: modified after the run (does not match the hash in run.json)")
+            elif path.suffix == ".parquet" and files.table_hash(pd.read_parquet(path)) != meta.get("sha256"):
+                problems.append(f"{meta['file']}: modified after the run (does not match the hash in run.json)")
+        except FileNotFoundError:
+            problems.append(f"{meta['file']}: missing")
+        except (OSError, pa.ArrowException, ValueError) as err:
+            problems.append(f"{meta['file']}: unreadable ({one_line(err)})")
+    if not (run_dir / HYDRA_CONFIG).is_file():
+        problems.append(f"{HYDRA_CONFIG}: missing")
+    return problems
+
+
+def read_table(run_dir: Path, info: dict, name: str, check_hash: bool = True) -> pd.DataFrame:
+    """A stored table, checked against run.json's content hash; DamagedRecord (file, reason) if it
+    is missing, unreadable or (with `check_hash`) modified after the run."""
+    import pyarrow as pa
+    meta = (info.get("tables") or {}).get(name)
+    if not isinstance(meta, dict) or not isinstance(meta.get("file"), str):
+        raise DamagedRecord(Path(run_dir) / table_file(name), "not in run.json")
+    path = Path(run_dir) / meta["file"]
+    try:
+        table = pd.read_parquet(path)
+    except FileNotFoundError:
+        raise DamagedRecord(path, "missing") from None
+    except (OSError, pa.ArrowException, ValueError) as err:
+        raise DamagedRecord(path, f"unreadable ({one_line(err)})") from None
+    if check_hash and meta.get("sha256") and files.table_hash(table) != meta["sha256"]:
+        raise DamagedRecord(path, "modified after the run (does not match the hash in run.json)")
+    return table
+
+
+def run_json_paths(root: Path) -> list[Path]:
+    """Every run.json under root, except under the store's quarantine/ and index/."""
+    root = Path(root)
+    found = []
+    for top, dirs, names in os.walk(root):
+        if Path(top) == root:
+            dirs[:] = [d for d in dirs if d not in (QUARANTINE, INDEX)]
+        dirs.sort()
+        if RUN_JSON in names or RUN_JSON in dirs:
+            found.append(Path(top) / RUN_JSON)
+            dirs[:] = [d for d in dirs if d != RUN_JSON]
+    return found
+
+
+def read_runs(root: Path, warn_damaged: bool = True) -> tuple[list[tuple[Path, dict]], list[DamagedRecord]]:
+    """(run directory, run.json) of every readable run under root, oldest first, and the damaged
+    run.json files (each named in one warning line unless warn_damaged is False)."""
+    runs, damaged = [], []
+    for path in run_json_paths(root):
+        try:
+            runs.append((path.parent, read_run(path.parent)))
+        except DamagedRecord as err:
+            damaged.append(err)
+            if warn_damaged:
+                warn(err)
+    runs.sort(key=lambda run: str(run[1].get("created") or ""))
+    return runs, damaged
+
+
+def intact_runs(root: Path) -> list[tuple[Path, dict]]:
+    """Complete runs under root whose run.json and files are intact (the report reads these);
+    every other damaged record is named in one warning line."""
+    runs = []
+    for run_dir, info in read_runs(root)[0]:
+        if info.get("status") == "complete":
+            problems = run_damage(run_dir, info)
+            if problems:
+                warn(DamagedRecord(run_dir, "; ".join(problems)))
+                continue
+        runs.append((run_dir, info))
+    return runs
+
+
+
+
+class Run:
+    """A stored run directory: its run.json (`info`, read safely on construction: DamagedRecord if it
+    cannot be), its composed config and its tables, each checked against run.json's hash on first
+    use. `used` collects {table name: sha256} of the tables read, for a figure's lineage."""
+
+    def __init__(self, directory: Path, info: dict | None = None):
+        self.dir = Path(directory)
+        self.info = read_run(self.dir) if info is None else info
+        self.used: dict[str, str] = {}
+
+    def __repr__(self) -> str:
+        return f"Run({str(self.dir)!r})"
+
+    @cached_property
+    def config(self):
+        """The composed config (.hydra/config.yaml) as an OmegaConf node."""
+        from omegaconf import OmegaConf
+        return OmegaConf.load(self.dir / HYDRA_CONFIG)
+
+    @property
+    def id(self) -> str:
+        return self.info["id"]
+
+    @property
+    def code(self) -> str | None:
+        """The code version the run was made with."""
+        return (self.info.get("code") or {}).get("version")
+
+    def get(self, key: str):
+        """Config value at a dotted key (None where the config has none)."""
+        from omegaconf import OmegaConf
+        return OmegaConf.select(self.config, key)
+
+    @property
+    def rate_window(self) -> tuple[int, int]:
+        """The closed-loop rate window (k_from, k_to) in steps, as the run resolved it (the config may
+        give fractions of the horizon)."""
+        k_from, k_to = self.info["summary"]["rate_window"]
+        return int(k_from), int(k_to)
+
+    def table(self, name: str, columns: list[str] | None = None, check_hash: bool = True) -> pd.DataFrame:
+        """A stored table (optionally some columns). The first read of each table reads it whole and
+        checks it against run.json's hash; DamagedRecord if it is missing, unreadable or modified."""
+        if name in self.used:
+            return pd.read_parquet(self.dir / self.info["tables"][name]["file"], columns=columns)
+        table = read_table(self.dir, self.info, name, check_hash=check_hash)
+        if check_hash:
+            self.used[name] = self.info["tables"][name].get("sha256")
+        return table if columns is None else table[columns]
+
+    def damage(self) -> list[str]:
+        """What is wrong with the run's files, one line each; [] when intact (see `run_damage`)."""
+        return run_damage(self.dir, self.info)

@@ -1,0 +1,86 @@
+"""A run's summary in words, from its run.json: what the terminal shows at the end of a run."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from .pipeline import FAILURES
+from .store import layout
+
+
+def summary_text(info: dict, run_dir: Path) -> str:
+    """A run's summary as the terminal shows it, a few lines: the plant and model, the key numbers
+    (beside the reference numbers when the config carries them), plainly what failed, the run
+    directory and how to view it."""
+    s = info.get("summary", {})
+    ref = s.get("reference") or {}
+    fmt = lambda v: "n/a" if v is None else (f"{v:.4f}" if isinstance(v, float) else str(v))
+    interval = lambda r: (f"{r[0]:.4f} [{r[1]:.4f}, {r[2]:.4f}]" if r and np.all(np.isfinite(r))
+                          else "n/a (not every path reached the window)")
+    beside = lambda name: f" ({ref.get('source', 'paper')} {ref[name]})" if name in ref else ""
+    unstable = lambda rate: rate is not None and not rate < 1          # NaN too: not shown to be stable
+    k_from, k_to = s.get("rate_window") or (None, None)
+    lines = [f"rdsexp run {info.get('id')}: {info.get('status')}"]
+    if s.get("plant"):                    # a run that failed before its summary has none
+        lines.append(f"  plant {s['plant']}, model {s.get('model')}")
+    if info.get("error"):
+        lines.append(f"  failed: {info['error']} (traceback in run.json and rdsexp.log)")
+    ident = s.get("identification_feedback") or {}
+    if ident.get("mode", "none") != "none":
+        line = f"  identification feedback {ident['mode']}: {ident.get('used')}"
+        if "open_loop_rate_at_guess" in ident:
+            line += f" (open-loop rate at xi_guess {fmt(ident['open_loop_rate_at_guess'])})"
+        if ident.get("used", "").startswith("nominal"):
+            line += f", gain {ident.get('method')} with rate {fmt(ident.get('rate_plant'))} on the true plant"
+            if unstable(ident.get("rate_plant")):
+                line += " (it does not stabilize the true plant in mean square)"
+        lines.append(line)
+    if s.get("modeling_status") == "ok":
+        lines.append(f"  modeling ok: xi mean {np.round(s.get('xi_mean', []), 4).tolist()}{beside('xi_mean')}, "
+                     f"nbar {s.get('nbar')}{beside('nbar')}")
+    elif s.get("modeling_status") is not None:
+        lines.append(f"  no model: {s.get('modeling_status')}" +
+                     ("; no gain designed, no closed loop" if s.get("synthesis_status") is None else ""))
+    if s.get("synthesis_status") is not None:
+        lines.append(f"  gain {s.get('gain_method')}: {s.get('synthesis_status')}, lambda {fmt(s.get('lam'))}"
+                     f"{beside('lam')}, exact rate on the true plant {fmt(s.get('rate_plant'))}")
+        if s.get("rate_plant") is None:
+            lines.append(f"  no stabilizing gain: {s.get('gain_method')} returned none "
+                         f"({s.get('synthesis_status')}); no closed loop")
+        elif s.get("synthesis_status") == "not_ms_stabilizable":
+            lines.append(f"  no stabilizing gain: not_ms_stabilizable, the best rate found on the model is "
+                         f"{fmt(s.get('lam'))}")
+        elif unstable(s.get("rate_plant")):
+            lines.append(f"  the gain does not stabilize the true plant: its exact rate there is "
+                         f"{fmt(s.get('rate_plant'))} >= 1")
+    others = {m: st for m, st in (s.get("designs") or {}).items()
+              if m != s.get("gain_method") and st not in ("optimal", "designed")}
+    if others:
+        lines.append("  other designs: " + ", ".join(f"{m} {st}" for m, st in others.items()))
+    for loop, label in (("closed_loop", "closed loop"), ("open_loop", "open loop  "), ("online", "online     ")):
+        if f"{loop}_status" not in s:
+            continue
+        line = f"  {label} rate k={k_from}..{k_to}: {interval(s.get(f'{loop}_rate'))}"
+        if loop == "closed_loop":
+            line += beside("closed_loop_rate")
+        line += f", {s.get(f'{loop}_status')}"
+        failed = s.get(f"{loop}_failed")
+        if failed:
+            line += (f"; {100 * failed['fraction']:.0f}% of paths failed (first at k = {failed['first_k']}, "
+                     f"median k = {failed['median_k']:g})")
+            reasons = failed.get("reasons") or {}
+            if reasons:
+                line += ": " + ", ".join(f"{FAILURES.get(r, r)} on {c}" for r, c in reasons.items())
+        lines.append(line)
+    if s.get("online"):                                   # controller=online (issue 9)
+        o = s["online"]
+        fmt = lambda v: "nan" if v is None else f"{v:.4f}"
+        lines.append(f"  online final gains: exact rate on the true plant median {fmt(o['final_rate_plant_median'])} "
+                     f"(10-90% {fmt(o['final_rate_plant_q10'])}-{fmt(o['final_rate_plant_q90'])}), "
+                     f"{100 * o['final_stable_fraction']:.0f}% stable, {o['adoptions_per_path']:.1f} adoptions per "
+                     f"path; offline gain {fmt(o['offline_rate_plant'])}, optimum {fmt(o['optimal_rate_plant'])}")
+    lines.append(f"  run directory: {run_dir}")
+    if (run_dir / layout.RECORDING).exists():
+        lines.append(f"  view: rerun {run_dir / layout.RECORDING}")
+    return "\n".join(lines)
