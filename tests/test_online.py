@@ -264,15 +264,18 @@ def test_online_run_records_the_controller_table(tmp_path):
         assert all(d["description"] for d in frame.attrs["rdsexp"]["columns"].values()), frame.attrs["rdsexp"]
 
 
-def test_online_loop_does_not_depend_on_chunks_of_paths(hydra_context):
-    """One controller per chunk of paths: the decisions and rows equal those of one batch, bit for bit."""
+def test_online_loop_does_not_depend_on_chunks_of_paths_or_workers(hydra_context):
+    """One controller per chunk of paths, chunks in worker processes as the offline loops' are: the
+    decisions, rows and metrics equal those of one batch, bit for bit."""
     from rdsexp.experiment.pipeline import run_experiment
     small = [o for o in SMALL if not o.startswith("closed_loop.horizon")] + ["closed_loop.horizon=40"]
     tables = [run_experiment(build(compose("config", overrides=small + [
-        "controller=online", "controller.warmup=5", "controller.period=10", "closed_loop.open_loop=false", chunk])))
-        .tables for chunk in ("closed_loop.chunk_paths=4", "closed_loop.chunk_paths=3")]
-    pd.testing.assert_frame_equal(tables[0]["controller"], tables[1]["controller"])
-    pd.testing.assert_frame_equal(tables[0]["trajectories"], tables[1]["trajectories"])
+        "controller=online", "controller.warmup=5", "controller.period=10", "closed_loop.open_loop=false", *chunk])))
+        .tables for chunk in (["closed_loop.chunk_paths=4"], ["closed_loop.chunk_paths=3"],
+                              ["closed_loop.chunk_paths=1", "closed_loop.workers=2"])]
+    for other in tables[1:]:
+        for name in ("controller", "trajectories", "metrics", "paths"):
+            pd.testing.assert_frame_equal(tables[0][name], other[name], check_exact=True, obj=name)
     assert (tables[0]["controller"]["k"] >= 0).any()
 
 

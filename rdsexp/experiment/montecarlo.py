@@ -29,13 +29,21 @@ def chunk_size(exp, *, keep_members: bool) -> int:
     return int(min(exp.paths, max(1, MEMORY_BUDGET // (3 * per_path))))
 
 
-def _simulate_chunk(plant, enkf, first: int, count: int, settings: dict) -> Trajectories:
-    return simulate(plant, enkf, paths=count, first_path=first, **settings)
+def _simulate_chunk(plant, enkf, first: int, count: int, settings: dict, controller=None, progress=None):
+    """One chunk of paths; `controller(paths=count)` makes the chunk's gain controller (None: fixed
+    gains). Returns the trajectories and the controller with its decisions."""
+    controller = controller(paths=count) if controller is not None else None
+    tr = simulate(plant, enkf, paths=count, first_path=first, controller=controller, progress=progress, **settings)
+    return tr, controller
 
 
 def run_chunks(exp, settings: dict, *, keep_members: bool, workers: int = 1,
-               progress: Callable[[int], None] | None = None) -> Iterator[tuple[int, Trajectories]]:
-    """(first_path, Trajectories of that chunk) in path order; `settings` are simulate's other arguments.
+               progress: Callable[[int], None] | None = None, controller: Callable | None = None
+               ) -> Iterator[tuple[int, Trajectories, object]]:
+    """(first_path, Trajectories of that chunk, its controller) in path order; `settings` are
+    simulate's other arguments. controller: None (fixed gains), or a picklable factory of the
+    chunk's gain controller called as controller(paths=count) (the online controller: a path's
+    decisions depend on its own estimates only, so one controller per chunk gives the same results).
 
     workers > 1: the chunks run in joblib (loky) worker processes, results still yielded in path
     order, at most 2 * workers chunks in flight. progress(steps) is called with the number of
@@ -47,16 +55,16 @@ def run_chunks(exp, settings: dict, *, keep_members: bool, workers: int = 1,
     if workers <= 1 or len(starts) == 1:
         for first, count in starts:
             step = (lambda k, c=count: progress(c)) if progress is not None else None
-            yield first, simulate(exp.plant, exp.enkf, paths=count, first_path=first, progress=step, **settings)
+            yield first, *_simulate_chunk(exp.plant, exp.enkf, first, count, settings, controller, step)
         return
     from joblib import Parallel, delayed
     parallel = Parallel(n_jobs=workers, backend="loky", return_as="generator", pre_dispatch="2*n_jobs")
-    results = parallel(delayed(_simulate_chunk)(exp.plant, exp.enkf, first, count, settings)
+    results = parallel(delayed(_simulate_chunk)(exp.plant, exp.enkf, first, count, settings, controller)
                        for first, count in starts)
-    for (first, count), tr in zip(starts, results, strict=True):
+    for (first, count), (tr, chunk_controller) in zip(starts, results, strict=True):
         if progress is not None:
             progress(count * steps)
-        yield first, tr
+        yield first, tr, chunk_controller
 
 
 @dataclass

@@ -12,6 +12,7 @@ import sys
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass, field
+from functools import partial
 
 import numpy as np
 import pandas as pd
@@ -26,7 +27,7 @@ from ..numerics.simulation import Trajectories, simulate
 from ..numerics.synthesis import METHODS, SynthesisResult, synthesize
 from ..numerics.systems import MomentModel
 from .config import Experiment
-from .montecarlo import LoopSummary, chunk_size, run_chunks
+from .montecarlo import LoopSummary, run_chunks
 
 log = logging.getLogger("rdsexp")
 # the online loop shares the closed loop's seeds: the same plant samples and EnKF noise, a paired comparison
@@ -132,8 +133,8 @@ def run_experiment(exp: Experiment, sink=None) -> Outcome:
                 bar, _ = _progress(name.replace("_", " "), exp.paths * exp.disturbance.shape[0])
                 parts, members = [], None
                 with bar, logging_redirect_tqdm():
-                    for first, tr in run_chunks(exp, dict(settings, F=F, seed=root(name)), keep_members=keep,
-                                                workers=exp.workers, progress=bar.update):
+                    for first, tr, _ in run_chunks(exp, dict(settings, F=F, seed=root(name)), keep_members=keep,
+                                                   workers=exp.workers, progress=bar.update):
                         rows = trajectory_table(name, tr, first)
                         if exp.controller == "online":     # the gain in use, as in the online rows
                             rows = with_gains(rows, np.zeros((exp.model.m, exp.model.n)) if F is None else F)
@@ -194,8 +195,8 @@ class MemorySink:
 def online_loop(exp: Experiment, seed, keep: bool, sim: dict, sink, sample: list, sample_members: list):
     """The online (learning-type) closed loop: per-path gains re-designed from the path's own xi_{k|k}.
 
-    In chunks of paths like the other loops (one controller per chunk: a path's decisions depend on
-    its own estimates only), rows streamed to the sink with the gain in use (F[i,j]). Returns
+    In chunks of paths, and worker processes, like the other loops (`run_chunks`; one controller per
+    chunk), rows streamed to the sink with the gain in use (F[i,j]). Returns
     ((LoopSummary, [(first_path, controller)]), info for the summary)."""
     m, n = exp.model.m, exp.model.n
     info = {"initial": exp.online_initial if isinstance(exp.online_initial, str) else "given"}
@@ -208,16 +209,14 @@ def online_loop(exp: Experiment, seed, keep: bool, sim: dict, sink, sample: list
         else:
             info["used"] = "zero (no stabilizing nominal gain)"
     K = exp.disturbance.shape[0] - 1
-    size = chunk_size(exp, keep_members=keep)
     parts, controllers = [], []
     bar, _ = _progress("online", exp.paths * (K + 1))
+    settings = dict(F=F0, d=exp.disturbance, seed=seed, filter_sees_d=exp.filter_sees_disturbance, **sim)
+    make = partial(OnlineController, exp.model, exp.online, F0, horizon=K)
     with bar, logging_redirect_tqdm():
-        for first in range(0, exp.paths, size):
-            count = min(size, exp.paths - first)
-            controller = OnlineController(exp.model, exp.online, F0, paths=count, horizon=K)
-            tr = simulate(exp.plant, exp.enkf, F=F0, d=exp.disturbance, paths=count, first_path=first, seed=seed,
-                          filter_sees_d=exp.filter_sees_disturbance, keep_members=keep,
-                          progress=lambda k, c=count: bar.update(c), controller=controller, **sim)
+        for first, tr, controller in run_chunks(exp, settings, keep_members=keep, workers=exp.workers,
+                                                progress=bar.update, controller=make):
+            count = tr.q.shape[1]
             history = controller.gain_history()
             in_use = np.stack([history[j][tr.gain_index[:, j]] for j in range(count)])     # (P, K+1, m, n)
             rows = with_gains(trajectory_table("online", tr, first), in_use.reshape(count * (K + 1), m, n))
