@@ -15,36 +15,104 @@ PACKAGE = REPO / "rdsexp"
 SCRIPTS = Path(sys.executable).parent
 
 
+def module_name(path: Path) -> str:
+    """rdsexp.experiment.store for rdsexp/experiment/store/__init__.py, rdsexp.errors for rdsexp/errors.py."""
+    parts = path.relative_to(REPO).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+MODULES = {module_name(p): p for p in PACKAGE.rglob("*.py") if "conf" not in p.relative_to(PACKAGE).parts[:1]}
+
+
 def imported_modules(path: Path) -> set[str]:
-    """Absolute names of the rdsexp modules a source file imports (relative imports resolved)."""
-    module = ".".join(path.relative_to(REPO).with_suffix("").parts)
+    """Absolute names of the modules a source file imports, at any depth (inside functions too);
+    relative imports resolved, and `from PACKAGE import module` named as the module it imports."""
+    module = module_name(path)
     package = module if path.name == "__init__.py" else module.rsplit(".", 1)[0]
     names = set()
     for node in ast.walk(ast.parse(path.read_text())):
         if isinstance(node, ast.ImportFrom):
             base = package.rsplit(".", node.level - 1)[0] if node.level else ""
             target = ".".join(p for p in (base, node.module) if p) if node.level else node.module or ""
-            names.add(target)
+            submodules = {f"{target}.{alias.name}" for alias in node.names} & set(MODULES)
+            names |= submodules
+            if len(submodules) < len(node.names):
+                names.add(target)
         elif isinstance(node, ast.Import):
             names.update(alias.name for alias in node.names)
     return names
 
 
-LAYER = {"numerics": 0, "paper": 1, "experiment": 2, "report": 3}
+LAYER = {"errors": -1, "numerics": 0, "paper": 1, "experiment": 2, "report": 3}
 FORBIDDEN_IN_NUMERICS = ("hydra", "omegaconf", "pandas", "pyarrow", "rerun", "matplotlib")
 
 
-@pytest.mark.parametrize("path", sorted((PACKAGE / "numerics").rglob("*.py")) + sorted((PACKAGE / "experiment").rglob("*.py"))
-                         + sorted((PACKAGE / "report").rglob("*.py")) + sorted((PACKAGE / "paper").rglob("*.py")),
-                         ids=lambda p: str(p.relative_to(PACKAGE)))
+@pytest.mark.parametrize("path", sorted(MODULES.values()), ids=lambda p: str(p.relative_to(PACKAGE)))
 def test_imports_only_go_downward(path):
-    layer = path.relative_to(PACKAGE).parts[0]
+    """Layers (docs/design.md): errors < numerics < paper < experiment < report, at any depth of a
+    module (imports inside functions too); inside the experiment layer, EXPERIMENT's order."""
+    layer = path.relative_to(PACKAGE).with_suffix("").parts[0]
+    if layer not in LAYER:
+        return                            # rdsexp/__init__.py, __main__.py, runs.py: the public entry points
     for name in imported_modules(path):
         parts = name.split(".")
         if parts[0] == "rdsexp" and len(parts) > 1 and parts[1] in LAYER:
             assert LAYER[parts[1]] <= LAYER[layer], f"{path.name} ({layer}) imports {name}"
         if layer == "numerics":
             assert parts[0] not in FORBIDDEN_IN_NUMERICS, f"numerics module {path.name} imports {name}"
+        if layer == "experiment" and parts[:2] == ["rdsexp", "experiment"] and len(parts) > 2:
+            here, there = path.relative_to(PACKAGE / "experiment").with_suffix("").parts[0], parts[2]
+            if here != there and here != "__init__":
+                assert EXPERIMENT.index(there) < EXPERIMENT.index(here), f"{path.name} ({here}) imports {name}"
+
+
+# the experiment layer from the bottom up: each module imports only those before it
+EXPERIMENT = ["store", "schema", "config", "montecarlo", "pipeline", "summary", "recording", "runner", "failures",
+              "runs", "sweep", "cli"]
+
+
+def test_experiment_order_names_every_module():
+    found = {p.relative_to(PACKAGE / "experiment").with_suffix("").parts[0]
+             for p in (PACKAGE / "experiment").rglob("*.py") if p.name != "__init__.py" or p.parent.name == "store"}
+    assert found == set(EXPERIMENT)
+
+
+def test_no_import_cycles():
+    """No module imports itself through others, counting imports inside functions (Tarjan's SCCs)."""
+    graph = {m: sorted(n for n in imported_modules(p) if n in MODULES and n != m) for m, p in MODULES.items()}
+    index, low, stack, on_stack, cycles = {}, {}, [], set(), []
+
+    def visit(v):
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on_stack.add(v)
+        for w in graph[v]:
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on_stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            component = []
+            while True:
+                w = stack.pop()
+                on_stack.discard(w)
+                component.append(w)
+                if w == v:
+                    break
+            if len(component) > 1:
+                cycles.append(sorted(component))
+    for v in graph:
+        if v not in index:
+            visit(v)
+    assert not cycles, cycles
+
+
+def test_store_layout_default_is_the_config_default():
+    from omegaconf import OmegaConf
+
+    from rdsexp.experiment.store import layout
+    assert OmegaConf.load(REPO / "conf" / "config.yaml").store == layout.DEFAULT_ROOT
 
 
 def test_numerics_api_and_version():
