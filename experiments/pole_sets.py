@@ -88,7 +88,7 @@ def study(plant: str, count: int, seed: int) -> tuple[list[dict], list[dict]]:
     rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(zlib.crc32(plant.encode()),)))
     sets = random_pole_sets(rng, exp.model.n, count)
     summary, rows = [], []
-    own = exp.design_options.get("pole_placement", {}).get("poles")
+    own = exp.design.options_by_method.get("pole_placement", {}).get("poles")
     for basis, dist in bases(exp).items():
         proposed = rx.synthesize(exp.model, dist, "proposed")
         proposed_rate = rate(exp.plant, None, proposed.F) if proposed.F is not None else np.nan

@@ -215,9 +215,9 @@ def test_bad_controller_config_is_one_line(hydra_context, overrides, message):
 
 
 def test_offline_is_the_default_and_online_builds(hydra_context):
-    assert build(compose("config")).controller == "offline"
+    assert build(compose("config")).controller.kind == "offline"
     exp = build(compose("config", overrides=["controller=online"]))
-    assert exp.controller == "online" and exp.online.method == "policy_iteration" and exp.online.safeguard
+    assert exp.controller.kind == "online" and exp.controller.online.method == "policy_iteration" and exp.controller.online.safeguard
 
 
 def test_cli_period_zero_exits_2(tmp_path):

@@ -70,8 +70,8 @@ def test_yaml_plant_and_model_are_the_papers():
         for name in "ABCD":
             np.testing.assert_array_equal(getattr(got, name), getattr(want, name))
     np.testing.assert_array_equal(exp.plant.xi_dist.cov, rx.paper.plant().xi_dist.cov)
-    np.testing.assert_array_equal(exp.enkf.Q, rx.paper.Q)
-    np.testing.assert_array_equal(exp.disturbance, rx.paper.disturbance())
+    np.testing.assert_array_equal(exp.filter.enkf.Q, rx.paper.Q)
+    np.testing.assert_array_equal(exp.loop.disturbance, rx.paper.disturbance())
 
 
 def test_run_directory_contents(small_run):

@@ -163,9 +163,9 @@ def test_process_noise_matrix_from_the_command_line(tmp_path):
     Q = np.diag(np.arange(1.0, 10.0)) + 0.1 * (np.ones((9, 9)) - np.eye(9))
     with initialize_config_module(config_module="rdsexp.conf", version_base="1.3"):
         exp = build(compose("config", overrides=[f"enkf.Q.matrix={Q.tolist()}".replace(" ", "")]))
-        np.testing.assert_array_equal(exp.enkf.Q, Q)
+        np.testing.assert_array_equal(exp.filter.enkf.Q, Q)
         exp = build(compose("config", overrides=["enkf.Q.matrix=[1,2,3,4,5,6,7,8,9]", "enkf.q_scale=2"]))
-        np.testing.assert_array_equal(exp.enkf.Q, 2 * np.diag(np.arange(1.0, 10.0)))
+        np.testing.assert_array_equal(exp.filter.enkf.Q, 2 * np.diag(np.arange(1.0, 10.0)))
     proc = rdsexp("enkf.Q=[[1,2],[3,4]]", cwd=tmp_path, check=False)
     assert proc.returncode == 2 and proc.stderr.count("\n") == 1
     assert proc.stderr.startswith("rdsexp: config error: enkf.Q: [[1,2],[3,4]] is not allowed") \

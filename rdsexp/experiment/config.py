@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import math
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from omegaconf import DictConfig, ListConfig, OmegaConf
@@ -139,48 +139,198 @@ def _gain_source(cfg, model: AffineRandomSystem, reported) -> tuple[str, np.ndar
 
 
 @dataclass(frozen=True)
-class Experiment:
-    """Everything a run needs, validated: the numerics objects and settings of conf/."""
+class FilterSettings:
+    """conf/enkf: the EnKF on psi = [x; xi] (variant, inflation, relaxation, Q and R, in `enkf`), its
+    ensemble size M and its initial ensemble, mean psi0 (n+p,) and covariance P0 (n+p, n+p)."""
 
-    plant: AffineRandomSystem
-    model: AffineRandomSystem
-    reported: MomentModel | None          # moments of xi a paper reports for the model, if any
     enkf: EnKF
     ensemble_size: int
-    q0: np.ndarray
     psi0: np.ndarray
     P0: np.ndarray
-    identification_input: np.ndarray      # (K_id + 1, m)
+
+    @classmethod
+    def from_config(cls, cfg, model: AffineRandomSystem) -> FilterSettings:
+        dim = model.n + model.p
+        M = _number(get(cfg, "enkf.ensemble_size"), "enkf.ensemble_size", integer=True, low=2)
+        q_scale = _number(get(cfg, "enkf.q_scale"), "enkf.q_scale", low=0)
+        r_scale = _number(get(cfg, "enkf.r_scale"), "enkf.r_scale", low=0)
+        Q = q_scale * _process_noise(cfg, model.n, model.p)
+        R = r_scale * _covariance(cfg, "enkf.R", model.ny)
+        variant = get(cfg, "enkf.variant")
+        if variant not in VARIANTS:
+            raise ConfigError(f"enkf.variant: {variant!r} is not allowed, expected one of {', '.join(VARIANTS)}")
+        inflation = _number(get(cfg, "enkf.inflation"), "enkf.inflation", low=1)
+        relaxation = _number(get(cfg, "enkf.relaxation"), "enkf.relaxation", low=0, high=1)
+        if variant == "etkf" and np.linalg.eigvalsh(R).min() <= 1e-12 * max(np.abs(R).max(), 1e-300):
+            raise ConfigError("enkf.R: must be positive definite with enkf.variant=etkf (its transform uses R^-1)")
+        enkf = EnKF(model, Q, R, variant=variant, inflation=inflation, relaxation=relaxation)
+        mean = get(cfg, "enkf.initial.mean")
+        with key("enkf.initial.mean"):
+            psi0 = np.zeros(dim) if mean is None else np.asarray(mean, dtype=float)
+            if psi0.shape != (dim,) or not np.all(np.isfinite(psi0)):
+                raise ValueError(f"{mean!r} is not allowed, expected null or {dim} finite numbers (n + p)")
+        return cls(enkf=enkf, ensemble_size=M, psi0=psi0, P0=_covariance(cfg, "enkf.initial.cov", dim))
+
+
+@dataclass(frozen=True)
+class IdentificationSettings:
+    """conf/identification: the identification run's input (K_id + 1, m), the window K0..K0+K1 the
+    distribution is modeled from, and its feedback (none | nominal | auto | given, with its gain
+    (m, n)) designed on the nominal guess xi_guess (p_plant,) of the plant's xi."""
+
+    input: np.ndarray
     K0: int
     K1: int
-    gain_method: str
-    gain_options: dict
-    gain_source: str                      # identified | reported | fixed: what the closed loop's F is
-    gain_F: np.ndarray | None             # (m, n), the gain of gain.source = fixed
+    feedback: str
+    gain: np.ndarray | None
+    xi_guess: np.ndarray
+
+    @classmethod
+    def from_config(cls, cfg, plant: AffineRandomSystem) -> IdentificationSettings:
+        K_id = _number(get(cfg, "identification.horizon"), "identification.horizon", integer=True, low=1)
+        K0 = _number(get(cfg, "identification.K0"), "identification.K0", integer=True, low=0)
+        K1 = _number(get(cfg, "identification.K1"), "identification.K1", integer=True, low=0)
+        if K0 + K1 > K_id:
+            raise ConfigError(f"identification.K1: K0 + K1 = {K0 + K1} is not allowed, must be <= "
+                              f"identification.horizon = {K_id}")
+        u_id = identification_input(cfg, K_id, plant.m)
+        feedback, F_id, xi_guess = _identification_feedback(cfg, plant)
+        return cls(input=u_id, K0=K0, K1=K1, feedback=feedback, gain=F_id, xi_guess=xi_guess)
+
+
+@dataclass(frozen=True)
+class DesignSettings:
+    """conf/gain: the method whose gain the closed loop uses, with its options; every method is also
+    designed with `options_by_method` for the gains table. source: identified | reported | fixed
+    (a given gain F (m, n))."""
+
+    method: str
+    options: dict
+    options_by_method: dict
+    source: str
+    F: np.ndarray | None
+
+    @classmethod
+    def from_config(cls, cfg, model: AffineRandomSystem, reported) -> DesignSettings:
+        method = get(cfg, "gain.method")
+        if method not in METHODS:
+            raise ConfigError(f"gain.method: {method!r} is not allowed, expected one of {', '.join(METHODS)}")
+        options = get(cfg, "gain.options") or {}
+        if not isinstance(options, dict):
+            raise ConfigError(f"gain.options: {options!r} is not allowed, expected a mapping")
+        with key("gain.options"):
+            check_options(method, {k: v for k, v in options.items() if not (k == "poles" and v is None)}, model)
+        poles = plain(OmegaConf.select(cfg, "plant.poles"))
+        if poles is not None:
+            with key("plant.poles"):
+                check_options("pole_placement", {"poles": poles}, model)
+        # every method is designed (the gains table); pole placement only with poles from the config
+        by_method = {m: {} for m in METHODS} | {"pole_placement": {"poles": poles}, method: options}
+        source, F = _gain_source(cfg, model, reported)
+        return cls(method=method, options=options, options_by_method=by_method, source=source, F=F)
+
+
+@dataclass(frozen=True)
+class LoopSettings:
+    """conf/closed_loop: the Monte Carlo of the closed (and open) loop: P paths over k = 0..K, the
+    input disturbance d (K + 1, m) and whether the EnKF is told it, the rate window, chunks of
+    paths (None: from a memory budget) and worker processes."""
+
     paths: int
-    disturbance: np.ndarray               # (K + 1, m)
+    disturbance: np.ndarray
     filter_sees_disturbance: bool
     open_loop: bool
     rate_window: tuple[int, int]
-    seed: int
-    tracking: str
+    chunk_paths: int | None
+    workers: int
+
+    @property
+    def horizon(self) -> int:
+        return self.disturbance.shape[0] - 1
+
+    @classmethod
+    def from_config(cls, cfg, model: AffineRandomSystem) -> LoopSettings:
+        paths = _number(get(cfg, "closed_loop.paths"), "closed_loop.paths", integer=True, low=1)
+        K = _number(get(cfg, "closed_loop.horizon"), "closed_loop.horizon", integer=True, low=1)
+        amplitude = get(cfg, "closed_loop.disturbance.amplitude")
+        if isinstance(amplitude, list):                     # one amplitude per input channel
+            if len(amplitude) != model.m:
+                raise ConfigError(f"closed_loop.disturbance.amplitude: {amplitude!r} is not allowed, expected a "
+                                  f"number or m = {model.m} numbers")
+            amplitude = [_number(a, "closed_loop.disturbance.amplitude") for a in amplitude]
+        else:
+            amplitude = _number(amplitude, "closed_loop.disturbance.amplitude")
+        until = _number(get(cfg, "closed_loop.disturbance.until"), "closed_loop.disturbance.until", integer=True,
+                        low=0)
+        d = np.zeros((K + 1, model.m))
+        d[:until] = amplitude
+        window = _rate_window(get(cfg, "closed_loop.rate_window"), K)
+        flags = {name: _flag(cfg, f"closed_loop.{name}") for name in ("filter_sees_disturbance", "open_loop")}
+        chunk = get(cfg, "closed_loop.chunk_paths")
+        chunk = None if chunk is None else _number(chunk, "closed_loop.chunk_paths", integer=True, low=1)
+        workers = _number(get(cfg, "closed_loop.workers"), "closed_loop.workers", integer=True, low=1)
+        return cls(paths=paths, disturbance=d, rate_window=tuple(window), chunk_paths=chunk, workers=workers,
+                   **flags)
+
+
+@dataclass(frozen=True)
+class TrackingSettings:
+    """conf/tracking: what a run records: level off | summary | full (every ensemble member), the
+    Rerun recording (never with level off) and how many paths of each loop it shows."""
+
+    level: str
     recording: bool
-    # added for any plant (issue 17); defaults keep older callers working
-    plant_name: str = "plant"
-    model_name: str = "plant"             # "plant": the plant's own structure, its xi the plant's
-    reference: dict | None = None         # numbers a paper reports for this plant (summary only)
-    design_options: dict = field(default_factory=dict)   # method -> options for every design
-    identification_feedback: str = "none"   # none | nominal | auto | given
-    identification_gain: np.ndarray | None = None       # (m, n) when feedback is a given F
-    xi_guess: np.ndarray | None = None      # nominal guess of the plant's xi (prior knowledge), (p_plant,)
-    # controller (issue 9): offline (the paper's two phases) or online (learning-type, beside offline)
-    controller: str = "offline"
+    recorded_paths: int
+
+    @classmethod
+    def from_config(cls, cfg) -> TrackingSettings:
+        recording = _flag(cfg, "tracking.recording")
+        recorded_paths = _number(get(cfg, "tracking.recorded_paths"), "tracking.recorded_paths", integer=True, low=0)
+        level = get(cfg, "tracking.level")
+        if level not in TRACKING_LEVELS:
+            raise ConfigError(f"tracking.level: {level!r} is not allowed, expected one of "
+                              f"{', '.join(TRACKING_LEVELS)}")
+        return cls(level=level, recording=recording and level != "off", recorded_paths=recorded_paths)
+
+
+@dataclass(frozen=True)
+class ControllerSettings:
+    """conf/controller: offline (the paper's two phases) or online (learning-type, run beside the
+    offline loop), with the online controller's settings and initial gain (zero | nominal | (m, n))."""
+
+    kind: str = "offline"
     online: OnlineSettings | None = None
-    online_initial: str | np.ndarray = "zero"   # zero | nominal | an (m, n) gain
-    # scale (issue 12): paths per chunk (None: from a memory budget), worker processes, paths recorded
-    chunk_paths: int | None = None
-    workers: int = 1
-    recorded_paths: int = 200
+    initial: str | np.ndarray = "zero"
+
+    @classmethod
+    def from_config(cls, cfg, model: AffineRandomSystem, K: int) -> ControllerSettings:
+        return cls(*_controller(cfg, model, K))
+
+
+@dataclass(frozen=True)
+class Experiment:
+    """Everything a run needs, validated: the plant and the model, and one settings object per
+    config group."""
+
+    plant: AffineRandomSystem
+    model: AffineRandomSystem
+    plant_name: str
+    model_name: str                       # "plant's own structure": the plant's own, its xi the plant's
+    reported: MomentModel | None          # moments of xi a paper reports for the model, if any
+    reference: dict | None                # numbers a paper reports for this plant (summary only)
+    q0: np.ndarray                        # (n,) plant initial state
+    seed: int
+    filter: FilterSettings
+    identification: IdentificationSettings
+    design: DesignSettings
+    loop: LoopSettings
+    tracking: TrackingSettings
+    controller: ControllerSettings
+
+    def simulation(self) -> dict:
+        """simulate()'s initial-state and filter arguments: q0, psi0, P0, ensemble_size."""
+        f = self.filter
+        return dict(q0=self.q0, psi0=f.psi0, P0=f.P0, ensemble_size=f.ensemble_size)
 
 
 def build(cfg) -> Experiment:
@@ -215,96 +365,26 @@ def build(cfg) -> Experiment:
         if q0.shape != (plant.n,) or not np.all(np.isfinite(q0)):
             raise ValueError(f"{plain(OmegaConf.select(cfg, 'plant.q0'))!r} is not allowed, expected null or "
                              f"{plant.n} finite numbers")
-
-    dim = model.n + model.p
-    M = _number(get(cfg, "enkf.ensemble_size"), "enkf.ensemble_size", integer=True, low=2)
-    q_scale = _number(get(cfg, "enkf.q_scale"), "enkf.q_scale", low=0)
-    r_scale = _number(get(cfg, "enkf.r_scale"), "enkf.r_scale", low=0)
-    Q = q_scale * _process_noise(cfg, model.n, model.p)
-    R = r_scale * _covariance(cfg, "enkf.R", model.ny)
-    variant = get(cfg, "enkf.variant")
-    if variant not in VARIANTS:
-        raise ConfigError(f"enkf.variant: {variant!r} is not allowed, expected one of {', '.join(VARIANTS)}")
-    inflation = _number(get(cfg, "enkf.inflation"), "enkf.inflation", low=1)
-    relaxation = _number(get(cfg, "enkf.relaxation"), "enkf.relaxation", low=0, high=1)
-    if variant == "etkf" and np.linalg.eigvalsh(R).min() <= 1e-12 * max(np.abs(R).max(), 1e-300):
-        raise ConfigError("enkf.R: must be positive definite with enkf.variant=etkf (its transform uses R^-1)")
-    enkf = EnKF(model, Q, R, variant=variant, inflation=inflation, relaxation=relaxation)
-    mean = get(cfg, "enkf.initial.mean")
-    with key("enkf.initial.mean"):
-        psi0 = np.zeros(dim) if mean is None else np.asarray(mean, dtype=float)
-        if psi0.shape != (dim,) or not np.all(np.isfinite(psi0)):
-            raise ValueError(f"{mean!r} is not allowed, expected null or {dim} finite numbers (n + p)")
-    P0 = _covariance(cfg, "enkf.initial.cov", dim)
-
-    K_id = _number(get(cfg, "identification.horizon"), "identification.horizon", integer=True, low=1)
-    K0 = _number(get(cfg, "identification.K0"), "identification.K0", integer=True, low=0)
-    K1 = _number(get(cfg, "identification.K1"), "identification.K1", integer=True, low=0)
-    if K0 + K1 > K_id:
-        raise ConfigError(f"identification.K1: K0 + K1 = {K0 + K1} is not allowed, must be <= "
-                          f"identification.horizon = {K_id}")
-    u_id = identification_input(cfg, K_id, model.m)
-    feedback, F_id, xi_guess = _identification_feedback(cfg, plant)
-
-    method = get(cfg, "gain.method")
-    if method not in METHODS:
-        raise ConfigError(f"gain.method: {method!r} is not allowed, expected one of {', '.join(METHODS)}")
-    options = get(cfg, "gain.options") or {}
-    if not isinstance(options, dict):
-        raise ConfigError(f"gain.options: {options!r} is not allowed, expected a mapping")
-    with key("gain.options"):
-        check_options(method, {k: v for k, v in options.items() if not (k == "poles" and v is None)}, model)
-    poles = plain(OmegaConf.select(cfg, "plant.poles"))
-    if poles is not None:
-        with key("plant.poles"):
-            check_options("pole_placement", {"poles": poles}, model)
-    # every method is designed (the gains table); pole placement only with poles from the config
-    design_options = {m: {} for m in METHODS} | {"pole_placement": {"poles": poles}, method: options}
-    gain_source, gain_F = _gain_source(cfg, model, reported)
-
-    paths = _number(get(cfg, "closed_loop.paths"), "closed_loop.paths", integer=True, low=1)
-    K = _number(get(cfg, "closed_loop.horizon"), "closed_loop.horizon", integer=True, low=1)
-    amplitude = get(cfg, "closed_loop.disturbance.amplitude")
-    if isinstance(amplitude, list):                     # one amplitude per input channel
-        if len(amplitude) != model.m:
-            raise ConfigError(f"closed_loop.disturbance.amplitude: {amplitude!r} is not allowed, expected a "
-                              f"number or m = {model.m} numbers")
-        amplitude = [_number(a, "closed_loop.disturbance.amplitude") for a in amplitude]
-    else:
-        amplitude = _number(amplitude, "closed_loop.disturbance.amplitude")
-    until = _number(get(cfg, "closed_loop.disturbance.until"), "closed_loop.disturbance.until", integer=True, low=0)
-    d = np.zeros((K + 1, model.m))
-    d[:until] = amplitude
-    window = _rate_window(get(cfg, "closed_loop.rate_window"), K)
-    flags = {}
-    for name in ("closed_loop.filter_sees_disturbance", "closed_loop.open_loop", "tracking.recording"):
-        flags[name] = get(cfg, name)
-        if not isinstance(flags[name], bool):
-            raise ConfigError(f"{name}: {flags[name]!r} is not allowed, expected true or false")
     reference = plain(OmegaConf.select(cfg, "plant.reference"))
     if reference is not None and not isinstance(reference, dict):
         raise ConfigError(f"plant.reference: {reference!r} is not allowed, expected null or a mapping")
-    chunk = get(cfg, "closed_loop.chunk_paths")
-    chunk = None if chunk is None else _number(chunk, "closed_loop.chunk_paths", integer=True, low=1)
-    workers = _number(get(cfg, "closed_loop.workers"), "closed_loop.workers", integer=True, low=1)
-    recorded_paths = _number(get(cfg, "tracking.recorded_paths"), "tracking.recorded_paths", integer=True, low=0)
-    level = get(cfg, "tracking.level")
-    if level not in TRACKING_LEVELS:
-        raise ConfigError(f"tracking.level: {level!r} is not allowed, expected one of {', '.join(TRACKING_LEVELS)}")
 
-    controller, online, online_initial = _controller(cfg, model, K)
+    filter_ = FilterSettings.from_config(cfg, model)
+    identification = IdentificationSettings.from_config(cfg, plant)
+    design = DesignSettings.from_config(cfg, model, reported)
+    loop = LoopSettings.from_config(cfg, model)
+    tracking = TrackingSettings.from_config(cfg)
+    controller = ControllerSettings.from_config(cfg, model, loop.horizon)
+    return Experiment(plant=plant, model=model, plant_name=plant_name, model_name=model_name, reported=reported,
+                      reference=reference, q0=q0, seed=seed, filter=filter_, identification=identification,
+                      design=design, loop=loop, tracking=tracking, controller=controller)
 
-    return Experiment(plant=plant, model=model, reported=reported, enkf=enkf, ensemble_size=M, q0=q0, psi0=psi0, P0=P0,
-                      identification_input=u_id, K0=K0, K1=K1, gain_method=method, gain_options=options,
-                      gain_source=gain_source, gain_F=gain_F,
-                      paths=paths, disturbance=d,
-                      filter_sees_disturbance=flags["closed_loop.filter_sees_disturbance"],
-                      open_loop=flags["closed_loop.open_loop"], rate_window=tuple(window), seed=seed,
-                      tracking=level, recording=flags["tracking.recording"] and level != "off",
-                      plant_name=plant_name, model_name=model_name, reference=reference,
-                      design_options=design_options, identification_feedback=feedback, identification_gain=F_id,
-                      xi_guess=xi_guess, chunk_paths=chunk, workers=workers, recorded_paths=recorded_paths,
-                      controller=controller, online=online, online_initial=online_initial)
+
+def _flag(cfg, name: str) -> bool:
+    value = get(cfg, name)
+    if not isinstance(value, bool):
+        raise ConfigError(f"{name}: {value!r} is not allowed, expected true or false")
+    return value
 
 
 CONTROLLERS = ("offline", "online")

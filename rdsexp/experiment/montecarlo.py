@@ -21,12 +21,12 @@ MEMORY_BUDGET = 256 * 2 ** 20       # bytes of simulation arrays per chunk when 
 
 def chunk_size(exp, *, keep_members: bool) -> int:
     """Paths per chunk: closed_loop.chunk_paths, else as many as fit the memory budget (at least 1)."""
-    if exp.chunk_paths is not None:
-        return min(exp.chunk_paths, exp.paths)
-    per_path = bytes_per_path(exp.plant, exp.enkf, ensemble_size=exp.ensemble_size,
-                              horizon=exp.disturbance.shape[0] - 1, keep_members=keep_members)
+    if exp.loop.chunk_paths is not None:
+        return min(exp.loop.chunk_paths, exp.loop.paths)
+    per_path = bytes_per_path(exp.plant, exp.filter.enkf, ensemble_size=exp.filter.ensemble_size,
+                              horizon=exp.loop.disturbance.shape[0] - 1, keep_members=keep_members)
     # the chunk's table rows and the worker's copy roughly double what simulate holds
-    return int(min(exp.paths, max(1, MEMORY_BUDGET // (3 * per_path))))
+    return int(min(exp.loop.paths, max(1, MEMORY_BUDGET // (3 * per_path))))
 
 
 def _simulate_chunk(plant, enkf, first: int, count: int, settings: dict, controller=None, progress=None):
@@ -49,17 +49,17 @@ def run_chunks(exp, settings: dict, *, keep_members: bool, workers: int = 1,
     order, at most 2 * workers chunks in flight. progress(steps) is called with the number of
     path-steps done."""
     size = chunk_size(exp, keep_members=keep_members)
-    starts = [(j, min(size, exp.paths - j)) for j in range(0, exp.paths, size)]
-    steps = exp.disturbance.shape[0]
+    starts = [(j, min(size, exp.loop.paths - j)) for j in range(0, exp.loop.paths, size)]
+    steps = exp.loop.disturbance.shape[0]
     settings = dict(settings, keep_members=keep_members)
     if workers <= 1 or len(starts) == 1:
         for first, count in starts:
             step = (lambda k, c=count: progress(c)) if progress is not None else None
-            yield first, *_simulate_chunk(exp.plant, exp.enkf, first, count, settings, controller, step)
+            yield first, *_simulate_chunk(exp.plant, exp.filter.enkf, first, count, settings, controller, step)
         return
     from joblib import Parallel, delayed
     parallel = Parallel(n_jobs=workers, backend="loky", return_as="generator", pre_dispatch="2*n_jobs")
-    results = parallel(delayed(_simulate_chunk)(exp.plant, exp.enkf, first, count, settings, controller)
+    results = parallel(delayed(_simulate_chunk)(exp.plant, exp.filter.enkf, first, count, settings, controller)
                        for first, count in starts)
     for (first, count), (tr, chunk_controller) in zip(starts, results, strict=True):
         if progress is not None:

@@ -83,23 +83,24 @@ def run_experiment(exp: Experiment, sink=None) -> Outcome:
     returned in Outcome.tables with the others."""
     timings, summary = {}, {}
     root = lambda stage: np.random.SeedSequence(exp.seed, spawn_key=SPAWN_KEYS[stage])
-    sim = dict(q0=exp.q0, psi0=exp.psi0, P0=exp.P0, ensemble_size=exp.ensemble_size)
-    keep = exp.tracking == "full"
+    sim = exp.simulation()
+    keep = exp.tracking.level == "full"
 
     with timed(timings, "identification"):
         F_id, summary["identification_feedback"] = identification_feedback(exp)
         # the identification input is added on top of the feedback; the EnKF is told the applied input
-        ident = simulate(exp.plant, exp.enkf, F=F_id, d=exp.identification_input, paths=1,
+        ident = simulate(exp.plant, exp.filter.enkf, F=F_id, d=exp.identification.input, paths=1,
                          seed=root("identification"), filter_sees_d=True, keep_members=keep, **sim)
     with timed(timings, "modeling"):
         xi = ident.xi(ident.psi_filt_mean)[:, 0]
-        if ident.status != "ok" or not np.all(np.isfinite(xi[exp.K0:exp.K0 + exp.K1 + 1])):
+        K0, K1 = exp.identification.K0, exp.identification.K1
+        if ident.status != "ok" or not np.all(np.isfinite(xi[K0:K0 + K1 + 1])):
             dist = None
             reason = ident.failure[0] or "the filtered xi is not finite"
             k_fail = ident.failed_at[0] if ident.failed_at[0] >= 0 else "window"
             summary["modeling_status"] = f"identification failed at k = {k_fail}: {FAILURES.get(reason, reason)}"
         else:
-            dist = model_distribution(xi, exp.K0, exp.K1)
+            dist = model_distribution(xi, K0, K1)
             summary["modeling_status"] = "ok"
     with timed(timings, "synthesis"):
         # every method on the identified moments (the selected one with its configured options) and,
@@ -108,14 +109,14 @@ def run_experiment(exp: Experiment, sink=None) -> Outcome:
         designs = {}
         for source, moments in (("identified", dist), ("reported", exp.reported)):
             for method in METHODS if moments is not None else ():
-                options = exp.design_options.get(method, exp.gain_options if method == exp.gain_method else {})
+                options = exp.design.options_by_method[method]
                 designs[source, method] = (moments, safe_synthesize(exp.model, moments, method, options))
-        selected = (exp.gain_source, exp.gain_method)
-        if exp.gain_source == "fixed":      # a given F (e.g. a paper's own gain): no design, its exact rate
+        selected = (exp.design.source, exp.design.method)
+        if exp.design.source == "fixed":      # a given F (e.g. a paper's own gain): no design, its exact rate
             selected, moments = ("fixed", "fixed"), dist if dist is not None else exp.reported
-            rate = ms_rate(exp.model, moments, exp.gain_F) if moments is not None else np.nan
+            rate = ms_rate(exp.model, moments, exp.design.F) if moments is not None else np.nan
             nbar = int(exp.model.Gbar(moments).shape[0]) if moments is not None else 0
-            designs[selected] = (moments, SynthesisResult("fixed", exp.gain_F, rate, "fixed", nbar=nbar))
+            designs[selected] = (moments, SynthesisResult("fixed", exp.design.F, rate, "fixed", nbar=nbar))
         chosen = designs.get(selected, (None, None))[1]
 
     # closed and open loop in chunks of paths: rows go to the sink chunk by chunk, the metrics keep a
@@ -126,24 +127,24 @@ def run_experiment(exp: Experiment, sink=None) -> Outcome:
         sample_members.append(members_table("identification", ident))
         sink.append("members", sample_members[0])
     if chosen is not None and chosen.F is not None:
-        settings = dict(d=exp.disturbance, filter_sees_d=exp.filter_sees_disturbance, **sim)
-        runs = [("closed_loop", chosen.F)] + ([("open_loop", None)] if exp.open_loop else [])
+        settings = dict(d=exp.loop.disturbance, filter_sees_d=exp.loop.filter_sees_disturbance, **sim)
+        runs = [("closed_loop", chosen.F)] + ([("open_loop", None)] if exp.loop.open_loop else [])
         for name, F in runs:
             with timed(timings, name):
-                bar, _ = _progress(name.replace("_", " "), exp.paths * exp.disturbance.shape[0])
+                bar, _ = _progress(name.replace("_", " "), exp.loop.paths * exp.loop.disturbance.shape[0])
                 parts, members = [], None
                 with bar, logging_redirect_tqdm():
                     for first, tr, _ in run_chunks(exp, dict(settings, F=F, seed=root(name)), keep_members=keep,
-                                                   workers=exp.workers, progress=bar.update):
+                                                   workers=exp.loop.workers, progress=bar.update):
                         rows = trajectory_table(name, tr, first)
-                        if exp.controller == "online":     # the gain in use, as in the online rows
+                        if exp.controller.kind == "online":     # the gain in use, as in the online rows
                             rows = with_gains(rows, np.zeros((exp.model.m, exp.model.n)) if F is None else F)
                         sink.append("trajectories", rows)
-                        sample.append(rows[rows["path"] < exp.recorded_paths])
+                        sample.append(rows[rows["path"] < exp.tracking.recorded_paths])
                         if keep:
                             members = members_table(name, tr, first)
                             sink.append("members", members)
-                            sample_members.append(members[members["path"] < exp.recorded_paths])
+                            sample_members.append(members[members["path"] < exp.tracking.recorded_paths])
                         parts.append(LoopSummary.of(tr, exp))
                         tr = rows = members = None          # free the chunk before the next
                 loops[name] = LoopSummary.concat(parts)
@@ -151,7 +152,7 @@ def run_experiment(exp: Experiment, sink=None) -> Outcome:
         sink.append("trajectories", trajectory_table("closed_loop", None, exp=exp))
 
     online = None
-    if exp.controller == "online":
+    if exp.controller.kind == "online":
         with timed(timings, "online"):
             online, summary["online_initial"] = online_loop(exp, root("online"), keep, sim, sink, sample,
                                                             sample_members)
@@ -199,33 +200,33 @@ def online_loop(exp: Experiment, seed, keep: bool, sim: dict, sink, sample: list
     chunk), rows streamed to the sink with the gain in use (F[i,j]). Returns
     ((LoopSummary, [(first_path, controller)]), info for the summary)."""
     m, n = exp.model.m, exp.model.n
-    info = {"initial": exp.online_initial if isinstance(exp.online_initial, str) else "given"}
-    F0 = exp.online_initial if not isinstance(exp.online_initial, str) else np.zeros((m, n))
-    if isinstance(exp.online_initial, str) and exp.online_initial == "nominal":
-        res = nominal_gain(exp.plant, exp.xi_guess)
+    info = {"initial": exp.controller.initial if isinstance(exp.controller.initial, str) else "given"}
+    F0 = exp.controller.initial if not isinstance(exp.controller.initial, str) else np.zeros((m, n))
+    if isinstance(exp.controller.initial, str) and exp.controller.initial == "nominal":
+        res = nominal_gain(exp.plant, exp.identification.xi_guess)
         info |= {"method": res.method, "status": res.status, "rate_at_guess": res.lam}
         if res.F is not None and np.all(np.isfinite(res.F)) and res.lam < 1:
             F0 = res.F
         else:
             info["used"] = "zero (no stabilizing nominal gain)"
-    K = exp.disturbance.shape[0] - 1
+    K = exp.loop.disturbance.shape[0] - 1
     parts, controllers = [], []
-    bar, _ = _progress("online", exp.paths * (K + 1))
-    settings = dict(F=F0, d=exp.disturbance, seed=seed, filter_sees_d=exp.filter_sees_disturbance, **sim)
-    make = partial(OnlineController, exp.model, exp.online, F0, horizon=K)
+    bar, _ = _progress("online", exp.loop.paths * (K + 1))
+    settings = dict(F=F0, d=exp.loop.disturbance, seed=seed, filter_sees_d=exp.loop.filter_sees_disturbance, **sim)
+    make = partial(OnlineController, exp.model, exp.controller.online, F0, horizon=K)
     with bar, logging_redirect_tqdm():
-        for first, tr, controller in run_chunks(exp, settings, keep_members=keep, workers=exp.workers,
+        for first, tr, controller in run_chunks(exp, settings, keep_members=keep, workers=exp.loop.workers,
                                                 progress=bar.update, controller=make):
             count = tr.q.shape[1]
             history = controller.gain_history()
             in_use = np.stack([history[j][tr.gain_index[:, j]] for j in range(count)])     # (P, K+1, m, n)
             rows = with_gains(trajectory_table("online", tr, first), in_use.reshape(count * (K + 1), m, n))
             sink.append("trajectories", rows)
-            sample.append(rows[rows["path"] < exp.recorded_paths])
+            sample.append(rows[rows["path"] < exp.tracking.recorded_paths])
             if keep:
                 members = members_table("online", tr, first)
                 sink.append("members", members)
-                sample_members.append(members[members["path"] < exp.recorded_paths])
+                sample_members.append(members[members["path"] < exp.tracking.recorded_paths])
             parts.append(LoopSummary.of(tr, exp))
             controllers.append((first, controller))
     return (LoopSummary.concat(parts), controllers), info
@@ -296,7 +297,7 @@ def add_online_tables(exp: Experiment, tables: dict, online, chosen, summary: di
     optimum = min((safe_synthesize(exp.plant, truth, method, {}) for method in ("proposed", "policy_iteration")),
                   key=lambda res: res.lam if np.isfinite(res.lam) else np.inf)
     offline = safe_rate(exp.plant, None, chosen.F) if chosen is not None and chosen.F is not None else np.nan
-    window = exp.rate_window
+    window = exp.loop.rate_window
     q = np.nanpercentile(final, [10, 50, 90]) if np.isfinite(final).any() else [np.nan] * 3
     online_metrics = {"final_rate_plant_q10": q[0], "final_rate_plant_median": q[1], "final_rate_plant_q90": q[2],
                       "final_stable_fraction": float(np.mean(final < 1)),
@@ -342,18 +343,18 @@ def identification_feedback(exp: Experiment) -> tuple[np.ndarray | None, dict]:
     auto: open loop when the plant at the nominal guess xi_guess (prior knowledge, by default the mean
     of the plant's distribution) is mean-square stable in open loop, else nominal: a stabilizing
     gain designed on the plant at xi_guess (`nominal_gain`)."""
-    mode = exp.identification_feedback
+    mode = exp.identification.feedback
     info = {"mode": mode}
     if mode == "none":
         return None, info
     if mode == "given":
-        return exp.identification_gain, info | {"used": "given"}
-    guess = MomentModel.deterministic(exp.xi_guess)
+        return exp.identification.gain, info | {"used": "given"}
+    guess = MomentModel.deterministic(exp.identification.xi_guess)
     with np.errstate(all="ignore"):
         info["open_loop_rate_at_guess"] = safe_rate(exp.plant, guess, np.zeros((exp.plant.m, exp.plant.n)))
     if mode == "auto" and info["open_loop_rate_at_guess"] < 1:
         return None, info | {"used": "open_loop"}
-    res = nominal_gain(exp.plant, exp.xi_guess)
+    res = nominal_gain(exp.plant, exp.identification.xi_guess)
     info |= {"used": "nominal", "method": res.method, "status": res.status, "rate_at_guess": res.lam}
     if res.F is None or not np.all(np.isfinite(res.F)) or not res.lam < 1:
         info["used"] = "open_loop (no stabilizing nominal gain)"
@@ -476,7 +477,7 @@ def metrics_table(exp: Experiment, loops: dict[str, LoopSummary]) -> pd.DataFram
     from `truth_map`, NaN when the model's xi has no value in the plant's terms); *_spread_error:
     sqrt(mean sum std^2) / RMSE (1: the ensemble spread matches its error). Means are over every
     finite (step, path)."""
-    k_from, k_to = exp.rate_window
+    k_from, k_to = exp.loop.rate_window
     rows = []
     for name, loop in loops.items():
         rate, low, high = empirical_rate_sq(loop.sq[k_from], loop.sq[k_to], k_to - k_from)
@@ -507,7 +508,7 @@ def exact_table(exp: Experiment, chosen: SynthesisResult | None) -> pd.DataFrame
         [("open_loop", np.zeros((exp.plant.m, exp.plant.n)))]
     for name, F in gains:
         with np.errstate(all="ignore"):
-            _, second = second_moments(exp.plant, None, F, exp.q0, exp.disturbance)
+            _, second = second_moments(exp.plant, None, F, exp.q0, exp.loop.disturbance)
         frames.append(pd.DataFrame({"experiment": name, "k": np.arange(second.shape[0]),
                                     "rms": np.sqrt(np.trace(second, axis1=1, axis2=2))}))
     return pd.concat(frames, ignore_index=True)
@@ -515,8 +516,8 @@ def exact_table(exp: Experiment, chosen: SynthesisResult | None) -> pd.DataFrame
 
 def _summary(exp: Experiment, dist, chosen, tables: dict) -> dict:
     """Key numbers of the run (run.json `summary`); what print_summary shows."""
-    s = {"plant": exp.plant_name, "model": exp.model_name, "gain_method": exp.gain_method,
-         "rate_window": list(exp.rate_window)}
+    s = {"plant": exp.plant_name, "model": exp.model_name, "gain_method": exp.design.method,
+         "rate_window": list(exp.loop.rate_window)}
     if dist is not None:
         s.update(nbar=int(exp.model.Gbar(dist).shape[0]), xi_mean=dist.mean.tolist())
     if chosen is not None:

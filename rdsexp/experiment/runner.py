@@ -33,12 +33,12 @@ def record(writer: RunWriter, outcome: Outcome, exp: Experiment, info: dict, str
                                       for name, table in outcome.tables.items()})
         hashes = dict(sorted((hashes | streamed).items(), key=lambda item: _table_order(item[0])))
     with timed(timings, "recording"):
-        if exp.recording:
+        if exp.tracking.recording:
             from .recording import write_recording  # rerun is imported only when recording
             entry = writer.store_recording(lambda tmp: write_recording(
                 tmp, outcome.recorded, recording_id=info["id"], members=outcome.recorded_members,
                 tables=outcome.tables, summary=outcome.summary, squares=outcome.squares,
-                window=(exp.K0, exp.K0 + exp.K1), **true_xi(exp)))
+                window=(exp.identification.K0, exp.identification.K0 + exp.identification.K1), **true_xi(exp)))
             if entry is not None:
                 info["recording"] = entry
             else:                                   # RERUN=off in the environment: rerun wrote nothing
@@ -120,7 +120,7 @@ def execute(cfg: DictConfig, run_dir: Path) -> dict:
     if OmegaConf.select(cfg, "plant.name") is None and HydraConfig.initialized():
         # a plant file without `name:` is named by its file (plant=NAME)
         exp = dataclasses.replace(exp, plant_name=HydraConfig.get().runtime.choices.get("plant") or "plant")
-    if exp.tracking == "off":
+    if exp.tracking.level == "off":
         outcome = run_experiment(exp)
         return {"id": run_dir.name, "status": "complete", "summary": outcome.summary, "timings": outcome.timings}
     timings, writer, store = {}, RunWriter(run_dir), store_of(cfg)
