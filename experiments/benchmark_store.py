@@ -2,7 +2,7 @@
 
 A sweep job's bookkeeping is the reuse lookup (rdsexp.experiment.store.find_reusable: one index
 entry and the named run's files), indexing its own run (store.index_add) and rebuilding its sweep's
-summary (runs.write_sweep_summary). This script stores one tiny run (tracking summary), fabricates
+summary (store.write_sweep_summary). This script stores one tiny run (tracking summary), fabricates
 stores of 10, 100 and 1,000 runs by copying it (files hard-linked, run.json rewritten with a
 distinct config hash), puts a 5-job sweep in each and times that bookkeeping, beside the lookup
 rdsexp used before the index (reading every run.json under the store).
@@ -23,7 +23,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from rdsexp.experiment import runs, store
+from rdsexp.experiment import store
 
 TINY = ["closed_loop.paths=4", "enkf.ensemble_size=20", "closed_loop.horizon=30", "closed_loop.rate_window=[10,20]",
         "closed_loop.disturbance.until=10", "identification.horizon=30", "identification.K0=5",
@@ -95,7 +95,7 @@ def main() -> None:
             hit = median_ms(args.repeat, store.find_reusable, root, target, version)
             miss = median_ms(args.repeat, store.find_reusable, root, "0" * 64, version)
             add = median_ms(args.repeat, store.index_add, root, job, job_info)
-            summary = median_ms(args.repeat, runs.write_sweep_summary, sweep)
+            summary = median_ms(args.repeat, store.write_sweep_summary, sweep)
             scan = median_ms(max(3, args.repeat // 5), legacy_lookup, root, target, version)
             per_job = hit + add + summary
             rows.append((n, per_job, scan))

@@ -141,6 +141,20 @@ def test_console_scripts_behave_like_python_m(tmp_path):
     assert (runs_script.returncode, runs_script.stdout) == (runs_module.returncode, runs_module.stdout)
 
 
+def test_fast_help_is_hydras_help(tmp_path, capsys):
+    """`rdsexp --help` reads file names instead of composing: the same page as Hydra's (printed by
+    Hydra when another search path is given), a user's --config-dir groups included."""
+    from rdsexp.experiment.cli import help_text
+    (tmp_path / "mine" / "plant").mkdir(parents=True)
+    shutil.copy(REPO / "conf" / "plant" / "dropout.yaml", tmp_path / "mine" / "plant" / "lossy.yaml")
+    argv = ["--config-dir", str(tmp_path / "mine"), "--help"]
+    fast = help_text(argv)
+    assert "plant: cart_pole, dropout, lossy," in fast and help_text([*argv, "hydra.searchpath=[]"]) is None
+    hydra_page = subprocess.run([SCRIPTS / "rdsexp", *argv, "hydra.searchpath=[]"], capture_output=True, text=True,
+                                check=True).stdout
+    assert hydra_page == fast + "\n"
+
+
 def test_bash_completion_of_gain_lists_the_methods(tmp_path):
     script = ('eval "$(rdsexp --shell-completion install=bash)"; COMP_LINE="rdsexp gain="; '
               'COMP_POINT=${#COMP_LINE}; COMP_WORDS=(rdsexp gain=); COMP_CWORD=1; hydra_bash_completion; '

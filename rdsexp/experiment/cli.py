@@ -19,10 +19,7 @@ from hydra.types import RunMode
 from omegaconf import DictConfig
 
 from ..errors import RunExit, WriteError
-from .failures import failure
-from .runner import execute, job_config
-from .store import RunWriter, layout, provenance, write_sweep_summary
-from .summary import summary_text
+from .store import layout
 
 log = logging.getLogger("rdsexp")
 CONF_PACKAGE = "pkg://rdsexp.conf"        # conf/ of the repository, shipped as the package rdsexp.conf
@@ -31,6 +28,10 @@ layout.register_resolvers()               # hydra.run.dir and hydra.sweep.dir (c
 
 @hydra.main(config_path=CONF_PACKAGE, config_name="config", version_base="1.3")
 def hydra_main(cfg: DictConfig) -> dict:
+    # imported here: `rdsexp --help` and shell completion need Hydra only, not the numerics
+    from .runner import execute
+    from .store import write_sweep_summary
+    from .summary import summary_text
     hc = HydraConfig.get()
     run_dir = Path(hc.runtime.output_dir)
     multirun = hc.mode == RunMode.MULTIRUN
@@ -53,6 +54,8 @@ def hydra_main(cfg: DictConfig) -> dict:
 def record_failure(err: Exception, cfg: DictConfig, run_dir: Path, job: int | None) -> dict:
     """Record the failure of a run in its run.json and log it; a single run's config error leaves no
     run directory and ends at once (exit 2), a write error ends with its one line (exit 1)."""
+    from .failures import failure
+    from .store import RunWriter
     f = failure(err)
     if job is None and f.status in ("config_error", "write_error"):
         if f.status == "config_error":                   # nothing that could pass for a result
@@ -70,6 +73,8 @@ def record_failure(err: Exception, cfg: DictConfig, run_dir: Path, job: int | No
 
 def _fallback(cfg: DictConfig) -> dict:
     """What run.json records of a run that failed before its provenance was written."""
+    from .runner import job_config
+    from .store import provenance
     return {"config_hash": provenance.config_hash(job_config(cfg))}
 
 
@@ -88,6 +93,11 @@ def main() -> None:
                   f"enkf.Q.xi= or a matrix as enkf.Q.matrix={value} (a scalar, n+p diagonal entries or "
                   f"a full (n+p)x(n+p) matrix)", file=sys.stderr)
             sys.exit(2)
+    if {"--help", "-h"} & set(sys.argv[1:]):
+        text = help_text(sys.argv[1:])
+        if text is not None:
+            print(text)
+            return
     try:
         hydra_main()
     except RunExit as exit_:                 # rdsexp's own ending, with its exit code
@@ -99,3 +109,28 @@ def main() -> None:
             print("rdsexp: config error (reported by Hydra above)", file=sys.stderr)
             sys.exit(2)
         raise
+
+
+def help_text(argv: list[str]) -> str | None:
+    """`rdsexp --help` without composing a config: Hydra's help template (conf/hydra/help/rdsexp.yaml)
+    with the config groups and options read from the installed configs and any `--config-dir`.
+    Hydra's own help builds a config repository per group (seconds); this reads file names. None
+    where another search path is given (`hydra.searchpath=...`): then Hydra prints it."""
+    from importlib.resources import as_file, files
+
+    import yaml
+    if any(arg.lstrip("+").startswith("hydra.searchpath") for arg in argv):
+        return None
+    dirs = [arg.split("=", 1)[1] if "=" in arg else argv[i + 1] for i, arg in enumerate(argv)
+            if arg.startswith(("--config-dir", "-cd")) and ("=" in arg or i + 1 < len(argv))]
+    with as_file(files("rdsexp.conf")) as conf:
+        groups: dict[str, set[str]] = {}
+        for root in [Path(conf), *map(Path, dirs)]:
+            for path in root.rglob("*.yaml"):
+                group = path.parent.relative_to(root).as_posix()
+                if group != "." and not group.startswith("hydra"):
+                    groups.setdefault(group, set()).add(path.stem)
+        help_cfg = yaml.safe_load((Path(conf) / "hydra" / "help" / "rdsexp.yaml").read_text())
+    listing = "".join(f"{group}: {', '.join(sorted(options))}\n" for group, options in sorted(groups.items()))
+    return help_cfg["template"].replace("${hydra.help.header}", help_cfg["header"]).replace(
+        "${hydra.help.footer}", help_cfg["footer"]).replace("$APP_CONFIG_GROUPS", listing)

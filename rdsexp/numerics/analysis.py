@@ -10,7 +10,7 @@ import warnings
 import numpy as np
 import scipy.linalg
 import scipy.sparse.linalg
-from scipy import stats
+from scipy.special import ndtri
 
 from .systems import AffineRandomSystem, MomentModel
 
@@ -161,7 +161,7 @@ def empirical_rate_sq(b: np.ndarray, a: np.ndarray, span: int, level: float = 0.
     # gradient of log(mean a) - log(mean b) applied to the per-path pairs
     g = a / a.mean() - b / b.mean()
     se = np.std(g, ddof=1) / np.sqrt(P) if P > 1 else np.inf
-    z = stats.norm.ppf(0.5 + level / 2)
+    z = ndtri(0.5 + level / 2)          # the standard normal quantile
     return tuple(float(np.exp(v / span)) for v in (log_ratio, log_ratio - z * se, log_ratio + z * se))
 
 
@@ -174,7 +174,7 @@ def rms_band(sq: np.ndarray, level: float = 0.95) -> tuple[np.ndarray, np.ndarra
     as `empirical_rate_sq`'s interval of the rate. NaN where fewer than two paths are finite."""
     sq = np.where(np.isfinite(sq), sq, np.nan)
     count = np.sum(np.isfinite(sq), axis=1)
-    z = stats.norm.ppf(0.5 + level / 2)
+    z = ndtri(0.5 + level / 2)          # the standard normal quantile
     with np.errstate(all="ignore"):       # steps where no path is finite give NaN, silently
         mean = np.nansum(sq, axis=1) / count
         se = np.sqrt(np.nansum((sq - mean[:, None]) ** 2, axis=1) / (count - 1) / count)
