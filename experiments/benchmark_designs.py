@@ -1,4 +1,4 @@
-"""Speed of the designs of issue 10 on the paper's model (Sec. V) against their targets.
+"""Speed of the mean-square LQ and robust box designs on the paper's model (Sec. V) against their targets.
 
 1. ms_lqr (generalized Riccati equation by Newton), paper model and modeled distribution:
    median of `repeats` calls, target < 10 ms.

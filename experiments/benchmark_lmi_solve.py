@@ -1,4 +1,4 @@
-"""Time of one LMI solve of Theorem 2 under Clarabel settings (issue: certified optimal rates).
+"""Time of one LMI solve of Theorem 2 under Clarabel settings.
 
 One solve of (lmi-syn) at lambda just above policy iteration's optimum, on the seeded random systems
 of benchmark_synthesis.py, for each Clarabel setting below; the settings are interleaved round-robin

@@ -6,7 +6,7 @@
 The paper's closed loop (P paths x M members, k = 0..horizon, u_k = F x_{k|k-1} with the fixed
 proposed gain) against the online controller on the same plant samples and EnKF noise (initial gain
 zero, warm-up 20, memory all, re-design every `period` steps by batched policy iteration). Target
-(issue 9): online / offline <= 3. Also prints the time spent inside the controller's updates.
+online / offline <= 3. Also prints the time spent inside the controller's updates.
 """
 from __future__ import annotations
 

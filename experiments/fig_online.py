@@ -1,4 +1,4 @@
-"""Online (learning-type) vs offline control (issue 9), per plant: figure and table "online_PLANT"
+"""Online (learning-type) vs offline control, per plant: figure and table "online_PLANT"
 from the `controllers` sweeps, table "online_settings_PLANT" from the `online` sweeps.
 
 Each run of either sweep holds the offline closed loop and the online loop of the same seed on the

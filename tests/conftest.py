@@ -14,14 +14,58 @@ SMALL = ["closed_loop.paths=4", "enkf.ensemble_size=20", "closed_loop.horizon=30
          "identification.K1=20"]
 
 
-def rdsexp(*args, cwd, module="rdsexp", check=True, timeout=600):
-    """Run `python -m <module> args` in cwd; returns the CompletedProcess."""
-    env = dict(os.environ, PYTHONWARNINGS="ignore::DeprecationWarning")
-    proc = subprocess.run([sys.executable, "-m", module, *args], cwd=cwd, capture_output=True, text=True,
-                          timeout=timeout, env=env)
+def rdsexp(*args, cwd, module="rdsexp", check=True, timeout=600, process=False):
+    """`python -m <module> args` in cwd; returns a CompletedProcess. rdsexp and rdsexp.runs run in
+    this process (their main() with sys.argv, cwd, stdout and stderr swapped: no interpreter start
+    and imports per call); `process=True`, or any other module, in a fresh interpreter (what needs
+    a process of its own: signals, environment variables, warnings printed on stderr)."""
+    if process or module not in ("rdsexp", "rdsexp.runs"):
+        env = dict(os.environ, PYTHONWARNINGS="ignore::DeprecationWarning")
+        proc = subprocess.run([sys.executable, "-m", module, *args], cwd=cwd, capture_output=True, text=True,
+                              timeout=timeout, env=env)
+    else:
+        proc = in_process(module, [str(a) for a in args], cwd)
     if check and proc.returncode != 0:
         raise AssertionError(f"exit {proc.returncode}\nstdout:\n{proc.stdout}\nstderr:\n{proc.stderr}")
     return proc
+
+
+def in_process(module: str, args: list[str], cwd) -> subprocess.CompletedProcess:
+    """Run the console entry point of `module` (rdsexp or rdsexp.runs) in this process."""
+    import io
+    import logging
+    import signal
+    from contextlib import redirect_stderr, redirect_stdout
+
+    from hydra.core.global_hydra import GlobalHydra
+    from hydra.core.hydra_config import HydraConfig
+
+    from rdsexp.experiment import cli, runs
+    out, err, code = io.StringIO(), io.StringIO(), 0
+    saved = os.getcwd(), sys.argv, signal.getsignal(signal.SIGINT)
+    GlobalHydra.instance().clear()                    # a compose() a test left initialized
+    try:
+        os.chdir(cwd)
+        sys.argv = [module, *args]
+        with redirect_stdout(out), redirect_stderr(err):
+            try:
+                code = runs.main(args) if module == "rdsexp.runs" else cli.main()
+            except SystemExit as exit_:
+                if isinstance(exit_.code, str):        # sys.exit("message"): printed, exit code 1
+                    print(exit_.code, file=sys.stderr)
+                code = 1 if isinstance(exit_.code, str) else exit_.code or 0
+    finally:
+        os.chdir(saved[0])
+        sys.argv = saved[1]
+        signal.signal(signal.SIGINT, saved[2])
+        GlobalHydra.instance().clear()
+        HydraConfig.instance().cfg = None
+        for name in (None, "rdsexp"):                 # the run's log file and the swapped stderr
+            logger = logging.getLogger(name)
+            for handler in list(logger.handlers):
+                logger.removeHandler(handler)
+                handler.close()
+    return subprocess.CompletedProcess([module, *args], code or 0, out.getvalue(), err.getvalue())
 
 
 @pytest.fixture(scope="session")

@@ -1,4 +1,4 @@
-"""The designs of issue 10: mean-square LQ (ms_lqr), robust box design (robust_box), exact LQ cost and H2 norm.
+"""Mean-square LQ (ms_lqr), robust box design (robust_box), exact LQ cost and H2 norm.
 
 Every property is checked against an independent computation: the DARE (scipy), the generalized
 Riccati equation written with E[[1; xi][1; xi]^T] instead of Gbar, dense vertex LMIs built here,

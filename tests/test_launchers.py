@@ -1,4 +1,4 @@
-"""Sweeps through other Hydra launchers (issue 12): joblib workers, submitit (the Slurm code path,
+"""Sweeps through other Hydra launchers: joblib workers, submitit (the Slurm code path,
 run locally) and a local Ray cluster give the tables of the basic launcher, and the sweep summary
 lists every job however many finish at once."""
 import importlib.util

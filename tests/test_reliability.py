@@ -131,7 +131,8 @@ def test_python_api_raises_clear_value_errors(call, message):
 
 
 def test_diverging_run_is_recorded_as_a_status_without_warnings(tmp_path):
-    proc = rdsexp("gain=pole_placement", *SMALL, "closed_loop.horizon=60", cwd=tmp_path)
+    # its own process: a warning would reach stderr there, not pytest's capture
+    proc = rdsexp("gain=pole_placement", *SMALL, "closed_loop.horizon=60", cwd=tmp_path, process=True)
     assert "Warning" not in proc.stderr and "overflow" not in proc.stderr
     (run_dir,) = (tmp_path / "outputs" / "runs").iterdir()
     info = json.loads((run_dir / "run.json").read_text())
@@ -147,7 +148,7 @@ def test_rerun_disabled_in_the_environment_gives_a_complete_run_without_recordin
     """RERUN=off turns Rerun's streams off: the run (and a sweep of it) still completes, with every
     table and an intact record, only without recording.rrd."""
     monkeypatch.setenv("RERUN", "off")
-    proc = rdsexp(*SMALL, "seed=0,1", "--multirun", cwd=tmp_path)
+    proc = rdsexp(*SMALL, "seed=0,1", "--multirun", cwd=tmp_path, process=True)   # Rerun warns on file 2
     assert "sweep recording: none (Rerun disabled" in proc.stdout and "WARN" not in proc.stderr
     runs = sorted(tmp_path.glob("outputs/sweeps/*/*/run.json"))
     assert len(runs) == 2

@@ -1,4 +1,4 @@
-"""Chunked Monte Carlo (issue 12): tables and metrics do not depend on the chunk size or the workers,
+"""Chunked Monte Carlo: tables and metrics do not depend on the chunk size or the workers,
 streamed tables are hashed as whole ones, the recording keeps a bounded sample of paths."""
 import json
 

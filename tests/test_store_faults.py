@@ -296,7 +296,7 @@ def test_verify_names_damaged_tables(st, capsys):
 # --- faults that need the CLI running
 
 def test_resumed_sweep_reruns_only_the_damaged_job(st, tmp_path):
-    """The issue's case: a half-written run.json. A resumed sweep names it in one warning, runs that
+    """A half-written run.json. A resumed sweep names it in one warning, runs that
     job again, reuses the others (read-only files, shared only where modes protect them) and
     exits 0; an edit of a reused table is caught and does not change the original."""
     truncated_run_json(st)

@@ -108,7 +108,7 @@ def test_lmi_bracket_is_true_for_any_factor_of_the_moments(kind, factor, monkeyp
 
 
 def test_policy_iteration_certifies_the_paper_optimum():
-    """The issue's check: a bracket of width < 1e-8 around 0.844182889817, with a singular P."""
+    """A bracket of width < 1e-8 around 0.844182889817, with a singular P."""
     res = rx.synthesize(rx.paper.model(), rx.paper.modeled_distribution(), "policy_iteration")
     assert res.status == "optimal"
     assert res.lam_lower <= 0.844182889817 <= res.lam + 1e-12 and res.lam - res.lam_lower < 1e-8

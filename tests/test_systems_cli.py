@@ -1,5 +1,5 @@
 """Any plant through the CLI: xi families, model from the plant, identification under feedback,
-designs that cannot be applied as statuses (issue 17)."""
+designs that cannot be applied as statuses."""
 import json
 
 import numpy as np

@@ -211,22 +211,21 @@ def compare_tables(stored: pd.DataFrame, fresh: pd.DataFrame) -> list[str]:
     return problems
 
 
-def verify(run_dir: Path) -> bool:
-    """Re-execute a stored run from its recorded config and seed; compare every table. A damaged
-    file (missing, unreadable, modified after the run) is reported as such and fails verify."""
+def verify(run_dir: Path) -> tuple[bool, list[str]]:
+    """Re-execute a stored run from its recorded config and seed and compare every table: (identical,
+    the report's lines). A damaged file (missing, unreadable, modified after the run) is reported
+    as such and fails verify."""
     from .config import build
     from .pipeline import run_experiment
     info = read_run(run_dir)
     damaged = run_damage(run_dir, info)
-    for problem in damaged:
-        print(f"damaged: {run_dir / problem}")
+    lines = [f"damaged: {run_dir / problem}" for problem in damaged]
     if not (run_dir / layout.HYDRA_CONFIG).is_file():
-        print(f"verify: cannot re-run without {layout.HYDRA_CONFIG} (damaged)")
-        return False
+        return False, [*lines, f"verify: cannot re-run without {layout.HYDRA_CONFIG} (damaged)"]
     cfg = OmegaConf.load(run_dir / layout.HYDRA_CONFIG)
     code = provenance.code_version()["version"]
     if code != (info.get("code") or {}).get("version"):
-        print(f"note: the run was made with code {(info.get('code') or {}).get('version')}, this is {code}")
+        lines.append(f"note: the run was made with code {(info.get('code') or {}).get('version')}, this is {code}")
     outcome = run_experiment(build(cfg))
     ok = not damaged
     for name in (info.get("tables") or {}):
@@ -234,39 +233,38 @@ def verify(run_dir: Path) -> bool:
         try:        # a modified table is reported damaged above; its differences are shown too
             stored = read_table(run_dir, info, name, check_hash=False)
         except DamagedRecord as err:
-            print(f"{name:15s} DAMAGED: {err.path.name}: {err.reason}")
+            lines.append(f"{name:15s} DAMAGED: {err.path.name}: {err.reason}")
             ok = False
             continue
         problems = compare_tables(stored, fresh) if fresh is not None else ["not produced by the re-run"]
-        print(f"{name:15s} {'identical' if not problems else 'DIFFERS'}")
-        for p in problems:
-            print(f"    {p}")
+        lines += [f"{name:15s} {'identical' if not problems else 'DIFFERS'}", *(f"    {p}" for p in problems)]
         ok &= not problems
-    print("verify:", "identical" if ok else "differences found")
-    return ok
+    return ok, [*lines, f"verify: {'identical' if ok else 'differences found'}"]
 
 
-def check(root: Path, move: bool = False) -> int:
-    """`rdsexp-runs check [DIR] [--quarantine]`: list every damaged or inconsistent record under a
-    store; with `move`, quarantine them and rebuild the summaries concerned. Exit code: 1 when
-    something was found and left in place, else 0."""
-    findings = RunStore(root).check()
-    for finding in findings:
-        print(finding.line())
+def check(root: Path, move: bool = False) -> tuple[int, list[str]]:
+    """`rdsexp-runs check [DIR] [--quarantine]`: every damaged or inconsistent record under a store;
+    with `move`, quarantine them and rebuild the summaries concerned. Returns (exit code: 1 when
+    something was found and left in place, else 0; the report's lines)."""
+    store = RunStore(root)
+    findings = store.check()
+    lines = [finding.line() for finding in findings]
     if not findings:
-        print(f"check: {root}: no damaged or inconsistent record")
-        return 0
+        return 0, [f"check: {root}: no damaged or inconsistent record"]
     if not move:
-        print(f"check: {root}: {len(findings)} damaged or inconsistent; `--quarantine` moves the damaged records "
-              f"to {Path(root) / layout.QUARANTINE} and rebuilds the summaries")
-        return 1
-    moves, rebuilt = RunStore(root).quarantine(findings)
-    for source, target in moves:
-        print(f"moved {source} -> {target}")
-    for path in rebuilt:
-        print(f"rebuilt {path}")
-    print(f"check: {root}: {len(moves)} moved to quarantine, {len(rebuilt)} summaries rebuilt, index rebuilt")
-    return 0
+        return 1, [*lines, f"check: {root}: {len(findings)} damaged or inconsistent; `--quarantine` moves the "
+                           f"damaged records to {Path(root) / layout.QUARANTINE} and rebuilds the summaries"]
+    moves, rebuilt = store.quarantine(findings)
+    lines += [f"moved {source} -> {target}" for source, target in moves] + [f"rebuilt {path}" for path in rebuilt]
+    return 0, [*lines, f"check: {root}: {len(moves)} moved to quarantine, {len(rebuilt)} summaries rebuilt, "
+                       f"index rebuilt"]
+
+
+def _report(result: tuple) -> int:
+    """Print a command's lines; its exit code (0 for True)."""
+    status, lines = result
+    print("\n".join(lines))
+    return status if isinstance(status, int) and not isinstance(status, bool) else int(not status)
 
 
 def main(argv=None) -> int:
@@ -320,7 +318,7 @@ def _command(args) -> int:
         _print(table[cols], args.csv)
         return 0
     if args.command == "check":
-        return check(Path(args.dir), move=args.quarantine)
+        return _report(check(Path(args.dir), move=args.quarantine))
     if args.command == "diff":
         differences = diff(args.a, args.b, Path(args.root))
         print(differences.to_string(index=False) if len(differences) else "no differences")
@@ -348,7 +346,7 @@ def _command(args) -> int:
             except DamagedRecord:
                 pass                                  # named above
         return 0
-    return 0 if verify(run_dir) else 1
+    return _report(verify(run_dir))
 
 
 def _print(table: pd.DataFrame, csv: bool) -> None:

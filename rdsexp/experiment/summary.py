@@ -73,7 +73,7 @@ def summary_text(info: dict, run_dir: Path) -> str:
             if reasons:
                 line += ": " + ", ".join(f"{FAILURES.get(r, r)} on {c}" for r, c in reasons.items())
         lines.append(line)
-    if s.get("online"):                                   # controller=online (issue 9)
+    if s.get("online"):                                   # controller=online
         o = s["online"]
         fmt = lambda v: "nan" if v is None else f"{v:.4f}"
         lines.append(f"  online final gains: exact rate on the true plant median {fmt(o['final_rate_plant_median'])} "
