@@ -250,13 +250,22 @@ SCRIPTS = ("closed_loop_rate", "fig_decay", "fig_estimation", "fig_filters", "fi
            "identification_input", "reproduction_table", "robust_width")
 
 
-def test_report_scripts_without_stored_runs_end_with_one_line(tmp_path):
+def test_report_scripts_without_stored_runs_end_with_one_line(tmp_path, capsys):
     """Every report script (paper.py runs missing sweeps; pole_sets needs none) on an empty store:
-    exit code 1 and one line naming what is missing, never a traceback."""
+    exit code 1 and one line naming what is missing, never a traceback. Each script's main runs
+    in this process through `report.script`, as its `__main__` does; one also as a script."""
+    import importlib
     import subprocess
+    argv = ["--root", str(tmp_path), "--out", str(tmp_path / "report")]
     for name in SCRIPTS:
-        proc = subprocess.run([sys.executable, str(REPO / "experiments" / f"{name}.py"), "--root", str(tmp_path),
-                               "--out", str(tmp_path / "report")], capture_output=True, text=True, timeout=120)
-        lines = proc.stderr.strip().splitlines()
-        assert proc.returncode == 1 and len(lines) == 1 and "no stored" in lines[0], (name, proc.stderr)
+        main = importlib.import_module(name).main
+        with pytest.raises(SystemExit) as exit_:
+            report.script(lambda main=main: main(argv))
+        message = exit_.value.code
+        assert isinstance(message, str) and "\n" not in message and "no stored" in message, (name, message)
+        assert not capsys.readouterr().err, name
+    proc = subprocess.run([sys.executable, str(REPO / "experiments" / f"{SCRIPTS[0]}.py"), *argv],
+                          capture_output=True, text=True, timeout=120)
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 1 and len(lines) == 1 and "no stored" in lines[0], proc.stderr
     assert not (tmp_path / "report").exists()
