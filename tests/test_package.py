@@ -172,3 +172,12 @@ def test_configs_found_from_any_directory_and_extendable_with_config_dir(tmp_pat
                           "tracking=off"], cwd=tmp_path, capture_output=True, text=True)
     assert out.returncode == 0, out.stderr
     assert "policy_iteration" in out.stdout
+
+
+def test_every_package_is_installed():
+    """pyproject.toml lists packages by name: a new subpackage must be listed, or `pip install .` (not
+    editable) would leave it out."""
+    import tomllib
+    listed = set(tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"])
+    found = {module_name(p) for p in PACKAGE.rglob("__init__.py")} | {"rdsexp.conf"}
+    assert found == listed
