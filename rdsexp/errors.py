@@ -8,6 +8,9 @@ it is. The command line maps each type to its exit code (`rdsexp.experiment.fail
 """
 from __future__ import annotations
 
+import sys
+import warnings
+from contextlib import contextmanager
 from pathlib import Path
 
 
@@ -39,6 +42,27 @@ class DamagedRecord(Exception):
     def __init__(self, path: Path, reason: str):
         super().__init__(f"{path}: {reason}")
         self.path, self.reason = Path(path), reason
+
+
+class RecordWarning(UserWarning):
+    """A stored record skipped or ignored by a reader of the store (it goes on with the others)."""
+
+
+@contextmanager
+def warnings_as_lines():
+    """Within: every RecordWarning is printed, each time, as the one line "rdsexp: warning: <message>"
+    on stderr (the command line's form; the library only warns)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("always", RecordWarning)
+        show = warnings.showwarning
+
+        def one_line_record(message, category, *args, **kwargs):
+            if issubclass(category, RecordWarning):
+                print(f"rdsexp: warning: {message}", file=sys.stderr)
+            else:
+                show(message, category, *args, **kwargs)
+        warnings.showwarning = one_line_record
+        yield
 
 
 class LineageError(RuntimeError):

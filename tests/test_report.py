@@ -46,7 +46,7 @@ def root(tmp_path_factory):
     cwd = tmp_path_factory.mktemp("report")
     with ThreadPoolExecutor(2) as pool:           # CI's two cores: two sweeps at a time
         done = [pool.submit(rdsexp, f"+sweep={sweep}", *SMALL, "tracking.recording=false", *overrides, cwd=cwd,
-                            timeout=1800) for sweep, overrides in SWEEPS.items()]
+                            timeout=1800, process=True) for sweep, overrides in SWEEPS.items()]
         for job in done:
             job.result()
     return cwd / "outputs"

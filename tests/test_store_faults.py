@@ -22,6 +22,7 @@ import pytest
 from conftest import REPO, SMALL, rdsexp
 
 from rdsexp import report
+from rdsexp.errors import warnings_as_lines
 from rdsexp.experiment import runs, store
 
 TINY = [*SMALL, "model.reported=null", "tracking.recording=false"]
@@ -38,6 +39,14 @@ class Store:
 
     def key(self, j: int) -> tuple[str, str]:
         return self.infos[j]["config_hash"], self.infos[j]["code"]["version"]
+
+
+@pytest.fixture(autouse=True)
+def record_warnings_as_lines():
+    """The store's readers warn (RecordWarning); here printed as the command line prints them, one
+    line each on stderr, whether a test calls the command line or the library."""
+    with warnings_as_lines():
+        yield
 
 
 @pytest.fixture(scope="session")

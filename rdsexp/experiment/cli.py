@@ -18,7 +18,7 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from omegaconf import DictConfig
 
-from ..errors import RunExit, WriteError
+from ..errors import RunExit, WriteError, warnings_as_lines
 from .store import layout
 
 log = logging.getLogger("rdsexp")
@@ -99,7 +99,8 @@ def main() -> None:
             print(text)
             return
     try:
-        hydra_main()
+        with warnings_as_lines():
+            hydra_main()
     except RunExit as exit_:                 # rdsexp's own ending, with its exit code
         sys.exit(exit_.code)
     except SystemExit as exit_:

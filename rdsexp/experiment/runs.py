@@ -20,7 +20,7 @@ import numpy as np
 import pandas as pd
 from omegaconf import OmegaConf
 
-from ..errors import DamagedRecord
+from ..errors import DamagedRecord, warnings_as_lines
 from . import schema
 from .store import RunStore, layout, provenance, read_run, read_table, run_damage
 from .store.table import changed_params
@@ -292,7 +292,8 @@ def main(argv=None) -> int:
     p_diff.add_argument("--root", default=str(DEFAULT_ROOT))
     args = parser.parse_args(argv)
     try:
-        return _command(args)
+        with warnings_as_lines():
+            return _command(args)
     except (ValueError, LookupError) as err:
         print(f"rdsexp-runs: {err}", file=sys.stderr)
         return 2

@@ -16,7 +16,7 @@ import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 from omegaconf import OmegaConf  # noqa: E402
 
-from ..errors import DamagedRecord, LineageError  # noqa: E402
+from ..errors import DamagedRecord, LineageError, warnings_as_lines  # noqa: E402
 from ..experiment.store import Run, RunStore, files, provenance  # noqa: E402
 from ..numerics.analysis import rms_band  # noqa: E402
 
@@ -34,7 +34,8 @@ def script(main) -> None:
     """Run a report script's main: a LineageError ends it with one line on stderr and exit code 1."""
     import sys
     try:
-        main()
+        with warnings_as_lines():
+            main()
     except (LineageError, DamagedRecord) as err:
         sys.exit(f"{Path(sys.argv[0]).name}: {err}")
 

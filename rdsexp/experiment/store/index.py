@@ -9,10 +9,10 @@ from __future__ import annotations
 
 import hashlib
 import json
-import sys
+import warnings
 from pathlib import Path
 
-from ...errors import DamagedRecord, WriteError, one_line
+from ...errors import DamagedRecord, RecordWarning, WriteError, one_line
 from . import files
 from .layout import INDEX, INDEX_BUILT
 from .run import read_run, read_runs, run_damage, warn
@@ -107,7 +107,7 @@ def _rebuild_or_warn(store: Path) -> bool:
         rebuild_index(store)
         return True
     except (OSError, WriteError) as err:
-        print(f"rdsexp: warning: cannot index the run store {store}: {err}", file=sys.stderr)
+        warnings.warn(f"cannot index the run store {store}: {err}", RecordWarning, stacklevel=3)
         return False
 
 

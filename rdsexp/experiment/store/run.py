@@ -11,13 +11,13 @@ from __future__ import annotations
 
 import json
 import os
-import sys
+import warnings
 from functools import cached_property
 from pathlib import Path
 
 import pandas as pd
 
-from ...errors import DamagedRecord, one_line
+from ...errors import DamagedRecord, RecordWarning, one_line
 from . import files
 from .layout import HYDRA_CONFIG, INDEX, QUARANTINE, RUN_JSON, table_file
 
@@ -28,8 +28,8 @@ FIELDS = {"summary": dict, "tables": dict, "code": dict, "seed": dict, "sweep": 
 
 
 def warn(err: DamagedRecord, action: str = "skipped", then: str = "") -> None:
-    """The one warning line a reader of the store prints for a record it skips."""
-    print(f"rdsexp: warning: {action} {err.path}: {err.reason}{then}", file=sys.stderr)
+    """The one RecordWarning a reader of the store gives for a record it skips."""
+    warnings.warn(f"{action} {err.path}: {err.reason}{then}", RecordWarning, stacklevel=3)
 
 
 # --- reading records
