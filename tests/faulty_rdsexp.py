@@ -1,5 +1,5 @@
 """`python tests/faulty_rdsexp.py FAULT ARGS...`: run `rdsexp ARGS` with an injected file-system
-fault (for tests/test_store_faults.py; the checks run as root too, where file modes stop nothing).
+fault (for tests/experiment/test_store.py; the checks run as root too, where file modes stop nothing).
 
 FAULT is
 - `erofs:DIR`: every write under DIR fails as on a read-only file system (EROFS);

@@ -4,7 +4,7 @@ A loop of P paths runs as chunks of at most `chunk_paths` paths (`simulate(first
 chunk's table rows go to a sink as soon as the chunk is done, and what the metrics need is reduced
 to a few numbers per path (`LoopSummary`), so memory is bounded by the chunk, not by P. Every path
 has its own random streams, so the rows and the metrics do not depend on the chunk size or on the
-number of worker processes (tests/test_scale.py).
+number of worker processes (tests/experiment/test_montecarlo.py).
 """
 from __future__ import annotations
 

@@ -37,7 +37,7 @@ def compose_points(points: list[list[str]]):
 
     Hydra composes the defaults (the group choices) first and applies the value overrides last, so
     a composition of the group choices alone with each job's value overrides applied on top is the
-    job's config (tests/test_runner.py checks it against a full compose); a sweep of 200 points over
+    job's config (tests/experiment/test_cli.py checks it against a full compose); a sweep of 200 points over
     `enkf.*` values then composes once instead of 200 times."""
     from hydra import compose
     from hydra._internal.config_loader_impl import ConfigLoaderImpl

@@ -195,8 +195,9 @@ def test_python_api_rejects_bad_settings(kwargs, message):
 def test_frontier_is_the_smallest_M_within_tolerance_without_divergence():
     """experiments/fig_filters.py: a diverged seed or a rate off by more than 0.01 disqualifies an M."""
     import sys
-    from pathlib import Path
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "experiments"))
+
+    from conftest import REPO
+    sys.path.insert(0, str(REPO / "experiments"))
     import fig_filters
     import pandas as pd
     rows = [("stochastic", 1.0, 300, 0.850, 0), ("stochastic", 1.0, 100, 0.855, 0), ("stochastic", 1.0, 20, 0.851, 1),

@@ -135,7 +135,7 @@ def sweep_tables(sweep_dir: Path):
 
 def test_sweep_end_to_end_designs_every_method(tmp_path):
     """+sweep=NAME with command-line overrides: one job per method, all complete (launcher
-    independence of the tables: tests/test_launchers.py)."""
+    independence of the tables: tests/experiment/test_sweep.py)."""
     rdsexp("+sweep=gain_methods", "seed=0", "tracking.recording=false", *SMALL, cwd=tmp_path)
     (sweep_dir,) = (tmp_path / "outputs" / "sweeps").iterdir()
     summary, tables = sweep_tables(sweep_dir)
