@@ -79,7 +79,7 @@ def run_experiment(exp: Experiment, sink=None) -> Outcome:
     """Compute every stage of the experiment; numerical failures become statuses in the tables.
 
     The large tables (STREAMED: trajectories, members) go to `sink.append(name, rows)` chunk by
-    chunk (records.ParquetSink writes them as they come); without a sink they are collected and
+    chunk (store.files.ParquetSink writes them as they come); without a sink they are collected and
     returned in Outcome.tables with the others."""
     timings, summary = {}, {}
     root = lambda stage: np.random.SeedSequence(exp.seed, spawn_key=SPAWN_KEYS[stage])

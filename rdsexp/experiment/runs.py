@@ -1,10 +1,11 @@
 """Run catalog: `rdsexp-runs list [DIR] | show RUN|SWEEP | diff A B | view RUN|SWEEP | verify RUN |
 check [DIR]`, and the Python API `search` / `load` (`rdsexp.runs.search(...)`, like MLflow's search_runs).
 
-A run is a directory with a run.json (see `rdsexp.experiment.records`); RUN is its path or its id
-(a directory name under outputs/, or SWEEP/JOB for a sweep job); a SWEEP is a sweep directory or
-its name under outputs/sweeps/. Damaged records are skipped with one warning line each, or
-reported as damaged (see `rdsexp.experiment.store`).
+A run is a directory with a run.json (`rdsexp.experiment.store`, which owns the layout); RUN is
+its path or its id (a directory name under outputs/, or SWEEP/JOB for a sweep job); a SWEEP is a
+sweep directory or its name under outputs/sweeps/. Damaged records are skipped with one warning
+line each, or reported as damaged. This module is the command line over the store: the table of
+runs, its queries, diff, verify and check.
 """
 from __future__ import annotations
 
@@ -77,9 +78,7 @@ def _name(table: pd.DataFrame, token: str) -> str:
         return token if "." not in token else f"`{token}`"
 
 
-def changed(table: pd.DataFrame) -> list[str]:
-    """The params columns whose value is not the same in every row (like `dvc exp show`)."""
-    return changed_params(table)
+changed = changed_params      # the params columns whose value is not the same in every row
 
 
 def load(run, table: str, long: bool = False, root=DEFAULT_ROOT) -> pd.DataFrame:

@@ -17,7 +17,7 @@ import pandas as pd  # noqa: E402
 from omegaconf import OmegaConf  # noqa: E402
 
 from ..errors import DamagedRecord, LineageError, warnings_as_lines  # noqa: E402
-from ..experiment.store import Run, RunStore, files, provenance  # noqa: E402
+from ..experiment.store import Run, RunStore, files, layout, provenance  # noqa: E402
 from ..numerics.analysis import rms_band  # noqa: E402
 
 COLUMN_WIDTH, PAGE_WIDTH = 3.5, 7.16        # IEEE column and page widths, inches
@@ -207,8 +207,9 @@ def parser(description: str):
     """The argument parser of the report scripts with the common options --root, --out, --allow-mixed."""
     import argparse
     parser = argparse.ArgumentParser(description=description)
-    parser.add_argument("--root", type=Path, default=Path("outputs"), help="where the runs are (default outputs/)")
-    parser.add_argument("--out", type=Path, default=Path("outputs/report"), help="where to write (outputs/report/)")
+    root = Path(layout.DEFAULT_ROOT)
+    parser.add_argument("--root", type=Path, default=root, help=f"where the runs are (default {root}/)")
+    parser.add_argument("--out", type=Path, default=root / "report", help=f"where to write ({root}/report/)")
     parser.add_argument("--allow-mixed", action="store_true", help="allow runs made by different code versions")
     return parser
 
