@@ -176,7 +176,8 @@ def complete_jobs(root):
 def test_killed_sweep_resumes_and_keeps_every_result(tmp_path, sig):
     """Kill a sweep after its first jobs, relaunch the same command: completed jobs are reused
     (same config hash and code version), the rest run, the summary has every job."""
-    args = ["+sweep=seeds", "seed=range(0,6)", *SMALL, "closed_loop.paths=40", "tracking.recording=false"]
+    args = ["+sweep=seeds", "seed=range(0,6)", *SMALL, "closed_loop.paths=40", "tracking.recording=false",
+            "model.reported=null"]
     # the child inherits an ignored SIGINT (as under a test runner started in the background):
     # rdsexp's entry point must still stop on it
     proc = subprocess.Popen([sys.executable, "-m", "rdsexp", *args], cwd=tmp_path,
@@ -213,7 +214,7 @@ def test_killed_run_is_marked_incomplete(tmp_path):
 
 def test_concurrent_sweeps_do_not_collide(tmp_path):
     args = [sys.executable, "-m", "rdsexp", "+sweep=seeds", "seed=range(0,3)", *SMALL, "tracking.recording=false",
-            "reuse=false"]
+            "model.reported=null", "reuse=false"]
     procs = [subprocess.Popen(args, cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE) for _ in range(2)]
     for p in procs:
         assert p.wait(timeout=300) == 0, p.stderr.read()
