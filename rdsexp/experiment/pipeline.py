@@ -7,6 +7,9 @@ decay_proposed and decay_open); inside each, path j has its own plant and EnKF s
 """
 from __future__ import annotations
 
+import copy
+import hashlib
+import json
 import logging
 import sys
 import time
@@ -316,14 +319,31 @@ def add_online_tables(exp: Experiment, tables: dict, online, chosen, summary: di
     summary["online"] = {k: (None if not np.isfinite(v) else float(v)) for k, v in online_metrics.items()}
 
 
+# designs computed in this process, by what they are computed from: the jobs of a sweep that share a
+# model, moments and options (every job's reported moments; the identified ones of jobs that differ
+# only after identification) design once. Synthesis is deterministic, so the tables are the same.
+_DESIGNS: dict[str, SynthesisResult] = {}
+_DESIGNS_KEPT = 256
+
+
 def safe_synthesize(model, moments, method: str, options: dict) -> SynthesisResult:
     """`synthesize`, with every way a design can fail on this system as a status, never an exception.
 
     not_applicable: pole placement without poles in the config. failed: <reason>: the method raised
-    (e.g. a Riccati equation without a solution) or returned a gain that is not finite."""
+    (e.g. a Riccati equation without a solution) or returned a gain that is not finite. A design
+    this process computed before from the same model, moments, method and options is reused (a
+    copy, with seconds 0: no time spent in this run)."""
     if method == "pole_placement" and options.get("poles") is None:
         return SynthesisResult(method, None, float("nan"), "not_applicable", nbar=0,
                                info={"reason": "no poles in the config (plant.poles or gain.options.poles)"})
+    key = _design_key(model, moments, method, options)
+    if key in _DESIGNS:
+        res = copy.deepcopy(_DESIGNS[key])
+        log.info("design %s: reused the identical design computed earlier in this process", method)
+        if res.status.startswith("failed"):
+            log.warning("design %s %s", method, res.status)
+        res.seconds = 0.0
+        return res
     start = time.perf_counter()
     try:
         with np.errstate(all="ignore"):
@@ -334,7 +354,20 @@ def safe_synthesize(model, moments, method: str, options: dict) -> SynthesisResu
     if res.F is not None and not np.all(np.isfinite(res.F)):
         res = SynthesisResult(method, None, float("nan"), "failed: the gain is not finite", nbar=res.nbar)
     res.seconds = res.seconds or time.perf_counter() - start
+    if len(_DESIGNS) >= _DESIGNS_KEPT:
+        _DESIGNS.pop(next(iter(_DESIGNS)))                # the oldest
+    _DESIGNS[key] = copy.deepcopy(res)
     return res
+
+
+def _design_key(model, moments, method: str, options: dict) -> str:
+    """What a design is computed from: the model's basis matrices, the moments, method and options."""
+    h = hashlib.sha256(f"{method}\n{json.dumps(options, sort_keys=True, default=repr)}".encode())
+    for array in (model.A, model.B, model.C, model.D, moments.mean, moments.cov):
+        array = np.ascontiguousarray(array, dtype=float)
+        h.update(f"{array.shape}".encode())
+        h.update(array.tobytes())
+    return h.hexdigest()
 
 
 def identification_feedback(exp: Experiment) -> tuple[np.ndarray | None, dict]:

@@ -9,6 +9,7 @@ other machines happen, so every reader
 """
 from __future__ import annotations
 
+import functools
 import json
 import os
 import warnings
@@ -159,6 +160,65 @@ def intact_runs(root: Path) -> list[tuple[Path, dict]]:
 
 
 
+MATRIX = "<not a scalar>"           # stands for a nested list while a config is resolved
+_CONFIGS: dict[tuple, dict] = {}    # scalar_config by (path, size, mtime): a stored config never changes
+
+
+def scalar_config(run_dir: Path) -> dict:
+    """The run's composed config (.hydra/config.yaml), resolved, with every list that is not a flat
+    list of at most 8 scalars replaced by MATRIX; {} without the file.
+
+    The YAML is parsed as OmegaConf parses it (on libyaml), its matrices replaced before OmegaConf
+    resolves the interpolations: building OmegaConf nodes for every matrix entry would take most of
+    the time of `rdsexp-runs list` and of a report. Cached per file."""
+    import yaml
+    from omegaconf import OmegaConf
+    path = Path(run_dir) / HYDRA_CONFIG
+    try:
+        stat = path.stat()
+    except FileNotFoundError:
+        return {}
+    key = (str(path.resolve()), stat.st_size, stat.st_mtime_ns)
+    if key not in _CONFIGS:
+        text = path.read_text()
+        node = _scalars_only(yaml.load(text, Loader=_yaml_loader()) or {})
+        if "${" in text:
+            cfg = OmegaConf.create(node)
+            try:
+                node = OmegaConf.to_container(cfg, resolve=True)
+            except Exception:     # noqa: BLE001 -- an interpolation this version cannot resolve: the raw values
+                node = OmegaConf.to_container(cfg, resolve=False)
+        _CONFIGS[key] = node
+    return _CONFIGS[key]
+
+
+@functools.cache
+def _yaml_loader():
+    """OmegaConf's YAML loader (its float and timestamp rules), on libyaml's parser where available."""
+    import yaml
+    from omegaconf._utils import get_yaml_loader
+    reference = get_yaml_loader()
+    if not getattr(yaml, "__with_libyaml__", False):
+        return reference
+    loader = type("Loader", (yaml.CSafeLoader,), {})
+    loader.yaml_implicit_resolvers = reference.yaml_implicit_resolvers
+    return loader
+
+
+def _scalars_only(node):
+    """The config with every list that is not a flat list of at most 8 scalars replaced by MATRIX."""
+    if isinstance(node, dict):
+        return {k: _scalars_only(v) for k, v in node.items()}
+    if isinstance(node, list):
+        flat = len(node) <= 8 and all(v is None or isinstance(v, (bool, int, float, str)) for v in node)
+        return node if flat else MATRIX
+    return node
+
+
+def _has_matrix(node) -> bool:
+    return node == MATRIX if not isinstance(node, dict) else any(_has_matrix(v) for v in node.values())
+
+
 class Run:
     """A stored run directory: its run.json (`info`, read safely on construction: DamagedRecord if it
     cannot be), its composed config and its tables, each checked against run.json's hash on first
@@ -188,9 +248,16 @@ class Run:
         return (self.info.get("code") or {}).get("version")
 
     def get(self, key: str):
-        """Config value at a dotted key (None where the config has none)."""
-        from omegaconf import OmegaConf
-        return OmegaConf.select(self.config, key)
+        """Config value at a dotted key (None where the config has none); scalars from the cached
+        `scalar_config`, matrices from the full config."""
+        node = scalar_config(self.dir)
+        for part in key.split("."):
+            node = node.get(part) if isinstance(node, dict) else None
+        if _has_matrix(node):
+            from omegaconf import OmegaConf
+            node = OmegaConf.select(self.config, key)
+            node = OmegaConf.to_container(node, resolve=True) if OmegaConf.is_config(node) else node
+        return node
 
     @property
     def rate_window(self) -> tuple[int, int]:

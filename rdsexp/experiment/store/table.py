@@ -7,7 +7,6 @@ composed config).
 from __future__ import annotations
 
 import fcntl
-import functools
 import json
 from pathlib import Path
 
@@ -16,8 +15,8 @@ import pandas as pd
 
 from ...errors import WriteError
 from . import files
-from .layout import HYDRA_CONFIG, SUMMARY, SUMMARY_CSV, SUMMARY_LOCK
-from .run import read_runs
+from .layout import SUMMARY, SUMMARY_CSV, SUMMARY_LOCK
+from .run import MATRIX, read_runs, scalar_config
 
 IDENTITY = ["id", "sweep", "sweep_id", "job", "status", "plant", "model", "method", "overrides",
             "reused_from", "created", "code", "config_hash", "dir"]
@@ -62,29 +61,10 @@ def run_metrics(info: dict) -> dict:
     return {f"metrics.{k}": (np.nan if v is None else v) for k, v in out.items()}
 
 
-MATRIX = "<not a scalar>"           # stands for a nested list while the config is resolved
-
-
 def run_params(run_dir: Path) -> dict:
     """{"params.<dotted.key>": value} for every resolved scalar of the run's config
-    (.hydra/config.yaml); a flat list of at most 8 scalars (rate_window) as its JSON text.
-
-    The YAML is parsed as OmegaConf parses it, its matrices replaced by a placeholder before
-    OmegaConf resolves the interpolations (building OmegaConf nodes for every matrix entry would
-    take most of the time of `rdsexp-runs list`)."""
-    import yaml
-    from omegaconf import OmegaConf
-    path = Path(run_dir) / HYDRA_CONFIG
-    if not path.exists():
-        return {}
-    text = path.read_text()
-    node = _scalars_only(yaml.load(text, Loader=_yaml_loader()) or {})
-    if "${" in text:
-        cfg = OmegaConf.create(node)
-        try:
-            node = OmegaConf.to_container(cfg, resolve=True)
-        except Exception:     # noqa: BLE001 -- an interpolation this version cannot resolve: the raw values
-            node = OmegaConf.to_container(cfg, resolve=False)
+    (.hydra/config.yaml, `run.scalar_config`); a flat list of at most 8 scalars (rate_window) as
+    its JSON text."""
     out = {}
 
     def walk(tree: dict, prefix: str) -> None:
@@ -95,31 +75,8 @@ def run_params(run_dir: Path) -> dict:
                 out[f"params.{prefix}{name}"] = json.dumps(value)
             elif value != MATRIX:
                 out[f"params.{prefix}{name}"] = value
-    walk(node, "")
+    walk(scalar_config(run_dir), "")
     return out
-
-
-@functools.cache
-def _yaml_loader():
-    """OmegaConf's YAML loader (its float and timestamp rules), on libyaml's parser where available."""
-    import yaml
-    from omegaconf._utils import get_yaml_loader
-    reference = get_yaml_loader()
-    if not getattr(yaml, "__with_libyaml__", False):
-        return reference
-    loader = type("Loader", (yaml.CSafeLoader,), {})
-    loader.yaml_implicit_resolvers = reference.yaml_implicit_resolvers
-    return loader
-
-
-def _scalars_only(node):
-    """The config with every list that is not a flat list of at most 8 scalars replaced by MATRIX."""
-    if isinstance(node, dict):
-        return {k: _scalars_only(v) for k, v in node.items()}
-    if isinstance(node, list):
-        flat = len(node) <= 8 and all(v is None or isinstance(v, (bool, int, float, str)) for v in node)
-        return node if flat else MATRIX
-    return node
 
 
 def changed_params(table: pd.DataFrame) -> list[str]:
