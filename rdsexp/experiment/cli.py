@@ -62,13 +62,12 @@ def record_failure(err: Exception, cfg: DictConfig, run_dir: Path, job: int | No
             shutil.rmtree(run_dir, ignore_errors=True)
         else:
             RunWriter(run_dir).fail(f.status, f.message, fallback=_fallback(cfg))
-        print(f"rdsexp: {f.message}", file=sys.stderr)
+        print(f.line, file=sys.stderr)
         raise RunExit(f.exit_code)
     log.error("%s failed: %s", "run" if job is None else f"job {job}", f.message)
     if f.traceback:
         log.info("traceback:\n%s", f.traceback)        # rdsexp.log only (the terminal gets warnings and up)
-    message = f.message.removeprefix("config error: ")
-    return RunWriter(run_dir).fail(f.status, message, f.traceback, fallback=_fallback(cfg))
+    return RunWriter(run_dir).fail(f.status, f.message, f.traceback, fallback=_fallback(cfg))
 
 
 def _fallback(cfg: DictConfig) -> dict:

@@ -5,7 +5,7 @@ a configuration the run cannot use, a store it cannot write, or a bug in a stage
 records the status in run.json, prints `message` and exits with `exit_code`; a sweep records it
 and goes on with the next job.
 
-    ConfigError   config_error   exit 2   "config error: <key>: <value> is not allowed, ..."
+    ConfigError   config_error   exit 2   "<key>: <value> is not allowed, ..."
     WriteError    write_error    exit 1   "cannot write <path>: <reason>"
     StageError    error          exit 1   "stage <name>: <type>: <first line>", traceback kept
     other         error          exit 1   "stage run: <type>: <first line>", traceback kept
@@ -20,19 +20,24 @@ from ..errors import ConfigError, StageError, WriteError, one_line
 
 @dataclass(frozen=True)
 class Failure:
-    """How a run ended when it did not complete: run.json's status, the exit code of a single run,
-    a one-line message and, for an unexpected error, the traceback (kept in run.json and the log)."""
+    """How a run ended when it did not complete: run.json's status and error message, the exit code
+    of a single run and, for an unexpected error, the traceback (kept in run.json and the log)."""
 
     status: str
     exit_code: int
     message: str
     traceback: str | None = None
 
+    @property
+    def line(self) -> str:
+        """The one line the terminal shows."""
+        return f"rdsexp: {'config error: ' if self.status == 'config_error' else ''}{self.message}"
+
 
 def failure(err: Exception) -> Failure:
     """The Failure of an exception that ended a run (see the module's table)."""
     if isinstance(err, ConfigError):
-        return Failure("config_error", 2, f"config error: {err}")
+        return Failure("config_error", 2, str(err))
     if isinstance(err, WriteError):
         return Failure("write_error", 1, str(err))
     trace = "".join(traceback.format_exception(err))

@@ -223,3 +223,27 @@ def test_concurrent_sweeps_do_not_collide(tmp_path):
     for sweep in sweeps:
         summary = pd.read_parquet(sweep / "summary.parquet")
         assert list(summary["job"]) == [0, 1, 2] and set(summary["status"]) == {"complete"}
+
+
+def test_failure_wrapper_maps_each_exception_to_a_status_and_an_exit_code(tmp_path):
+    from rdsexp.errors import ConfigError, StageError, WriteError
+    from rdsexp.experiment.failures import failure
+    from rdsexp.experiment.pipeline import timed
+
+    f = failure(ConfigError("enkf.ensemble_size: 1 is not allowed"))
+    assert (f.status, f.exit_code, f.traceback) == ("config_error", 2, None)
+    assert f.line == "rdsexp: config error: enkf.ensemble_size: 1 is not allowed"
+    f = failure(WriteError(tmp_path / "run.json", OSError(28, "No space left on device")))
+    assert (f.status, f.exit_code, f.line) == ("write_error", 1, f"rdsexp: cannot write {tmp_path / 'run.json'}: "
+                                                                "No space left on device")
+    with pytest.raises(StageError) as err:            # the innermost stage names the failure
+        with timed({}, "closed_loop"), timed({}, "metrics"):
+            raise ValueError("boom\nsecond line")
+    f = failure(err.value)
+    assert (f.status, f.exit_code, f.message) == ("error", 1, "stage metrics: ValueError: boom")
+    assert "ValueError: boom" in f.traceback
+    with pytest.raises(WriteError):                   # not a stage's failure: passes through unchanged
+        with timed({}, "tables"):
+            raise WriteError(tmp_path, OSError(30, "Read-only file system"))
+    f = failure(KeyError("selected"))
+    assert (f.status, f.exit_code, f.message) == ("error", 1, "stage run: KeyError: 'selected'")
