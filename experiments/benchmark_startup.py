@@ -18,7 +18,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from benchmark_store import TINY, fabricate
+from benchmark_store import fabricate, template_run
 
 SCRIPTS = Path(sys.executable).parent
 BUDGET = 1.0
@@ -41,9 +41,7 @@ def main() -> None:
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
-        subprocess.run([sys.executable, "-m", "rdsexp", *TINY, f"store={tmp / 'seed'}"], cwd=tmp, check=True,
-                       capture_output=True)
-        (template,) = (tmp / "seed" / "runs").iterdir()
+        template = template_run(tmp)
         store = tmp / "store"
         for i in range(args.runs):
             fabricate(template, store / "runs" / f"r{i:05d}", f"r{i:05d}", hashlib.sha256(f"{i}".encode()).hexdigest())

@@ -41,6 +41,14 @@ def fabricate(template: Path, target: Path, run_id: str, config_hash: str, sweep
     return info
 
 
+def template_run(tmp: Path) -> Path:
+    """One tiny stored run (tracking summary, no recording) under tmp/seed; its directory."""
+    subprocess.run([sys.executable, "-m", "rdsexp", *TINY, f"store={tmp / 'seed'}"], cwd=tmp, check=True,
+                   capture_output=True)
+    (template,) = (tmp / "seed" / "runs").iterdir()
+    return template
+
+
 def legacy_lookup(root: Path, config_hash: str, version: str) -> Path | None:
     """The lookup before the index: read every run.json under the store."""
     for path in sorted(root.rglob("run.json")):
@@ -67,9 +75,7 @@ def main() -> None:
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
-        subprocess.run([sys.executable, "-m", "rdsexp", *TINY, f"store={tmp / 'seed'}"], cwd=tmp, check=True,
-                       capture_output=True)
-        (template,) = (tmp / "seed" / "runs").iterdir()
+        template = template_run(tmp)
         version = json.loads((template / "run.json").read_text())["code"]["version"]
         size = sum(p.stat().st_size for p in template.rglob("*") if p.is_file())
         print(f"template run: {template.name}, {size / 1e3:.0f} kB; per-job bookkeeping, median of {args.repeat}")

@@ -212,12 +212,7 @@ class DesignSettings:
 
     @classmethod
     def from_config(cls, cfg, model: AffineRandomSystem, reported) -> DesignSettings:
-        method = get(cfg, "gain.method")
-        if method not in METHODS:
-            raise ConfigError(f"gain.method: {method!r} is not allowed, expected one of {', '.join(METHODS)}")
-        options = get(cfg, "gain.options") or {}
-        if not isinstance(options, dict):
-            raise ConfigError(f"gain.options: {options!r} is not allowed, expected a mapping")
+        method, options = _method_and_options(cfg, "gain")
         with key("gain.options"):
             check_options(method, {k: v for k, v in options.items() if not (k == "poles" and v is None)}, model)
         poles = plain(OmegaConf.select(cfg, "plant.poles"))
@@ -380,6 +375,17 @@ def build(cfg) -> Experiment:
                       design=design, loop=loop, tracking=tracking, controller=controller)
 
 
+def _method_and_options(cfg, group: str) -> tuple[str, dict]:
+    """GROUP.method (a synthesis method) and GROUP.options (a mapping, checked by the method later)."""
+    method = get(cfg, f"{group}.method")
+    if method not in METHODS:
+        raise ConfigError(f"{group}.method: {method!r} is not allowed, expected one of {', '.join(METHODS)}")
+    options = get(cfg, f"{group}.options") or {}
+    if not isinstance(options, dict):
+        raise ConfigError(f"{group}.options: {options!r} is not allowed, expected a mapping")
+    return method, options
+
+
 def _flag(cfg, name: str) -> bool:
     value = get(cfg, name)
     if not isinstance(value, bool):
@@ -417,12 +423,7 @@ def _controller(cfg, model: AffineRandomSystem, K: int) -> tuple[str, OnlineSett
     forgetting = _number(get(cfg, "controller.forgetting"), "controller.forgetting", low=0, low_open=True, high=1)
     if forgetting == 1:
         raise ConfigError("controller.forgetting: 1 is not allowed, expected a number in (0, 1) (memory=all keeps all)")
-    method = get(cfg, "controller.method")
-    if method not in METHODS:
-        raise ConfigError(f"controller.method: {method!r} is not allowed, expected one of {', '.join(METHODS)}")
-    options = get(cfg, "controller.options") or {}
-    if not isinstance(options, dict):
-        raise ConfigError(f"controller.options: {options!r} is not allowed, expected a mapping")
+    method, options = _method_and_options(cfg, "controller")
     safeguard = get(cfg, "controller.safeguard")
     if not isinstance(safeguard, bool):
         raise ConfigError(f"controller.safeguard: {safeguard!r} is not allowed, expected true or false")
