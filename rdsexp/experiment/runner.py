@@ -20,6 +20,7 @@ from .config import Experiment, build, check_overrides
 from .pipeline import SPAWN_KEYS, TABLES, Outcome, run_experiment, timed
 from .schema import attach
 from .store import RunStore, RunWriter, layout, provenance
+from .store.table import flat_params
 
 log = logging.getLogger("rdsexp")
 
@@ -126,6 +127,7 @@ def execute(cfg: DictConfig, run_dir: Path) -> dict:
     timings, writer, store = {}, RunWriter(run_dir), store_of(cfg)
     with timed(timings, "provenance"):
         info, diff = run_info(run_dir, job_config(cfg), exp.seed)
+        info["params"] = flat_params(OmegaConf.to_container(cfg, resolve=True))   # what `rdsexp-runs list` shows
         previous = reusable_run(cfg, store, info)
         if previous is not None:
             return writer.reuse(previous, info)

@@ -19,7 +19,6 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
-from omegaconf import OmegaConf
 
 from ..errors import DamagedRecord, warnings_as_lines
 from . import schema
@@ -221,6 +220,7 @@ def verify(run_dir: Path) -> tuple[bool, list[str]]:
     lines = [f"damaged: {run_dir / problem}" for problem in damaged]
     if not (run_dir / layout.HYDRA_CONFIG).is_file():
         return False, [*lines, f"verify: cannot re-run without {layout.HYDRA_CONFIG} (damaged)"]
+    from omegaconf import OmegaConf
     cfg = OmegaConf.load(run_dir / layout.HYDRA_CONFIG)
     code = provenance.code_version()["version"]
     if code != (info.get("code") or {}).get("version"):
@@ -337,7 +337,8 @@ def _command(args) -> int:
         print(f"rdsexp.runs: damaged: {err}", file=sys.stderr)
         return 1
     if args.command == "show":
-        print(OmegaConf.to_yaml({k: v for k, v in info.items() if k not in ("environment", "traceback")}))
+        from omegaconf import OmegaConf
+        print(OmegaConf.to_yaml({k: v for k, v in info.items() if k not in ("environment", "traceback", "params")}))
         for problem in run_damage(run_dir, info) if info.get("status") == "complete" else []:
             print(f"damaged: {run_dir / problem}")
         if "metrics" in (info.get("tables") or {}):
@@ -363,6 +364,7 @@ def show_sweep(sweep_dir: Path) -> None:
     """The sweep's directory, name, command-line overrides, job statuses and per job the swept params
     and key metrics."""
     table = search(sweep_dir)
+    from omegaconf import OmegaConf
     cfg = OmegaConf.load(sweep_dir / layout.MULTIRUN) if (sweep_dir / layout.MULTIRUN).exists() else None
     overrides = list(OmegaConf.select(cfg, "hydra.overrides.task") or []) if cfg is not None else []
     names = sorted(set(table["sweep"].dropna())) if len(table) else []

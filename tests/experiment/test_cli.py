@@ -81,6 +81,10 @@ def test_run_directory_contents(small_run):
     for key in ("config_hash", "code", "seed", "environment", "timings", "summary"):
         assert info[key]
     assert info["seed"]["root"] == 0 and info["environment"]["packages"]["rerun-sdk"].startswith("0.41")
+    # the params `rdsexp-runs list` shows are those of the stored config, read without it
+    from rdsexp.experiment.store.run import scalar_config
+    from rdsexp.experiment.store.table import flat_params
+    assert info["params"] == flat_params(scalar_config(small_run)) and info["params"]["enkf.ensemble_size"] == 20
     traj = pd.read_parquet(small_run / "trajectories.parquet")
     assert set(traj["experiment"]) == {"closed_loop", "open_loop"}
     assert len(traj) == 2 * 31 * 4 and {"q[5]", "x_pred_mean[0]", "xi_filt_std[2]", "u[0]"} <= set(traj.columns)

@@ -181,7 +181,7 @@ def scalar_config(run_dir: Path) -> dict:
     key = (str(path.resolve()), stat.st_size, stat.st_mtime_ns)
     if key not in _CONFIGS:
         text = path.read_text()
-        node = _scalars_only(yaml.load(text, Loader=_yaml_loader()) or {})
+        node = scalars_only(yaml.load(text, Loader=_yaml_loader()) or {})
         if "${" in text:
             cfg = OmegaConf.create(node)
             try:
@@ -205,10 +205,10 @@ def _yaml_loader():
     return loader
 
 
-def _scalars_only(node):
+def scalars_only(node):
     """The config with every list that is not a flat list of at most 8 scalars replaced by MATRIX."""
     if isinstance(node, dict):
-        return {k: _scalars_only(v) for k, v in node.items()}
+        return {k: scalars_only(v) for k, v in node.items()}
     if isinstance(node, list):
         flat = len(node) <= 8 and all(v is None or isinstance(v, (bool, int, float, str)) for v in node)
         return node if flat else MATRIX

@@ -16,7 +16,7 @@ import pandas as pd
 from ...errors import WriteError
 from . import files
 from .layout import SUMMARY, SUMMARY_CSV, SUMMARY_LOCK
-from .run import MATRIX, read_runs, scalar_config
+from .run import MATRIX, read_runs, scalar_config, scalars_only
 
 IDENTITY = ["id", "sweep", "sweep_id", "job", "status", "plant", "model", "method", "overrides",
             "reused_from", "created", "code", "config_hash", "dir"]
@@ -61,10 +61,18 @@ def run_metrics(info: dict) -> dict:
     return {f"metrics.{k}": (np.nan if v is None else v) for k, v in out.items()}
 
 
-def run_params(run_dir: Path) -> dict:
-    """{"params.<dotted.key>": value} for every resolved scalar of the run's config
-    (.hydra/config.yaml, `run.scalar_config`); a flat list of at most 8 scalars (rate_window) as
-    its JSON text."""
+def run_params(run_dir: Path, info: dict | None = None) -> dict:
+    """{"params.<dotted.key>": value} for every resolved scalar of the run's config: run.json's
+    `params` (written with the run), else from .hydra/config.yaml (`run.scalar_config`)."""
+    params = (info or {}).get("params")
+    if not isinstance(params, dict):
+        params = flat_params(scalar_config(run_dir))
+    return {f"params.{k}": v for k, v in params.items()}
+
+
+def flat_params(config: dict) -> dict:
+    """{dotted.key: value} for every scalar of a resolved config; a flat list of at most 8 scalars
+    (rate_window) as its JSON text; matrices left out."""
     out = {}
 
     def walk(tree: dict, prefix: str) -> None:
@@ -72,10 +80,10 @@ def run_params(run_dir: Path) -> dict:
             if isinstance(value, dict):
                 walk(value, f"{prefix}{name}.")
             elif isinstance(value, list):
-                out[f"params.{prefix}{name}"] = json.dumps(value)
+                out[f"{prefix}{name}"] = json.dumps(value)
             elif value != MATRIX:
-                out[f"params.{prefix}{name}"] = value
-    walk(scalar_config(run_dir), "")
+                out[f"{prefix}{name}"] = value
+    walk(scalars_only(config), "")
     return out
 
 
@@ -87,7 +95,7 @@ def changed_params(table: pd.DataFrame) -> list[str]:
 def runs_table(runs: list[tuple[Path, dict]], params: bool = False) -> pd.DataFrame:
     """One row per (run directory, run.json), in the given order: IDENTITY, metrics.* and, with
     `params`, params.* (sorted)."""
-    rows = [identity(d, info) | run_metrics(info) | (run_params(d) if params else {}) for d, info in runs]
+    rows = [identity(d, info) | run_metrics(info) | (run_params(d, info) if params else {}) for d, info in runs]
     table = pd.DataFrame(rows, columns=IDENTITY if not rows else None)
     if len(table):
         metrics = [c for c in table.columns if c.startswith("metrics.")]
