@@ -72,7 +72,8 @@ def test_sweep_with_failed_job_writes_summary_and_exits_1(tmp_path):
     script = tmp_path / "failing.py"
     script.write_text(FAILING)
     proc = subprocess.run([sys.executable, str(script), "+sweep=seeds", "seed=range(0,3)", *SMALL,
-                           "tracking.recording=false"], cwd=tmp_path, capture_output=True, text=True, timeout=600)
+                           "tracking.recording=false", "model.reported=null"], cwd=tmp_path, capture_output=True,
+                          text=True, timeout=600)
     assert proc.returncode == 1, proc.stderr
     assert "1 of 3 jobs did not complete (1 error)" in proc.stderr
     (sweep,) = (tmp_path / "outputs" / "sweeps").iterdir()

@@ -176,7 +176,7 @@ def complete_jobs(root):
 def test_killed_sweep_resumes_and_keeps_every_result(tmp_path, sig):
     """Kill a sweep after its first jobs, relaunch the same command: completed jobs are reused
     (same config hash and code version), the rest run, the summary has every job."""
-    args = ["+sweep=seeds", "seed=range(0,6)", *SMALL, "closed_loop.paths=40", "tracking.recording=false",
+    args = ["+sweep=seeds", "seed=range(0,4)", *SMALL, "closed_loop.paths=40", "tracking.recording=false",
             "model.reported=null"]
     # the child inherits an ignored SIGINT (as under a test runner started in the background):
     # rdsexp's entry point must still stop on it
@@ -187,14 +187,14 @@ def test_killed_sweep_resumes_and_keeps_every_result(tmp_path, sig):
     proc.send_signal(sig)
     proc.wait(timeout=60)
     done_before = {json.loads(p.read_text())["config_hash"] for p in complete_jobs(tmp_path)}
-    assert 2 <= len(done_before) < 6
+    assert 2 <= len(done_before) < 4
     for p in tmp_path.glob("outputs/sweeps/*/*/*.parquet"):                # no truncated table
         pd.read_parquet(p)
     rdsexp(*args, cwd=tmp_path)
     latest = max((tmp_path / "outputs" / "sweeps").iterdir())
     summary = pd.read_parquet(latest / "summary.parquet")
-    assert list(summary["job"]) == list(range(6)) and set(summary["status"]) == {"complete"}
-    infos = [json.loads((latest / str(j) / "run.json").read_text()) for j in range(6)]
+    assert list(summary["job"]) == list(range(4)) and set(summary["status"]) == {"complete"}
+    infos = [json.loads((latest / str(j) / "run.json").read_text()) for j in range(4)]
     reused = {i["config_hash"] for i in infos if i.get("reused_from")}
     assert reused == done_before
 
