@@ -32,20 +32,26 @@ def sweep_points(config: DictConfig) -> list[list[str]]:
     return BasicSweeper.split_arguments(parser.parse_overrides(list(params.values())), max_batch_size=None)[0]
 
 
-def compose_points(points: list[list[str]]):
+def compose_points(points: list[list[str]], reuse: bool = False):
     """Yield (overrides, composed config) for every job, composing once per choice of config groups.
 
     Hydra composes the defaults (the group choices) first and applies the value overrides last, so
     a composition of the group choices alone with each job's value overrides applied on top is the
-    job's config (tests/experiment/test_cli.py checks it against a full compose); a sweep of 200 points over
-    `enkf.*` values then composes once instead of 200 times."""
+    job's config (tests/experiment/test_cli.py checks it against a full compose); a sweep of 200
+    points over `enkf.*` values then composes once instead of 200 times.
+
+    reuse: points that set the same keys (plain key=value) share one working copy, each point's
+    values overwriting the previous point's, instead of a copy per point (the copy of a config with
+    matrices is most of the time); a yielded config is then valid only until the next one."""
     from hydra import compose
     from hydra._internal.config_loader_impl import ConfigLoaderImpl
     from hydra.core.global_hydra import GlobalHydra
     from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.core.override_parser.types import OverrideType
     loader, parser = GlobalHydra.instance().config_loader(), OverridesParser.create()
     is_group: dict[str, bool] = {}
     composed: dict[tuple, DictConfig] = {}
+    working: dict[tuple, DictConfig] = {}
     for overrides in points:
         parsed = parser.parse_overrides(list(overrides))
         for o in parsed:
@@ -55,7 +61,13 @@ def compose_points(points: list[list[str]]):
         values = [o for o in parsed if not (is_group[o.key_or_group] or o.key_or_group.startswith("hydra."))]
         if groups not in composed:
             composed[groups] = compose(config_name="config", overrides=list(groups))
-        cfg = composed[groups].copy()
+        keys = (groups, tuple(sorted(o.key_or_group for o in values)))
+        if reuse and all(o.type == OverrideType.CHANGE for o in values):
+            if keys not in working:
+                working[keys] = composed[groups].copy()
+            cfg = working[keys]
+        else:
+            cfg = composed[groups].copy()
         ConfigLoaderImpl._apply_overrides_to_config(values, cfg)
         yield overrides, cfg
 
@@ -63,7 +75,7 @@ def compose_points(points: list[list[str]]):
 def validate_sweep(points: list[list[str]]) -> None:
     """Compose and validate every job's config before the first job runs; exit 2 on the first bad one."""
     try:
-        for overrides, cfg in compose_points(points):
+        for overrides, cfg in compose_points(points, reuse=True):
             check_overrides(cfg, overrides)
             build(cfg)
     except ConfigError as err:

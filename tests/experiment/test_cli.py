@@ -14,9 +14,9 @@ from omegaconf import OmegaConf
 
 import rdsexp as rx
 from rdsexp.experiment import pipeline
-from rdsexp.experiment.config import build, check_overrides
+from rdsexp.experiment.config import build
 from rdsexp.experiment.recording import read_recording
-from rdsexp.experiment.sweep import compose_points
+from rdsexp.experiment.sweep import compose_points, validate_sweep
 
 SWEEPS = sorted(p.stem for p in (REPO / "conf" / "sweep").glob("*.yaml"))
 GROUPS = {g: sorted(p.stem for p in (REPO / "conf" / g).glob("*.yaml"))
@@ -44,9 +44,7 @@ def sweep_points(sweep):
 def test_every_sweep_point_composes_and_validates(sweep):
     points = [[f"+sweep={sweep}", *overrides] for overrides in sweep_points(sweep)]
     assert len(points) >= 3
-    for overrides, cfg in compose_points(points):
-        check_overrides(cfg, overrides)
-        build(cfg)
+    validate_sweep(points)                # what a sweep runs first; exit 2 on the first bad point
 
 
 def test_composing_once_per_group_choice_equals_a_full_compose():
@@ -60,6 +58,11 @@ def test_composing_once_per_group_choice_equals_a_full_compose():
     got = list(compose_points(points))
     assert len(got) == len(points)
     for overrides, cfg in got:
+        assert OmegaConf.to_container(cfg) == OmegaConf.to_container(compose("config", overrides=overrides))
+    # one working copy per group choice and keys, each point's values overwriting the last's
+    shared = [["+sweep=gain_methods", "gain=proposed", f"seed={s}", f"enkf.ensemble_size={m}"]
+              for s, m in ((1, 20), (2, 30), (3, 40))] + [["+sweep=gain_methods", "gain=proposed", "seed=9"]]
+    for overrides, cfg in compose_points(shared, reuse=True):
         assert OmegaConf.to_container(cfg) == OmegaConf.to_container(compose("config", overrides=overrides))
 
 
