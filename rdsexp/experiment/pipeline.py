@@ -135,21 +135,15 @@ def run_experiment(exp: Experiment, sink=None) -> Outcome:
         for name, F in runs:
             with timed(timings, name):
                 bar, _ = _progress(name.replace("_", " "), exp.loop.paths * exp.loop.disturbance.shape[0])
-                parts, members = [], None
+                parts = []
                 with bar, logging_redirect_tqdm():
                     for first, tr, _ in run_chunks(exp, dict(settings, F=F, seed=root(name)), keep_members=keep,
                                                    workers=exp.loop.workers, progress=bar.update):
                         rows = trajectory_table(name, tr, first)
                         if exp.controller.kind == "online":     # the gain in use, as in the online rows
                             rows = with_gains(rows, np.zeros((exp.model.m, exp.model.n)) if F is None else F)
-                        sink.append("trajectories", rows)
-                        sample.append(rows[rows["path"] < exp.tracking.recorded_paths])
-                        if keep:
-                            members = members_table(name, tr, first)
-                            sink.append("members", members)
-                            sample_members.append(members[members["path"] < exp.tracking.recorded_paths])
-                        parts.append(LoopSummary.of(tr, exp))
-                        tr = rows = members = None          # free the chunk before the next
+                        parts.append(stream_chunk(exp, name, tr, first, rows, sink, sample, sample_members))
+                        tr = rows = None                    # free the chunk before the next
                 loops[name] = LoopSummary.concat(parts)
     if not loops:                              # no gain to simulate: the table's columns, no rows
         sink.append("trajectories", trajectory_table("closed_loop", None, exp=exp))
@@ -181,6 +175,20 @@ def run_experiment(exp: Experiment, sink=None) -> Outcome:
     recorded_members = pd.concat(sample_members, ignore_index=True) if keep else None
     return Outcome(tables=tables, summary=summary, timings=timings, recorded=recorded,
                    recorded_members=recorded_members, squares={name: loop.sq for name, loop in loops.items()})
+
+
+def stream_chunk(exp: Experiment, name: str, tr: Trajectories, first: int, rows: pd.DataFrame, sink,
+                 sample: list, sample_members: list) -> LoopSummary:
+    """One chunk of a loop out of memory: its trajectory rows (and, tracking full, its members) to the
+    sink, the recorded paths' rows to `sample`/`sample_members`; returns what the metrics keep."""
+    recorded = exp.tracking.recorded_paths
+    sink.append("trajectories", rows)
+    sample.append(rows[rows["path"] < recorded])
+    if exp.tracking.level == "full":
+        members = members_table(name, tr, first)
+        sink.append("members", members)
+        sample_members.append(members[members["path"] < recorded])
+    return LoopSummary.of(tr, exp)
 
 
 class MemorySink:
@@ -224,13 +232,7 @@ def online_loop(exp: Experiment, seed, keep: bool, sim: dict, sink, sample: list
             history = controller.gain_history()
             in_use = np.stack([history[j][tr.gain_index[:, j]] for j in range(count)])     # (P, K+1, m, n)
             rows = with_gains(trajectory_table("online", tr, first), in_use.reshape(count * (K + 1), m, n))
-            sink.append("trajectories", rows)
-            sample.append(rows[rows["path"] < exp.tracking.recorded_paths])
-            if keep:
-                members = members_table("online", tr, first)
-                sink.append("members", members)
-                sample_members.append(members[members["path"] < exp.tracking.recorded_paths])
-            parts.append(LoopSummary.of(tr, exp))
+            parts.append(stream_chunk(exp, "online", tr, first, rows, sink, sample, sample_members))
             controllers.append((first, controller))
     return (LoopSummary.concat(parts), controllers), info
 
