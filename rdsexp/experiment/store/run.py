@@ -158,8 +158,6 @@ def intact_runs(root: Path) -> list[tuple[Path, dict]]:
     return runs
 
 
-
-
 MATRIX = "<not a scalar>"           # stands for a nested list while a config is resolved
 _CONFIGS: dict[tuple, dict] = {}    # scalar_config by (path, size, mtime): a stored config never changes
 
