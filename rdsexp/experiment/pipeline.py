@@ -489,7 +489,14 @@ def gains_table(exp: Experiment, designs: dict, selected: tuple[str, str]) -> pd
                      "max_width": res.info.get("max_width", np.nan),
                      "min_infeasible_width": res.info.get("min_infeasible_width", np.nan),
                      **{f"F[{i},{j}]": v for (i, j), v in np.ndenumerate(F)}})     # F[i,j]: (m, n) unambiguous
-    return pd.DataFrame(rows)
+    # the columns also when no design ran (no model, no reported moments): readers select on them
+    columns = [*GAIN_COLUMNS, *(f"F[{i},{j}]" for i in range(exp.model.m) for j in range(exp.model.n))]
+    return pd.DataFrame(rows, columns=columns)
+
+
+GAIN_COLUMNS = ("distribution", "method", "selected", "status", "lam", "lam_lower", "nbar", "rate_model",
+                "rate_plant", "lq_cost_q0_plant", "lq_cost_plant", "h2_plant", "lq_cost_model", "h2_model",
+                "lam_box", "lam_box_lower", "max_width", "min_infeasible_width")
 
 
 def performance(exp: Experiment, moments, F) -> dict:

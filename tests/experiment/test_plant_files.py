@@ -3,10 +3,12 @@ designs that cannot be applied as statuses."""
 import json
 
 import numpy as np
+import pandas as pd
 import pytest
 import yaml
 from conftest import REPO, rdsexp
 
+from rdsexp.experiment.recording import read_series
 from rdsexp.numerics import distributions as D
 from rdsexp.numerics.systems import MomentModel
 
@@ -132,11 +134,21 @@ def test_no_model_is_stated(tmp_path):
     # unstable, no input at all reaching it, identified in open loop: q_k = 3^k leaves 1e6 at k = 13
     conf = user_dir(tmp_path, "wild", {"A": [[[3.0]], [[0.1]]], "B": [[[0.0]]], "xi": {"mean": [0], "cov": [[1]]},
                                        "identification_feedback": "none"})
-    proc = rdsexp("--config-dir", conf, "plant=wild", *SMALL, cwd=tmp_path)
+    proc = rdsexp("--config-dir", conf, "plant=wild", *SMALL[:-1], cwd=tmp_path)      # default tracking
     assert "Traceback" not in proc.stderr
     assert "no model: identification failed at k = " in proc.stdout
     assert ": the plant state diverged; no gain designed, no closed loop" in proc.stdout
     assert "closed loop" not in proc.stdout.replace("no closed loop", "")
+    # under the default tracking the run completes and records what exists: the identification run
+    # in the recording, the gains table with its columns and no rows
+    (run,) = (tmp_path / "outputs" / "runs").iterdir()
+    assert json.loads((run / "run.json").read_text())["status"] == "complete"
+    gains = pd.read_parquet(run / "gains.parquet")
+    assert len(gains) == 0 and {"method", "selected", "status", "F[0,0]"} <= set(gains.columns)
+    ident = pd.read_parquet(run / "identification.parquet")
+    k, estimate = read_series(run / "recording.rrd", "/summary/xi/xi0/estimate")
+    np.testing.assert_allclose(estimate, ident["xi_filt_mean[0]"])
+    assert np.isfinite(estimate).sum() == 13           # k = 0..12, before the plant left the bound
 
 
 def test_failing_stage_is_a_status_not_a_traceback(tmp_path):
