@@ -7,9 +7,12 @@ mean-square rates, synthesis) uses the family's exact mean and covariance as a `
 - `MomentModel` (family `normal`): Gaussian with the given mean (p,) and covariance (p, p);
 - `Uniform`: independent components uniform on [low_j, high_j];
 - `Bernoulli`: independent 0/1 components, P(xi_j = 1) = prob_j (packet dropouts);
-- `Discrete`: one of finitely many vectors values[i] (N, p) with probability probs[i].
+- `Discrete`: one of finitely many vectors values[i] (N, p) with probability probs[i];
+- `Independent`: xi = [xi^(1); ...; xi^(c)], independent blocks each drawn from its own family
+  (any of these, nested `independent` included), e.g. a bernoulli dropout beside a uniform gain.
 
-Every family has `p`, `mean`, `cov`, `moments` (a MomentModel) and `sample(rng, size)` -> size + (p,).
+Every family has `p`, `mean`, `cov`, `moments` (a MomentModel), `sample(rng, size)` -> size + (p,)
+and `support` -> (low (p,), high (p,)), the smallest box containing the support (+-inf if unbounded).
 """
 from __future__ import annotations
 
@@ -19,7 +22,7 @@ import numpy as np
 
 from .systems import MomentModel, _finite_array
 
-FAMILIES = ("normal", "uniform", "bernoulli", "discrete")
+FAMILIES = ("normal", "uniform", "bernoulli", "discrete", "independent")
 
 
 def _vector(name: str, value) -> np.ndarray:
@@ -66,6 +69,7 @@ class Uniform(_Family):
 
     mean = property(lambda self: (self.low + self.high) / 2)
     cov = property(lambda self: np.diag((self.high - self.low) ** 2 / 12))
+    support = property(lambda self: (self.low.copy(), self.high.copy()))
 
     def sample(self, rng: np.random.Generator, size: tuple[int, ...]) -> np.ndarray:
         """Draws of shape size + (p,)."""
@@ -86,6 +90,8 @@ class Bernoulli(_Family):
 
     mean = property(lambda self: self.prob.copy())
     cov = property(lambda self: np.diag(self.prob * (1 - self.prob)))
+    # [0, 1] whatever prob: the box is the family's, so it does not jump when prob reaches 0 or 1
+    support = property(lambda self: (np.zeros(self.p), np.ones(self.p)))
 
     def sample(self, rng: np.random.Generator, size: tuple[int, ...]) -> np.ndarray:
         """Draws of shape size + (p,)."""
@@ -114,6 +120,7 @@ class Discrete(_Family):
         object.__setattr__(self, "probs", probs / probs.sum())
 
     mean = property(lambda self: self.probs @ self.values)
+    support = property(lambda self: (self.values.min(axis=0), self.values.max(axis=0)))
 
     @property
     def cov(self) -> np.ndarray:
@@ -125,19 +132,76 @@ class Discrete(_Family):
         return self.values[rng.choice(self.probs.size, size=tuple(size), p=self.probs)]
 
 
+@dataclass(frozen=True, eq=False)
+class Independent(_Family):
+    """xi = [xi^(1); ...; xi^(c)] with independent blocks xi^(i) (p_i,), each from its own family.
+
+    components: a non-empty sequence of families (Independent included); p = sum of p_i."""
+
+    components: tuple
+
+    def __post_init__(self):
+        if not isinstance(self.components, (list, tuple)):
+            raise ValueError(f"components: expected a list of families, got {self.components!r}")
+        if not self.components:
+            raise ValueError("components: an empty list is not allowed, expected at least one family")
+        for i, c in enumerate(self.components):
+            if not all(hasattr(c, name) for name in ("p", "mean", "cov", "sample", "support")):
+                raise ValueError(f"components[{i}]: expected a distribution family, got {type(c).__name__}")
+        object.__setattr__(self, "components", tuple(self.components))
+
+    mean = property(lambda self: np.concatenate([c.mean for c in self.components]))
+
+    @property
+    def support(self) -> tuple[np.ndarray, np.ndarray]:
+        """(low (p,), high (p,)): the components' boxes stacked (the product of boxes is a box)."""
+        lows, highs = zip(*(c.support for c in self.components))
+        return np.concatenate(lows), np.concatenate(highs)
+
+    @property
+    def cov(self) -> np.ndarray:
+        """Block diagonal (p, p): independent blocks are uncorrelated."""
+        ends = np.cumsum([c.p for c in self.components])
+        cov = np.zeros((ends[-1], ends[-1]))
+        for c, end in zip(self.components, ends):
+            cov[end - c.p:end, end - c.p:end] = c.cov
+        return cov
+
+    def sample(self, rng: np.random.Generator, size: tuple[int, ...]) -> np.ndarray:
+        """Draws of shape size + (p,), the components' in turn from the same generator (deterministic)."""
+        return np.concatenate([c.sample(rng, size) for c in self.components], axis=-1)
+
+
 def from_spec(spec: dict):
     """A family from {family: NAME, ...parameters}; family absent means `normal` {mean, cov}.
 
-    One-line ValueError for an unknown family, missing or extra parameters or bad values."""
+    `independent` takes {components: [spec, ...]}, each component parsed by from_spec itself.
+    One-line ValueError for an unknown family, missing or extra parameters or bad values; errors
+    inside a component name it, e.g. "components[1]: family uniform takes {low, high}, got {low}"."""
     if not isinstance(spec, dict):
         raise ValueError(f"{spec!r} is not allowed, expected a mapping {{family: ..., parameters}}")
     spec = dict(spec)
     family = spec.pop("family", "normal")
     params = {"normal": ("mean", "cov"), "uniform": ("low", "high"), "bernoulli": ("prob",),
-              "discrete": ("values", "probs")}
+              "discrete": ("values", "probs"), "independent": ("components",)}
     if family not in params:
         raise ValueError(f"family: {family!r} is not allowed, expected one of {', '.join(FAMILIES)}")
     if set(spec) != set(params[family]):
         raise ValueError(f"family {family} takes {{{', '.join(params[family])}}}, got {{{', '.join(spec)}}}")
+    if family == "independent":
+        return _independent(spec["components"])
     cls = {"normal": MomentModel, "uniform": Uniform, "bernoulli": Bernoulli, "discrete": Discrete}[family]
     return cls(**spec)
+
+
+def _independent(specs) -> Independent:
+    """`independent` from its list of component specs, each parsed by from_spec (errors name its index)."""
+    if not isinstance(specs, (list, tuple)):
+        raise ValueError(f"components: expected a list of family specs, got {specs!r}")
+    parsed = []
+    for i, spec in enumerate(specs):
+        try:
+            parsed.append(from_spec(spec))
+        except ValueError as err:
+            raise ValueError(f"components[{i}]: {err}") from None
+    return Independent(parsed)          # an empty list is rejected there

@@ -96,6 +96,8 @@ class MomentModel:
     def p(self) -> int:
         return self.mean.size
 
+    support = property(lambda self: (np.full(self.p, -np.inf), np.full(self.p, np.inf)))   # Gaussian: unbounded
+
     @property
     def second_moment(self) -> np.ndarray:
         """E[xi xi^T], shape (p, p)."""
