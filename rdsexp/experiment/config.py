@@ -14,7 +14,7 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from ..errors import ConfigError, one_line
 from ..numerics.distributions import from_spec
-from ..numerics.enkf import VARIANTS, EnKF, check_covariance
+from ..numerics.enkf import VARIANTS, EnKF, check_covariance, xi_support
 from ..numerics.modeling import mls_input
 from ..numerics.online import MEMORIES, OnlineSettings
 from ..numerics.synthesis import METHODS, check_options
@@ -22,6 +22,7 @@ from ..numerics.systems import AffineRandomSystem, MomentModel
 
 TRACKING_LEVELS = ("off", "summary", "full")
 FEEDBACK_MODES = ("none", "nominal", "auto")     # identification.feedback, or a gain F (m x n)
+XI_SUPPORT = ("project", "free")     # enkf.xi_support: members projected onto the plant family's support box, or not
 
 
 @contextmanager
@@ -149,7 +150,7 @@ class FilterSettings:
     P0: np.ndarray
 
     @classmethod
-    def from_config(cls, cfg, model: AffineRandomSystem) -> FilterSettings:
+    def from_config(cls, cfg, model: AffineRandomSystem, plant: AffineRandomSystem) -> FilterSettings:
         dim = model.n + model.p
         M = _number(get(cfg, "enkf.ensemble_size"), "enkf.ensemble_size", integer=True, low=2)
         q_scale = _number(get(cfg, "enkf.q_scale"), "enkf.q_scale", low=0)
@@ -163,7 +164,11 @@ class FilterSettings:
         relaxation = _number(get(cfg, "enkf.relaxation"), "enkf.relaxation", low=0, high=1)
         if variant == "etkf" and np.linalg.eigvalsh(R).min() <= 1e-12 * max(np.abs(R).max(), 1e-300):
             raise ConfigError("enkf.R: must be positive definite with enkf.variant=etkf (its transform uses R^-1)")
-        enkf = EnKF(model, Q, R, variant=variant, inflation=inflation, relaxation=relaxation)
+        support = get(cfg, "enkf.xi_support")
+        if support not in XI_SUPPORT:
+            raise ConfigError(f"enkf.xi_support: {support!r} is not allowed, expected one of {', '.join(XI_SUPPORT)}")
+        bounds = xi_support(model, plant) if support == "project" else None
+        enkf = EnKF(model, Q, R, variant=variant, inflation=inflation, relaxation=relaxation, xi_bounds=bounds)
         mean = get(cfg, "enkf.initial.mean")
         with key("enkf.initial.mean"):
             psi0 = np.zeros(dim) if mean is None else np.asarray(mean, dtype=float)
@@ -228,14 +233,17 @@ class DesignSettings:
 @dataclass(frozen=True)
 class LoopSettings:
     """conf/closed_loop: the Monte Carlo of the closed (and open) loop: P paths over k = 0..K, the
-    input disturbance d (K + 1, m) and whether the EnKF is told it, the rate window, chunks of
-    paths (None: from a memory budget) and worker processes."""
+    input disturbance d (K + 1, m) and whether the EnKF is told it, the rate window (None: auto,
+    placed on the ideal loop's exact curve above the noise floor), the paths of the loop at rest that
+    measures the noise floor (0: not measured), chunks of paths (None: from a memory budget) and
+    worker processes."""
 
     paths: int
     disturbance: np.ndarray
     filter_sees_disturbance: bool
     open_loop: bool
-    rate_window: tuple[int, int]
+    rate_window: tuple[int, int] | None
+    floor_paths: int
     chunk_paths: int | None
     workers: int
 
@@ -260,12 +268,13 @@ class LoopSettings:
         d = np.zeros((K + 1, model.m))
         d[:until] = amplitude
         window = _rate_window(get(cfg, "closed_loop.rate_window"), K)
+        floor_paths = _number(get(cfg, "closed_loop.floor_paths"), "closed_loop.floor_paths", integer=True, low=0)
         flags = {name: _flag(cfg, f"closed_loop.{name}") for name in ("filter_sees_disturbance", "open_loop")}
         chunk = get(cfg, "closed_loop.chunk_paths")
         chunk = None if chunk is None else _number(chunk, "closed_loop.chunk_paths", integer=True, low=1)
         workers = _number(get(cfg, "closed_loop.workers"), "closed_loop.workers", integer=True, low=1)
-        return cls(paths=paths, disturbance=d, rate_window=tuple(window), chunk_paths=chunk, workers=workers,
-                   **flags)
+        return cls(paths=paths, disturbance=d, rate_window=window, floor_paths=floor_paths, chunk_paths=chunk,
+                   workers=workers, **flags)
 
 
 @dataclass(frozen=True)
@@ -364,7 +373,7 @@ def build(cfg) -> Experiment:
     if reference is not None and not isinstance(reference, dict):
         raise ConfigError(f"plant.reference: {reference!r} is not allowed, expected null or a mapping")
 
-    filter_ = FilterSettings.from_config(cfg, model)
+    filter_ = FilterSettings.from_config(cfg, model, plant)
     identification = IdentificationSettings.from_config(cfg, plant)
     design = DesignSettings.from_config(cfg, model, reported)
     loop = LoopSettings.from_config(cfg, model)
@@ -456,14 +465,17 @@ def _process_noise(cfg, n: int, p: int) -> np.ndarray:
     return np.diag(np.repeat(scales, [n, p]))
 
 
-def _rate_window(window, K: int) -> tuple[int, int]:
-    """closed_loop.rate_window: [k_from, k_to] as steps (integers) or as fractions of the horizon K."""
+def _rate_window(window, K: int) -> tuple[int, int] | None:
+    """closed_loop.rate_window: auto (None), [k_from, k_to] as steps (integers) or as fractions of the
+    horizon K."""
+    if window == "auto":
+        return None
     if isinstance(window, list) and len(window) == 2 and all(isinstance(k, float) for k in window) \
             and all(0 <= k <= 1 for k in window):
         window = [round(k * K) for k in window]
     if not (isinstance(window, list) and len(window) == 2 and all(isinstance(k, int) for k in window)
             and 0 <= window[0] < window[1] <= K):
-        raise ConfigError(f"closed_loop.rate_window: {window!r} is not allowed, expected [k_from, k_to] "
+        raise ConfigError(f"closed_loop.rate_window: {window!r} is not allowed, expected auto, [k_from, k_to] "
                           f"with 0 <= k_from < k_to <= closed_loop.horizon = {K} (integers), or fractions "
                           f"of the horizon (e.g. [0.6, 0.8])")
     return tuple(window)
@@ -498,7 +510,8 @@ GROUPS = ("plant", "model", "enkf", "identification", "gain", "closed_loop", "tr
 TOP_LEVEL = ("seed", "reuse")
 # keys `build` reads with a default when the group's file does not set them: `+key=value` may add them
 OPTIONAL_KEYS = ("plant.name", "plant.C", "plant.D", "plant.q0", "plant.poles", "plant.reference",
-                 "plant.identification_feedback", "plant.model", "model.name", "model.A", "model.B", "model.C",
+                 "plant.identification_feedback", "plant.rate_window",
+                 "plant.filter_sees_disturbance", "plant.disturbance", "plant.model", "model.name", "model.A", "model.B", "model.C",
                  "model.D", "model.reported", "gain.source", "gain.F", "gain.options",
                  "identification.feedback", "identification.xi_guess")
 # mappings whose keys are checked where they are used (gain options by the method, xi by its family)

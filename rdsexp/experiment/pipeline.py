@@ -24,20 +24,19 @@ from tqdm.contrib.logging import logging_redirect_tqdm
 
 from ..errors import ConfigError, StageError, WriteError, one_line
 from ..numerics.analysis import empirical_rate_sq, exact_costs, ms_rate, second_moments
+from ..numerics.enkf import truth_map
 from ..numerics.modeling import model_distribution, nominal_gain
 from ..numerics.online import OnlineController, rates
 from ..numerics.simulation import Trajectories, simulate
 from ..numerics.synthesis import METHODS, SynthesisResult, synthesize
 from ..numerics.systems import MomentModel
+from ..numerics.verdict import FAILURES, loop_verdict, place_window, window_start
 from .config import Experiment
 from .montecarlo import LoopSummary, run_chunks
 
 log = logging.getLogger("rdsexp")
 # the online loop shares the closed loop's seeds: the same plant samples and EnKF noise, a paired comparison
-SPAWN_KEYS = {"identification": (0,), "closed_loop": (1,), "open_loop": (1,), "online": (1,)}
-# a path's failure reason (Trajectories.failure) in words, for the summary
-FAILURES = {"diverged": "the plant state diverged", "filter_diverged": "the EnKF estimate diverged",
-            "singular_innovation": "the EnKF innovation covariance was singular"}
+SPAWN_KEYS = {"identification": (0,), "closed_loop": (1,), "open_loop": (1,), "online": (1,), "noise_floor": (2,)}
 TABLES = ("trajectories", "identification", "paths", "model", "gains", "metrics", "exact")
 STREAMED = ("trajectories", "members")        # written chunk by chunk through a sink
 
@@ -147,6 +146,10 @@ def run_experiment(exp: Experiment, sink=None) -> Outcome:
                 loops[name] = LoopSummary.concat(parts)
     if not loops:                              # no gain to simulate: the table's columns, no rows
         sink.append("trajectories", trajectory_table("closed_loop", None, exp=exp))
+    floor = np.nan
+    if "closed_loop" in loops and exp.loop.floor_paths > 0:
+        with timed(timings, "noise_floor"):
+            floor = noise_floor(exp, chosen.F, root("noise_floor"), sim)
 
     online = None
     if exp.controller.kind == "online":
@@ -156,14 +159,17 @@ def run_experiment(exp: Experiment, sink=None) -> Outcome:
             loops["online"] = online[0]
 
     with timed(timings, "metrics"):
+        exact = exact_table(exp, chosen)
+        window = rate_window(exp, exact, floor)
         tables = {
             "identification": trajectory_table("identification", ident),
             "paths": path_table({"identification": LoopSummary.of(ident, exp), **loops}),
             "model": model_table(exp, dist),
             "gains": gains_table(exp, designs, selected),
-            "metrics": metrics_table(exp, loops),
-            "exact": exact_table(exp, chosen),
+            "metrics": metrics_table(exp, loops, window, floor, exact),
+            "exact": exact,
         }
+        summary.update(rate_window=list(window.k), rate_window_source=window.source, noise_floor=floor)
         if isinstance(sink, MemorySink):
             tables |= sink.tables()
     if online is not None:
@@ -302,7 +308,7 @@ def add_online_tables(exp: Experiment, tables: dict, online, chosen, summary: di
     optimum = min((safe_synthesize(exp.plant, truth, method, {}) for method in ("proposed", "policy_iteration")),
                   key=lambda res: res.lam if np.isfinite(res.lam) else np.inf)
     offline = safe_rate(exp.plant, None, chosen.F) if chosen is not None and chosen.F is not None else np.nan
-    window = exp.loop.rate_window
+    window = tuple(summary["rate_window"])          # as the metrics stage resolved it
     q = np.nanpercentile(final, [10, 50, 90]) if np.isfinite(final).any() else [np.nan] * 3
     online_metrics = {"final_rate_plant_q10": q[0], "final_rate_plant_median": q[1], "final_rate_plant_q90": q[2],
                       "final_stable_fraction": float(np.mean(final < 1)),
@@ -511,28 +517,80 @@ def performance(exp: Experiment, moments, F) -> dict:
             "lq_cost_model": model["lq_cost"], "h2_model": model["h2"]}
 
 
-def metrics_table(exp: Experiment, loops: dict[str, LoopSummary]) -> pd.DataFrame:
-    """Per loop: empirical rate over rate_window with its 95% interval, failures, estimation quality.
+@dataclass(frozen=True)
+class RateWindow:
+    """The window [k_from, k_to] the loops' rates are measured over: from the config (source
+    "config"), or placed on the ideal loop's exact curve above the noise floor ("auto"); placed False
+    when no such window exists (k is then the span from the window's start to the horizon, shown but
+    not trusted: the verdict is undetermined)."""
+
+    k: tuple[int, int]
+    source: str
+    placed: bool = True
+
+
+def rate_window(exp: Experiment, exact: pd.DataFrame, floor: float) -> RateWindow:
+    """closed_loop.rate_window as configured, or (auto) placed on the exact RMS curve of the ideal
+    closed loop (of the open loop without a gain) from the end of the disturbance, above the noise
+    floor (numerics/verdict.py)."""
+    if exp.loop.rate_window is not None:
+        return RateWindow(exp.loop.rate_window, "config")
+    loop = "closed_loop" if (exact["experiment"] == "closed_loop").any() else "open_loop"
+    curve = exact.loc[exact["experiment"] == loop, "rms"].to_numpy()
+    start = window_start(exp.loop.disturbance, exp.model.n)
+    placed = place_window(curve, start, floor)
+    K = exp.loop.horizon
+    return RateWindow(placed, "auto") if placed is not None else \
+        RateWindow((min(start, K - 1), K), "auto", placed=False)
+
+
+def noise_floor(exp: Experiment, F: np.ndarray, seed, sim: dict) -> float:
+    """The closed loop's noise floor sqrt(E||q_k||^2): the loop with gain F and the EnKF observer
+    started at rest (q_0 = 0) without disturbance, closed_loop.floor_paths paths, the mean over paths
+    and over the second half of the horizon (numerics/verdict.py). inf when a path of it failed (the
+    loop at rest does not settle at any level)."""
+    K = exp.loop.horizon
+    tr = simulate(exp.plant, exp.filter.enkf, F=F, d=np.zeros((K + 1, exp.model.m)),
+                  paths=min(exp.loop.floor_paths, exp.loop.paths), seed=seed, filter_sees_d=True,
+                  **dict(sim, q0=np.zeros(exp.plant.n)))
+    if np.any(tr.failed_at >= 0):
+        return float("inf")
+    return float(np.sqrt(np.mean(np.sum(tr.q[K // 2:] ** 2, axis=-1))))
+
+
+def metrics_table(exp: Experiment, loops: dict[str, LoopSummary], window: RateWindow, floor: float,
+                  exact: pd.DataFrame) -> pd.DataFrame:
+    """Per loop: empirical rate over the rate window with its 95% interval, the ideal loop's exact
+    rate over the same window, the noise floor, the verdict and its reason, failures, estimation quality.
 
     x_error_rms: RMS of the predicted x_{k|k-1} against q_k (k >= 0); x_rmse, xi_rmse: RMS of the
     filtered x_{k|k}, xi_{k|k} against q_k and the true xi (k >= 1; the true xi at k is T s_{k-1} + t
     from `truth_map`, NaN when the model's xi has no value in the plant's terms); *_spread_error:
     sqrt(mean sum std^2) / RMSE (1: the ensemble spread matches its error). Means are over every
-    finite (step, path)."""
-    k_from, k_to = exp.loop.rate_window
+    finite (step, path). The open loop's floor is 0 (its observer does not act on the plant); the
+    online loop is judged against the fixed-gain closed loop's floor."""
+    k_from, k_to = window.k
     rows = []
     for name, loop in loops.items():
-        rate, low, high = empirical_rate_sq(loop.sq[k_from], loop.sq[k_to], k_to - k_from)
+        interval = empirical_rate_sq(loop.sq[k_from], loop.sq[k_to], k_to - k_from)
+        loop_floor = 0.0 if name == "open_loop" else floor
+        ideal = exact.loc[exact["experiment"] == name, "rms"].to_numpy()
+        with np.errstate(all="ignore"):
+            exact_rate = (ideal[k_to] / ideal[k_from]) ** (1 / (k_to - k_from)) if ideal.size else np.nan
+            end_rms = float(np.sqrt(np.mean(loop.sq[k_to])))
+        verdict = loop_verdict(interval, failed_at=loop.failed_at, failure=loop.failure,
+                               window=window.k if window.placed else None, end_rms=end_rms, floor_rms=loop_floor)
         x_rmse, xi_rmse = loop.rms_of("x_err"), loop.rms_of("xi_err")
-        rows.append({"experiment": name, "status": loop.status, "rate": rate, "rate_low": low, "rate_high": high,
-                     "k_from": k_from, "k_to": k_to, "paths": loop.sq.shape[1],
+        rows.append({"experiment": name, "verdict": verdict.word, "verdict_reason": verdict.reason,
+                     "status": loop.status, "rate": interval[0], "rate_low": interval[1], "rate_high": interval[2],
+                     "k_from": k_from, "k_to": k_to, "exact_rate": exact_rate, "floor_rms": loop_floor,
+                     "rms_k_to": end_rms, "paths": loop.sq.shape[1],
                      "failed_fraction": float(np.mean(loop.failed_at >= 0)),
                      "x_error_rms": loop.rms_of("x_pred_err"),
                      "q_rms_final": float(np.sqrt(np.mean(loop.sq[-1]))),
                      "x_rmse": x_rmse, "x_spread_error": _ratio(loop.rms_of("x_var"), x_rmse),
                      "xi_rmse": xi_rmse, "xi_spread_error": _ratio(loop.rms_of("xi_var"), xi_rmse)})
-    return pd.DataFrame(rows, columns=["experiment", "status", "rate", "rate_low", "rate_high", "k_from", "k_to",
-                                       "paths", "failed_fraction", "x_error_rms", "q_rms_final", *ESTIMATION])
+    return pd.DataFrame(rows, columns=list(METRIC_COLUMNS))
 
 
 def _ratio(a: float, b: float) -> float:
@@ -541,6 +599,9 @@ def _ratio(a: float, b: float) -> float:
 
 
 ESTIMATION = ("x_rmse", "x_spread_error", "xi_rmse", "xi_spread_error")
+METRIC_COLUMNS = ("experiment", "verdict", "verdict_reason", "status", "rate", "rate_low", "rate_high", "k_from",
+                  "k_to", "exact_rate", "floor_rms", "rms_k_to", "paths", "failed_fraction", "x_error_rms",
+                  "q_rms_final", *ESTIMATION)
 
 
 def exact_table(exp: Experiment, chosen: SynthesisResult | None) -> pd.DataFrame:
@@ -558,10 +619,15 @@ def exact_table(exp: Experiment, chosen: SynthesisResult | None) -> pd.DataFrame
 
 def _summary(exp: Experiment, dist, chosen, tables: dict) -> dict:
     """Key numbers of the run (run.json `summary`); what print_summary shows."""
-    s = {"plant": exp.plant_name, "model": exp.model_name, "gain_method": exp.design.method,
-         "rate_window": list(exp.loop.rate_window)}
+    s = {"plant": exp.plant_name, "model": exp.model_name, "gain_method": exp.design.method}
     if dist is not None:
-        s.update(nbar=int(exp.model.Gbar(dist).shape[0]), xi_mean=dist.mean.tolist())
+        s.update(nbar=int(exp.model.Gbar(dist).shape[0]), xi_mean=dist.mean.tolist(),
+                 xi_std=np.sqrt(np.diag(dist.cov)).tolist())
+    truth = truth_map(exp.model, exp.plant)
+    if truth is not None:                # the plant file's distribution in the model's xi = T s + t
+        T, t = truth
+        family = exp.plant.xi_dist
+        s.update(plant_xi_mean=(T @ family.mean + t).tolist(), plant_xi_std=np.sqrt(np.diag(T @ family.cov @ T.T)).tolist())
     if chosen is not None:
         s.update(synthesis_status=chosen.status, lam=chosen.lam,
                  rate_plant=safe_rate(exp.plant, None, chosen.F) if chosen.F is not None else None)
@@ -570,6 +636,10 @@ def _summary(exp: Experiment, dist, chosen, tables: dict) -> dict:
     paths = tables["paths"]
     for row in tables["metrics"].itertuples():
         s[f"{row.experiment}_status"] = row.status
+        s[f"{row.experiment}_verdict"] = row.verdict
+        s[f"{row.experiment}_verdict_reason"] = row.verdict_reason
+        s[f"{row.experiment}_exact_rate"] = row.exact_rate              # the ideal loop over the same window
+        s[f"{row.experiment}_estimation"] = {"x_error_rms": row.x_error_rms, "rms_k_to": row.rms_k_to}
         s[f"{row.experiment}_rate"] = [row.rate, row.rate_low, row.rate_high]
         failed = paths[(paths["experiment"] == row.experiment) & (paths["failed_at"] >= 0)]["failed_at"]
         if len(failed):

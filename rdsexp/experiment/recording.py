@@ -280,6 +280,9 @@ def write_summary(rec: rr.RecordingStream, tables: dict[str, pd.DataFrame], traj
             if loop == "closed_loop" and np.isfinite(lam):
                 lines.append(("lambda_k", ex["k"].to_numpy(np.int64), ex["rms"].iloc[0] * lam ** ex["k"].to_numpy(),
                               f"lambda^k, lambda = {lam:.4f}", 1.0))
+        floor = summary.get("noise_floor")
+        if loop == "closed_loop" and floor is not None and np.isfinite(floor) and floor > 0:
+            lines.append(("noise_floor", ks, np.full(ks.size, floor), "noise floor (the loop at rest)", 0.7))
         for name, k, v, label, width in lines:
             _line(rec, f"/summary/rms/{loop}/{name}", k, v, label, color, width)
             _line(rec, f"/summary/log10_rms/{loop}/{name}", k, _log10(v), label, color, width)
@@ -401,11 +404,13 @@ def report_markdown(tables: dict[str, pd.DataFrame], summary: dict) -> str:
              + (f", xi mean {np.round(s['xi_mean'], 4).tolist()}, nbar {s.get('nbar')}" if "xi_mean" in s else ""),
              f"- gain {s.get('gain_method')}: **{s.get('synthesis_status', 'n/a')}**, lambda {_fmt(s.get('lam'))}, "
              f"exact rate on the true plant {_fmt(s.get('rate_plant'))}"]
-    for loop in ("closed_loop", "open_loop"):
+    for loop in ("closed_loop", "open_loop", "online"):
         if f"{loop}_rate" in s:
             r = s[f"{loop}_rate"]
-            lines.append(f"- {loop.replace('_', ' ')}: **{s.get(f'{loop}_status')}**, rate {_fmt(r[0])} "
-                         f"[{_fmt(r[1])}, {_fmt(r[2])}] over k = {s.get('rate_window')}")
+            lines.append(f"- {loop.replace('_', ' ')}: **{s.get(f'{loop}_verdict')}**, rate {_fmt(r[0])} "
+                         f"[{_fmt(r[1])}, {_fmt(r[2])}] over k = {s.get('rate_window')} "
+                         f"({s.get('rate_window_source', 'config')}), ideal loop {_fmt(s.get(f'{loop}_exact_rate'))}: "
+                         f"{s.get(f'{loop}_verdict_reason')}")
     if "online" in s:
         o = s["online"]
         lines.append(f"- online controller: final gains' exact rate on the true plant median "

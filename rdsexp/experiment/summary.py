@@ -5,7 +5,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .pipeline import FAILURES
+from ..numerics.synthesis import status_meaning
+from ..numerics.verdict import ABOVE_FLOOR
 from .store import layout
 
 
@@ -36,9 +37,15 @@ def summary_text(info: dict, run_dir: Path) -> str:
             if unstable(ident.get("rate_plant")):
                 line += " (it does not stabilize the true plant in mean square)"
         lines.append(line)
+    vec = lambda v: np.round(v, 4).tolist()
     if s.get("modeling_status") == "ok":
-        lines.append(f"  modeling ok: xi mean {np.round(s.get('xi_mean', []), 4).tolist()}{beside('xi_mean')}, "
+        lines.append(f"  modeling ok: xi mean {vec(s.get('xi_mean', []))}{beside('xi_mean')}, "
                      f"nbar {s.get('nbar')}{beside('nbar')}")
+        if "xi_std" in s:
+            line = f"    modeled xi std {vec(s['xi_std'])}"
+            if "plant_xi_mean" in s:
+                line += f"; the plant file's xi: mean {vec(s['plant_xi_mean'])}, std {vec(s['plant_xi_std'])}"
+            lines.append(line)
     elif s.get("modeling_status") is not None:
         lines.append(f"  no model: {s.get('modeling_status')}" +
                      ("; no gain designed, no closed loop" if s.get("synthesis_status") is None else ""))
@@ -58,21 +65,25 @@ def summary_text(info: dict, run_dir: Path) -> str:
               if m != s.get("gain_method") and st not in ("optimal", "designed")}
     if others:
         lines.append("  other designs: " + ", ".join(f"{m} {st}" for m, st in others.items()))
+    statuses = [s["synthesis_status"]] if s.get("synthesis_status") is not None else []
+    for status in dict.fromkeys(statuses + list(others.values())):     # what each status shown means
+        lines.append(f"    {status}: {status_meaning(status)}")
+    if k_from is not None and "closed_loop_status" in s:
+        lines.append(f"  rate window k={k_from}..{k_to}: " + (
+            "from the config" if s.get("rate_window_source") == "config" else
+            f"auto, after the disturbance and {ABOVE_FLOOR:g} times above the noise floor "
+            f"{fmt(s.get('noise_floor'))} (the closed loop at rest) on the ideal loop's exact curve"))
     for loop, label in (("closed_loop", "closed loop"), ("open_loop", "open loop  "), ("online", "online     ")):
         if f"{loop}_status" not in s:
             continue
         line = f"  {label} rate k={k_from}..{k_to}: {interval(s.get(f'{loop}_rate'))}"
         if loop == "closed_loop":
             line += beside("closed_loop_rate")
-        line += f", {s.get(f'{loop}_status')}"
-        failed = s.get(f"{loop}_failed")
-        if failed:
-            line += (f"; {100 * failed['fraction']:.0f}% of paths failed (first at k = {failed['first_k']}, "
-                     f"median k = {failed['median_k']:g})")
-            reasons = failed.get("reasons") or {}
-            if reasons:
-                line += ": " + ", ".join(f"{FAILURES.get(r, r)} on {c}" for r, c in reasons.items())
-        lines.append(line)
+        if s.get(f"{loop}_exact_rate") is not None and np.isfinite(s[f"{loop}_exact_rate"]):
+            line += f", ideal loop {s[f'{loop}_exact_rate']:.4f}"
+        lines += [f"{line}: {s.get(f'{loop}_verdict')}", f"    {s.get(f'{loop}_verdict_reason')}"]
+        if loop == "closed_loop":
+            lines += gap(s)
     if s.get("online"):                                   # controller=online
         o = s["online"]
         fmt = lambda v: "nan" if v is None else f"{v:.4f}"
@@ -84,3 +95,22 @@ def summary_text(info: dict, run_dir: Path) -> str:
     if (run_dir / layout.RECORDING).exists():
         lines.append(f"  view: rerun {run_dir / layout.RECORDING}")
     return "\n".join(lines)
+
+
+def gap(s: dict) -> list[str]:
+    """Why the closed loop's verdict differs from what the gain's exact rate promises, when it does:
+    the exact rate is of the ideal loop (state feedback); the loop runs on the EnKF's estimate."""
+    rate, verdict = s.get("rate_plant"), s.get("closed_loop_verdict")
+    if rate is None or not np.isfinite(rate):
+        return []
+    est = s.get("closed_loop_estimation") or {}
+    if rate < 1 and verdict in ("unstable", "failed") or (verdict == "undetermined" and rate < 1
+                                                          and "noise floor" not in s.get("closed_loop_verdict_reason", "")):
+        return [f"    the gain stabilizes the plant with the true state (exact rate {rate:.4f}), this loop runs on the "
+                f"EnKF's estimate: its x error RMS {est.get('x_error_rms', float('nan')):.3g} (the state's RMS at the "
+                f"window's end {est.get('rms_k_to', float('nan')):.3g}); the gap is the observer's"]
+    if rate >= 1 and verdict == "stable":
+        return [f"    the paths decay over this window although the gain's exact rate is {rate:.4f} >= 1: the ideal "
+                f"loop's rate over the same window is {s.get('closed_loop_exact_rate', float('nan')):.4f} (a transient "
+                f"of the window, or too few paths to see the growth)"]
+    return []

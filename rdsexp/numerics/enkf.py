@@ -22,6 +22,12 @@ Options for small ensembles, for both variants: `inflation` rho >= 1 scales the 
 anomalies psi^(i) - mean by rho after each prediction; `relaxation` alpha in [0, 1] relaxes the
 analysis spread to the prior spread per component (RTPS, Whitaker & Hamill 2012):
 sigma_a <- alpha sigma_f + (1 - alpha) sigma_a, by scaling the analysis anomalies.
+Support of xi (`xi_bounds`): a linear update moves members anywhere, but a Bernoulli coefficient
+outside [0, 1] or a uniform one outside [low, high] is a plant that cannot occur, and propagating
+the state with it (eq. state-pred2) can make the estimate diverge. With xi_bounds = (low, high)
+(p,) the xi part of every analysed member is projected onto the box (clipped, the Euclidean
+projection onto a box), after RTPS and before the next prediction, and the reported filtered mean
+and spread are those of the projected ensemble. Infinite bounds leave a component free.
 
 Ensembles returned by `predict` and `update` are stored component-major: they are (..., M, n+p)
 views of (n+p, ..., M) arrays, so each component of all paths and members is one contiguous block
@@ -74,7 +80,8 @@ class EnKF:
 
     Q and R may be given as scalars (times I) or diagonals. variant: "stochastic" (the paper's,
     perturbed outputs) or "etkf" (needs R positive definite); inflation rho >= 1 of the forecast
-    anomalies (1: none); relaxation alpha in [0, 1] to the prior spread (0: none).
+    anomalies (1: none); relaxation alpha in [0, 1] to the prior spread (0: none); xi_bounds: None or
+    (low, high) (p,) each, the box the xi part of analysed members is projected onto (+-inf: free).
     """
 
     model: AffineRandomSystem
@@ -83,8 +90,14 @@ class EnKF:
     variant: str = "stochastic"
     inflation: float = 1.0
     relaxation: float = 0.0
+    xi_bounds: tuple[np.ndarray, np.ndarray] | None = None
 
     def __post_init__(self):
+        if self.xi_bounds is not None:
+            low, high = (_finite_or_inf(name, b, self.model.p) for name, b in zip(("low", "high"), self.xi_bounds))
+            if np.any(low > high):
+                raise ValueError(f"xi_bounds: low {low.tolist()} must be <= high {high.tolist()} componentwise")
+            object.__setattr__(self, "xi_bounds", None if np.all(np.isinf(low) & np.isinf(high)) else (low, high))
         object.__setattr__(self, "Q", check_covariance("Q", self.Q, self.dim))
         object.__setattr__(self, "R", check_covariance("R", self.R, self.model.ny))
         object.__setattr__(self, "_Q_sqrt", sqrtm_psd(self.Q))
@@ -205,6 +218,8 @@ class EnKF:
         filt_std = np.sqrt(np.clip(var_pred - np.sum(U * K, axis=-1), 0, None))
         if self.relaxation:
             filt_std = self._relax(filtered, filt_mean, pred_std, filt_std)
+        if self.xi_bounds is not None:
+            filt_mean, filt_std = self._project(filtered, filt_mean, filt_std)
         return Analysis(psi=out, ok=ok, pred_mean=psi_mean, pred_std=pred_std, filt_mean=filt_mean, filt_std=filt_std)
 
     def _transform(self, U: np.ndarray, V_z: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -235,6 +250,19 @@ class EnKF:
         filtered *= components(scale)[..., None]
         filtered += centre
         return np.where(filt_std > 0, relaxed, filt_std)
+
+
+    def _project(self, filtered: np.ndarray, mean: np.ndarray, std: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Clip the xi rows of `filtered` (n+p, ..., M) (components) onto xi_bounds in place; returns the
+        filtered mean and spread (..., n+p) with their xi part recomputed from the projected members."""
+        n, (low, high) = self.model.n, self.xi_bounds
+        xi = filtered[n:]
+        shape = (-1,) + (1,) * (xi.ndim - 1)
+        np.clip(xi, low.reshape(shape), high.reshape(shape), out=xi)
+        mean, std = mean.copy(), std.copy()
+        mean[..., n:] = np.moveaxis(xi.mean(axis=-1), 0, -1)
+        std[..., n:] = np.moveaxis(xi.std(axis=-1, ddof=1), 0, -1)
+        return mean, std
 
 
 class Analysis(NamedTuple):
@@ -285,6 +313,38 @@ def truth_map(model: AffineRandomSystem, plant: AffineRandomSystem, rtol: float 
     if not np.allclose(basis @ sol, rhs, rtol=0, atol=rtol * max(1.0, np.abs(rhs).max(), np.abs(G).max())):
         return None
     return sol[:, 1:], sol[:, 0]
+
+
+def xi_support(model: AffineRandomSystem, plant: AffineRandomSystem) -> tuple[np.ndarray, np.ndarray] | None:
+    """The box (low, high) (p,) of the model's xi implied by the support of the plant's family
+    (`plant.xi_dist.support`), for EnKF.xi_bounds; None without a family or a map xi = T s + t.
+
+    A component xi_i = t_i + T_ij s_j of a single plant parameter lies in t_i + T_ij [low_j, high_j];
+    a component of several parameters, or of none (a constant the model does not know is one, as
+    the paper's xi3 = 0.6), is left free (+-inf): only what the plant file states bounds the filter."""
+    truth = truth_map(model, plant)
+    if truth is None or plant.xi_dist is None:
+        return None
+    T, t = truth
+    low_s, high_s = plant.xi_dist.support
+    low, high = np.full(model.p, -np.inf), np.full(model.p, np.inf)
+    T = np.where(np.abs(T) > 1e-12 * max(np.abs(T).max(initial=0.0), 1e-300), T, 0.0)    # least-squares dust
+    for i in np.flatnonzero(np.count_nonzero(T, axis=1) == 1):
+        j = int(np.flatnonzero(T[i])[0])
+        ends = t[i] + T[i, j] * np.array([low_s[j], high_s[j]])
+        with np.errstate(invalid="ignore"):
+            low[i], high[i] = np.nanmin(ends), np.nanmax(ends)
+    return low, high
+
+
+def _finite_or_inf(name: str, value, p: int) -> np.ndarray:
+    """A (p,) float vector of finite numbers or +-inf (a scalar is broadcast); one-line ValueError otherwise."""
+    arr = np.broadcast_to(np.asarray(value, dtype=float), (p,)).copy() if np.ndim(value) == 0 else \
+        np.asarray(value, dtype=float)
+    if arr.shape != (p,) or np.any(np.isnan(arr)):
+        raise ValueError(f"xi_bounds: {name} {np.asarray(value).tolist()} is not allowed, expected p = {p} numbers "
+                         f"(or +-inf)")
+    return arr
 
 
 def _real(value) -> bool:

@@ -100,3 +100,49 @@ def test_singular_innovation_is_reported_not_raised():
 def test_bad_noise_covariances(Q, R, message):
     with pytest.raises(ValueError, match=message):
         EnKF(rx.paper.model(), Q, R)
+
+
+def test_xi_projected_onto_the_support_box():
+    """With xi_bounds the analysed members' xi lie in the box, equal the unprojected update clipped,
+    and the reported filtered mean and spread are the projected ensemble's; infinite bounds change nothing."""
+    rng = np.random.default_rng(3)
+    model = rx.paper.model()
+    P, M = 4, 9
+    pred = rng.normal(size=(P, M, 9)) * 2
+    u, y, e_v = rng.normal(size=(P, 1)), rng.normal(size=(P, 3)) * 3, rng.normal(size=(P, M, 3))
+    free = EnKF(model, rx.paper.Q, rx.paper.R).update(pred, u, y, e_v)
+    low, high = np.array([0.0, -np.inf, -0.5]), np.array([1.0, np.inf, 0.5])
+    boxed = EnKF(model, rx.paper.Q, rx.paper.R, xi_bounds=(low, high)).update(pred, u, y, e_v)
+    xi = boxed.psi[..., 6:]
+    assert np.all((xi >= low) & (xi <= high))
+    np.testing.assert_array_equal(xi, np.clip(free.psi[..., 6:], low, high))
+    np.testing.assert_array_equal(boxed.psi[..., :6], free.psi[..., :6])
+    assert np.any(free.psi[..., 6:] != xi)                   # the case does leave the box
+    np.testing.assert_allclose(boxed.filt_mean, boxed.psi.mean(axis=-2), atol=1e-12)
+    np.testing.assert_allclose(boxed.filt_std[..., 6:], xi.std(axis=-2, ddof=1), atol=1e-12)
+    unbounded = EnKF(model, rx.paper.Q, rx.paper.R, xi_bounds=(np.full(3, -np.inf), np.full(3, np.inf)))
+    assert unbounded.xi_bounds is None
+    np.testing.assert_array_equal(unbounded.update(pred, u, y, e_v).psi, free.psi)
+    with pytest.raises(ValueError, match="xi_bounds: low .* must be <= high"):
+        EnKF(model, rx.paper.Q, rx.paper.R, xi_bounds=(np.ones(3), np.zeros(3)))
+
+
+def test_xi_support_follows_the_plant_file_through_the_truth_map():
+    from rdsexp.numerics import distributions as D
+    from rdsexp.numerics.enkf import xi_support
+    A = [np.eye(2) * 0.5, np.diag([1.0, 0.0]), np.diag([0.0, 1.0])]
+    B = [np.array([[0.0], [1.0]]), np.zeros((2, 1)), np.zeros((2, 1))]
+    plant = rx.AffineRandomSystem(A=A, B=B, C=[np.eye(2)], D=None,
+                                  xi_dist=D.Independent([D.Bernoulli([0.9]), D.Uniform([-0.2], [0.3])]))
+    low, high = xi_support(plant, plant)
+    np.testing.assert_array_equal(low, [0.0, -0.2])
+    np.testing.assert_array_equal(high, [1.0, 0.3])
+    # a model whose xi_0 = 2 s_0 - 1 and xi_1 = s_0 + s_1 (two parameters: left free)
+    M1 = (A[1] - A[2]) / 2                     # A0 + xi_0 M1 + xi_1 A2 = A0 + M1 + s_0 A1 + s_1 A2
+    model = rx.AffineRandomSystem(A=[A[0] + M1, M1, A[2]], B=B, C=[np.eye(2)], D=None)
+    low, high = xi_support(model, plant)
+    np.testing.assert_allclose(low, [-1.0, -np.inf])
+    np.testing.assert_allclose(high, [1.0, np.inf])
+    # the paper: a normal plant, nothing bounded (the reproduction is unchanged)
+    low, high = xi_support(rx.paper.model(), rx.paper.plant())
+    assert np.all(np.isinf(low)) and np.all(np.isinf(high))

@@ -18,7 +18,7 @@ import time
 import numpy as np
 
 from ..systems import AffineRandomSystem, MomentModel
-from .base import STATUSES, SynthesisResult
+from .base import STATUSES, SynthesisResult, status_meaning
 from .classical import check_poles, pole_placement
 from .lmi import nominal_lmi, proposed
 from .lq import ms_lqr
@@ -39,7 +39,7 @@ METHODS = {
 NUMERICAL_FAILURES = (np.linalg.LinAlgError, ArithmeticError, RuntimeError)
 POSITIVE_OPTIONS = ("tol", "max_iter", "x_cond_limit", "state_weight", "input_weight")
 
-__all__ = ["METHODS", "STATUSES", "SynthesisResult", "check_options", "check_poles", "synthesize"]
+__all__ = ["METHODS", "STATUSES", "SynthesisResult", "check_options", "check_poles", "status_meaning", "synthesize"]
 
 
 def synthesize(system: AffineRandomSystem, dist: MomentModel | None, method: str = "proposed",

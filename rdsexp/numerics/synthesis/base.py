@@ -8,8 +8,33 @@ import numpy as np
 from ..analysis import ms_rate
 from ..systems import AffineRandomSystem, MomentModel
 
-STATUSES = ("optimal", "not_ms_stabilizable", "infimum_not_attained", "solver_failed", "designed", "not_converged",
-            "not_applicable", "failed: <reason>")      # nominal_lmi adds `_on_mean_model` to what it certifies
+# every design status, with what it means in one line (the run summary and the data dictionary show it)
+STATUSES = {
+    "optimal": "the returned gain's rate is within tol of a proven lower bound on the optimal rate",
+    "box_optimal": "robust_box: optimal for the box around the moments (certified over every vertex)",
+    "designed": "a classical design (pole placement, LQR): lam is its rate on the mean (LTI) model, no optimality",
+    "infimum_not_attained": "the optimal rate is an infimum that no gain attains (the certificate degenerates); "
+                            "the returned gain's rate is exact but can be improved a little",
+    "not_converged": "the iterations stopped (max_iter) before the bracket on the optimal rate closed; the "
+                     "returned gain's rate is exact",
+    "not_ms_stabilizable": "proven: no gain makes the design moments mean-square stable (lower bound >= 1)",
+    "infeasible": "robust_box: no gain is certified over the whole box",
+    "solver_failed": "the solver returned no usable gain; the rate is not certified",
+    "not_applicable": "the method does not apply to this system or config (e.g. pole placement without poles)",
+    "fixed": "a given gain (gain.source=fixed): no design, its exact rate",
+    "failed: <reason>": "the method raised or returned a gain that is not finite; the reason follows",
+}
+MEAN_MODEL = "_on_mean_model"     # nominal_lmi's suffix: what it certifies is the LTI mean model
+
+
+def status_meaning(status: str) -> str:
+    """One line saying what a design status means (nominal_lmi's `_on_mean_model` statuses included)."""
+    if status.startswith("failed"):
+        return STATUSES["failed: <reason>"]
+    if status.endswith(MEAN_MODEL):
+        base = status[:-len(MEAN_MODEL)]
+        return f"on the LTI model with xi at its mean (not the random system): {STATUSES.get(base, base)}"
+    return STATUSES.get(status, "unknown status")
 
 
 @dataclass
