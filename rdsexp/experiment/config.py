@@ -22,6 +22,7 @@ from ..numerics.systems import AffineRandomSystem, MomentModel
 
 TRACKING_LEVELS = ("off", "summary", "full")
 FEEDBACK_MODES = ("none", "nominal", "auto")     # identification.feedback, or a gain F (m x n)
+OBSERVER_XI = ("random_walk", "model")   # closed_loop.observer_xi: the paper's xi random walk, or i.i.d. model draws
 XI_SUPPORT = ("project", "free")     # enkf.xi_support: members projected onto the plant family's support box, or not
 
 
@@ -244,6 +245,7 @@ class LoopSettings:
     open_loop: bool
     rate_window: tuple[int, int] | None
     floor_paths: int
+    observer_xi: str
     chunk_paths: int | None
     workers: int
 
@@ -269,11 +271,15 @@ class LoopSettings:
         d[:until] = amplitude
         window = _rate_window(get(cfg, "closed_loop.rate_window"), K)
         floor_paths = _number(get(cfg, "closed_loop.floor_paths"), "closed_loop.floor_paths", integer=True, low=0)
+        observer_xi = get(cfg, "closed_loop.observer_xi")
+        if observer_xi not in OBSERVER_XI:
+            raise ConfigError(f"closed_loop.observer_xi: {observer_xi!r} is not allowed, expected one of "
+                              f"{', '.join(OBSERVER_XI)}")
         flags = {name: _flag(cfg, f"closed_loop.{name}") for name in ("filter_sees_disturbance", "open_loop")}
         chunk = get(cfg, "closed_loop.chunk_paths")
         chunk = None if chunk is None else _number(chunk, "closed_loop.chunk_paths", integer=True, low=1)
         workers = _number(get(cfg, "closed_loop.workers"), "closed_loop.workers", integer=True, low=1)
-        return cls(paths=paths, disturbance=d, rate_window=window, floor_paths=floor_paths, chunk_paths=chunk,
+        return cls(paths=paths, disturbance=d, rate_window=window, floor_paths=floor_paths, observer_xi=observer_xi, chunk_paths=chunk,
                    workers=workers, **flags)
 
 
@@ -511,7 +517,7 @@ TOP_LEVEL = ("seed", "reuse")
 # keys `build` reads with a default when the group's file does not set them: `+key=value` may add them
 OPTIONAL_KEYS = ("plant.name", "plant.C", "plant.D", "plant.q0", "plant.poles", "plant.reference",
                  "plant.identification_feedback", "plant.rate_window",
-                 "plant.filter_sees_disturbance", "plant.disturbance", "plant.model", "model.name", "model.A", "model.B", "model.C",
+                 "plant.filter_sees_disturbance", "plant.observer_xi", "plant.model", "model.name", "model.A", "model.B", "model.C",
                  "model.D", "model.reported", "gain.source", "gain.F", "gain.options",
                  "identification.feedback", "identification.xi_guess")
 # mappings whose keys are checked where they are used (gain options by the method, xi by its family)

@@ -38,8 +38,8 @@ def _simulate_chunk(plant, enkf, first: int, count: int, settings: dict, control
 
 
 def run_chunks(exp, settings: dict, *, keep_members: bool, workers: int = 1,
-               progress: Callable[[int], None] | None = None, controller: Callable | None = None
-               ) -> Iterator[tuple[int, Trajectories, object]]:
+               progress: Callable[[int], None] | None = None, controller: Callable | None = None,
+               enkf=None) -> Iterator[tuple[int, Trajectories, object]]:
     """(first_path, Trajectories of that chunk, its controller) in path order; `settings` are
     simulate's other arguments. controller: None (fixed gains), or a picklable factory of the
     chunk's gain controller called as controller(paths=count) (the online controller: a path's
@@ -47,7 +47,8 @@ def run_chunks(exp, settings: dict, *, keep_members: bool, workers: int = 1,
 
     workers > 1: the chunks run in joblib (loky) worker processes, results still yielded in path
     order, at most 2 * workers chunks in flight. progress(steps) is called with the number of
-    path-steps done."""
+    path-steps done. enkf: the loop's observer (default exp.filter.enkf)."""
+    enkf = exp.filter.enkf if enkf is None else enkf
     size = chunk_size(exp, keep_members=keep_members)
     starts = [(j, min(size, exp.loop.paths - j)) for j in range(0, exp.loop.paths, size)]
     steps = exp.loop.disturbance.shape[0]
@@ -55,11 +56,11 @@ def run_chunks(exp, settings: dict, *, keep_members: bool, workers: int = 1,
     if workers <= 1 or len(starts) == 1:
         for first, count in starts:
             step = (lambda k, c=count: progress(c)) if progress is not None else None
-            yield first, *_simulate_chunk(exp.plant, exp.filter.enkf, first, count, settings, controller, step)
+            yield first, *_simulate_chunk(exp.plant, enkf, first, count, settings, controller, step)
         return
     from joblib import Parallel, delayed
     parallel = Parallel(n_jobs=workers, backend="loky", return_as="generator", pre_dispatch="2*n_jobs")
-    results = parallel(delayed(_simulate_chunk)(exp.plant, exp.filter.enkf, first, count, settings, controller)
+    results = parallel(delayed(_simulate_chunk)(exp.plant, enkf, first, count, settings, controller)
                        for first, count in starts)
     for (first, count), (tr, chunk_controller) in zip(starts, results, strict=True):
         if progress is not None:

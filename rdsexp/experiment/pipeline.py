@@ -8,6 +8,7 @@ decay_proposed and decay_open); inside each, path j has its own plant and EnKF s
 from __future__ import annotations
 
 import copy
+import dataclasses
 import hashlib
 import json
 import logging
@@ -120,6 +121,7 @@ def run_experiment(exp: Experiment, sink=None) -> Outcome:
             nbar = int(exp.model.Gbar(moments).shape[0]) if moments is not None else 0
             designs[selected] = (moments, SynthesisResult("fixed", exp.design.F, rate, "fixed", nbar=nbar))
         chosen = designs.get(selected, (None, None))[1]
+        observer = loop_observer(exp, designs.get(selected, (None, None))[0])
 
     # closed and open loop in chunks of paths: rows go to the sink chunk by chunk, the metrics keep a
     # LoopSummary per loop, the recording a bounded sample of paths (montecarlo.py)
@@ -136,7 +138,7 @@ def run_experiment(exp: Experiment, sink=None) -> Outcome:
                 bar, _ = _progress(name.replace("_", " "), exp.loop.paths * exp.loop.disturbance.shape[0])
                 parts = []
                 with bar, logging_redirect_tqdm():
-                    for first, tr, _ in run_chunks(exp, dict(settings, F=F, seed=root(name)), keep_members=keep,
+                    for first, tr, _ in run_chunks(exp, dict(settings, F=F, seed=root(name)), keep_members=keep, enkf=observer,
                                                    workers=exp.loop.workers, progress=bar.update):
                         rows = trajectory_table(name, tr, first)
                         if exp.controller.kind == "online":     # the gain in use, as in the online rows
@@ -149,7 +151,7 @@ def run_experiment(exp: Experiment, sink=None) -> Outcome:
     floor = np.nan
     if "closed_loop" in loops and exp.loop.floor_paths > 0:
         with timed(timings, "noise_floor"):
-            floor = noise_floor(exp, chosen.F, root("noise_floor"), sim)
+            floor = noise_floor(exp, observer, chosen.F, root("noise_floor"), sim)
 
     online = None
     if exp.controller.kind == "online":
@@ -169,7 +171,8 @@ def run_experiment(exp: Experiment, sink=None) -> Outcome:
             "metrics": metrics_table(exp, loops, window, floor, exact),
             "exact": exact,
         }
-        summary.update(rate_window=list(window.k), rate_window_source=window.source, noise_floor=floor)
+        summary.update(rate_window=list(window.k), rate_window_source=window.source if window.placed else "none",
+                       noise_floor=floor)
         if isinstance(sink, MemorySink):
             tables |= sink.tables()
     if online is not None:
@@ -544,13 +547,22 @@ def rate_window(exp: Experiment, exact: pd.DataFrame, floor: float) -> RateWindo
         RateWindow((min(start, K - 1), K), "auto", placed=False)
 
 
-def noise_floor(exp: Experiment, F: np.ndarray, seed, sim: dict) -> float:
+def loop_observer(exp: Experiment, moments):
+    """The EnKF of the closed and open loops: the identification's, with its predicted xi drawn
+    i.i.d. from the design moments (EnKF.xi_prior) when closed_loop.observer_xi is `model`; the
+    paper's random walk (`random_walk`) or without moments."""
+    if exp.loop.observer_xi == "model" and moments is not None:
+        return dataclasses.replace(exp.filter.enkf, xi_prior=MomentModel(mean=moments.mean, cov=moments.cov))
+    return exp.filter.enkf
+
+
+def noise_floor(exp: Experiment, enkf, F: np.ndarray, seed, sim: dict) -> float:
     """The closed loop's noise floor sqrt(E||q_k||^2): the loop with gain F and the EnKF observer
     started at rest (q_0 = 0) without disturbance, closed_loop.floor_paths paths, the mean over paths
     and over the second half of the horizon (numerics/verdict.py). inf when a path of it failed (the
     loop at rest does not settle at any level)."""
     K = exp.loop.horizon
-    tr = simulate(exp.plant, exp.filter.enkf, F=F, d=np.zeros((K + 1, exp.model.m)),
+    tr = simulate(exp.plant, enkf, F=F, d=np.zeros((K + 1, exp.model.m)),
                   paths=min(exp.loop.floor_paths, exp.loop.paths), seed=seed, filter_sees_d=True,
                   **dict(sim, q0=np.zeros(exp.plant.n)))
     if np.any(tr.failed_at >= 0):

@@ -69,10 +69,13 @@ def summary_text(info: dict, run_dir: Path) -> str:
     for status in dict.fromkeys(statuses + list(others.values())):     # what each status shown means
         lines.append(f"    {status}: {status_meaning(status)}")
     if k_from is not None and "closed_loop_status" in s:
+        source = s.get("rate_window_source")
         lines.append(f"  rate window k={k_from}..{k_to}: " + (
-            "from the config" if s.get("rate_window_source") == "config" else
+            "from the config" if source == "config" else
             f"auto, after the disturbance and {ABOVE_FLOOR:g} times above the noise floor "
-            f"{fmt(s.get('noise_floor'))} (the closed loop at rest) on the ideal loop's exact curve"))
+            f"{fmt(s.get('noise_floor'))} (the closed loop at rest) on the ideal loop's exact curve" if source == "auto"
+            else f"none: after the disturbance the ideal loop is not {ABOVE_FLOOR:g} times above the noise floor "
+                 f"{fmt(s.get('noise_floor'))} for a step; the rates over the rest of the horizon are shown, not judged"))
     for loop, label in (("closed_loop", "closed loop"), ("open_loop", "open loop  "), ("online", "online     ")):
         if f"{loop}_status" not in s:
             continue

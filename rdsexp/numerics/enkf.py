@@ -28,6 +28,13 @@ the state with it (eq. state-pred2) can make the estimate diverge. With xi_bound
 (p,) the xi part of every analysed member is projected onto the box (clipped, the Euclidean
 projection onto a box), after RTPS and before the next prediction, and the reported filtered mean
 and spread are those of the projected ensemble. Infinite bounds leave a component free.
+xi drawn from a known distribution (`xi_prior`): the paper's xi part is a random walk,
+xi_{k+1|k} = xi_{k|k} + w, which is how the identification run learns xi. Once a model of the
+distribution (mean mu, covariance S) is known, as in the closed loop after identification, the
+observer can use it as Assumption 1 states it: xi_k i.i.d., so every member's predicted xi is a
+fresh draw mu + S^(1/2) e (the xi part of e_w), while its x part moves with the member's own
+analysed xi. The ensemble's x spread then carries the multiplicative uncertainty of the random
+dynamics, and no xi can drift away where x, and with it xi, is unobservable.
 
 Ensembles returned by `predict` and `update` are stored component-major: they are (..., M, n+p)
 views of (n+p, ..., M) arrays, so each component of all paths and members is one contiguous block
@@ -41,7 +48,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .systems import AffineRandomSystem, _finite_array, affine_apply
+from .systems import AffineRandomSystem, MomentModel, _finite_array, affine_apply
 
 # an innovation covariance V with condition number above this is singular to working precision
 # (1 / (45 eps)); a merely large spread of the outputs stays well below it
@@ -81,7 +88,8 @@ class EnKF:
     Q and R may be given as scalars (times I) or diagonals. variant: "stochastic" (the paper's,
     perturbed outputs) or "etkf" (needs R positive definite); inflation rho >= 1 of the forecast
     anomalies (1: none); relaxation alpha in [0, 1] to the prior spread (0: none); xi_bounds: None or
-    (low, high) (p,) each, the box the xi part of analysed members is projected onto (+-inf: free).
+    (low, high) (p,) each, the box the xi part of analysed members is projected onto (+-inf: free);
+    xi_prior: None (the random walk) or a MomentModel the predicted xi is drawn from i.i.d.
     """
 
     model: AffineRandomSystem
@@ -91,8 +99,13 @@ class EnKF:
     inflation: float = 1.0
     relaxation: float = 0.0
     xi_bounds: tuple[np.ndarray, np.ndarray] | None = None
+    xi_prior: MomentModel | None = None
 
     def __post_init__(self):
+        if self.xi_prior is not None:
+            if self.xi_prior.p != self.model.p:
+                raise ValueError(f"xi_prior: p = {self.xi_prior.p} does not match the model's p = {self.model.p}")
+            object.__setattr__(self, "_xi_prior_sqrt", sqrtm_psd(self.xi_prior.cov))
         if self.xi_bounds is not None:
             low, high = (_finite_or_inf(name, b, self.model.p) for name, b in zip(("low", "high"), self.xi_bounds))
             if np.any(low > high):
@@ -161,7 +174,12 @@ class EnKF:
         psi_next = components(out)
         psi_next[:n] += components(affine_apply(self.model.A, xi, x))                 # eq. (f-A-B)
         psi_next[:n] += components(affine_apply(self.model.B, xi, u[..., None, :]))
-        psi_next[n:] += components(xi)
+        if self.xi_prior is None:
+            psi_next[n:] += components(xi)                                             # random walk
+        else:                                                  # Assumption 1 with the known moments
+            np.matmul(self._xi_prior_sqrt, components(e_w)[n:].reshape(self.model.p, -1),
+                      out=psi_next[n:].reshape(self.model.p, -1))
+            psi_next[n:] += self.xi_prior.mean.reshape((-1,) + (1,) * (psi_next.ndim - 1))
         if self.inflation != 1:                     # rho (psi - mean) + mean; skipped at 1 (bit-identical)
             mean = components(ensemble_mean(out))[..., None]
             psi_next -= mean
