@@ -90,10 +90,19 @@ def run_experiment(exp: Experiment, sink=None) -> Outcome:
     keep = exp.tracking.level == "full"
 
     with timed(timings, "identification"):
-        F_id, summary["identification_feedback"] = identification_feedback(exp)
+        F_id, info = identification_feedback(exp)
         # the identification input is added on top of the feedback; the EnKF is told the applied input
-        ident = simulate(exp.plant, exp.filter.enkf, F=F_id, d=exp.identification.input, paths=1,
-                         seed=root("identification"), filter_sees_d=True, keep_members=keep, **sim)
+        identify = lambda F: simulate(exp.plant, exp.filter.enkf, F=F, d=exp.identification.input, paths=1,
+                                      seed=root("identification"), filter_sees_d=True, keep_members=keep, **sim)
+        ident = identify(F_id)
+        if info.get("used") == "open_loop" and ident.failure[0] == "diverged":
+            # auto chose the open loop on the guess, which knows no spread of xi (the spread only raises
+            # the mean-square rate): the plant itself diverged, so identify again under nominal feedback
+            F_id, retry = identification_feedback(exp, force_nominal=True)
+            if F_id is not None:
+                info = retry | {"open_loop_diverged_at": int(ident.failed_at[0])}
+                ident = identify(F_id)
+        summary["identification_feedback"] = info
     with timed(timings, "modeling"):
         xi = ident.xi(ident.psi_filt_mean)[:, 0]
         K0, K1 = exp.identification.K0, exp.identification.K1
@@ -381,12 +390,13 @@ def _design_key(model, moments, method: str, options: dict) -> str:
     return h.hexdigest()
 
 
-def identification_feedback(exp: Experiment) -> tuple[np.ndarray | None, dict]:
+def identification_feedback(exp: Experiment, force_nominal: bool = False) -> tuple[np.ndarray | None, dict]:
     """The gain of the identification run (None: open loop) and what was decided, for the summary.
 
     auto: open loop when the plant at the nominal guess xi_guess (prior knowledge, by default the mean
     of the plant's distribution) is mean-square stable in open loop, else nominal: a stabilizing
-    gain designed on the plant at xi_guess (`nominal_gain`)."""
+    gain designed on the plant at xi_guess (`nominal_gain`); force_nominal: nominal whatever the guess
+    (run_experiment's second try when the open-loop plant diverged)."""
     mode = exp.identification.feedback
     info = {"mode": mode}
     if mode == "none":
@@ -396,7 +406,7 @@ def identification_feedback(exp: Experiment) -> tuple[np.ndarray | None, dict]:
     guess = MomentModel.deterministic(exp.identification.xi_guess)
     with np.errstate(all="ignore"):
         info["open_loop_rate_at_guess"] = safe_rate(exp.plant, guess, np.zeros((exp.plant.m, exp.plant.n)))
-    if mode == "auto" and info["open_loop_rate_at_guess"] < 1:
+    if mode == "auto" and info["open_loop_rate_at_guess"] < 1 and not force_nominal:
         return None, info | {"used": "open_loop"}
     res = nominal_gain(exp.plant, exp.identification.xi_guess)
     info |= {"used": "nominal", "method": res.method, "status": res.status, "rate_at_guess": res.lam}

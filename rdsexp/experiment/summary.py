@@ -32,6 +32,8 @@ def summary_text(info: dict, run_dir: Path) -> str:
         line = f"  identification feedback {ident['mode']}: {ident.get('used')}"
         if "open_loop_rate_at_guess" in ident:
             line += f" (open-loop rate at xi_guess {fmt(ident['open_loop_rate_at_guess'])})"
+        if "open_loop_diverged_at" in ident:
+            line += f"; the open-loop plant diverged at k = {ident['open_loop_diverged_at']}, identified again"
         if ident.get("used", "").startswith("nominal"):
             line += f", gain {ident.get('method')} with rate {fmt(ident.get('rate_plant'))} on the true plant"
             if unstable(ident.get("rate_plant")):
@@ -70,12 +72,14 @@ def summary_text(info: dict, run_dir: Path) -> str:
         lines.append(f"    {status}: {status_meaning(status)}")
     if k_from is not None and "closed_loop_status" in s:
         source = s.get("rate_window_source")
+        measured = s.get("noise_floor") is not None and not np.isnan(s["noise_floor"])
+        floor = f"{s['noise_floor']:.3g}" if measured else "(not measured)"
         lines.append(f"  rate window k={k_from}..{k_to}: " + (
             "from the config" if source == "config" else
             f"auto, after the disturbance and {ABOVE_FLOOR:g} times above the noise floor "
-            f"{fmt(s.get('noise_floor'))} (the closed loop at rest) on the ideal loop's exact curve" if source == "auto"
+            f"{floor} (the closed loop at rest) on the ideal loop's exact curve" if source == "auto"
             else f"none: after the disturbance the ideal loop is not {ABOVE_FLOOR:g} times above the noise floor "
-                 f"{fmt(s.get('noise_floor'))} for a step; the rates over the rest of the horizon are shown, not judged"))
+                 f"{floor} for a step; the rates over the rest of the horizon are shown, not judged"))
     for loop, label in (("closed_loop", "closed loop"), ("open_loop", "open loop  "), ("online", "online     ")):
         if f"{loop}_status" not in s:
             continue

@@ -34,7 +34,8 @@ distribution (mean mu, covariance S) is known, as in the closed loop after ident
 observer can use it as Assumption 1 states it: xi_k i.i.d., so every member's predicted xi is a
 fresh draw mu + S^(1/2) e (the xi part of e_w), while its x part moves with the member's own
 analysed xi. The ensemble's x spread then carries the multiplicative uncertainty of the random
-dynamics, and no xi can drift away where x, and with it xi, is unobservable.
+dynamics, and no xi can drift away where x, and with it xi, is unobservable. The draws are
+projected onto xi_bounds too.
 
 Ensembles returned by `predict` and `update` are stored component-major: they are (..., M, n+p)
 views of (n+p, ..., M) arrays, so each component of all paths and members is one contiguous block
@@ -179,7 +180,11 @@ class EnKF:
         else:                                                  # Assumption 1 with the known moments
             np.matmul(self._xi_prior_sqrt, components(e_w)[n:].reshape(self.model.p, -1),
                       out=psi_next[n:].reshape(self.model.p, -1))
-            psi_next[n:] += self.xi_prior.mean.reshape((-1,) + (1,) * (psi_next.ndim - 1))
+            shape = (-1,) + (1,) * (psi_next.ndim - 1)
+            psi_next[n:] += self.xi_prior.mean.reshape(shape)
+            if self.xi_bounds is not None:       # a Gaussian draw of moments also leaves the support
+                np.clip(psi_next[n:], self.xi_bounds[0].reshape(shape), self.xi_bounds[1].reshape(shape),
+                        out=psi_next[n:])
         if self.inflation != 1:                     # rho (psi - mean) + mean; skipped at 1 (bit-identical)
             mean = components(ensemble_mean(out))[..., None]
             psi_next -= mean

@@ -130,7 +130,9 @@ def test_not_stabilizable_and_diverged_paths_are_stated(tmp_path):
     assert "no stabilizing gain: not_ms_stabilizable, the best rate found on the model is 1.5000" in proc.stdout
     assert s["closed_loop_failed"] == {"fraction": 1.0, "first_k": 35, "median_k": 35.0, "reasons": {"diverged": 4}}
     assert "100% of paths failed (first at k = 35, median k = 35): the plant state diverged on 4" in proc.stdout
-    assert "rate k=36..48: n/a" in proc.stdout
+    # the auto window starts where the disturbance ends (k = 10); no path reaches its end
+    assert "closed loop rate k=10..60: n/a (not every path reached the window), ideal loop 1.4982: failed" in proc.stdout
+    assert s["closed_loop_verdict"] == "failed" and s["open_loop_verdict"] == "failed"
 
 
 def test_no_model_is_stated(tmp_path):

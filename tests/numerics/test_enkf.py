@@ -146,3 +146,40 @@ def test_xi_support_follows_the_plant_file_through_the_truth_map():
     # the paper: a normal plant, nothing bounded (the reproduction is unchanged)
     low, high = xi_support(rx.paper.model(), rx.paper.plant())
     assert np.all(np.isinf(low)) and np.all(np.isinf(high))
+
+
+def test_xi_prior_draws_the_predicted_xi_from_the_model():
+    """With xi_prior the predicted xi of every member is mean + S^(1/2) e (the xi part of e_w), the x
+    part is the random walk's (it moves with the member's analysed xi)."""
+    from rdsexp.numerics.enkf import sqrtm_psd
+    rng = np.random.default_rng(5)
+    model = rx.paper.model()
+    prior = rx.MomentModel(mean=[0.4, 0.2, 0.5], cov=[[0.04, 0.01, 0], [0.01, 0.09, 0], [0, 0, 0.01]])
+    P, M = 3, 6
+    psi, u, e_w = rng.normal(size=(P, M, 9)), rng.normal(size=(P, 1)), rng.normal(size=(P, M, 9))
+    walk = EnKF(model, rx.paper.Q, rx.paper.R).predict(psi, u, e_w)
+    drawn = EnKF(model, rx.paper.Q, rx.paper.R, xi_prior=prior).predict(psi, u, e_w)
+    np.testing.assert_array_equal(drawn[..., :6], walk[..., :6])
+    np.testing.assert_allclose(drawn[..., 6:], prior.mean + e_w[..., 6:] @ sqrtm_psd(prior.cov).T, atol=1e-14)
+    # over many members the predicted xi has the prior's moments (Monte Carlo, 5 standard errors)
+    big = rng.normal(size=(1, 40_000, 9))
+    xi = EnKF(model, rx.paper.Q, rx.paper.R, xi_prior=prior).predict(np.zeros((1, 40_000, 9)), np.zeros((1, 1)),
+                                                                     big)[0, :, 6:]
+    se = np.sqrt(np.diag(prior.cov) / xi.shape[0])
+    assert np.all(np.abs(xi.mean(0) - prior.mean) < 5 * se)
+    np.testing.assert_allclose(np.cov(xi.T), prior.cov, atol=5 * 0.09 * np.sqrt(2 / xi.shape[0]))
+    with pytest.raises(ValueError, match="xi_prior: p = 2 does not match"):
+        EnKF(model, rx.paper.Q, rx.paper.R, xi_prior=rx.MomentModel(mean=[0, 0], cov=np.eye(2)))
+
+
+def test_xi_prior_draws_are_projected_onto_the_support():
+    rng = np.random.default_rng(6)
+    model = rx.paper.model()
+    prior = rx.MomentModel(mean=[0.9, 0.2, 0.5], cov=np.diag([0.04, 0.09, 0.01]))
+    low, high = np.array([0.0, -np.inf, -np.inf]), np.array([1.0, np.inf, np.inf])
+    e_w = rng.normal(size=(2, 500, 9))
+    free = EnKF(model, rx.paper.Q, rx.paper.R, xi_prior=prior).predict(np.zeros((2, 500, 9)), np.zeros((2, 1)), e_w)
+    boxed = EnKF(model, rx.paper.Q, rx.paper.R, xi_prior=prior, xi_bounds=(low, high)).predict(
+        np.zeros((2, 500, 9)), np.zeros((2, 1)), e_w)
+    assert np.any(free[..., 6] > 1)                          # N(0.9, 0.2^2) leaves [0, 1]
+    np.testing.assert_array_equal(boxed[..., 6:], np.clip(free[..., 6:], low, high))
