@@ -279,8 +279,8 @@ class LoopSettings:
         chunk = get(cfg, "closed_loop.chunk_paths")
         chunk = None if chunk is None else _number(chunk, "closed_loop.chunk_paths", integer=True, low=1)
         workers = _number(get(cfg, "closed_loop.workers"), "closed_loop.workers", integer=True, low=1)
-        return cls(paths=paths, disturbance=d, rate_window=window, floor_paths=floor_paths, observer_xi=observer_xi, chunk_paths=chunk,
-                   workers=workers, **flags)
+        return cls(paths=paths, disturbance=d, rate_window=window, floor_paths=floor_paths, observer_xi=observer_xi,
+                   chunk_paths=chunk, workers=workers, **flags)
 
 
 @dataclass(frozen=True)
@@ -516,9 +516,9 @@ GROUPS = ("plant", "model", "enkf", "identification", "gain", "closed_loop", "tr
 TOP_LEVEL = ("seed", "reuse")
 # keys `build` reads with a default when the group's file does not set them: `+key=value` may add them
 OPTIONAL_KEYS = ("plant.name", "plant.C", "plant.D", "plant.q0", "plant.poles", "plant.reference",
-                 "plant.identification_feedback", "plant.rate_window",
-                 "plant.filter_sees_disturbance", "plant.observer_xi", "plant.model", "model.name", "model.A", "model.B", "model.C",
-                 "model.D", "model.reported", "gain.source", "gain.F", "gain.options",
+                 "plant.identification_feedback", "plant.rate_window", "plant.filter_sees_disturbance",
+                 "plant.observer_xi", "plant.model", "model.name", "model.A", "model.B", "model.C", "model.D",
+                 "model.reported", "gain.source", "gain.F", "gain.options",
                  "identification.feedback", "identification.xi_guess")
 # mappings whose keys are checked where they are used (gain options by the method, xi by its family)
 FREE_FORM = ("gain.options.", "plant.xi.", "plant.reference.", "plant.model.", "model.reported.")

@@ -147,8 +147,8 @@ def run_experiment(exp: Experiment, sink=None) -> Outcome:
                 bar, _ = _progress(name.replace("_", " "), exp.loop.paths * exp.loop.disturbance.shape[0])
                 parts = []
                 with bar, logging_redirect_tqdm():
-                    for first, tr, _ in run_chunks(exp, dict(settings, F=F, seed=root(name)), keep_members=keep, enkf=observer,
-                                                   workers=exp.loop.workers, progress=bar.update):
+                    for first, tr, _ in run_chunks(exp, dict(settings, F=F, seed=root(name)), keep_members=keep,
+                                                   enkf=observer, workers=exp.loop.workers, progress=bar.update):
                         rows = trajectory_table(name, tr, first)
                         if exp.controller.kind == "online":     # the gain in use, as in the online rows
                             rows = with_gains(rows, np.zeros((exp.model.m, exp.model.n)) if F is None else F)
@@ -171,7 +171,7 @@ def run_experiment(exp: Experiment, sink=None) -> Outcome:
 
     with timed(timings, "metrics"):
         exact = exact_table(exp, chosen)
-        window = rate_window(exp, exact, floor)
+        window = rate_window(exp, exact, floor, loops.get("closed_loop"))
         tables = {
             "identification": trajectory_table("identification", ident),
             "paths": path_table({"identification": LoopSummary.of(ident, exp), **loops}),
@@ -542,16 +542,18 @@ class RateWindow:
     placed: bool = True
 
 
-def rate_window(exp: Experiment, exact: pd.DataFrame, floor: float) -> RateWindow:
+def rate_window(exp: Experiment, exact: pd.DataFrame, floor: float, closed: LoopSummary | None) -> RateWindow:
     """closed_loop.rate_window as configured, or (auto) placed on the exact RMS curve of the ideal
     closed loop (of the open loop without a gain) from the end of the disturbance, above the noise
-    floor (numerics/verdict.py)."""
+    floor, where the closed loop's own RMS is above it too (numerics/verdict.py)."""
     if exp.loop.rate_window is not None:
         return RateWindow(exp.loop.rate_window, "config")
     loop = "closed_loop" if (exact["experiment"] == "closed_loop").any() else "open_loop"
     curve = exact.loc[exact["experiment"] == loop, "rms"].to_numpy()
     start = window_start(exp.loop.disturbance, exp.model.n)
-    placed = place_window(curve, start, floor)
+    with np.errstate(all="ignore"):
+        empirical = np.sqrt(np.nanmean(closed.sq, axis=1)) if closed is not None else None
+    placed = place_window(curve, start, floor, empirical)
     K = exp.loop.horizon
     return RateWindow(placed, "auto") if placed is not None else \
         RateWindow((min(start, K - 1), K), "auto", placed=False)
@@ -649,7 +651,8 @@ def _summary(exp: Experiment, dist, chosen, tables: dict) -> dict:
     if truth is not None:                # the plant file's distribution in the model's xi = T s + t
         T, t = truth
         family = exp.plant.xi_dist
-        s.update(plant_xi_mean=(T @ family.mean + t).tolist(), plant_xi_std=np.sqrt(np.diag(T @ family.cov @ T.T)).tolist())
+        s.update(plant_xi_mean=(T @ family.mean + t).tolist(),
+                 plant_xi_std=np.sqrt(np.diag(T @ family.cov @ T.T)).tolist())
     if chosen is not None:
         s.update(synthesis_status=chosen.status, lam=chosen.lam,
                  rate_plant=safe_rate(exp.plant, None, chosen.F) if chosen.F is not None else None)

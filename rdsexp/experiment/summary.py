@@ -111,8 +111,8 @@ def gap(s: dict) -> list[str]:
     if rate is None or not np.isfinite(rate):
         return []
     est = s.get("closed_loop_estimation") or {}
-    if rate < 1 and verdict in ("unstable", "failed") or (verdict == "undetermined" and rate < 1
-                                                          and "noise floor" not in s.get("closed_loop_verdict_reason", "")):
+    at_floor = "noise floor" in s.get("closed_loop_verdict_reason", "")       # the reason explains it itself
+    if rate < 1 and (verdict in ("unstable", "failed") or verdict == "undetermined" and not at_floor):
         return [f"    the gain stabilizes the plant with the true state (exact rate {rate:.4f}), this loop runs on the "
                 f"EnKF's estimate: its x error RMS {est.get('x_error_rms', float('nan')):.3g} (the state's RMS at the "
                 f"window's end {est.get('rms_k_to', float('nan')):.3g}); the gap is the observer's"]

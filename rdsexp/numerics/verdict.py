@@ -39,17 +39,21 @@ def window_start(d: np.ndarray, n: int) -> int:
     return max(int(active[-1]) + 1 if active.size else 0, n)
 
 
-def place_window(exact_rms: np.ndarray, start: int, floor_rms: float,
+def place_window(exact_rms: np.ndarray, start: int, floor_rms: float, empirical_rms: np.ndarray | None = None,
                  above: float = ABOVE_FLOOR) -> tuple[int, int] | None:
     """[start, k_to] with k_to the last step such that the ideal loop's RMS exact_rms (K+1,) stays
     above `above` * floor_rms on every step from start to k_to (the horizon K when it never drops
-    there); None when not even [start, start + 1] qualifies (the ideal loop starts at the floor or at
-    0, or start >= K). floor_rms NaN (not measured) counts as 0."""
+    there), and the loop's own RMS empirical_rms (K+1,), when given, above 2 AT_FLOOR floors (a loop
+    that decays faster than the ideal one reaches the floor earlier); None when not even
+    [start, start + 1] qualifies (the ideal loop starts at the floor or at 0, or start >= K).
+    floor_rms NaN (not measured) counts as 0."""
     K = exact_rms.size - 1
     if start >= K:
         return None
     floor = 0.0 if not np.isfinite(floor_rms) else float(floor_rms)
     above_floor = exact_rms[start:] > above * floor
+    if empirical_rms is not None:
+        above_floor &= ~(empirical_rms[start:] <= 2 * AT_FLOOR * floor)       # NaN (failed paths): not judged here
     if not (above_floor[0] and above_floor[1]):
         return None
     k_to = start + (above_floor.size - 1 if above_floor.all() else int(np.argmin(above_floor)) - 1)

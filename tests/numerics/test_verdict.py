@@ -81,5 +81,9 @@ def test_window_placed_after_the_disturbance_above_the_floor():
     assert place_window(exact, K, 0.0) is None
     # without a disturbance the window starts after n steps
     assert window_start(np.zeros((K + 1, 2)), n=3) == 3
+    # the loop's own RMS ends the window where it comes within 2 AT_FLOOR floors, if earlier
+    empirical = np.r_[np.full(50, 10.0), 10.0 * 0.6 ** np.arange(1, K - 48)]
+    k_to_loop = place_window(exact, start, floor, empirical)[1]
+    assert k_to_loop < k_to and empirical[k_to_loop] > 2 * AT_FLOOR * floor >= empirical[k_to_loop + 1]
     # a curve that is 0 (nothing excited) has no window
     assert place_window(np.zeros(K + 1), 3, 0.0) is None
