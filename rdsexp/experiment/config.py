@@ -14,7 +14,7 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from ..errors import ConfigError, one_line
 from ..numerics.distributions import from_spec
-from ..numerics.enkf import VARIANTS, EnKF, check_covariance, xi_support
+from ..numerics.enkf import VARIANTS, EnKF, check_covariance, truth_map, xi_support
 from ..numerics.modeling import mls_input
 from ..numerics.online import MEMORIES, OnlineSettings
 from ..numerics.synthesis import METHODS, check_options
@@ -23,6 +23,7 @@ from ..numerics.systems import AffineRandomSystem, MomentModel
 TRACKING_LEVELS = ("off", "summary", "full")
 FEEDBACK_MODES = ("none", "nominal", "auto")     # identification.feedback, or a gain F (m x n)
 OBSERVER_XI = ("random_walk", "model")   # closed_loop.observer_xi: the paper's xi random walk, or i.i.d. model draws
+INITIAL_XI = ("guess", "zero")       # enkf.initial.xi: members' xi at identification.xi_guess, or at 0 (the paper)
 XI_SUPPORT = ("project", "free")     # enkf.xi_support: members projected onto the plant family's support box, or not
 
 
@@ -151,7 +152,8 @@ class FilterSettings:
     P0: np.ndarray
 
     @classmethod
-    def from_config(cls, cfg, model: AffineRandomSystem, plant: AffineRandomSystem) -> FilterSettings:
+    def from_config(cls, cfg, model: AffineRandomSystem, plant: AffineRandomSystem,
+                    xi_guess: np.ndarray) -> FilterSettings:
         dim = model.n + model.p
         M = _number(get(cfg, "enkf.ensemble_size"), "enkf.ensemble_size", integer=True, low=2)
         q_scale = _number(get(cfg, "enkf.q_scale"), "enkf.q_scale", low=0)
@@ -175,6 +177,14 @@ class FilterSettings:
             psi0 = np.zeros(dim) if mean is None else np.asarray(mean, dtype=float)
             if psi0.shape != (dim,) or not np.all(np.isfinite(psi0)):
                 raise ValueError(f"{mean!r} is not allowed, expected null or {dim} finite numbers (n + p)")
+        start = get(cfg, "enkf.initial.xi")
+        if start not in INITIAL_XI:
+            raise ConfigError(f"enkf.initial.xi: {start!r} is not allowed, expected one of {', '.join(INITIAL_XI)}")
+        truth = truth_map(model, plant)
+        if mean is None and start == "guess" and truth is not None:
+            # the members start at the prior guess that the identification feedback is designed on,
+            # in the model's xi = T s + t: a filter starting at xi = 0 feeds a wrong x_{k|k-1} back
+            psi0[model.n:] = truth[0] @ xi_guess + truth[1]
         return cls(enkf=enkf, ensemble_size=M, psi0=psi0, P0=_covariance(cfg, "enkf.initial.cov", dim))
 
 
@@ -379,8 +389,8 @@ def build(cfg) -> Experiment:
     if reference is not None and not isinstance(reference, dict):
         raise ConfigError(f"plant.reference: {reference!r} is not allowed, expected null or a mapping")
 
-    filter_ = FilterSettings.from_config(cfg, model, plant)
     identification = IdentificationSettings.from_config(cfg, plant)
+    filter_ = FilterSettings.from_config(cfg, model, plant, identification.xi_guess)
     design = DesignSettings.from_config(cfg, model, reported)
     loop = LoopSettings.from_config(cfg, model)
     tracking = TrackingSettings.from_config(cfg)
@@ -517,8 +527,8 @@ TOP_LEVEL = ("seed", "reuse")
 # keys `build` reads with a default when the group's file does not set them: `+key=value` may add them
 OPTIONAL_KEYS = ("plant.name", "plant.C", "plant.D", "plant.q0", "plant.poles", "plant.reference",
                  "plant.identification_feedback", "plant.rate_window", "plant.filter_sees_disturbance",
-                 "plant.observer_xi", "plant.model", "model.name", "model.A", "model.B", "model.C", "model.D",
-                 "model.reported", "gain.source", "gain.F", "gain.options",
+                 "plant.observer_xi", "plant.initial_xi", "plant.model", "model.name", "model.A", "model.B",
+                 "model.C", "model.D", "model.reported", "gain.source", "gain.F", "gain.options",
                  "identification.feedback", "identification.xi_guess")
 # mappings whose keys are checked where they are used (gain options by the method, xi by its family)
 FREE_FORM = ("gain.options.", "plant.xi.", "plant.reference.", "plant.model.", "model.reported.")

@@ -177,7 +177,7 @@ class EnKF:
         psi_next[:n] += components(affine_apply(self.model.B, xi, u[..., None, :]))
         if self.xi_prior is None:
             psi_next[n:] += components(xi)                                             # random walk
-        else:                                                  # Assumption 1 with the known moments
+        elif self.model.p:                                     # Assumption 1 with the known moments
             np.matmul(self._xi_prior_sqrt, components(e_w)[n:].reshape(self.model.p, -1),
                       out=psi_next[n:].reshape(self.model.p, -1))
             shape = (-1,) + (1,) * (psi_next.ndim - 1)
