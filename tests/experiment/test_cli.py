@@ -165,3 +165,20 @@ def test_bad_config_fails_with_one_line_and_no_run_directory(tmp_path, override,
     assert proc.stderr.strip().splitlines()[-1] == f"rdsexp: config error: {message}" or message in proc.stderr
     assert len(proc.stderr.strip().splitlines()) == 1, proc.stderr
     assert not list((tmp_path / "outputs" / "runs").glob("*")) if (tmp_path / "outputs").exists() else True
+
+
+def test_the_paper_keeps_its_loop_and_other_plants_get_theirs():
+    """The paper's plant file keeps the paper's closed loop (unknown d_k, xi random walk, members at 0,
+    k = 60..80); every other plant defaults to the scenario measured on random plants."""
+    paper = build(compose("config"))
+    assert (paper.loop.filter_sees_disturbance, paper.loop.observer_xi, paper.loop.rate_window) == \
+        (False, "random_walk", (60, 80))
+    assert not paper.filter.psi0.any()
+    for name in ("dropout", "two_carts"):
+        exp = build(compose("config", overrides=[f"plant={name}"]))
+        assert (exp.loop.filter_sees_disturbance, exp.loop.observer_xi, exp.loop.rate_window) == (True, "model", None)
+        np.testing.assert_array_equal(exp.filter.psi0[exp.model.n:], exp.identification.xi_guess)   # model = plant
+    # each stays selectable
+    exp = build(compose("config", overrides=["plant=dropout", "closed_loop.observer_xi=random_walk",
+                                             "closed_loop.filter_sees_disturbance=false", "enkf.initial.xi=zero"]))
+    assert (exp.loop.filter_sees_disturbance, exp.loop.observer_xi, exp.filter.psi0.any()) == (False, "random_walk", False)

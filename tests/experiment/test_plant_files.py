@@ -46,14 +46,17 @@ def random_plant(rng, n, m, p, ny, family):
     B = [rng.standard_normal((n, m))] + [0.05 * rng.standard_normal((n, m)) for _ in range(p)]
     xi = {"normal": {"mean": [0.0] * p, "cov": np.eye(p).tolist()},
           "bernoulli": {"family": "bernoulli", "prob": [0.8] * p},
-          "uniform": {"family": "uniform", "low": [-1.0] * p, "high": [1.0] * p}}[family]
+          "uniform": {"family": "uniform", "low": [-1.0] * p, "high": [1.0] * p},
+          "independent": {"family": "independent", "components": [{"family": "bernoulli", "prob": [0.8]},
+                                                                    {"family": "uniform", "low": [-1.0] * (p - 1),
+                                                                     "high": [1.0] * (p - 1)}]}}[family]
     return {"name": f"random{n}", "A": np.round(A, 4).tolist(), "B": np.round(B, 4).tolist(),
             "C": [np.round(rng.standard_normal((ny, n)), 4).tolist()],
             "D": [np.round(0.1 * rng.standard_normal((ny, m)), 4).tolist()], "xi": xi}
 
 
 @pytest.mark.parametrize("n, m, p, ny, family", [(2, 1, 0, 1, "normal"), (5, 2, 3, 2, "bernoulli"),
-                                                 (8, 3, 6, 3, "uniform")])
+                                                 (8, 3, 6, 3, "uniform"), (3, 1, 2, 1, "independent")])
 def test_random_plant_file_runs_end_to_end(tmp_path, n, m, p, ny, family):
     (tmp_path / "conf" / "plant").mkdir(parents=True)
     plant = random_plant(np.random.default_rng(n), n, m, p, ny, family)
@@ -72,6 +75,13 @@ def test_random_plant_file_runs_end_to_end(tmp_path, n, m, p, ny, family):
     # EnKF has seen n outputs, within the horizon 30
     assert s["rate_window_source"] == "auto" and s["rate_window"][0] == max(10, n) < s["rate_window"][1] <= 30
     assert s["closed_loop_verdict"] in ("stable", "unstable", "undetermined", "failed")
+    # the same verdict in the metrics table and in the catalog
+    metrics = pd.read_parquet(run / "metrics.parquet").set_index("experiment")
+    assert metrics.loc["closed_loop", "verdict"] == s["closed_loop_verdict"]
+    assert metrics.loc["closed_loop", "verdict_reason"] == s["closed_loop_verdict_reason"]
+    from rdsexp.experiment.store import RunStore
+    catalog = RunStore(tmp_path / "outputs").table()
+    assert catalog["metrics.closed_loop_verdict"].tolist() == [s["closed_loop_verdict"]]
 
 
 def test_paper_design_without_poles_and_bad_feedback(tmp_path):
