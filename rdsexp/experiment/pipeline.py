@@ -551,8 +551,12 @@ def rate_window(exp: Experiment, exact: pd.DataFrame, floor: float, closed: Loop
     loop = "closed_loop" if (exact["experiment"] == "closed_loop").any() else "open_loop"
     curve = exact.loc[exact["experiment"] == loop, "rms"].to_numpy()
     start = window_start(exp.loop.disturbance, exp.model.n)
-    with np.errstate(all="ignore"):
-        empirical = np.sqrt(np.nanmean(closed.sq, axis=1)) if closed is not None else None
+    empirical = None
+    if closed is not None:                    # the mean over the paths still finite at each step
+        finite = np.isfinite(closed.sq)
+        count = finite.sum(axis=1)
+        empirical = np.sqrt(np.where(finite, closed.sq, 0.0).sum(axis=1) / np.maximum(count, 1))
+        empirical[count == 0] = np.nan
     placed = place_window(curve, start, floor, empirical)
     K = exp.loop.horizon
     return RateWindow(placed, "auto") if placed is not None else \
