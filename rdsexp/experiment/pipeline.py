@@ -1,9 +1,10 @@
 """The stage pipeline: a validated Experiment computed into tables, without touching the file system.
 
 Stages (docs/design.md): identification -> modeling -> synthesis -> closed loop (and open loop) ->
-metrics. Seeds: the identification run uses SeedSequence(seed, spawn_key=(0,)), the closed and open
-loops SeedSequence(seed, spawn_key=(1,)) (the same plant samples, as in the paper's Figs.
-decay_proposed and decay_open); inside each, path j has its own plant and EnKF streams.
+noise floor (the closed loop at rest) -> metrics (rate window, verdicts). Seeds: the identification
+run uses SeedSequence(seed, spawn_key=(0,)), the closed and open loops SeedSequence(seed,
+spawn_key=(1,)) (the same plant samples, as in the paper's Figs. decay_proposed and decay_open), the
+loop at rest (2,); inside each, path j has its own plant and EnKF streams.
 """
 from __future__ import annotations
 
