@@ -46,11 +46,11 @@ def place_window(exact_rms: np.ndarray, start: int, floor_rms: float, empirical_
     there), and the loop's own RMS empirical_rms (K+1,), when given, above 2 AT_FLOOR floors (a loop
     that decays faster than the ideal one reaches the floor earlier); None when not even
     [start, start + 1] qualifies (the ideal loop starts at the floor or at 0, or start >= K).
-    floor_rms NaN (not measured) counts as 0."""
+    floor_rms NaN (not measured) counts as 0; inf (the loop at rest diverged) leaves no window."""
     K = exact_rms.size - 1
     if start >= K:
         return None
-    floor = 0.0 if not np.isfinite(floor_rms) else float(floor_rms)
+    floor = 0.0 if np.isnan(floor_rms) else float(floor_rms)
     above_floor = exact_rms[start:] > above * floor
     if empirical_rms is not None:
         above_floor &= ~(empirical_rms[start:] <= 2 * AT_FLOOR * floor)       # NaN (failed paths): not judged here
@@ -75,13 +75,17 @@ def loop_verdict(interval: tuple[float, float, float], *, failed_at: np.ndarray,
     interval: (rate, low, high) over the window; failed_at (P,) the step each path failed at (-1:
     never) and failure (P,) why; window: the rate window (None: no window above the floor could be
     placed); end_rms: sqrt(E||q_{k_to}||^2) of the loop; floor_rms: the loop's noise floor (NaN: not
-    measured, 0: none, as for the open loop, whose observer does not act on the plant)."""
+    measured, 0: none, as for the open loop, whose observer does not act on the plant; inf: the loop
+    at rest diverged)."""
     bad = failed_at >= 0
     if bad.any():
         reasons = {r: int(np.sum(failure[bad] == r)) for r in dict.fromkeys(failure[bad])}
         words = ", ".join(f"{FAILURES.get(r, r)} on {c}" for r, c in reasons.items())
         return Verdict("failed", f"{100 * bad.mean():.0f}% of paths failed (first at k = {failed_at[bad].min()}, "
                                  f"median k = {np.median(failed_at[bad]):g}): {words}")
+    if np.isinf(floor_rms):
+        return Verdict("undetermined", "the same loop started at rest (no disturbance) diverged: it has no noise "
+                                       "floor, and these paths' decay is not evidence that it is stable")
     if window is None:
         return Verdict("undetermined", f"no window to measure a decay: after the disturbance, the ideal loop "
                                        f"does not stay {ABOVE_FLOOR:g} times above the noise floor ({floor_rms:.3g}) "

@@ -59,6 +59,10 @@ def test_failed_paths_give_failed_with_fraction_time_and_cause():
 def test_no_window_is_undetermined():
     v = loop_verdict((0.5, 0.4, 0.6), **OK, window=None, end_rms=1.0, floor_rms=0.1)
     assert v.word == "undetermined" and "no window" in v.reason
+    # the loop at rest diverged (floor inf): whatever these paths did, undetermined, and no window placed
+    v = loop_verdict((0.5, 0.4, 0.6), **OK, window=(5, 10), end_rms=1.0, floor_rms=float("inf"))
+    assert v.word == "undetermined" and "at rest (no disturbance) diverged" in v.reason
+    assert place_window(np.ones(20), 3, float("inf")) is None
     assert {"stable", "unstable", "undetermined", "failed"} == set(VERDICTS)
 
 
