@@ -25,7 +25,7 @@ from tqdm import tqdm
 from tqdm.contrib.logging import logging_redirect_tqdm
 
 from ..errors import ConfigError, StageError, WriteError, one_line
-from ..numerics.analysis import empirical_rate_sq, exact_costs, ms_rate, second_moments
+from ..numerics.analysis import empirical_rate_sq, exact_costs, ms_rate, rms_band, second_moments
 from ..numerics.enkf import truth_map
 from ..numerics.modeling import model_distribution, nominal_gain
 from ..numerics.online import OnlineController, rates
@@ -552,12 +552,7 @@ def rate_window(exp: Experiment, exact: pd.DataFrame, floor: float, closed: Loop
     loop = "closed_loop" if (exact["experiment"] == "closed_loop").any() else "open_loop"
     curve = exact.loc[exact["experiment"] == loop, "rms"].to_numpy()
     start = window_start(exp.loop.disturbance, exp.model.n)
-    empirical = None
-    if closed is not None:                    # the mean over the paths still finite at each step
-        finite = np.isfinite(closed.sq)
-        count = finite.sum(axis=1)
-        empirical = np.sqrt(np.where(finite, closed.sq, 0.0).sum(axis=1) / np.maximum(count, 1))
-        empirical[count == 0] = np.nan
+    empirical = rms_band(closed.sq)[0] if closed is not None else None    # over the paths still finite
     placed = place_window(curve, start, floor, empirical)
     K = exp.loop.horizon
     return RateWindow(placed, "auto") if placed is not None else \
@@ -569,7 +564,7 @@ def loop_observer(exp: Experiment, moments):
     i.i.d. from the design moments (EnKF.xi_prior) when closed_loop.observer_xi is `model`; the
     paper's random walk (`random_walk`) or without moments."""
     if exp.loop.observer_xi == "model" and moments is not None:
-        return dataclasses.replace(exp.filter.enkf, xi_prior=MomentModel(mean=moments.mean, cov=moments.cov))
+        return dataclasses.replace(exp.filter.enkf, xi_prior=moments)
     return exp.filter.enkf
 
 

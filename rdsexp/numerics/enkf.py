@@ -180,11 +180,9 @@ class EnKF:
         elif self.model.p:                                     # Assumption 1 with the known moments
             np.matmul(self._xi_prior_sqrt, components(e_w)[n:].reshape(self.model.p, -1),
                       out=psi_next[n:].reshape(self.model.p, -1))
-            shape = (-1,) + (1,) * (psi_next.ndim - 1)
-            psi_next[n:] += self.xi_prior.mean.reshape(shape)
+            psi_next[n:] += self.xi_prior.mean.reshape((-1,) + (1,) * (psi_next.ndim - 1))
             if self.xi_bounds is not None:       # a Gaussian draw of moments also leaves the support
-                np.clip(psi_next[n:], self.xi_bounds[0].reshape(shape), self.xi_bounds[1].reshape(shape),
-                        out=psi_next[n:])
+                self._clip_xi(psi_next[n:])
         if self.inflation != 1:                     # rho (psi - mean) + mean; skipped at 1 (bit-identical)
             mean = components(ensemble_mean(out))[..., None]
             psi_next -= mean
@@ -275,13 +273,16 @@ class EnKF:
         return np.where(filt_std > 0, relaxed, filt_std)
 
 
+    def _clip_xi(self, xi: np.ndarray) -> np.ndarray:
+        """Clip xi rows (p, ...) (components) onto xi_bounds in place; returns them."""
+        shape = (-1,) + (1,) * (xi.ndim - 1)
+        return np.clip(xi, self.xi_bounds[0].reshape(shape), self.xi_bounds[1].reshape(shape), out=xi)
+
     def _project(self, filtered: np.ndarray, mean: np.ndarray, std: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Clip the xi rows of `filtered` (n+p, ..., M) (components) onto xi_bounds in place; returns the
         filtered mean and spread (..., n+p) with their xi part recomputed from the projected members."""
-        n, (low, high) = self.model.n, self.xi_bounds
-        xi = filtered[n:]
-        shape = (-1,) + (1,) * (xi.ndim - 1)
-        np.clip(xi, low.reshape(shape), high.reshape(shape), out=xi)
+        n = self.model.n
+        xi = self._clip_xi(filtered[n:])
         mean, std = mean.copy(), std.copy()
         mean[..., n:] = np.moveaxis(xi.mean(axis=-1), 0, -1)
         std[..., n:] = np.moveaxis(xi.std(axis=-1, ddof=1), 0, -1)
