@@ -6,7 +6,7 @@ from pathlib import Path
 import numpy as np
 
 from ..numerics.synthesis import status_meaning
-from ..numerics.verdict import ABOVE_FLOOR
+from ..numerics.verdict import ABOVE_FLOOR, AT_FLOOR
 from .store import layout
 
 
@@ -76,10 +76,11 @@ def summary_text(info: dict, run_dir: Path) -> str:
         floor = f"{s['noise_floor']:.3g}" if measured else "(not measured)"
         lines.append(f"  rate window k={k_from}..{k_to}: " + (
             "from the config" if source == "config" else
-            f"auto, after the disturbance and {ABOVE_FLOOR:g} times above the noise floor "
-            f"{floor} (the closed loop at rest) on the ideal loop's exact curve" if source == "auto"
-            else f"none: after the disturbance the ideal loop is not {ABOVE_FLOOR:g} times above the noise floor "
-                 f"{floor} for a step; the rates over the rest of the horizon are shown, not judged"))
+            f"auto, after the disturbance, while the ideal loop's exact curve is {ABOVE_FLOOR:g} and this loop "
+            f"{2 * AT_FLOOR:g} times above the noise floor {floor} (the closed loop at rest)" if source == "auto"
+            else f"none: after the disturbance the ideal loop ({ABOVE_FLOOR:g} floors) and this loop "
+                 f"({2 * AT_FLOOR:g} floors) are not both above the noise floor {floor} for a step; the rates over "
+                 f"the rest of the horizon are shown, not judged"))
     for loop, label in (("closed_loop", "closed loop"), ("open_loop", "open loop  "), ("online", "online     ")):
         if f"{loop}_status" not in s:
             continue

@@ -88,8 +88,8 @@ def loop_verdict(interval: tuple[float, float, float], *, failed_at: np.ndarray,
                                        "floor, and these paths' decay is not evidence that it is stable")
     if window is None:
         return Verdict("undetermined", f"no window to measure a decay: after the disturbance, the ideal loop "
-                                       f"does not stay {ABOVE_FLOOR:g} times above the noise floor ({floor_rms:.3g}) "
-                                       f"for a step before the horizon")
+                                       f"({ABOVE_FLOOR:g} floors) and this loop ({2 * AT_FLOOR:g} floors) are not both "
+                                       f"above the noise floor ({floor_rms:.3g}) for a step before the horizon")
     rate, low, high = interval
     if np.isfinite(floor_rms) and floor_rms > 0 and not end_rms > AT_FLOOR * floor_rms:
         return Verdict("undetermined", f"the window ends at the noise floor: RMS {end_rms:.3g} at k = {window[1]} "
