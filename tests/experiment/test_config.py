@@ -40,6 +40,10 @@ def test_keys_rdsexp_reads_may_be_added(override):
     ("+enkf.ensemble_size=50", "An item is already at 'enkf.ensemble_size'"),   # Hydra's own errors
     ("enkf=nosuch", "Could not find 'enkf/nosuch'"),
     ("enkf.ensemble_size=[", "no viable alternative"),
+    ("closed_loop.observer_xi=walk", "closed_loop.observer_xi: 'walk' is not allowed, expected one of random_walk, model"),
+    ("enkf.xi_support=clip", "enkf.xi_support: 'clip' is not allowed, expected one of project, free"),
+    ("enkf.initial.xi=mean", "enkf.initial.xi: 'mean' is not allowed, expected one of guess, zero"),
+    ("closed_loop.floor_paths=-1", "closed_loop.floor_paths: -1 is not allowed"),
 ])
 def test_config_errors_exit_2_whatever_raised_them(tmp_path, override, stderr):
     proc = rdsexp(override, *FAST, cwd=tmp_path, check=False)
