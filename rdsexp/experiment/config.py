@@ -17,6 +17,7 @@ from ..numerics.distributions import from_spec
 from ..numerics.enkf import VARIANTS, EnKF, check_covariance, truth_map, xi_support
 from ..numerics.modeling import mls_input
 from ..numerics.online import MEMORIES, OnlineSettings
+from ..numerics.simulation import ESTIMATES, check_estimate
 from ..numerics.synthesis import METHODS, check_options
 from ..numerics.systems import AffineRandomSystem, MomentModel
 
@@ -256,6 +257,7 @@ class LoopSettings:
     rate_window: tuple[int, int] | None
     floor_paths: int
     observer_xi: str
+    estimate: str                         # the feedback's estimate: predicted x_{k|k-1} | filtered x_{k|k}
     chunk_paths: int | None
     workers: int
 
@@ -264,7 +266,7 @@ class LoopSettings:
         return self.disturbance.shape[0] - 1
 
     @classmethod
-    def from_config(cls, cfg, model: AffineRandomSystem) -> LoopSettings:
+    def from_config(cls, cfg, model: AffineRandomSystem, plant: AffineRandomSystem) -> LoopSettings:
         paths = _number(get(cfg, "closed_loop.paths"), "closed_loop.paths", integer=True, low=1)
         K = _number(get(cfg, "closed_loop.horizon"), "closed_loop.horizon", integer=True, low=1)
         amplitude = get(cfg, "closed_loop.disturbance.amplitude")
@@ -285,12 +287,22 @@ class LoopSettings:
         if observer_xi not in OBSERVER_XI:
             raise ConfigError(f"closed_loop.observer_xi: {observer_xi!r} is not allowed, expected one of "
                               f"{', '.join(OBSERVER_XI)}")
+        estimate = get(cfg, "closed_loop.estimate")
+        if estimate == "auto":              # x_{k|k} whenever y_k does not depend on u_k
+            estimate = "filtered" if not (plant.D.any() or model.D.any()) else "predicted"
+        if estimate not in ESTIMATES:
+            raise ConfigError(f"closed_loop.estimate: {estimate!r} is not allowed, expected auto or one of "
+                              f"{', '.join(ESTIMATES)}")
+        try:
+            check_estimate(plant, model, estimate)
+        except ValueError as err:                               # "estimate: ..." -> "closed_loop.estimate: ..."
+            raise ConfigError(f"closed_loop.{err}") from None
         flags = {name: _flag(cfg, f"closed_loop.{name}") for name in ("filter_sees_disturbance", "open_loop")}
         chunk = get(cfg, "closed_loop.chunk_paths")
         chunk = None if chunk is None else _number(chunk, "closed_loop.chunk_paths", integer=True, low=1)
         workers = _number(get(cfg, "closed_loop.workers"), "closed_loop.workers", integer=True, low=1)
         return cls(paths=paths, disturbance=d, rate_window=window, floor_paths=floor_paths, observer_xi=observer_xi,
-                   chunk_paths=chunk, workers=workers, **flags)
+                   estimate=estimate, chunk_paths=chunk, workers=workers, **flags)
 
 
 @dataclass(frozen=True)
@@ -348,9 +360,10 @@ class Experiment:
     controller: ControllerSettings
 
     def simulation(self) -> dict:
-        """simulate()'s initial-state and filter arguments: q0, psi0, P0, ensemble_size."""
+        """simulate()'s initial-state, filter and feedback-estimate arguments: q0, psi0, P0, ensemble_size,
+        estimate (every loop the controller closes uses the same estimate, identification's included)."""
         f = self.filter
-        return dict(q0=self.q0, psi0=f.psi0, P0=f.P0, ensemble_size=f.ensemble_size)
+        return dict(q0=self.q0, psi0=f.psi0, P0=f.P0, ensemble_size=f.ensemble_size, estimate=self.loop.estimate)
 
 
 def build(cfg) -> Experiment:
@@ -392,7 +405,7 @@ def build(cfg) -> Experiment:
     identification = IdentificationSettings.from_config(cfg, plant)
     filter_ = FilterSettings.from_config(cfg, model, plant, identification.xi_guess)
     design = DesignSettings.from_config(cfg, model, reported)
-    loop = LoopSettings.from_config(cfg, model)
+    loop = LoopSettings.from_config(cfg, model, plant)
     tracking = TrackingSettings.from_config(cfg)
     controller = ControllerSettings.from_config(cfg, model, loop.horizon)
     return Experiment(plant=plant, model=model, plant_name=plant_name, model_name=model_name, reported=reported,
@@ -527,7 +540,7 @@ TOP_LEVEL = ("seed", "reuse")
 # keys `build` reads with a default when the group's file does not set them: `+key=value` may add them
 OPTIONAL_KEYS = ("plant.name", "plant.C", "plant.D", "plant.q0", "plant.poles", "plant.reference",
                  "plant.identification_feedback", "plant.rate_window", "plant.filter_sees_disturbance",
-                 "plant.observer_xi", "plant.initial_xi", "plant.model", "model.name", "model.A", "model.B",
+                 "plant.observer_xi", "plant.initial_xi", "plant.loop_estimate", "plant.model", "model.name", "model.A", "model.B",
                  "model.C", "model.D", "model.reported", "gain.source", "gain.F", "gain.options",
                  "identification.feedback", "identification.xi_guess")
 # mappings whose keys are checked where they are used (gain options by the method, xi by its family)

@@ -1,10 +1,14 @@
 """Monte Carlo of the plant with the EnKF as observer (paper Sec. IV, Fig. wcontroller), batched over paths.
 
-One step k, for all P paths at once:
+One step k, for all P paths at once (estimate="predicted", the paper):
     u_k = F x_{k|k-1} + d_k                  control input decision, eq. (sf-enkf), plus external input
     y_k = C(s_k) q_k + D(s_k) u_k            plant output
     psi_{k|k} = filter(psi_{k|k-1}, u_k, y_k)        output prediction + filtering
     q_{k+1} = A(s_k) q_k + B(s_k) u_k,  psi_{k+1|k} = predict(psi_{k|k}, u_k)
+With estimate="filtered" (plant and model without D, so that y_k does not depend on u_k) the output
+is filtered first and u_k = F x_{k|k} + d_k: the "current estimator" of digital control. The paper
+uses x_{k|k-1} because with D the output depends on u_k; without D, x_{k|k-1} carries the error of
+the unknown xi_{k-1} (A(xi_{k-1}) - E A) x_{k-1} into u_k, which feeds back multiplicatively.
 F = 0 gives the open loop (and, with an M-sequence as d, the identification run).
 F may be one gain (m, n) or one per path (P, m, n); a `controller` (e.g. the online, learning-type
 controller of `online.py`) may change the per-path gains between steps k and k+1 from psi_{k|k}.
@@ -26,6 +30,7 @@ from .enkf import EnKF, check_covariance, component_major, ensemble_mean, sqrtm_
 from .systems import AffineRandomSystem, _finite_array
 
 PLANT, ENKF = 0, 1            # SeedSequence spawn-key slots per purpose
+ESTIMATES = ("predicted", "filtered")   # the state estimate the feedback uses: x_{k|k-1} or x_{k|k}
 DIVERGENCE_BOUND = 1e6        # |q| (or |ensemble mean|) beyond this marks a path (or its filter) diverged
 
 
@@ -40,7 +45,7 @@ def path_generators(seed, purpose: int, paths) -> list[np.random.Generator]:
 class Trajectories:
     """Monte Carlo result; arrays are (K+1, P, dim) over steps k = 0..K and paths.
 
-    q: plant state, y: output, u: input applied to the plant (F x_{k|k-1} + d_k),
+    q: plant state, y: output, u: input applied to the plant (F x_{k|k-1} + d_k, or F x_{k|k} + d_k),
     psi_pred_* / psi_filt_*: ensemble mean and spread (std over members, ddof 1) of psi_{k|k-1}
     and psi_{k|k}; split with `x(...)`/`xi(...)`. failed_at (P,): first step whose values are
     not kept (-1 if none); failure (P,): "" / "diverged" (the plant state) / "filter_diverged" (the
@@ -86,9 +91,20 @@ class GainController(Protocol):
         (paths (U,) int, gains (U, m, n)): the gains those paths use from step k+1 on."""
 
 
-def check_settings(plant: AffineRandomSystem, enkf: EnKF, F, d, q0, psi0, P0, paths: int = 1) -> tuple:
+def check_estimate(plant: AffineRandomSystem, model: AffineRandomSystem, estimate: str) -> None:
+    """One-line ValueError unless `estimate` (ESTIMATES) applies: "filtered" needs D = 0 in plant and model."""
+    if estimate not in ESTIMATES:
+        raise ValueError(f"estimate: {estimate!r} is not allowed, expected one of {', '.join(ESTIMATES)}")
+    if estimate == "filtered" and (plant.D.any() or model.D.any()):
+        raise ValueError("estimate: 'filtered' needs D = 0 in the plant and the model (with D, y_k depends on "
+                         "u_k, which would depend on y_k); use 'predicted'")
+
+
+def check_settings(plant: AffineRandomSystem, enkf: EnKF, F, d, q0, psi0, P0, paths: int = 1,
+                   estimate: str = "predicted") -> tuple:
     """Validate and convert the simulation inputs; one-line ValueError naming the argument."""
     model = enkf.model
+    check_estimate(plant, model, estimate)
     if plant.xi_dist is None:
         raise ValueError("plant: needs xi_dist, the distribution its coefficients are drawn from")
     if (plant.n, plant.m, plant.ny) != (model.n, model.m, model.ny):
@@ -117,7 +133,7 @@ def check_settings(plant: AffineRandomSystem, enkf: EnKF, F, d, q0, psi0, P0, pa
 def simulate(plant: AffineRandomSystem, enkf: EnKF, *, F=None, d, q0, psi0, P0=None, ensemble_size: int,
              paths: int, seed, first_path: int = 0, filter_sees_d: bool = True, keep_members: bool = False,
              block: int = 16, bound: float = DIVERGENCE_BOUND, progress=None,
-             controller: GainController | None = None) -> Trajectories:
+             controller: GainController | None = None, estimate: str = "predicted") -> Trajectories:
     """Closed loop (open loop when F is None) of `plant` observed by `enkf`, P = `paths` sample paths.
 
     d: (K+1, m) external input added on u_k (horizon K = len(d) - 1); q0: (n,) plant initial state;
@@ -125,13 +141,15 @@ def simulate(plant: AffineRandomSystem, enkf: EnKF, *, F=None, d, q0, psi0, P0=N
     at psi0, as in the paper). first_path: index of the first of the P paths, so that a run split into
     chunks of paths (first_path = 0, P1, P1 + P2, ...) gives exactly the paths of one batch.
     filter_sees_d: the EnKF is told the applied input u_k (True) or only F x_{k|k-1} (False).
+    estimate: the feedback's state estimate, "predicted" x_{k|k-1} (eq. sf-enkf) or "filtered" x_{k|k}
+    (needs D = 0 in plant and model; see the module docstring).
     block: steps of noise drawn per generator call (does not change results).
     progress: optional callable(k) called once per step (a progress bar's update).
     F: None (open loop), one gain (m, n) or one per path (P, m, n). controller: changes per-path
     gains between steps (`GainController.update`, called after filtering at every step k < K);
     then F is each path's initial gain and out.gain_index counts the adopted gains.
     """
-    F, d, q0, psi0, P0 = check_settings(plant, enkf, F, d, q0, psi0, P0, paths)
+    F, d, q0, psi0, P0 = check_settings(plant, enkf, F, d, q0, psi0, P0, paths, estimate)
     M, P, K = int(ensemble_size), int(paths), d.shape[0] - 1
     if M < 2:
         raise ValueError(f"ensemble_size: {M}, must be >= 2 (the EnKF needs a sample covariance)")
@@ -198,12 +216,19 @@ def simulate(plant: AffineRandomSystem, enkf: EnKF, *, F=None, d, q0, psi0, P0=N
             fail(~np.all(np.abs(q) <= bound, axis=1), k, "diverged")
             fail(~np.all(np.abs(mean_pred) <= bound, axis=1), k, "filter_diverged")
             q[~alive], psi[~alive], mean_pred[~alive] = 0.0, 0.0, 0.0    # no overflow on failed paths
+            if estimate == "filtered":              # D = 0: y_k first, then u_k = F x_{k|k} + d_k
+                y = (C_s[k] @ q[..., None])[..., 0]
+                a = enkf._update(psi, None, y, e_v, mean_pred, out=filtered, work=work)   # D = 0: no u
+                x_hat = a.filt_mean
+            else:
+                x_hat = mean_pred
             # eq. (sf-enkf) + d_k, one product per path: the rounding of a single (P, n) @ (n, m)
             # product depends on P
-            u = (F @ mean_pred[:, :model.n, None])[..., 0] + d[k]
+            u = (F @ x_hat[:, :model.n, None])[..., 0] + d[k]
             u_filter = u if filter_sees_d else u - d[k]
-            y = (C_s[k] @ q[..., None])[..., 0] + (D_s[k] @ u[..., None])[..., 0]
-            a = enkf._update(psi, u_filter, y, e_v, mean_pred, out=filtered, work=work)
+            if estimate == "predicted":
+                y = (C_s[k] @ q[..., None])[..., 0] + (D_s[k] @ u[..., None])[..., 0]
+                a = enkf._update(psi, u_filter, y, e_v, mean_pred, out=filtered, work=work)
             fail(~a.ok, k, "singular_innovation")
             keep = alive[:, None]
             for name, value in (("q", q), ("y", y), ("u", u), ("psi_pred_mean", a.pred_mean),
