@@ -182,7 +182,8 @@ def run_experiment(exp: Experiment, sink=None) -> Outcome:
             "exact": exact,
         }
         summary.update(rate_window=list(window.k), rate_window_source=window.source if window.placed else "none",
-                       noise_floor=floor)
+                       noise_floor=floor, loop={"estimate": exp.loop.estimate, "observer_xi": exp.loop.observer_xi,
+                                                "filter_sees_disturbance": exp.loop.filter_sees_disturbance})
         if isinstance(sink, MemorySink):
             tables |= sink.tables()
     if online is not None:
@@ -664,7 +665,10 @@ def _summary(exp: Experiment, dist, chosen, tables: dict) -> dict:
         s[f"{row.experiment}_verdict"] = row.verdict
         s[f"{row.experiment}_verdict_reason"] = row.verdict_reason
         s[f"{row.experiment}_exact_rate"] = row.exact_rate              # the ideal loop over the same window
-        s[f"{row.experiment}_estimation"] = {"x_error_rms": row.x_error_rms, "rms_k_to": row.rms_k_to}
+        # the error of the estimate the feedback uses: x_{k|k-1} (predicted) or x_{k|k} (filtered)
+        fed_back = row.x_error_rms if exp.loop.estimate == "predicted" else row.x_rmse
+        s[f"{row.experiment}_estimation"] = {"estimate": exp.loop.estimate, "x_error_rms": fed_back,
+                                             "rms_k_to": row.rms_k_to}
         s[f"{row.experiment}_rate"] = [row.rate, row.rate_low, row.rate_high]
         failed = paths[(paths["experiment"] == row.experiment) & (paths["failed_at"] >= 0)]["failed_at"]
         if len(failed):

@@ -81,6 +81,11 @@ def summary_text(info: dict, run_dir: Path) -> str:
             else f"none: after the disturbance the ideal loop ({ABOVE_FLOOR:g} floors) and this loop "
                  f"({2 * AT_FLOOR:g} floors) are not both above the noise floor {floor} for a step; the rates over "
                  f"the rest of the horizon are shown, not judged"))
+    if s.get("loop") and "closed_loop_status" in s:           # what the loop's controller is
+        c = s["loop"]
+        lines.append(f"  loop: u_k = F {'x_{k|k}' if c['estimate'] == 'filtered' else 'x_{k|k-1}'} + d_k, the EnKF "
+                     f"{'told' if c['filter_sees_disturbance'] else 'not told'} d_k, its xi "
+                     f"{'drawn from the design moments' if c['observer_xi'] == 'model' else 'a random walk'}")
     for loop, label in (("closed_loop", "closed loop"), ("open_loop", "open loop  "), ("online", "online     ")):
         if f"{loop}_status" not in s:
             continue
@@ -114,9 +119,10 @@ def gap(s: dict) -> list[str]:
     est = s.get("closed_loop_estimation") or {}
     at_floor = "noise floor" in s.get("closed_loop_verdict_reason", "")       # the reason explains it itself
     if rate < 1 and (verdict in ("unstable", "failed") or verdict == "undetermined" and not at_floor):
-        return [f"    the gain stabilizes the plant with the true state (exact rate {rate:.4f}), this loop runs on the "
-                f"EnKF's estimate: its x error RMS {est.get('x_error_rms', float('nan')):.3g} (the state's RMS at the "
-                f"window's end {est.get('rms_k_to', float('nan')):.3g}); the gap is the observer's"]
+        x_hat = {"predicted": "x_{k|k-1}", "filtered": "x_{k|k}"}.get(est.get("estimate"), "x_{k|k-1}")
+        return [f"    the gain stabilizes the plant with the true state (exact rate {rate:.4f}), this loop feeds back the "
+                f"EnKF's estimate {x_hat}: its error RMS {est.get('x_error_rms', float('nan')):.3g} (the state's RMS "
+                f"at the window's end {est.get('rms_k_to', float('nan')):.3g}); the gap is the observer's"]
     if rate >= 1 and verdict == "stable":
         return [f"    the paths decay over this window although the gain's exact rate is {rate:.4f} >= 1: the ideal "
                 f"loop's rate over the same window is {s.get('closed_loop_exact_rate', float('nan')):.4f} (a transient "

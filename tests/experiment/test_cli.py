@@ -1,5 +1,6 @@
 """Runner, configs, sweeps, recordings and the run catalog, end to end."""
 import json
+import re
 import shutil
 from pathlib import Path
 
@@ -14,7 +15,7 @@ from omegaconf import OmegaConf
 
 import rdsexp as rx
 from rdsexp.experiment import pipeline
-from rdsexp.experiment.config import build
+from rdsexp.experiment.config import ConfigError, build
 from rdsexp.experiment.recording import read_recording
 from rdsexp.experiment.sweep import compose_points, validate_sweep
 
@@ -169,16 +170,34 @@ def test_bad_config_fails_with_one_line_and_no_run_directory(tmp_path, override,
 
 def test_the_paper_keeps_its_loop_and_other_plants_get_theirs():
     """The paper's plant file keeps the paper's closed loop (unknown d_k, xi random walk, members at 0,
-    k = 60..80); every other plant defaults to the scenario measured on random plants."""
+    u_k = F x_{k|k-1}, k = 60..80); every other plant defaults to the scenario measured on random plants."""
     paper = build(compose("config"))
     assert (paper.loop.filter_sees_disturbance, paper.loop.observer_xi, paper.loop.rate_window) == \
         (False, "random_walk", (60, 80))
+    assert paper.loop.estimate == paper.simulation()["estimate"] == "predicted"
     assert not paper.filter.psi0.any()
     for name in ("dropout", "two_carts"):
         exp = build(compose("config", overrides=[f"plant={name}"]))
         assert (exp.loop.filter_sees_disturbance, exp.loop.observer_xi, exp.loop.rate_window) == (True, "model", None)
+        assert exp.loop.estimate == "filtered"                     # auto: no D in these plants
         np.testing.assert_array_equal(exp.filter.psi0[exp.model.n:], exp.identification.xi_guess)   # model = plant
     # each stays selectable
     exp = build(compose("config", overrides=["plant=dropout", "closed_loop.observer_xi=random_walk",
-                                             "closed_loop.filter_sees_disturbance=false", "enkf.initial.xi=zero"]))
-    assert (exp.loop.filter_sees_disturbance, exp.loop.observer_xi, exp.filter.psi0.any()) == (False, "random_walk", False)
+                                             "closed_loop.filter_sees_disturbance=false", "enkf.initial.xi=zero",
+                                             "closed_loop.estimate=predicted"]))
+    assert (exp.loop.filter_sees_disturbance, exp.loop.observer_xi, exp.filter.psi0.any(), exp.loop.estimate) == \
+        (False, "random_walk", False, "predicted")
+
+
+@pytest.mark.parametrize("overrides, message", [
+    (["closed_loop.estimate=current"], "closed_loop.estimate: 'current' is not allowed, expected auto or one of"),
+    (["plant.D=[[[0.1],[0],[0]]]", "closed_loop.estimate=filtered"], "closed_loop.estimate: 'filtered' needs D = 0"),
+])
+def test_the_feedback_estimate_is_checked_before_any_work(overrides, message):
+    with pytest.raises(ConfigError, match=re.escape(message)):
+        build(compose("config", overrides=overrides))
+
+
+def test_auto_estimate_is_the_prediction_when_the_output_depends_on_the_input():
+    exp = build(compose("config", overrides=["plant=dropout", "plant.D=[[[0.1]]]"]))
+    assert exp.loop.estimate == "predicted"

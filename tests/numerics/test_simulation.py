@@ -137,3 +137,56 @@ def test_identification_input_options():
         mls_input(126, register_length=7, taps=[2])
     two = mls_input(126, m=2, register_length=7, amplitude=2.0)
     assert np.array_equal(two[:, 1], np.roll(bip, -(127 // 2))[:127])
+
+
+def _random_loop(seed=2, n=3, m=1, p=2, sigma=0.3):
+    """A random plant with multiplicative noise on A and B, full-state output (C = I), xi ~ N(0, sigma^2 I),
+    and a gain F (the mean-square LQ gain of its moments) whose exact rate is below 1."""
+    from rdsexp.numerics.distributions import from_spec
+    from rdsexp.numerics.synthesis import synthesize
+    rng = np.random.default_rng(seed)
+    A = rng.normal(size=(p + 1, n, n)) / np.sqrt(n)
+    A[0] *= 1.1 / max(abs(np.linalg.eigvals(A[0])))             # open-loop unstable mean
+    B = rng.normal(size=(p + 1, n, m))
+    plant = rx.AffineRandomSystem(A, B, xi_dist=from_spec({"family": "normal", "mean": [0.0] * p,
+                                                             "cov": (sigma ** 2 * np.eye(p)).tolist()}))
+    moments = rx.MomentModel(np.zeros(p), sigma ** 2 * np.eye(p))
+    F = synthesize(plant, moments, "ms_lqr").F
+    return plant, moments, F
+
+
+@pytest.mark.parametrize("estimate", ["predicted", "filtered"])
+def test_feedback_uses_the_chosen_estimate(estimate):
+    """u_k = F x_{k|k-1} + d_k (predicted, eq. sf-enkf) or F x_{k|k} + d_k (filtered), exactly."""
+    tr = run(paper.F_proposed, paths=3, horizon=20, estimate=estimate)
+    x_hat = tr.x(tr.psi_pred_mean if estimate == "predicted" else tr.psi_filt_mean)
+    np.testing.assert_allclose(tr.u, x_hat @ paper.F_proposed.T + paper.disturbance(20)[:, None, :],
+                               rtol=1e-12, atol=1e-12)
+
+
+def test_filtered_estimate_needs_a_plant_without_D():
+    plant = rx.AffineRandomSystem(paper.plant().A, paper.plant().B, paper.plant().C,
+                                  [np.ones((3, 1))], xi_dist=paper.plant().xi_dist)
+    with pytest.raises(ValueError, match="estimate: 'filtered' needs D = 0"):
+        simulate(plant, EnKF(paper.model(), paper.Q, paper.R), F=paper.F_proposed, d=paper.disturbance(5),
+                 q0=paper.q0, psi0=paper.psi0, ensemble_size=10, paths=1, seed=0, estimate="filtered")
+    with pytest.raises(ValueError, match="estimate: 'current'"):
+        run(paper.F_proposed, estimate="current")
+
+
+def test_filtered_loop_with_an_exact_output_follows_the_ideal_loop():
+    """With y_k = x_k (R -> 0), x_{k|k} = x_k, so the loop is the ideal loop x_{k+1} = (A + B F) x_k of the
+    gain's exact second moments: E||q_k||^2 matches trace E[x_k x_k^T] within 4 Monte Carlo standard errors."""
+    from rdsexp.numerics.analysis import second_moments
+    plant, moments, F = _random_loop()
+    model = rx.AffineRandomSystem(plant.A, plant.B)
+    P, K, x0 = 400, 12, np.ones(plant.n)
+    d = np.zeros((K + 1, plant.m))
+    tr = simulate(plant, EnKF(model, 1e-4, 1e-10), F=F, d=d, q0=x0, psi0=np.r_[x0, np.zeros(model.p)],
+                  ensemble_size=20, paths=P, seed=5, estimate="filtered")
+    assert tr.status == "ok"
+    _, second = second_moments(plant, moments, F, x0, d)
+    sq = np.sum(tr.q ** 2, axis=-1)                              # (K+1, P)
+    for k in (4, 8, 12):
+        se = sq[k].std(ddof=1) / np.sqrt(P)
+        assert abs(sq[k].mean() - np.trace(second[k])) < 4 * se, k

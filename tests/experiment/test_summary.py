@@ -1,0 +1,19 @@
+"""The run summary's words about the loop: its controller and why its verdict differs from the gain's rate."""
+from rdsexp.experiment.summary import gap
+
+
+def summary(estimate, verdict="unstable", rate=0.6, reason="the loop grows"):
+    return {"rate_plant": rate, "closed_loop_verdict": verdict, "closed_loop_verdict_reason": reason,
+            "closed_loop_estimation": {"estimate": estimate, "x_error_rms": 2.5, "rms_k_to": 6.0}}
+
+
+def test_the_gap_names_the_estimate_the_feedback_uses():
+    assert "estimate x_{k|k-1}: its error RMS 2.5" in gap(summary("predicted"))[0]
+    assert "estimate x_{k|k}: its error RMS 2.5" in gap(summary("filtered"))[0]
+
+
+def test_no_gap_when_the_verdict_agrees_or_the_floor_explains_it():
+    assert gap(summary("filtered", verdict="stable")) == []
+    assert gap(summary("filtered", verdict="undetermined", reason="the window ends at the noise floor")) == []
+    assert gap(summary("filtered", verdict="unstable", rate=1.2)) == []
+    assert "exact rate is 1.2000 >= 1" in gap(summary("filtered", verdict="stable", rate=1.2))[0]
