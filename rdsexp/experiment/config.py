@@ -540,8 +540,8 @@ TOP_LEVEL = ("seed", "reuse")
 # keys `build` reads with a default when the group's file does not set them: `+key=value` may add them
 OPTIONAL_KEYS = ("plant.name", "plant.C", "plant.D", "plant.q0", "plant.poles", "plant.reference",
                  "plant.identification_feedback", "plant.rate_window", "plant.filter_sees_disturbance",
-                 "plant.observer_xi", "plant.initial_xi", "plant.loop_estimate", "plant.model", "model.name", "model.A", "model.B",
-                 "model.C", "model.D", "model.reported", "gain.source", "gain.F", "gain.options",
+                 "plant.observer_xi", "plant.initial_xi", "plant.loop_estimate", "plant.model", "model.name",
+                 "model.A", "model.B", "model.C", "model.D", "model.reported", "gain.source", "gain.F", "gain.options",
                  "identification.feedback", "identification.xi_guess")
 # mappings whose keys are checked where they are used (gain options by the method, xi by its family)
 FREE_FORM = ("gain.options.", "plant.xi.", "plant.reference.", "plant.model.", "model.reported.")

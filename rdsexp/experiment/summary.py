@@ -120,9 +120,9 @@ def gap(s: dict) -> list[str]:
     at_floor = "noise floor" in s.get("closed_loop_verdict_reason", "")       # the reason explains it itself
     if rate < 1 and (verdict in ("unstable", "failed") or verdict == "undetermined" and not at_floor):
         x_hat = {"predicted": "x_{k|k-1}", "filtered": "x_{k|k}"}.get(est.get("estimate"), "x_{k|k-1}")
-        return [f"    the gain stabilizes the plant with the true state (exact rate {rate:.4f}), this loop feeds back the "
-                f"EnKF's estimate {x_hat}: its error RMS {est.get('x_error_rms', float('nan')):.3g} (the state's RMS "
-                f"at the window's end {est.get('rms_k_to', float('nan')):.3g}); the gap is the observer's"]
+        return [f"    the gain stabilizes the plant with the true state (exact rate {rate:.4f}), this loop feeds back "
+                f"the EnKF's estimate {x_hat}: its error RMS {est.get('x_error_rms', float('nan')):.3g} (the state's "
+                f"RMS at the window's end {est.get('rms_k_to', float('nan')):.3g}); the gap is the observer's"]
     if rate >= 1 and verdict == "stable":
         return [f"    the paths decay over this window although the gain's exact rate is {rate:.4f} >= 1: the ideal "
                 f"loop's rate over the same window is {s.get('closed_loop_exact_rate', float('nan')):.4f} (a transient "
