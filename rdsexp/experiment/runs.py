@@ -23,24 +23,29 @@ import pandas as pd
 from ..errors import DamagedRecord, warnings_as_lines
 from . import schema
 from .store import RunStore, layout, provenance, read_run, read_table, run_damage
-from .store.table import changed_params
+from .store.table import KEY_METRICS, as_text, changed_params, one_row_per_run, sweep_results
 
 DEFAULT_ROOT = Path(layout.DEFAULT_ROOT)
 __all__ = ["DEFAULT_ROOT", "changed", "check", "cli", "compare_tables", "diff", "load", "main", "search", "verify"]
-SHOWN = ["metrics.lam", "metrics.rate_plant", "metrics.closed_loop_rate", "metrics.closed_loop_status"]
+IDENTITY_SHOWN = ["id", "sweep", "plant", "seed", "overrides", "status"]     # `list`'s default columns, then
+SHOWN = KEY_METRICS[:4]                                                        # its key metrics
 
 
-def search(root=DEFAULT_ROOT, where: str | None = None) -> pd.DataFrame:
+def search(root=DEFAULT_ROOT, where: str | None = None, copies: bool = False) -> pd.DataFrame:
     """One row per run under root (oldest first), like MLflow's search_runs: the run's identity (id,
-    sweep (its config name), sweep_id (its directory), job, status, plant, model, method,
-    overrides, reused_from, created, code (version), config_hash, dir), `metrics.<name>` (key numbers
-    of run.json's summary) and `params.<dotted.key>` (every resolved scalar config value); see
-    `rdsexp.experiment.store.table`.
+    sweep (`+sweep=NAME`, or the overrides of a `-m` run), sweep_id (its directory), job, seed, status,
+    plant (its `name:`, else its file name), model, method, overrides, reused_from, created, code
+    (version), config_hash, dir), `metrics.<name>` (key numbers of run.json's summary) and
+    `params.<dotted.key>` (every resolved scalar config value); see `rdsexp.experiment.store.table`.
 
     where: a filter over these columns, e.g. ``"params.enkf.q_scale >= 1 and metrics.lam < 0.9"``
-    (pandas query syntax; `=` also compares; a name without its params./metrics. prefix is found)."""
+    (pandas query syntax; `=` also compares; a name without its params./metrics. prefix is found).
+    A sweep job that reused a stored run is a copy of it: among the rows that match, each computation
+    is one row (the original where it matches; `store.table.one_row_per_run`), so that a mean over
+    seeds counts it once. copies: every matching record, copies included."""
     table = RunStore(root).table(params=True)
-    return query(table, where) if where else table
+    table = query(table, where) if where else table
+    return table if copies else one_row_per_run(table)
 
 
 def column(table: pd.DataFrame, name: str) -> str:
@@ -276,6 +281,8 @@ def main(argv=None) -> int:
     p_list.add_argument("--columns", help="comma-separated columns (params./metrics. prefix optional; all: every one)")
     p_list.add_argument("--changed", action="store_true", help="also the params that vary between the runs")
     p_list.add_argument("--csv", action="store_true", help="CSV with full column names")
+    p_list.add_argument("--all", action="store_true",
+                        help="also the sweep jobs that reused a listed run (each computation is listed once without)")
     p_check = sub.add_parser("check", help="list damaged or inconsistent records under DIR (default outputs/)")
     p_check.add_argument("dir", nargs="?", default=str(DEFAULT_ROOT))
     p_check.add_argument("--quarantine", action="store_true",
@@ -300,7 +307,7 @@ def main(argv=None) -> int:
 
 def _command(args) -> int:
     if args.command == "list":
-        table = search(Path(args.dir), args.where)
+        table = search(Path(args.dir), args.where, copies=args.all)
         if not len(table):
             print(f"no runs under {args.dir}" + (f" with {args.where}" if args.where else ""))
             return 0
@@ -312,7 +319,7 @@ def _command(args) -> int:
         elif args.columns:
             cols = [column(table, c.strip()) for c in args.columns.split(",") if c.strip()]
         else:
-            cols = ["id", "status", *(changed(table) if args.changed else ["params.gain.method"]),
+            cols = [*IDENTITY_SHOWN, *(changed(table) if args.changed else ["params.gain.method"]),
                     *(c for c in SHOWN if c in table.columns)]
             cols = [c for c in dict.fromkeys(cols) if c in table.columns]
         _print(table[cols], args.csv)
@@ -355,9 +362,7 @@ def _print(table: pd.DataFrame, csv: bool) -> None:
     if csv:
         sys.stdout.write(table.to_csv(index=False))
         return
-    short = {c: c.split(".", 1)[1] if c.startswith(("params.", "metrics.")) else c for c in table.columns}
-    print(table.rename(columns=short).to_string(index=False, float_format=lambda v: f"{v:.4g}",
-                                                 na_rep="-"))
+    print(as_text(table))
 
 
 def show_sweep(sweep_dir: Path) -> None:
@@ -375,8 +380,7 @@ def show_sweep(sweep_dir: Path) -> None:
     if (sweep_dir / layout.SUMMARY_RECORDING).exists():
         print(f"  view: rdsexp-runs view {sweep_dir}")
     if len(table):
-        cols = ["job", "status", *changed(table), *(c for c in SHOWN if c in table.columns)]
-        _print(table.sort_values("job")[list(dict.fromkeys(cols))], csv=False)
+        _print(sweep_results(table), csv=False)
 
 
 def view(target: Path) -> int:

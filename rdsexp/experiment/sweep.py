@@ -16,6 +16,8 @@ from .config import build, check_overrides
 from .store import write_sweep_summary
 from .store.files import atomic_write_bytes
 from .store.layout import SUMMARY_CSV
+from .store.run import read_runs
+from .store.table import as_text, runs_table, sweep_results
 
 _SWEEP_BARS: dict[int, tqdm] = {}      # the sweep's progress bar, in the process that launched it
 
@@ -83,6 +85,9 @@ def validate_sweep(points: list[list[str]]) -> None:
         raise RunExit(2) from None
 
 
+RESULT_ROWS = 40          # rows of the results table a sweep prints at its end (all are in summary.csv)
+
+
 class SweepSummary(Callback):
     """Hydra callback: validates every job's config before the first runs, shows a progress bar over
     the jobs and writes the summary table once all have returned.
@@ -120,7 +125,11 @@ class SweepSummary(Callback):
             print(f"sweep recording: {write_sweep_recording(path.parent) or 'none (Rerun disabled: RERUN=off)'}")
         except Exception as err:          # noqa: BLE001 -- a view, never the end of a sweep
             print(f"rdsexp: no sweep recording ({type(err).__name__}: {err})", file=sys.stderr)
-        table = pd.read_parquet(path)
+        table = runs_table(read_runs(path.parent)[0], params=True)
+        if len(table):                    # what was swept against what came out, as `rdsexp-runs show SWEEP`
+            print(as_text(sweep_results(table), max_rows=RESULT_ROWS))
+            print(f"reused {int(table['reused_from'].notna().sum())} of {len(table)} jobs (same config hash and "
+                  f"code version as a stored run)")
         status = table["status"] if "status" in table else pd.Series([], dtype=object)
         failed = status[status != "complete"].value_counts()
         if len(failed):

@@ -72,14 +72,43 @@ def test_bad_where_is_one_line(root):
 def test_list_changed_sort_columns_csv(root, tmp_path):
     out = rdsexp("list", str(root), "--changed", "--sort=-closed_loop_rate", "--where", "seed == 0",
                  cwd=tmp_path, module="rdsexp.runs").stdout.splitlines()
-    assert out[0].split() == ["id", "status", "enkf.q_scale", "lam", "closed_loop_rate", "closed_loop_status"]
+    assert out[0].split() == ["id", "sweep", "plant", "seed", "overrides", "status", "enkf.q_scale", "lam",
+                              "closed_loop_rate"]
     assert [line.split()[0] for line in out[1:]] == ["A/2", "A/1", "A/0"]
     csv = rdsexp("list", str(root), "--columns", "enkf.q_scale,seed,lam", "--csv", cwd=tmp_path,
                  module="rdsexp.runs").stdout
     table = pd.read_csv(pd.io.common.StringIO(csv))
-    assert list(table.columns) == ["params.enkf.q_scale", "params.seed", "metrics.lam"] and len(table) == 6
+    assert list(table.columns) == ["params.enkf.q_scale", "seed", "metrics.lam"] and len(table) == 6
     bad = rdsexp("list", str(root), "--sort", "nosuch", cwd=tmp_path, module="rdsexp.runs", check=False)
     assert bad.returncode == 2 and bad.stderr.strip() == "rdsexp-runs: 'nosuch' names no column"
+
+
+def test_identity_names_the_sweep_plant_and_seed_of_every_run(tmp_path):
+    """A `-m` sweep without `+sweep=NAME` is named by its sweeping overrides (multirun.yaml); a plant file
+    without `name:` is named by its file, also as params.plant.name; the seed is a column."""
+    a = fake_run(tmp_path, "S", 0, ["seed=3", "plant.name=null"], summary(0.8, 0.9) | {"plant": "lossy3"})
+    info = json.loads((a / "run.json").read_text())
+    info["sweep"]["name"], info["seed"] = None, {"root": 3}
+    (a / "run.json").write_text(json.dumps(info))
+    OmegaConf.save({"hydra": {"overrides": {"task": ["plant=lossy3", "enkf.ensemble_size=50,100", "seed=3",
+                                                      "closed_loop.rate_window=[10,20]"]}}},
+                   tmp_path / "S" / "multirun.yaml")
+    row = runs.search(tmp_path).iloc[0]
+    assert (row["sweep"], row["plant"], row["params.plant.name"], row["seed"]) == \
+        ("enkf.ensemble_size=50,100", "lossy3", "lossy3", 3)
+    assert list(runs.search(tmp_path, "plant.name == 'lossy3'")["id"]) == ["S/0"]
+
+
+def test_a_reused_job_is_one_row_unless_copies_are_asked_for(tmp_path):
+    fake_run(tmp_path, "A", 0, ["seed=0"], summary(0.8, 0.9))
+    fake_run(tmp_path, "A", 1, ["seed=1"], summary(0.81, 0.91))
+    copy = fake_run(tmp_path, "B", 0, ["seed=0"], summary(0.8, 0.9))     # B's job 0 reused A/0
+    info = json.loads((copy / "run.json").read_text())
+    (copy / "run.json").write_text(json.dumps(info | {"reused_from": "A/0"}))
+    assert list(runs.search(tmp_path)["id"]) == ["A/0", "A/1"]                 # the original is kept
+    assert runs.search(tmp_path)["metrics.lam"].mean() == pytest.approx(0.805)  # counted once
+    assert list(runs.search(tmp_path, "sweep_id == 'B'")["reused_from"]) == ["A/0"]    # its sweep's row
+    assert list(runs.search(tmp_path, copies=True)["id"]) == ["A/0", "A/1", "B/0"]
 
 
 def test_diff_runs_and_sweeps(root, tmp_path):
@@ -101,7 +130,8 @@ def test_diff_runs_and_sweeps(root, tmp_path):
 def test_show_sweep(root, tmp_path):
     out = rdsexp("show", "B", "--root", str(root), cwd=tmp_path, module="rdsexp.runs").stdout.splitlines()
     assert out[0] == "sweep B: noise, 3 jobs (3 complete)"
-    assert out[3].split() == ["job", "status", "enkf.q_scale", "lam", "closed_loop_rate", "closed_loop_status"]
+    assert out[3].split() == ["job", "enkf.q_scale", "status", "lam", "closed_loop_rate", "closed_loop_failed_fraction",
+                              "reused_from"]
 
 
 def test_load_adds_run_id_and_long_form(small_run):

@@ -7,35 +7,62 @@ composed config).
 from __future__ import annotations
 
 import fcntl
+import functools
 import json
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
+import yaml
 
 from ...errors import WriteError
 from . import files
-from .layout import SUMMARY, SUMMARY_CSV, SUMMARY_LOCK
+from .layout import MULTIRUN, SUMMARY, SUMMARY_CSV, SUMMARY_LOCK
 from .run import MATRIX, read_runs, scalar_config, scalars_only
 
-IDENTITY = ["id", "sweep", "sweep_id", "job", "status", "plant", "model", "method", "overrides",
+IDENTITY = ["id", "sweep", "sweep_id", "job", "seed", "status", "plant", "model", "method", "overrides",
             "reused_from", "created", "code", "config_hash", "dir"]
 # summary entries that are settings or nested records rather than numbers of the run
 NOT_METRICS = ("plant", "model", "gain_method", "rate_window", "reference", "designs", "identification_feedback")
 
 
 def identity(run_dir: Path, info: dict) -> dict:
-    """The identity columns of a run (IDENTITY) from its run.json."""
-    sweep, s = info.get("sweep") or {}, info.get("summary") or {}
+    """The identity columns of a run (IDENTITY) from its run.json: sweep is the `+sweep=NAME` config,
+    else the command-line overrides of the `-m` run (`sweep_name`); plant is the plant file's `name:`,
+    else its file name (the runner records it so)."""
+    sweep, s, seed = info.get("sweep") or {}, info.get("summary") or {}, info.get("seed")
     job = sweep.get("job")
-    return {"id": info.get("id"), "sweep": sweep.get("name"),
+    return {"id": info.get("id"), "sweep": sweep.get("name") or sweep_name(sweep.get("dir")),
             "sweep_id": Path(sweep["dir"]).name if sweep.get("dir") else None,
-            "job": job if isinstance(job, int) else None, "status": info.get("status"),
+            "job": job if isinstance(job, int) else None,
+            "seed": seed.get("root") if isinstance(seed, dict) else seed, "status": info.get("status"),
             "plant": s.get("plant"), "model": s.get("model"), "method": s.get("gain_method"),
             "overrides": " ".join(o for o in info.get("overrides", []) if not o.startswith("+sweep=")),
             "reused_from": info.get("reused_from"), "created": info.get("created"),
             "code": (info.get("code") or {}).get("version"), "config_hash": info.get("config_hash"),
             "dir": str(run_dir)}
+
+
+@functools.lru_cache(maxsize=256)
+def sweep_name(sweep_dir: str | None) -> str | None:
+    """The name of a sweep launched without `+sweep=NAME`: the overrides of its command line that sweep
+    (`enkf.ensemble_size=50,100 seed=range(3)`; all of them if none does), as Hydra wrote them into
+    <sweep>/multirun.yaml; None without that file."""
+    if not sweep_dir:
+        return None
+    try:
+        config = yaml.safe_load((Path(sweep_dir) / MULTIRUN).read_text())
+        task = [str(o) for o in ((config or {}).get("hydra") or {}).get("overrides", {}).get("task") or []
+                if not str(o).startswith("+sweep=")]
+    except (OSError, yaml.YAMLError, AttributeError):
+        return None
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.errors import HydraException
+    try:
+        swept = [o.input_line for o in OverridesParser.create().parse_overrides(task) if o.is_sweep_override()]
+    except HydraException:
+        swept = []
+    return " ".join(swept or task) or None
 
 
 def run_metrics(info: dict) -> dict:
@@ -87,6 +114,26 @@ def flat_params(config: dict) -> dict:
     return out
 
 
+KEY_METRICS = ["metrics.lam", "metrics.rate_plant", "metrics.closed_loop_rate", "metrics.closed_loop_verdict",
+               "metrics.closed_loop_failed_fraction"]
+
+
+def sweep_results(table: pd.DataFrame) -> pd.DataFrame:
+    """A sweep's results from its runs table (with params): per job, the swept values (the params that
+    vary), the status, the key metrics and the run it reused, if any."""
+    cols = ["job", *changed_params(table), "status", *(c for c in KEY_METRICS if c in table.columns), "reused_from"]
+    return table.sort_values("job", kind="stable")[[c for c in dict.fromkeys(cols) if c in table.columns]]
+
+
+def as_text(table: pd.DataFrame, max_rows: int | None = None) -> str:
+    """A runs table as text: short column names (no params./metrics.), 4 significant digits, "-" for
+    missing; at most max_rows rows, with a last line saying how many were left out."""
+    short = {c: c.split(".", 1)[1] if c.startswith(("params.", "metrics.")) else c for c in table.columns}
+    shown = table if max_rows is None else table.head(max_rows)
+    text = shown.rename(columns=short).to_string(index=False, float_format=lambda v: f"{v:.4g}", na_rep="-")
+    return text + (f"\n... {len(table) - len(shown)} more rows" if len(shown) < len(table) else "")
+
+
 def changed_params(table: pd.DataFrame) -> list[str]:
     """The params columns whose value is not the same in every row (like `dvc exp show`)."""
     return [c for c in table.columns if c.startswith("params.") and table[c].astype(str).nunique() > 1]
@@ -100,8 +147,21 @@ def runs_table(runs: list[tuple[Path, dict]], params: bool = False) -> pd.DataFr
     if len(table):
         metrics = [c for c in table.columns if c.startswith("metrics.")]
         table = table[IDENTITY + metrics + sorted(c for c in table.columns if c.startswith("params."))]
-    table["job"] = table["job"].astype("Int64")
+        if "params.plant.name" in table.columns:      # a plant file without `name:` is named by its file
+            table["params.plant.name"] = table["params.plant.name"].fillna(table["plant"])
+        if "params.seed" in table.columns:            # a record without run.json's seed: the config's
+            table["seed"] = table["seed"].fillna(table["params.seed"])
+    for name in ("job", "seed"):
+        table[name] = table[name].astype("Int64")
     return table
+
+
+def one_row_per_run(table: pd.DataFrame) -> pd.DataFrame:
+    """The rows of a runs table with each computation once: a reused job (reused_from set) is a copy
+    of an earlier run, so where that run, or an earlier copy of it, is among the rows, it is left out.
+    Rows are oldest first, so the original is the row kept when present."""
+    computation = table["reused_from"].where(table["reused_from"].notna(), table["id"])
+    return table[~computation.duplicated(keep="first")].reset_index(drop=True)
 
 
 def write_sweep_summary(sweep_dir: Path) -> Path:
