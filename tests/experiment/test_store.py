@@ -317,6 +317,12 @@ def test_resumed_sweep_reruns_only_the_damaged_job(st, tmp_path):
     infos = [json.loads((new / str(j) / "run.json").read_text()) for j in range(3)]
     assert [i["status"] for i in infos] == ["complete"] * 3
     assert [i.get("reused_from") for i in infos] == [st.infos[0]["id"], None, st.infos[2]["id"]]
+    # the sweep's end: its results table (a row per job, the run it reused) and the count of reused jobs
+    lines = proc.stdout.splitlines()
+    assert "reused 2 of 3 jobs (same config hash and code version as a stored run)" in lines
+    header = next(i for i, line in enumerate(lines) if line.split()[:1] == ["job"])
+    assert [line.split()[0] for line in lines[header + 1:header + 4]] == ["0", "1", "2"]
+    assert lines[header + 1].split()[-1] == st.infos[0]["id"] and lines[header + 2].split()[-1] == "-"
     summary = pd.read_parquet(new / "summary.parquet")
     assert list(summary["status"]) == ["complete"] * 3
     old, reused = st.jobs[0] / "metrics.parquet", new / "0" / "metrics.parquet"
