@@ -40,14 +40,49 @@ def script(main) -> None:
         sys.exit(f"{Path(sys.argv[0]).name}: {err}")
 
 
+# keys a run of a shipped sweep may also override and still be the paper's: the sizes of its Monte Carlo
+# and horizons (what a small or a long version of the same experiment changes), seeds and tracking
+SIZES = ("seed", "store", "reuse", "enkf.ensemble_size", "closed_loop.paths", "closed_loop.horizon",
+         "closed_loop.rate_window", "closed_loop.disturbance.until", "closed_loop.floor_paths",
+         "closed_loop.chunk_paths", "closed_loop.workers", "identification.horizon", "identification.K0",
+         "identification.K1", "tracking")
+
+
+def swept_keys(sweep: str) -> set[str] | None:
+    """The keys the shipped sweep config rdsexp.conf/sweep/NAME.yaml varies; None if none is shipped."""
+    from importlib.resources import files as package_files
+    path = package_files("rdsexp.conf") / "sweep" / f"{sweep}.yaml"
+    if not path.is_file():
+        return None
+    return set(OmegaConf.select(OmegaConf.create(path.read_text()), "hydra.sweeper.params") or {})
+
+
+def of_shipped_sweep(run: Run, sweep: str) -> bool:
+    """Whether a run of sweep NAME is the shipped sweep's experiment on the paper's plant: its plant and
+    model are the paper's, and its command line overrides only the keys the sweep varies and SIZES. A
+    user's `+sweep=NAME plant=mine`, or one that changes what a figure shows (another gain method, Q,
+    disturbance), is not."""
+    keys = swept_keys(sweep)
+    s = run.info.get("summary") or {}
+    if keys is None:
+        return True
+    if s.get("plant") != "paper" or s.get("model") != "paper":
+        return False
+    for override in run.info.get("overrides") or []:
+        key = override.split("=", 1)[0].lstrip("+~")
+        if key != "sweep" and key not in keys and not any(key == k or key.startswith(f"{k}.") for k in SIZES):
+            return False
+    return True
+
+
 def load_runs(root: Path, sweep: str | None = None) -> list[Run]:
-    """Complete runs under root (optionally of one sweep name), the latest sweep of that name only.
-    A damaged run (run.json or a table unreadable, missing or modified) is named in one warning
-    line and left out."""
+    """Complete runs under root (optionally of one sweep name, and then only the runs of the shipped
+    sweep's experiment, `of_shipped_sweep`), the latest sweep of that name only. A damaged run
+    (run.json or a table unreadable, missing or modified) is named in one warning line and left out."""
     runs = sorted(RunStore(root).intact(), key=lambda run: str(run.dir))
     runs = [r for r in runs if r.info.get("status") == "complete" and r.info.get("tables")]
     if sweep is not None:
-        runs = [r for r in runs if (r.info.get("sweep") or {}).get("name") == sweep]
+        runs = [r for r in runs if (r.info.get("sweep") or {}).get("name") == sweep and of_shipped_sweep(r, sweep)]
         if runs:
             latest = max(r.info["sweep"]["dir"] for r in runs)
             runs = [r for r in runs if r.info["sweep"]["dir"] == latest]

@@ -182,6 +182,33 @@ def test_report_refuses_mixed_code_versions(root, tmp_path):
     assert report.check_versions(runs, allow_mixed=True).startswith("mixed:")
 
 
+@pytest.mark.parametrize("change", [
+    {"overrides": ["plant=dropout"], "summary": {"plant": "dropout", "model": "plant's own structure"}},
+    {"overrides": ["enkf.q_scale=4"], "summary": {}},                  # changes what the figure shows
+])
+def test_a_users_sweep_of_the_same_name_is_not_the_papers(root, tmp_path, change):
+    """The report takes the shipped sweep's runs on the paper's plant, not the latest sweep of that name: a
+    newer `+sweep=ensemble_size` of another plant, or with an override the sweep does not vary, is left out."""
+    import shutil
+    papers = report.load_runs(root, "ensemble_size")
+    sweep = papers[0].dir.parent
+    store = tmp_path / "outputs" / "sweeps"
+    shutil.copytree(sweep, store / sweep.name)
+    users = store / "9999-12-31_user"                       # newer than the paper's
+    shutil.copytree(sweep, users)
+    for run_json in users.glob("*/run.json"):
+        info = json.loads(run_json.read_text())
+        info["sweep"]["dir"] = str(users)
+        info["overrides"] = info["overrides"] + change["overrides"]
+        info["summary"] |= change["summary"]
+        run_json.chmod(0o644)
+        files.write_json(run_json, info)
+    chosen = report.load_runs(tmp_path / "outputs", "ensemble_size")
+    assert sorted(r.dir.name for r in chosen) == sorted(r.dir.name for r in papers)
+    assert {r.dir.parent.name for r in chosen} == {sweep.name}
+    assert len(report.load_runs(tmp_path / "outputs")) == 2 * len(papers)     # both stored, only one is the paper's
+
+
 def test_tampered_table_is_refused(root, tmp_path):
     import shutil
     run = report.load_runs(root, "paper")[0]
