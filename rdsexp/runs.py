@@ -1,8 +1,78 @@
-"""The run catalog as a public module: `rdsexp-runs ...` or `python -m rdsexp.runs ...` (see rdsexp.experiment.runs)."""
+"""The run catalog as a public module: `rdsexp-runs ...` or `python -m rdsexp.runs ...` (see
+rdsexp.experiment.runs), and `plot`, a figure of any sweep (rdsexp.report.sweep_plot), which sits a
+layer above the store and is added here.
+
+    rdsexp-runs plot SWEEP|--where "..." --x KEY [--x KEY2] --y METRIC [--hue KEY] [--logx] [--logy] [--out DIR]
+"""
 import sys
+from pathlib import Path
 
 from .experiment.runs import *  # noqa: F403
-from .experiment.runs import __all__, main  # noqa: F401
+from .experiment.runs import DEFAULT_ROOT, locate_sweep, search
+from .experiment.runs import __all__ as _catalog
+from .experiment.runs import main as _main
+
+__all__ = [*_catalog, "cli", "plot"]
+
+
+def plot(sweep: str | None = None, *, x, y: str, where: str | None = None, hue: str | None = None,
+         logx: bool = False, logy: bool = False, out=None, name: str | None = None, root=DEFAULT_ROOT):
+    """Draw metric `y` against the swept key `x` (two keys: a heatmap) for the runs of `sweep` (a sweep
+    directory or name, `rdsexp-runs show`) and/or those matching `where` (`search`), one row per
+    computation. Returns (the points table, the files written: PNG, PDF, caption, CSV, lineage JSON);
+    out: the directory (default the sweep's directory, else outputs/report)."""
+    from .report import sweep_plot
+    if sweep is None and where is None:
+        raise ValueError("plot: name a SWEEP or give --where")
+    directory = None
+    if sweep is not None:
+        directory = locate_sweep(sweep, Path(root))
+        if directory is None:
+            raise LookupError(f"no sweep {sweep!r} under {root}")
+    table = search(directory if directory is not None else Path(root), where)
+    if not len(table):
+        raise ValueError(f"plot: no runs{f' of sweep {sweep}' if sweep else ''}{f' with {where}' if where else ''}")
+    out = Path(out) if out is not None else (directory if directory is not None else Path(root) / "report")
+    keys = x if isinstance(x, str) else list(x)
+    points = sweep_plot.aggregate(table, keys, y, hue=hue)
+    return points, sweep_plot.plot(table, keys, y, hue=hue, logx=logx, logy=logy, out=out, name=name)
+
+
+def _add_plot_arguments(p) -> None:
+    p.add_argument("sweep", nargs="?", help="a sweep directory or name (default: the runs --where selects)")
+    p.add_argument("--where", help='filter, e.g. "plant == \'mine\' and enkf.q_scale >= 1"')
+    p.add_argument("--x", action="append", required=True, help="the swept key (twice, or KEY1,KEY2: a heatmap)")
+    p.add_argument("--y", required=True, help="the metric, e.g. closed_loop_rate")
+    p.add_argument("--hue", help="a key drawn as one line per value")
+    p.add_argument("--logx", action="store_true")
+    p.add_argument("--logy", action="store_true")
+    p.add_argument("--out", help="directory of the figure (default: the sweep's directory, else ROOT/report)")
+    p.add_argument("--name", help="file name without extension (default: Y_vs_X)")
+    p.add_argument("--root", default=str(DEFAULT_ROOT))
+
+
+def _plot_command(args) -> int:
+    keys = [k.strip() for part in args.x for k in part.split(",") if k.strip()]
+    points, paths = plot(args.sweep, x=keys[0] if len(keys) == 1 else keys, y=args.y, where=args.where,
+                         hue=args.hue, logx=args.logx, logy=args.logy, out=args.out, name=args.name,
+                         root=args.root)
+    print(points.to_string(index=False, float_format=lambda v: f"{v:.4g}", na_rep="-"))
+    print("\n".join(str(p) for p in paths))
+    return 0
+
+
+COMMANDS = {"plot": ("a metric against swept keys: mean over seeds, 95% interval, failed fraction; PNG, PDF, "
+                     "lineage", _add_plot_arguments, _plot_command)}
+
+
+def main(argv=None) -> int:
+    return _main(argv, COMMANDS)
+
+
+def cli() -> None:
+    """Console entry point `rdsexp-runs`."""
+    sys.exit(main())
+
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -26,7 +26,7 @@ from .store import RunStore, layout, provenance, read_run, read_table, run_damag
 from .store.table import KEY_METRICS, as_text, changed_params, one_row_per_run, sweep_results
 
 DEFAULT_ROOT = Path(layout.DEFAULT_ROOT)
-__all__ = ["DEFAULT_ROOT", "changed", "check", "cli", "compare_tables", "diff", "load", "main", "search", "verify"]
+__all__ = ["DEFAULT_ROOT", "changed", "check", "compare_tables", "diff", "load", "main", "search", "verify"]
 IDENTITY_SHOWN = ["id", "sweep", "plant", "seed", "overrides", "status"]     # `list`'s default columns, then
 SHOWN = KEY_METRICS[:4]                                                        # its key metrics
 
@@ -271,7 +271,24 @@ def _report(result: tuple) -> int:
     return status if isinstance(status, int) and not isinstance(status, bool) else int(not status)
 
 
-def main(argv=None) -> int:
+def main(argv=None, commands: dict | None = None) -> int:
+    """`rdsexp-runs`: parse argv and run the command; its exit code. commands: more subcommands from
+    the layers above (`rdsexp.runs` adds `plot`), {name: (help, add_arguments(parser), run(args) -> int)}."""
+    parser, sub = _parser()
+    for name, (text, add_arguments, _) in (commands or {}).items():
+        add_arguments(sub.add_parser(name, help=text))
+    args = parser.parse_args(argv)
+    try:
+        with warnings_as_lines():
+            if args.command in (commands or {}):
+                return commands[args.command][2](args)
+            return _command(args)
+    except (ValueError, LookupError) as err:
+        print(f"rdsexp-runs: {err}", file=sys.stderr)
+        return 2
+
+
+def _parser():
     parser = argparse.ArgumentParser(prog="rdsexp-runs", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
     p_list = sub.add_parser("list", help="table of runs under DIR (default outputs/)")
@@ -296,13 +313,7 @@ def main(argv=None) -> int:
     p_diff.add_argument("a")
     p_diff.add_argument("b")
     p_diff.add_argument("--root", default=str(DEFAULT_ROOT))
-    args = parser.parse_args(argv)
-    try:
-        with warnings_as_lines():
-            return _command(args)
-    except (ValueError, LookupError) as err:
-        print(f"rdsexp-runs: {err}", file=sys.stderr)
-        return 2
+    return parser, sub
 
 
 def _command(args) -> int:
@@ -401,10 +412,5 @@ def view(target: Path) -> int:
     return subprocess.call(command)
 
 
-def cli() -> None:
-    """Console entry point `rdsexp-runs`."""
-    sys.exit(main())
-
-
 if __name__ == "__main__":
-    cli()
+    sys.exit(main())

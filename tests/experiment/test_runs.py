@@ -195,3 +195,25 @@ def test_rx_runs_is_the_catalog_imported_on_first_use():
             "import rdsexp.runs; assert rx.runs.load is rdsexp.runs.load and rx.runs.search; print(light)")
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert proc.stdout.strip() == "True"                   # `import rdsexp` alone stays free of pandas
+
+
+def test_plot_a_sweep_from_the_command_line_and_from_python(root, tmp_path, capsys):
+    """`rdsexp-runs plot SWEEP --x KEY --y METRIC`: the points table printed, the figure and its lineage written;
+    rdsexp.runs.plot gives the same points from a --where selection."""
+    rc = runs.main(["plot", "A", "--root", str(root), "--x", "enkf.q_scale", "--y", "closed_loop_rate",
+                    "--out", str(tmp_path)])
+    out = capsys.readouterr().out.splitlines()
+    assert rc == 0 and out[0].split()[:3] == ["enkf.q_scale", "mean", "low"]
+    assert [float(line.split()[0]) for line in out[1:4]] == [0.25, 1.0, 4.0]
+    lineage = json.loads((tmp_path / "closed_loop_rate_vs_enkf.q_scale.json").read_text())
+    assert sorted(r["id"] for r in lineage["runs"]) == ["A/0", "A/1", "A/2"]
+    assert (tmp_path / "closed_loop_rate_vs_enkf.q_scale.png").stat().st_size > 0
+    points, paths = runs.plot(x="q_scale", y="closed_loop_rate", where="sweep_id == 'A' or sweep_id == 'B'",
+                              out=tmp_path / "both", root=root)
+    assert list(points["n"]) == [2, 2, 2] and len(paths) == 5
+    np.testing.assert_allclose(points["mean"], [0.9, 0.92, 0.94])
+
+
+def test_plot_needs_a_selection(root, capsys):
+    assert runs.main(["plot", "--root", str(root), "--x", "q_scale", "--y", "lam"]) == 2
+    assert capsys.readouterr().err.strip() == "rdsexp-runs: plot: name a SWEEP or give --where"
