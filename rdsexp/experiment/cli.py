@@ -4,13 +4,22 @@ and chooses the exit code.
 One run: validate the config (exit 2 on a bad value, no run directory), compute and record it
 (`runner.execute`), print its summary. A run that fails is recorded with its status (`failures`):
 a single run exits 1 (2 for a config error), a sweep goes on with its next job.
+
+The command line's own errors are one line on stderr too: a key no config has (`enkf.ensemble_sze=50`,
+with the closest known key) and a YAML syntax error (file:line:column) exit 2 before any run or sweep
+directory exists; Ctrl-C ends a run or sweep with exit 130 and one line saying what completed.
+HYDRA_FULL_ERROR=1 shows the complete traceback instead.
 """
 from __future__ import annotations
 
+import json
 import logging
+import os
+import re
 import shutil
 import signal
 import sys
+import warnings
 from pathlib import Path
 
 import hydra
@@ -18,12 +27,13 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from omegaconf import DictConfig
 
-from ..errors import RunExit, WriteError, warnings_as_lines
+from ..errors import ConfigError, RunExit, WriteError, warnings_as_lines
 from .store import layout
 
 log = logging.getLogger("rdsexp")
 CONF_PACKAGE = "pkg://rdsexp.conf"        # conf/ of the repository, shipped as the package rdsexp.conf
 layout.register_resolvers()               # hydra.run.dir and hydra.sweep.dir (conf/config.yaml)
+RUNNING: dict[str, Path | None] = {}      # the run (and sweep) directory of the job started last, for Ctrl-C
 
 
 @hydra.main(config_path=CONF_PACKAGE, config_name="config", version_base="1.3")
@@ -35,6 +45,7 @@ def hydra_main(cfg: DictConfig) -> dict:
     hc = HydraConfig.get()
     run_dir = Path(hc.runtime.output_dir)
     multirun = hc.mode == RunMode.MULTIRUN
+    RUNNING.update(run_dir=run_dir, sweep_dir=Path(hc.sweep.dir) if multirun else None)
     try:
         info = execute(cfg, run_dir)
     except Exception as err:              # noqa: BLE001 -- every failure becomes a recorded status
@@ -83,6 +94,7 @@ def main() -> None:
     # an ignored SIGINT): Python's default handler raises KeyboardInterrupt, which ends the run
     # with run.json still "incomplete" and every finished file complete
     signal.signal(signal.SIGINT, signal.default_int_handler)
+    RUNNING.clear()
     for arg in sys.argv[1:]:
         # enkf.Q's default is the mapping {x, xi, matrix}: Hydra cannot merge a list into it and
         # would end with a stack of merge errors; say in one line where a matrix goes
@@ -97,9 +109,12 @@ def main() -> None:
         if text is not None:
             print(text)
             return
+    # `rdsexp enkf.ensemble_size=50,100 -m b=2`: argparse takes the overrides as one run of arguments and
+    # would refuse the ones after -m; -m takes no value, so it goes first
+    multirun = [arg for arg in sys.argv[1:] if arg in ("-m", "--multirun")]
+    sys.argv = [sys.argv[0], *multirun, *(arg for arg in sys.argv[1:] if arg not in multirun)]
     try:
-        with warnings_as_lines():
-            hydra_main()
+        run_hydra_main()
     except RunExit as exit_:                 # rdsexp's own ending, with its exit code
         sys.exit(exit_.code)
     except SystemExit as exit_:
@@ -109,6 +124,150 @@ def main() -> None:
             print("rdsexp: config error (reported by Hydra above)", file=sys.stderr)
             sys.exit(2)
         raise
+
+
+# Hydra turns an exception of a callback into a warning and goes on: the sweep's validation
+# (SweepSummary.on_multirun_start) must end the sweep before its directory exists
+SWEEP_VALIDATION = r"Callback SweepSummary\.on_multirun_start raised"
+
+
+def run_hydra_main() -> None:
+    """hydra_main, with Hydra's errors raised here instead of printed by Hydra (HYDRA_FULL_ERROR=1
+    while it runs): a key no config has and a YAML syntax error end with one line (exit 2), Ctrl-C
+    with one line saying what completed (exit 130). HYDRA_FULL_ERROR=1 set by the user: the traceback."""
+    full_error = os.environ.get("HYDRA_FULL_ERROR")
+    try:
+        os.environ["HYDRA_FULL_ERROR"] = "1"
+        try:
+            with warnings_as_lines(), warnings.catch_warnings():
+                warnings.filterwarnings("error", SWEEP_VALIDATION, UserWarning)
+                hydra_main()
+        finally:
+            if full_error is None:
+                del os.environ["HYDRA_FULL_ERROR"]
+            else:
+                os.environ["HYDRA_FULL_ERROR"] = full_error
+    except KeyboardInterrupt:
+        if full_error == "1":
+            raise
+        signal.signal(signal.SIGINT, signal.SIG_IGN)      # a second Ctrl-C does not cut the line short
+        print(f"rdsexp: {interrupted_text()}", file=sys.stderr)
+        raise RunExit(130) from None
+    except Exception as err:
+        if full_error == "1":
+            raise
+        line = config_error_text(err)
+        if line is None:
+            hydra_report(err)                             # exits 1: "reported by Hydra above", exit 2
+        print(f"rdsexp: config error: {line}", file=sys.stderr)
+        raise RunExit(2) from None
+
+
+def config_error_text(err: BaseException) -> str | None:
+    """The one line of a config error Hydra raised (err or what it was raised from): a key no config
+    has, a YAML syntax error; None for any other error."""
+    import yaml
+    from hydra.errors import ConfigCompositionException
+    from omegaconf.errors import ConfigAttributeError, ConfigKeyError
+    chain = []
+    while err is not None and err not in chain:
+        chain.append(err)
+        err = err.__cause__ or err.__context__
+    for err in chain:
+        if isinstance(err, yaml.MarkedYAMLError) and err.problem_mark is not None:
+            return yaml_error_text(err)
+        cause = err.__cause__
+        if isinstance(err, ConfigCompositionException) and isinstance(cause, (ConfigAttributeError, ConfigKeyError)):
+            # "Could not override 'enkf.ensemble_sze'.\nTo append to your config use +enkf.ensemble_sze=50"
+            name = re.search(r"override '([^']+)'", str(err))
+            added = re.search(r"use (\+\S+)", str(err))
+            if name and added and cause.parent_node is not None:
+                return unknown_key_text(name.group(1), added.group(1), cause.parent_node._get_root())
+    return None
+
+
+def unknown_key_text(name: str, added: str, cfg) -> str:
+    """`name=value` names a key the composed config `cfg` does not have: the closest known key
+    (the check of `+key=value`, `config.check_overrides`), or how to add a key rdsexp reads."""
+    from omegaconf import OmegaConf
+
+    from .config import check_overrides
+    try:                                  # rdsexp's keys only: hydra.* does not resolve before a job starts
+        check_overrides(OmegaConf.masked_copy(cfg, [k for k in cfg if k != "hydra"]), [f"+{name}=null"])
+    except ConfigError as err:            # "<name>: unknown key (added with +<name>), did you mean <key>?"
+        hint = str(err).split(")", 1)[1].lstrip(",; ")
+        return f"{name}: no such key; {hint}"
+    except Exception:                     # noqa: BLE001 -- a config that does not resolve here: no hint
+        return f"{name}: no such key"
+    return f"{name}: not in the config; to add it, use {added}"
+
+
+def yaml_error_text(err) -> str:
+    """`file:line:column: problem (context at line, column)` of a YAML syntax error (1-based)."""
+    mark = err.problem_mark
+    text = f"{_shown(mark.name)}:{mark.line + 1}:{mark.column + 1}: {err.problem}"
+    if err.context and err.context_mark is not None:
+        where = "" if err.context_mark.name != mark.name else \
+            f" at line {err.context_mark.line + 1}, column {err.context_mark.column + 1}"
+        text += f" ({err.context}{where})"
+    return text
+
+
+def hydra_report(err: Exception) -> None:
+    """Hydra's own report of an error rdsexp does not put in one line (as Hydra prints it without
+    HYDRA_FULL_ERROR: its message, or a traceback for what is not one of Hydra's errors); exits 1."""
+    from hydra._internal.utils import run_and_report
+
+    def reraise():
+        raise err
+    run_and_report(reraise)
+
+
+def interrupted_text() -> str:
+    """What a Ctrl-C left behind: the run's run.json "incomplete", or the sweep's completed jobs
+    (reused when the same command runs again)."""
+    from omegaconf import OmegaConf
+
+    from .sweep import _SWEEP_BARS, sweep_points
+    bar = _SWEEP_BARS.pop(os.getpid(), None)
+    if bar is not None:
+        bar.close()                                  # the bar's line ends before this one
+    again = "run the same command again to resume: the completed jobs are reused"
+    if not RUNNING:                                  # no job started here (or each in a launcher's worker)
+        return f"interrupted: the sweep stopped; {again}" if bar is not None else \
+            "interrupted before the run started; nothing was recorded"
+    if RUNNING["sweep_dir"] is None:
+        run_dir = RUNNING["run_dir"]
+        if _status(run_dir) != "incomplete":
+            return "interrupted: the run stopped before it recorded anything; run the same command again to start it"
+        return (f'interrupted: run {_shown(run_dir)} stopped, its run.json stays "incomplete"; run the same '
+                "command again to start it over")
+    sweep_dir = RUNNING["sweep_dir"]
+    done = sum(_status(job) == "complete" for job in sweep_dir.iterdir() if job.is_dir())
+    try:
+        config = OmegaConf.load(sweep_dir / layout.MULTIRUN)
+        total, reuse = f" of {len(sweep_points(config))}", bool(config.get("reuse", True))
+    except Exception:                                # noqa: BLE001 -- the count alone
+        total, reuse = "", True
+    if not reuse:
+        again = "the same command runs every job again (reuse=false)"
+    return f"interrupted: sweep {_shown(sweep_dir)} stopped with {done}{total} jobs completed; {again}"
+
+
+def _status(run_dir: Path) -> str | None:
+    """run.json's status in run_dir, None without a readable run.json."""
+    try:
+        return json.loads((run_dir / layout.RUN_JSON).read_text()).get("status")
+    except (OSError, ValueError, AttributeError):
+        return None
+
+
+def _shown(path) -> str:
+    """A path as the terminal shows it: relative to the working directory when under it."""
+    try:
+        return str(Path(path).resolve().relative_to(Path.cwd().resolve()))
+    except (ValueError, OSError):
+        return str(path)
 
 
 def help_text(argv: list[str]) -> str | None:

@@ -1,0 +1,131 @@
+"""The command line's own errors, each one line on stderr like rdsexp's config errors: a key no config
+has, a YAML syntax error, Ctrl-C during a run or a sweep; and overrides on both sides of -m."""
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+from conftest import SMALL, rdsexp
+
+TINY = ["closed_loop.paths=2", "enkf.ensemble_size=10", "closed_loop.horizon=20", "tracking.level=off"]
+
+
+def one_line(proc) -> str:
+    """The only line on stderr (no traceback, no Hydra report around it)."""
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1, proc.stderr
+    return lines[0]
+
+
+@pytest.mark.parametrize("args, message", [
+    (["enkf.ensemble_sze=50"], "enkf.ensemble_sze: no such key; did you mean enkf.ensemble_size?"),
+    (["-m", "enkf.ensemble_sze=50,100"], "enkf.ensemble_sze: no such key; did you mean enkf.ensemble_size?"),
+    (["enkf.initial.meen=0"], "enkf.initial.meen: no such key; did you mean enkf.initial.mean?"),
+    (["seeed=3"], "seeed: no such key; did you mean seed?"),
+    # outside rdsexp's groups `+` may add a key (check_overrides): Hydra's advice, in one line
+    (["enkff.ensemble_size=3"], "enkff.ensemble_size: not in the config; to add it, use +enkff.ensemble_size=3"),
+], ids=["run", "sweep", "nested", "top_level", "no_group"])
+def test_unknown_key_without_plus_is_one_line_with_the_closest_key(tmp_path, args, message):
+    proc = rdsexp(*args, *TINY, cwd=tmp_path, check=False)
+    assert proc.returncode == 2
+    assert one_line(proc) == f"rdsexp: config error: {message}"
+    assert not (tmp_path / "outputs").exists()            # neither a run nor a sweep directory
+
+
+@pytest.mark.parametrize("args, message", [
+    (["plant=bad"], "conf/plant/bad.yaml:3:5: mapping values are not allowed here"),
+    (["-m", "plant=paper,unclosed"], "conf/plant/unclosed.yaml:4:1: expected ',' or ']', but got '<scalar>' "
+                                     "(while parsing a flow sequence at line 2, column 4)"),
+], ids=["run", "sweep"])
+def test_yaml_syntax_error_is_one_line_with_file_line_and_column(tmp_path, args, message):
+    (tmp_path / "conf" / "plant").mkdir(parents=True)
+    (tmp_path / "conf" / "plant" / "bad.yaml").write_text("name: bad\nA: [[0.9]]\nB: a: 1\n")
+    (tmp_path / "conf" / "plant" / "unclosed.yaml").write_text(
+        "name: unclosed\nA: [[0.9, 0.1],\n    [0.0, 0.8]\nB: [[1.0], [0.0]]\n")
+    proc = rdsexp("--config-dir", "conf", *args, *TINY, cwd=tmp_path, check=False)
+    assert proc.returncode == 2
+    assert one_line(proc) == f"rdsexp: config error: {message}"
+    assert not (tmp_path / "outputs").exists()
+
+
+def test_overrides_on_both_sides_of_m_make_the_same_sweep(tmp_path):
+    """`rdsexp enkf.ensemble_size=10,1 -m ...` is `rdsexp -m enkf.ensemble_size=10,1 ...` (argparse alone
+    refuses the overrides after -m): the same two jobs, the second refused by the sweep's validation
+    before any job runs (a cheap way to see every job's overrides)."""
+    rest = [o for o in TINY if not o.startswith("enkf.ensemble_size")]
+    before = rdsexp("enkf.ensemble_size=10,1", rest[0], "-m", *rest[1:], cwd=tmp_path, check=False)
+    after = rdsexp("-m", "enkf.ensemble_size=10,1", *rest, cwd=tmp_path, check=False)
+    assert before.returncode == after.returncode == 2
+    assert one_line(before) == one_line(after) == (
+        f"rdsexp: config error in sweep job enkf.ensemble_size=1 {' '.join(rest)}: "
+        "enkf.ensemble_size: 1 is not allowed, expected an integer >= 2")
+
+
+def test_hydra_full_error_keeps_the_traceback_and_the_environment(tmp_path, monkeypatch):
+    from hydra.errors import ConfigCompositionException
+    monkeypatch.delenv("HYDRA_FULL_ERROR", raising=False)
+    assert rdsexp("enkf.ensemble_sze=50", cwd=tmp_path, check=False).returncode == 2
+    assert "HYDRA_FULL_ERROR" not in os.environ             # set only while Hydra runs
+    monkeypatch.setenv("HYDRA_FULL_ERROR", "1")
+    with pytest.raises(ConfigCompositionException):
+        rdsexp("enkf.ensemble_sze=50", cwd=tmp_path, check=False)
+    assert os.environ["HYDRA_FULL_ERROR"] == "1"
+
+
+def start(tmp_path, *args) -> subprocess.Popen:
+    # SIGINT ignored by the parent (a test runner in the background): rdsexp must still stop on it
+    return subprocess.Popen([sys.executable, "-m", "rdsexp", *args], cwd=tmp_path, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
+
+
+def status(path):
+    try:
+        return json.loads(path.read_text())["status"]
+    except (OSError, ValueError, KeyError):
+        return None
+
+
+def interrupt_when(proc, started, timeout=60.0) -> str:
+    """Send SIGINT once started() holds; returns the single stderr line after exit 130."""
+    end = time.time() + timeout
+    try:
+        while not started():
+            assert proc.poll() is None, proc.stderr.read()
+            assert time.time() < end, "the run did not start"
+            time.sleep(0.05)
+        proc.send_signal(signal.SIGINT)
+        _, stderr = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 130, stderr
+    assert "Traceback" not in stderr and "KeyboardInterrupt" not in stderr
+    lines = stderr.strip().splitlines()
+    assert len(lines) == 1, stderr
+    return lines[0]
+
+
+def test_ctrl_c_during_a_run_is_one_line_and_exit_130(tmp_path):
+    proc = start(tmp_path, "closed_loop.paths=400", "tracking.recording=false")   # some 15 s, stopped after 3
+    line = interrupt_when(proc, lambda: any(status(p) == "incomplete" for p in tmp_path.glob("outputs/runs/*/run.json")))
+    (run_json,) = tmp_path.glob("outputs/runs/*/run.json")
+    assert status(run_json) == "incomplete"
+    assert line == (f'rdsexp: interrupted: run outputs/runs/{run_json.parent.name} stopped, its run.json stays '
+                    '"incomplete"; run the same command again to start it over')
+
+
+def test_ctrl_c_during_a_sweep_says_how_many_jobs_completed(tmp_path):
+    proc = start(tmp_path, "+sweep=seeds", "seed=range(0,4)", *SMALL, "tracking.recording=false",
+                 "model.reported=null")
+    line = interrupt_when(proc, lambda: any(status(p) == "complete"
+                                            for p in tmp_path.glob("outputs/sweeps/*/*/run.json")))
+    (sweep,) = (tmp_path / "outputs" / "sweeps").iterdir()
+    done = sum(status(p) == "complete" for p in sweep.glob("*/run.json"))
+    assert 1 <= done < 4
+    assert line == (f"rdsexp: interrupted: sweep outputs/sweeps/{sweep.name} stopped with {done} of 4 jobs "
+                    "completed; run the same command again to resume: the completed jobs are reused")
