@@ -37,9 +37,11 @@ RUNNING: dict[str, Path | None] = {}      # the run (and sweep) directory of the
 
 
 @hydra.main(config_path=CONF_PACKAGE, config_name="config", version_base="1.3")
-def hydra_main(cfg: DictConfig) -> dict:
+def hydra_main(cfg: DictConfig) -> dict | float:
+    """One job: its run.json content, or with `objective: METRIC` that metric as a float (what an
+    optimizing sweeper such as Optuna's reads; `runner.objective_value`)."""
     # imported here: `rdsexp --help` and shell completion need Hydra only, not the numerics
-    from .runner import execute
+    from .runner import execute, objective_value
     from .store import write_sweep_summary
     from .summary import summary_text
     hc = HydraConfig.get()
@@ -59,6 +61,8 @@ def hydra_main(cfg: DictConfig) -> dict:
         print(summary_text(info, run_dir))
         if info.get("status") != "complete":
             raise RunExit(1)
+    if cfg.get("objective"):
+        return objective_value(info, cfg.objective, float(cfg.get("objective_penalty", 1.0)))
     return info
 
 

@@ -402,6 +402,7 @@ def build(cfg) -> Experiment:
     if reference is not None and not isinstance(reference, dict):
         raise ConfigError(f"plant.reference: {reference!r} is not allowed, expected null or a mapping")
 
+    check_objective(cfg)
     identification = IdentificationSettings.from_config(cfg, plant)
     filter_ = FilterSettings.from_config(cfg, model, plant, identification.xi_guess)
     design = DesignSettings.from_config(cfg, model, reported)
@@ -411,6 +412,19 @@ def build(cfg) -> Experiment:
     return Experiment(plant=plant, model=model, plant_name=plant_name, model_name=model_name, reported=reported,
                       reference=reference, q0=q0, seed=seed, filter=filter_, identification=identification,
                       design=design, loop=loop, tracking=tracking, controller=controller)
+
+
+# metrics a job may return as its objective (config `objective`), all minimized
+OBJECTIVES = ("lam", "rate_plant", "closed_loop_rate", "open_loop_rate", "online_rate", "closed_loop_exact_rate",
+              "xi_mean_error", "xi_std_error", "closed_loop_failed_fraction", "seconds")
+
+
+def check_objective(cfg) -> None:
+    """`objective` is null or one of OBJECTIVES; `objective_penalty` a finite number >= 0."""
+    objective = OmegaConf.select(cfg, "objective")
+    if objective is not None and objective not in OBJECTIVES:
+        raise ConfigError(f"objective: {objective!r} is not allowed, expected null or one of {', '.join(OBJECTIVES)}")
+    _number(OmegaConf.select(cfg, "objective_penalty", default=1.0), "objective_penalty", low=0)
 
 
 def _method_and_options(cfg, group: str) -> tuple[str, dict]:
@@ -536,7 +550,7 @@ def _identification_feedback(cfg, plant: AffineRandomSystem) -> tuple[str, np.nd
 
 # ------------------------------------------------------------------------- strict overrides
 GROUPS = ("plant", "model", "enkf", "identification", "gain", "closed_loop", "tracking")
-TOP_LEVEL = ("seed", "reuse")
+TOP_LEVEL = ("seed", "reuse", "objective", "objective_penalty")
 # keys `build` reads with a default when the group's file does not set them: `+key=value` may add them
 OPTIONAL_KEYS = ("plant.name", "plant.C", "plant.D", "plant.q0", "plant.poles", "plant.reference",
                  "plant.identification_feedback", "plant.rate_window", "plant.filter_sees_disturbance",

@@ -654,6 +654,10 @@ def _summary(exp: Experiment, dist, chosen, tables: dict) -> dict:
         family = exp.plant.xi_dist
         s.update(plant_xi_mean=(T @ family.mean + t).tolist(),
                  plant_xi_std=np.sqrt(np.diag(T @ family.cov @ T.T)).tolist())
+        if dist is not None:             # the model's error: RMS over components of mean and std
+            for what in ("mean", "std"):
+                err = np.subtract(s[f"xi_{what}"], s[f"plant_xi_{what}"])
+                s[f"xi_{what}_error"] = float(np.sqrt(np.mean(err ** 2)))
     if chosen is not None:
         s.update(synthesis_status=chosen.status, lam=chosen.lam,
                  rate_plant=safe_rate(exp.plant, None, chosen.F) if chosen.F is not None else None)

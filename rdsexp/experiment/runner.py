@@ -97,10 +97,30 @@ def run_info(run_dir: Path, job_config: dict, seed: int) -> tuple[dict, str]:
     }, code["diff"]
 
 
+NOT_COMPUTED = ("store", "objective", "objective_penalty")     # config keys that do not change what a run computes
+
+
 def job_config(cfg: DictConfig) -> dict:
     """The resolved job config without the hydra node (what the run computes from; `store`, where
-    it is recorded, is not part of it)."""
-    return {k: v for k, v in OmegaConf.to_container(cfg, resolve=True).items() if k != "store"}
+    it is recorded, and what the job returns to a sweeper are not part of it)."""
+    return {k: v for k, v in OmegaConf.to_container(cfg, resolve=True).items() if k not in NOT_COMPUTED}
+
+
+def objective_value(info: dict, name: str, penalty: float = 1.0) -> float:
+    """The job's objective (config `objective`, minimized): the metric `name` of run.json's summary (a
+    rate's point estimate), plus penalty x the closed loop's failed fraction of paths; inf when the
+    run did not complete or the metric is not finite (e.g. a rate that no path window could measure)."""
+    s = info.get("summary") or {}
+    if info.get("status") != "complete":
+        return float("inf")
+    failed = float((s.get("closed_loop_failed") or {}).get("fraction", 0.0))
+    if name == "closed_loop_failed_fraction":
+        return failed if "closed_loop_status" in s else float("inf")
+    value = info.get("seconds") if name == "seconds" else s.get(name)
+    value = value[0] if isinstance(value, list) else value
+    if value is None or not np.isfinite(value):
+        return float("inf")
+    return float(value) + penalty * failed
 
 
 def store_of(cfg: DictConfig) -> RunStore:

@@ -34,6 +34,13 @@ def sweep_points(config: DictConfig) -> list[list[str]]:
     return BasicSweeper.split_arguments(parser.parse_overrides(list(params.values())), max_batch_size=None)[0]
 
 
+def enumerable(config: DictConfig) -> bool:
+    """Whether the sweep's jobs are known before it starts (Hydra's basic sweeper), not proposed trial by
+    trial (an optimizing sweeper such as Optuna's)."""
+    target = str(OmegaConf.select(config, "hydra.sweeper._target_") or "")
+    return target.endswith("BasicSweeper")
+
+
 def compose_points(points: list[list[str]], reuse: bool = False):
     """Yield (overrides, composed config) for every job, composing once per choice of config groups.
 
@@ -100,10 +107,14 @@ class SweepSummary(Callback):
         writable_or_exit(Path(config.hydra.run.dir))
 
     def on_multirun_start(self, config: DictConfig, **kwargs) -> None:
-        points = sweep_points(config)
+        if enumerable(config):
+            points = sweep_points(config)
+        else:                             # an optimizing sweeper proposes its points as it goes: the
+            points = [list(config.hydra.overrides.task)]     # command line is checked, each trial by its job
         validate_sweep(points)            # a config error leaves nothing behind, not even the sweep dir
         writable_or_exit(Path(config.hydra.sweep.dir))
-        _SWEEP_BARS[os.getpid()] = tqdm(total=len(points), desc="sweep", unit="job", disable=None, file=sys.stderr)
+        total = len(points) if enumerable(config) else OmegaConf.select(config, "hydra.sweeper.n_trials")
+        _SWEEP_BARS[os.getpid()] = tqdm(total=total, desc="sweep", unit="job", disable=None, file=sys.stderr)
 
     def on_job_end(self, config: DictConfig, job_return, **kwargs) -> None:
         bar = _SWEEP_BARS.get(os.getpid())      # None in launcher worker processes
