@@ -477,8 +477,9 @@ def _summary_tabs(tables: dict[str, pd.DataFrame], trajectories: pd.DataFrame) -
 
 
 def read_series(path, entity: str, index: str = "k") -> tuple[np.ndarray, np.ndarray]:
-    """Steps (timeline `index`: k, or job in a sweep's summary.rrd) and scalar values of one series
-    entity of an .rrd (e.g. /summary/rms/closed_loop/mean), read with Rerun's own reader."""
+    """Steps (timeline `index`: k, or a swept key in a sweep's summary.rrd; a duration timeline reads back as
+    timedelta64) and scalar values of one series entity of an .rrd (e.g. /summary/rms/closed_loop/mean), read
+    with Rerun's own reader; an entity with several instances per step gives its values step by step."""
     store = rr.chunk.RrdReader(Path(path)).store().stream().filter(content=[entity]).collect()
     column = store.schema().column_for(entity, _SCALARS).name
     table = store.reader(index=index).to_arrow_table().sort_by(index)
@@ -488,43 +489,281 @@ def read_series(path, entity: str, index: str = "k") -> tuple[np.ndarray, np.nda
 
 
 # ------------------------------------------------------------------------------------ sweeps
-SWEEP_METRICS = ("metrics.lam", "metrics.rate_plant", "metrics.closed_loop_rate", "metrics.closed_loop_rate_low",
-                 "metrics.closed_loop_rate_high", "metrics.open_loop_rate", "metrics.closed_loop_failed_fraction")
+# Metrics drawn against the swept values, in this order: rates (lambda, exact and empirical), then fractions;
+# any other numeric metrics.*rate* (online: final_rate_plant_median, ...) and metrics.*_fraction follow.
+SWEEP_METRICS = ("metrics.lam", "metrics.rate_plant", "metrics.closed_loop_rate", "metrics.open_loop_rate",
+                 "metrics.closed_loop_exact_rate", "metrics.open_loop_exact_rate",
+                 "metrics.closed_loop_failed_fraction", "metrics.open_loop_failed_fraction")
+# One color per hue combination, in the order of its first job (fixed, so a sweep always looks the same).
+_HUE_COLORS = [(31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40), (148, 103, 189), (140, 86, 75),
+               (227, 119, 194), (127, 127, 127), (188, 189, 34), (23, 190, 207)]
+# The jobs table's metrics (closed_loop_rate with its interval).
+_JOB_METRICS = ("metrics.lam", "metrics.rate_plant", "metrics.closed_loop_rate", "metrics.closed_loop_verdict",
+                "metrics.closed_loop_failed_fraction", "metrics.open_loop_rate")
+_CORNERS = (rrb.Corner2D.RightBottom, rrb.Corner2D.RightTop, rrb.Corner2D.LeftTop, rrb.Corner2D.LeftBottom)
+_FRACTION_AXIS = (-0.03, 1.03)
+# The whole timeline (every x value, the margins of /sweep/x_range included), not a window around the cursor.
+_WHOLE_X = rrb.archetypes.TimeAxis(view_range=rr.encodings.TimeRange(start=rr.encodings.TimeRangeBoundary.infinite(),
+                                                                      end=rr.encodings.TimeRangeBoundary.infinite()))
+
+
+def _is_number(column: pd.Series) -> bool:
+    return pd.api.types.is_numeric_dtype(column) and not pd.api.types.is_bool_dtype(column)
+
+
+def _floats(column: pd.Series) -> np.ndarray:
+    """A column's values as float64, NaN for missing ones (nullable integers such as `job` included)."""
+    return pd.to_numeric(column, errors="coerce").to_numpy(np.float64, na_value=np.nan)
+
+
+def _short(column: str) -> str:
+    return column.split(".", 1)[1] if column.startswith(("params.", "metrics.")) else column
+
+
+def _sweep_metrics(table: pd.DataFrame) -> tuple[list[str], list[str]]:
+    """(rates, fractions): the numeric metrics.* columns with a value, SWEEP_METRICS first. Rates are lam and
+    the names with a `rate` word (not the interval bounds _low/_high nor the quantiles _q10/_q90)."""
+    names = [c for c in table.columns if c.startswith("metrics.")]
+    rates, fractions = [], []
+    for c in [c for c in SWEEP_METRICS if c in names] + [c for c in names if c not in SWEEP_METRICS]:
+        if not _is_number(table[c]) or not table[c].notna().any():
+            continue
+        name = _short(c)
+        if name.endswith("_fraction"):
+            fractions.append(c)
+        elif name == "lam" or ("rate" in name.split("_") and not name.endswith(("_low", "_high", "_q10", "_q90"))):
+            rates.append(c)
+    return rates, fractions
+
+
+def _x_keys(table: pd.DataFrame, swept: list[str]) -> list[str]:
+    """The x axes of a sweep: its numeric swept keys but the seed (the repetition); the seed when nothing else
+    numeric is swept; the job index when nothing numeric is swept at all."""
+    numeric = [c for c in swept if _is_number(table[c])]
+    return [c for c in numeric if c != "params.seed"] or numeric or ["job"]
+
+
+def _x_timeline(key: str, values: np.ndarray) -> tuple[str, str, float]:
+    """(timeline name, TimeColumn kind, scale) of x key `key` with finite `values`: a sequence of the values when
+    all are integers; else a duration whose seconds are the values (the axis reads 250ms for 0.25, 2s for 2)
+    when they stay below 60 in magnitude (with at least 1e-6, for ns resolution); else a sequence of the values
+    times a power of ten. The name says how the axis reads: `KEY`, `KEY (1 s = 1)` or `KEY ×1000`."""
+    name = _short(key)
+    if np.allclose(values, np.rint(values), rtol=0, atol=1e-9):
+        return name, "sequence", 1.0
+    magnitude = np.abs(values[values != 0])
+    if magnitude.max() < 60 and magnitude.min() >= 1e-6:
+        return f"{name} (1 s = 1)", "duration", 1.0
+    for digits in range(1, 10):
+        if np.allclose(values * 10.0**digits, np.rint(values * 10.0**digits), rtol=1e-9, atol=0):
+            break
+    else:                                                     # keep four significant digits of the smallest
+        digits = int(np.clip(3 - np.floor(np.log10(magnitude.min())), 1, 9))
+    return f"{name} ×{10**digits}", "sequence", 10.0**digits
+
+
+def _x_times(kind: str, scale: float, values: np.ndarray) -> dict:
+    """TimeColumn keyword for x values on a timeline of `_x_timeline`."""
+    if kind == "duration":
+        return {"duration": values.astype(np.float64)}
+    return {"sequence": np.rint(values * scale).astype(np.int64)}
+
+
+def _function_of(table: pd.DataFrame, column: str, key: str) -> bool:
+    """Each value of `key` comes with one value of `column` (e.g. a config value derived from the swept one)."""
+    pairs = table[[key, column]].astype(str).drop_duplicates()
+    return not pairs[key].duplicated().any()
+
+
+def _hue_keys(table: pd.DataFrame, swept: list[str], x: str) -> list[str]:
+    """The swept keys whose combinations are the hues when `x` is the x axis: the other swept keys but the
+    seed, without those that follow from x or from a key already taken (one group override that sets two
+    params is one hue key)."""
+    keys: list[str] = []
+    for c in swept:
+        if c in (x, "params.seed") or (x != "job" and _function_of(table, c, x)):
+            continue
+        if not any(_function_of(table, c, k) and _function_of(table, k, c) for k in keys):
+            keys.append(c)
+    return keys
+
+
+def _hues(table: pd.DataFrame, keys: list[str]) -> tuple[pd.Series, dict[tuple, str]]:
+    """Each row's hue combination (a tuple of the values of `keys` as text) and, in the order of their first
+    job, every combination with its label `key=value, ...` ('all runs' without hue keys)."""
+    values = table[keys].map(_fmt) if keys else pd.DataFrame(index=table.index)
+    combos = pd.Series(list(values.itertuples(index=False, name=None)), index=table.index)
+    labels = {c: ", ".join(f"{k.rsplit('.', 1)[-1]}={v}" for k, v in zip(keys, c, strict=True)) or "all runs"
+              for c in dict.fromkeys(combos)}
+    return combos, labels
+
+
+def _sweep_series(rec, table: pd.DataFrame, metric: str, group: str, x: str, timeline: str, kind: str,
+                  scale: float, combos: pd.Series, labels: dict[tuple, str]) -> None:
+    """/sweep/{group}/{metric}/{x}/{hue}/mean (line: the mean of the metric over the runs at each x value, the
+    seeds) and .../runs (points: the runs, one instance per run at that x, in job order) for each hue (HUE: its
+    label, `all` without hue keys), on the timeline of x only."""
+    for i, (combo, label) in enumerate(labels.items()):
+        rows = table[(combos == combo) & np.isfinite(_floats(table[x]))]
+        if rows.empty:
+            continue
+        color = _HUE_COLORS[i % len(_HUE_COLORS)]
+        hue = rr.escape_entity_path_part(label) if combo else "all"
+        base = "/".join(["/sweep", group, _short(metric), _short(x), hue])
+        mean = rows.groupby(x, sort=True)[metric].mean()
+        xs = mean.index.to_numpy(np.float64)
+        index = [rr.TimeColumn(timeline, **_x_times(kind, scale, xs))]
+        rec.log(f"{base}/mean", rr.SeriesLines(names=[label], colors=[color], widths=[2.0]), static=True)
+        rec.send_columns(f"{base}/mean", indexes=index, columns=rr.Scalars.columns(scalars=mean.to_numpy(np.float64)))
+        runs = [rows.loc[rows[x] == v, metric].to_numpy(np.float64) for v in mean.index]
+        width = max(len(r) for r in runs)
+        rec.log(f"{base}/runs", rr.SeriesPoints(names=[label] * width, colors=[color] * width,
+                                                marker_sizes=[3.5] * width), static=True)
+        rec.send_columns(f"{base}/runs", indexes=index, columns=rr.Scalars.columns(
+            scalars=np.concatenate(runs)).partition([len(r) for r in runs]))
+
+
+def _legend(table: pd.DataFrame, metric: str, x: str, combos: pd.Series, labels: dict[tuple, str],
+            y_range: tuple[float, float] | None = None) -> rrb.PlotLegend:
+    """A visible legend in the corner of the plot of `metric` against `x` that covers the fewest of its runs
+    and of its mean lines (sampled between their points); the legend's box sized from its labels."""
+    xs, ys = [], []
+    for combo in labels:
+        rows = pd.DataFrame({x: _floats(table.loc[combos == combo, x]),
+                             metric: _floats(table.loc[combos == combo, metric])}).dropna()
+        if rows.empty:
+            continue
+        mean = rows.groupby(x)[metric].mean()
+        grid = np.linspace(mean.index[0], mean.index[-1], 40)
+        xs += [rows[x].to_numpy(), grid]
+        ys += [rows[metric].to_numpy(), np.interp(grid, mean.index.to_numpy(), mean.to_numpy())]
+    if not xs:
+        return rrb.PlotLegend(corner=_CORNERS[0], visible=True)
+    x_all, y_all = np.concatenate(xs), np.concatenate(ys)
+    low, high = y_range or (y_all.min(), y_all.max())
+    u = (x_all - x_all.min()) / ((x_all.max() - x_all.min()) or 1.0)
+    v = (y_all - low) / ((high - low) or 1.0)
+    width = min(0.9, (7 * max(len(label) for label in labels.values()) + 40) / 450)
+    height = min(0.9, 0.06 + 0.09 * len(labels))
+    covered = [np.sum((u >= 1 - width if "Right" in c.name else u <= width)
+                      & (v <= height if "Bottom" in c.name else v >= 1 - height)) for c in _CORNERS]
+    return rrb.PlotLegend(corner=_CORNERS[int(np.argmin(covered))], visible=True)
+
+
+def _jobs_markdown(table: pd.DataFrame, title: str, swept: list[str], axes: list[str], hue_keys: list[str]) -> str:
+    """The sweep's title, how to read its plots, and a markdown table of its jobs (job, status, swept values,
+    key metrics; closed_loop_rate with its interval)."""
+    statuses = ", ".join(f"{n} {s}" for s, n in table["status"].value_counts(sort=False).items())
+    seed = " (the seed is the repetition)" if "params.seed" in swept and axes != ["seed"] else ""
+    hues = f"one color per {', '.join(_short(c) for c in hue_keys)}" if hue_keys else "one color"
+    lines = [f"**{title}**: {len(table)} jobs ({statuses}); swept: "
+             f"**{', '.join(_short(c) for c in swept) or 'nothing'}**{seed}. Plots: x = the active timeline (bottom "
+             f"bar): **{'**, **'.join(axes)}**; {hues}; line = mean over the runs at each x (the seeds), points = "
+             "the runs.", ""]
+    metrics = [c for c in _JOB_METRICS if c in table.columns]
+    cols = ["job", "status", *swept, *metrics]
+    head = [{"metrics.closed_loop_rate": "closed_loop_rate [low, high]"}.get(c, _short(c)) for c in cols]
+    lines += ["| " + " | ".join(head) + " |", "|" + "---|" * len(cols)]
+    bounds = {"metrics.closed_loop_rate_low", "metrics.closed_loop_rate_high"} <= set(table.columns)
+    for _, row in table.iterrows():
+        cells = [_fmt(row[c]) for c in cols]
+        if "metrics.closed_loop_rate" in cols and bounds:
+            cells[cols.index("metrics.closed_loop_rate")] += (f" [{_fmt(row['metrics.closed_loop_rate_low'])}, "
+                                                              f"{_fmt(row['metrics.closed_loop_rate_high'])}]")
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def _legend_room(values: np.ndarray, entries: int, height: float) -> tuple[float, float]:
+    """A y range over `values` (5% margins) with room above them for a legend of `entries` lines in the top
+    corner (about 20 px a line in a plot about `height` px high), so that the legend covers no point."""
+    values = values[np.isfinite(values)]
+    if not len(values):
+        return 0.0, 1.0
+    low, high = values.min(), values.max()
+    span = (high - low) or abs(high) * 0.1 or 1.0
+    low, high = low - 0.05 * span, high + 0.05 * span
+    return float(low), float(low + (high - low) / (1 - min(0.6, (10 + 20 * entries) / height)))
+
+
+def _sweep_blueprint(table: pd.DataFrame, title: str, rates: list[str], fractions: list[str], x: str,
+                     timeline: str, vs: str, combos: pd.Series, labels: dict[tuple, str],
+                     entries: int) -> rrb.Blueprint:
+    """A grid of views, the rates (legend on top, above the values; at most `entries` hues on any x axis) then
+    the fractions (axis 0..1, legend in the emptiest corner for the first x axis `x`), over the jobs table,
+    which gets the height of its rows up to 45% of the window (then scrolls); the active timeline `timeline`."""
+    def view(metric: str, group: str, y_range: tuple[float, float], legend: rrb.PlotLegend) -> rrb.TimeSeriesView:
+        return rrb.TimeSeriesView(name=f"{_short(metric)} {vs}", origin=f"/sweep/{group}/{_short(metric)}",
+                                  axis_x=_WHOLE_X, axis_y=rrb.ScalarAxis(range=y_range, zoom_lock=False),
+                                  plot_legend=legend)
+
+    # heights in px of a window about 1000 px high: about 830 for the views, 21 a row of the jobs table
+    share = float(np.clip((110 + 21 * (len(table) + 1)) / 830, 0.3, 0.45))
+    n, columns = len(rates) + len(fractions), min(5, -(-(len(rates) + len(fractions)) // 2))
+    height = (1 - share) * 830 / max(1, -(-n // columns)) - 45          # a plot, without title and x axis
+    top = rrb.PlotLegend(corner=rrb.Corner2D.RightTop, visible=True)
+    views = [view(c, "rates", _legend_room(_floats(table[c]), entries, height), top) for c in rates]
+    views += [view(c, "fractions", _FRACTION_AXIS, _legend(table, c, x, combos, labels, _FRACTION_AXIS))
+              for c in fractions]
+    jobs = rrb.TextDocumentView(name=f"{title} · jobs", origin="/sweep/jobs")
+    root = rrb.Vertical(rrb.Grid(*views, grid_columns=columns), jobs, row_shares=[1 - share, share],
+                        name=title) if views else jobs
+    return rrb.Blueprint(root, rrb.TimePanel(timeline=timeline, state="collapsed", play_state="paused"),
+                         rrb.BlueprintPanel(state="collapsed"), rrb.SelectionPanel(state="collapsed"))
 
 
 def write_sweep_recording(sweep_dir, table: pd.DataFrame | None = None) -> Path | None:
-    """<sweep>/summary.rrd: on the timeline `job`, the key metrics (points) and every numeric swept
-    parameter (a `search` table's changed params) of each job, and a markdown table of the jobs.
-    Returns its path, None with ``RERUN=off`` (nothing written)."""
+    """<sweep>/summary.rrd: each metric of the sweep's runs against each numeric swept key.
+
+    Every numeric swept key but the seed (the repetition; the seed itself when nothing else numeric is
+    swept, the job index when nothing numeric is) is an x axis: a timeline of its own (see `_x_timeline`),
+    so that picking the timeline in the viewer picks the x axis. Per x key and per combination of the other
+    swept keys but the seed (the hue; non-numeric keys such as gain.method are only ever hues), the mean
+    over the runs at each x (a line) and the runs (points), entities
+    /sweep/{rates|fractions}/{METRIC}/{X}/{HUE}/{mean|runs} logged on that x's timeline only; /sweep/x_range/{X}
+    widens each timeline a little so that the first and last points are not cut by the plot's edge. A view per
+    rate metric (lam, rate_plant, *_rate, exact rates) and per fraction (*_fraction, axis 0..1), colors by hue,
+    and the jobs as a markdown table (/sweep/jobs) under the sweep's name and plant(s); the first x key's
+    timeline is the active one. Returns its path, None with ``RERUN=off`` (nothing written)."""
     if disabled():
         return None
     sweep_dir = Path(sweep_dir)
     table = RunStore(sweep_dir).table(params=True) if table is None else table
-    table = table.sort_values("job", ignore_index=True)
-    jobs = table["job"].to_numpy(np.int64)
+    table = table.sort_values("job", ignore_index=True, kind="stable")
     swept = changed_params(table)
-    numeric = [c for c in swept if pd.api.types.is_numeric_dtype(table[c]) and not pd.api.types.is_bool_dtype(table[c])]
-    metrics = [c for c in SWEEP_METRICS if c in table.columns]
-    blueprint = rrb.Blueprint(rrb.Grid(
-        rrb.TimeSeriesView(name="metrics by job", origin="/sweep/metrics",
-                           plot_legend=rrb.PlotLegend(corner=rrb.Corner2D.RightTop, visible=True)),
-        rrb.TimeSeriesView(name="swept parameters by job", origin="/sweep/params",
-                           plot_legend=rrb.PlotLegend(corner=rrb.Corner2D.RightTop, visible=True)),
-        rrb.TextDocumentView(name="jobs", origin="/sweep/jobs"), name=f"sweep {sweep_dir.name}"))
+    rates, fractions = _sweep_metrics(table)
+    names = [str(v) for v in table["sweep"].dropna().unique()] if "sweep" in table.columns else []
+    plants = [str(v) for v in table["plant"].dropna().unique()] if "plant" in table.columns else []
+    title = f"sweep {', '.join(names) or sweep_dir.name} · plant {', '.join(plants) or 'n/a'}"
+
+    axes = {}                                 # x key -> (timeline, kind, scale, hue keys, combos, labels)
+    for x in _x_keys(table, swept):
+        values = _floats(table[x])
+        keys = _hue_keys(table, swept, x)
+        axes[x] = (*_x_timeline(x, values[np.isfinite(values)]), keys, *_hues(table, keys))
+    first = next(iter(axes))
+    timeline, _, _, hue_keys, combos, labels = axes[first]
+    vs = f"vs {timeline}" if len(axes) == 1 else "vs the active timeline"
+    blueprint = _sweep_blueprint(table, title, rates, fractions, first, timeline, vs, combos, labels,
+                                 max(len(a[5]) for a in axes.values()))
+
     path = sweep_dir / layout.SUMMARY_RECORDING
     tmp = sweep_dir / f".{layout.SUMMARY_RECORDING}.tmp"
     with rr.RecordingStream("rdsexp", recording_id=f"sweep/{sweep_dir.name}") as rec:
         rec.save(tmp, default_blueprint=blueprint)
-        for group, columns in (("metrics", metrics), ("params", numeric)):
-            for c in columns:
-                entity = f"/sweep/{group}/{rr.escape_entity_path_part(c.split('.', 1)[1])}"
-                rec.log(entity, rr.SeriesPoints(names=[c.split(".", 1)[1]], marker_sizes=[4.0]), static=True)
-                rec.send_columns(entity, indexes=[rr.TimeColumn("job", sequence=jobs)],
-                                 columns=rr.Scalars.columns(scalars=table[c].to_numpy(np.float64)))
-        cols = ["job", "status", *swept, *metrics]
-        lines = [f"# sweep {sweep_dir.name}", "", "| " + " | ".join(c.split(".", 1)[-1] for c in cols) + " |",
-                 "|---" * len(cols) + "|"]
-        lines += ["| " + " | ".join(_fmt(v) for v in row) + " |" for row in table[cols].itertuples(index=False)]
-        rec.log("/sweep/jobs", rr.TextDocument("\n".join(lines) + "\n", media_type="text/markdown"), static=True)
+        rec.send_recording_name(title)
+        for x, (timeline, kind, scale, _, combos, labels) in axes.items():
+            for group, metrics in (("rates", rates), ("fractions", fractions)):
+                for metric in metrics:
+                    _sweep_series(rec, table, metric, group, x, timeline, kind, scale, combos, labels)
+            values = np.unique(_floats(table[x]))
+            values = values[np.isfinite(values)]
+            if len(values):
+                margin = 0.04 * (values[-1] - values[0]) or 0.1 * abs(values[0]) or 1.0
+                ends = _x_times(kind, scale, values[[0, -1]] + np.array([-margin, margin]))
+                rec.send_columns(f"/sweep/x_range/{_short(x)}", indexes=[rr.TimeColumn(timeline, **ends)],
+                                 columns=rr.Scalars.columns(scalars=np.full(2, np.nan)))
+        text = _jobs_markdown(table, title, swept, [a[0] for a in axes.values()], hue_keys)
+        rec.log("/sweep/jobs", rr.TextDocument(text, media_type="text/markdown"), static=True)
     tmp.replace(path)
     return path

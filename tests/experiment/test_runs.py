@@ -176,18 +176,85 @@ def test_data_dictionary_in_docs_is_current():
 
 
 def test_sweep_recording_and_view(root, tmp_path, monkeypatch):
+    """summary.rrd draws each metric against the swept value, a timeline of its own (a float key: a duration
+    whose seconds are the values): per x the mean over the seeds (a line) and the runs (points)."""
     for name in ("DISPLAY", "WAYLAND_DISPLAY"):        # no display: `view` prints the command
         monkeypatch.delenv(name, raising=False)
+    import rerun as rr
+
     from rdsexp.experiment.recording import read_series, write_sweep_recording
     path = write_sweep_recording(root / "A")
     assert path == root / "A" / "summary.rrd"
     table = runs.search(root / "A")
-    jobs, lam = read_series(path, "/sweep/metrics/lam", index="job")
-    assert list(jobs) == [0, 1, 2] and lam.tolist() == table["metrics.lam"].tolist()
-    _, q = read_series(path, "/sweep/params/enkf.q_scale", index="job")
-    assert q.tolist() == [0.25, 1.0, 4.0]
+    q, lam = read_series(path, "/sweep/rates/lam/enkf.q_scale/all/mean", index="enkf.q_scale (1 s = 1)")
+    assert (q / np.timedelta64(1, "s")).tolist() == [0.25, 1.0, 4.0] and lam.tolist() == table["metrics.lam"].tolist()
+    # both sweeps as one: seeds 0 and 1 at each q_scale
+    both = runs.search(root)
+    (tmp_path / "AB").mkdir()
+    path = write_sweep_recording(tmp_path / "AB", table=both)
+    by_q = both.groupby("params.enkf.q_scale")
+    for group, metric in (("rates", "closed_loop_rate"), ("rates", "lam"), ("fractions", "closed_loop_failed_fraction")):
+        base = f"/sweep/{group}/{metric}/enkf.q_scale/all"
+        q, mean = read_series(path, f"{base}/mean", index="enkf.q_scale (1 s = 1)")
+        want = by_q[f"metrics.{metric}"].mean()
+        assert (q / np.timedelta64(1, "s")).tolist() == want.index.tolist()
+        np.testing.assert_allclose(mean, want.to_numpy(), rtol=1e-12)
+        _, points = read_series(path, f"{base}/runs", index="enkf.q_scale (1 s = 1)")      # 2 runs per x
+        np.testing.assert_allclose(np.sort(points.reshape(3, 2), axis=1),
+                                   np.sort(np.stack(by_q[f"metrics.{metric}"].apply(np.asarray)), axis=1))
+    jobs = rr.chunk.RrdReader(path).store().stream().filter(content=["/sweep/jobs"]).collect()
+    text = jobs.reader(index=None, contents="/sweep/jobs").to_arrow_table()["/sweep/jobs:TextDocument:text"][0]
+    text = text.as_py()[0]
+    assert text.startswith("**sweep noise · plant paper**: 6 jobs") and "swept: **enkf.q_scale, seed**" in text
+    assert text.count("| complete |") == 6 and "| 2 | complete | 4 | 1 | 0.821 | 0.94 [0.93, 0.95] | 0 |" in text
     out = rdsexp("view", "A", "--root", str(root), cwd=tmp_path, module="rdsexp.runs").stdout
-    assert out.split()[-1] == str(path) and "rerun" in out.split()[0]
+    assert out.split()[-1] == str(root / "A" / "summary.rrd") and "rerun" in out.split()[0]
+
+
+def test_sweep_recording_hues_and_axes(tmp_path):
+    """Two numeric keys: two timelines, the other key and the non-numeric gain.method the hue; the seed alone:
+    the x; nothing numeric: the job."""
+    import rerun as rr
+
+    from rdsexp.experiment.recording import read_series, write_sweep_recording
+    rng = np.random.default_rng(0)
+    grid = pd.MultiIndex.from_product([[20, 40], [0.5, 2.0], ["proposed", "lqr_mean"], [0, 1, 2]],
+                                      names=["params.enkf.ensemble_size", "params.enkf.q_scale", "params.gain.method",
+                                             "params.seed"]).to_frame(index=False)
+    table = grid.assign(job=np.arange(len(grid)), sweep="grid", plant="paper", status="complete",
+                        **{"metrics.lam": rng.uniform(0.8, 0.9, len(grid)),
+                           "metrics.closed_loop_failed_fraction": rng.uniform(0, 1, len(grid))})
+    table = table.sample(frac=1, random_state=1)            # the recording orders the rows by job itself
+    path = write_sweep_recording(tmp_path, table=table)
+    hue = rr.escape_entity_path_part
+    for x, other, timeline in (("enkf.ensemble_size", "q_scale", "enkf.ensemble_size"),
+                               ("enkf.q_scale", "ensemble_size", "enkf.q_scale (1 s = 1)")):
+        means = table.groupby([f"params.enkf.{other}", "params.gain.method", f"params.{x}"])["metrics.lam"].mean()
+        for (value, gain), want in means.groupby(level=[0, 1]):
+            entity = f"/sweep/rates/lam/{x}/{hue(f'{other}={value:g}, method={gain}')}/mean"
+            xs, mean = read_series(path, entity, index=timeline)
+            if xs.dtype.kind == "m":
+                xs = xs / np.timedelta64(1, "s")
+            assert xs.tolist() == want.index.get_level_values(2).tolist()
+            np.testing.assert_allclose(mean, want.to_numpy(), rtol=1e-12)
+            other_timeline = "enkf.q_scale (1 s = 1)" if timeline == "enkf.ensemble_size" else "enkf.ensemble_size"
+            with pytest.raises(ValueError, match="does not exist"):                 # on its own timeline only
+                read_series(path, entity, index=other_timeline)
+    _, fraction = read_series(path, f"/sweep/fractions/closed_loop_failed_fraction/enkf.q_scale/"
+                              f"{hue('ensemble_size=40, method=lqr_mean')}/runs", index="enkf.q_scale (1 s = 1)")
+    pick = table[(table["params.enkf.ensemble_size"] == 40) & (table["params.gain.method"] == "lqr_mean")]
+    assert fraction.tolist() == pick.sort_values(["params.enkf.q_scale", "job"])[
+        "metrics.closed_loop_failed_fraction"].tolist()
+    seeds = table[(table["params.enkf.ensemble_size"] == 20) & (table["params.enkf.q_scale"] == 0.5)]
+    write_sweep_recording(tmp_path, table=seeds)
+    s, lam = read_series(tmp_path / "summary.rrd", f"/sweep/rates/lam/seed/{hue('method=proposed')}/mean", index="seed")
+    assert s.tolist() == [0, 1, 2]
+    assert lam.tolist() == seeds[seeds["params.gain.method"] == "proposed"].sort_values("job")["metrics.lam"].tolist()
+    gains = seeds[seeds["params.seed"] == 0]
+    write_sweep_recording(tmp_path, table=gains)
+    jobs, lam = read_series(tmp_path / "summary.rrd", f"/sweep/rates/lam/job/{hue('method=lqr_mean')}/runs",
+                            index="job")
+    assert lam.tolist() == gains[gains["params.gain.method"] == "lqr_mean"]["metrics.lam"].tolist() and len(jobs) == 1
 
 
 def test_rx_runs_is_the_catalog_imported_on_first_use():
