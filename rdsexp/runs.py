@@ -3,6 +3,7 @@ rdsexp.experiment.runs), and `plot`, a figure of any sweep (rdsexp.report.sweep_
 layer above the store and is added here.
 
     rdsexp-runs plot SWEEP|--where "..." --x KEY [--x KEY2] --y METRIC [--hue KEY] [--logx] [--logy] [--out DIR]
+    rdsexp-runs export --mlflow URI [SWEEP|RUN] [--where "..."] [--experiment NAME] [--no-tables] [--root DIR]
 """
 import sys
 from pathlib import Path
@@ -61,8 +62,28 @@ def _plot_command(args) -> int:
     return 0
 
 
+def _add_export_arguments(p) -> None:
+    p.add_argument("sweep", nargs="?", help="a sweep (directory or name) or a run (directory or id); default: "
+                                            "the runs --where selects")
+    p.add_argument("--mlflow", required=True, metavar="URI", help="MLflow tracking URI, e.g. http://127.0.0.1:5000")
+    p.add_argument("--where", help='filter, e.g. "plant == \'mine\' and enkf.q_scale >= 1"')
+    p.add_argument("--experiment", default="rdsexp", help="MLflow experiment (default: rdsexp; created if missing)")
+    p.add_argument("--no-tables", action="store_true", help="artifacts: run.json and config.yaml, not the tables")
+    p.add_argument("--root", default=str(DEFAULT_ROOT))
+
+
+def _export_command(args) -> int:
+    from .report import to_mlflow
+    report = to_mlflow.export(args.sweep, args.mlflow, args.experiment, where=args.where, root=args.root,
+                              tables=not args.no_tables)
+    print("\n".join(report.lines()))
+    return 0
+
+
 COMMANDS = {"plot": ("a metric against swept keys: mean over seeds, 95% interval, failed fraction; PNG, PDF, "
-                     "lineage", _add_plot_arguments, _plot_command)}
+                     "lineage", _add_plot_arguments, _plot_command),
+            "export": ("stored runs to an MLflow tracking server (a sweep: a parent run and its jobs; once each)",
+                       _add_export_arguments, _export_command)}
 
 
 def main(argv=None) -> int:

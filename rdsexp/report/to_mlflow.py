@@ -1,0 +1,450 @@
+"""Stored rdsexp runs on an MLflow tracking server: `rdsexp-runs export --mlflow URI SWEEP|--where ...`.
+
+    from rdsexp.experiment.runs import search
+    from rdsexp.report import to_mlflow
+    to_mlflow.export(search("outputs", "enkf.q_scale >= 1"), "http://127.0.0.1:5000")
+    to_mlflow.export("my_sweep", "http://127.0.0.1:5000", experiment="tuning")   # a sweep by name
+
+Each stored run (one row of `rdsexp.runs.search`, one per computation) becomes an MLflow run of the
+experiment (default "rdsexp"), written with `MlflowClient` (explicit run ids, no active run):
+
+    params     the resolved config (run.json `params`, the search table's params.*), values as text;
+               MLflow's limits: a key of at most 250 characters, a value of at most 6000 (longer values
+               are cut and named in the tag rdsexp.truncated_params)
+    metrics    the summary's numbers (the search table's numeric metrics.*; NaN, a number the run does
+               not have, is left out) at step 0, and the RMS curves sqrt(E||q_k||^2) at step k:
+               rms/<loop> over the paths of the trajectories table, rms/<loop>_exact of the ideal
+               loop (exact table); names as MLflow allows them: xi_mean[0] is xi_mean.0
+    tags       rdsexp.run_id, rdsexp.code, rdsexp.config_hash, rdsexp.status, rdsexp.plant, rdsexp.sweep,
+               rdsexp.seed, ... (the identity columns), summary.<name> for the summary's words
+               (verdicts, statuses), rdsexp.recording: the path of recording.rrd (a link, not a copy,
+               also in the run's note)
+    artifacts  run.json, config.yaml (the composed config) and the stored tables (<name>.parquet)
+
+A sweep (sweep_id) is a parent run with its jobs as nested runs (tag mlflow.parentRunId); a run
+outside a sweep is a top-level run. Every MLflow run is keyed by a tag (rdsexp.run_id; a sweep's
+parent by rdsexp.sweep_id) that is looked up before anything is created: exporting again adds
+nothing, and a run whose export was interrupted (no tag rdsexp.export = complete) is completed with
+what it lacks. Runs still being computed (status incomplete) and damaged records are left out.
+"""
+from __future__ import annotations
+
+import datetime as dt
+import hashlib
+import math
+import numbers
+import os
+import re
+import urllib.error
+import urllib.request
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from ..errors import DamagedRecord
+from ..experiment.runs import DEFAULT_ROOT, locate, locate_sweep, query, search
+from ..experiment.store import layout, read_run, run_damage
+from ..experiment.store.table import changed_params, run_metrics, run_params
+from ..numerics.analysis import rms_band
+
+DEFAULT_EXPERIMENT = "rdsexp"
+MAX_KEY, MAX_PARAM, MAX_TAG = 250, 6000, 8000      # MLflow's limits (mlflow.utils.validation)
+RUN_KEY, SWEEP_KEY, DONE = "rdsexp.run_id", "rdsexp.sweep_id", "rdsexp.export"
+STATUS = {"complete": "FINISHED"}                  # any other final status: FAILED
+TRUNCATED = "...[truncated]"
+# logged first: the metric MLflow's compare view (parallel coordinates) draws until another is chosen
+FIRST = ("closed_loop_rate", "lam", "rate_plant", "closed_loop_failed_fraction")
+
+
+@dataclass
+class Report:
+    """What `export` did: rdsexp run ids exported now, already there, completed (an interrupted
+    export finished) and left out ({id: reason}); {rdsexp id or sweep id: MLflow run id}."""
+
+    experiment: str
+    experiment_id: str
+    uri: str
+    exported: list[str] = field(default_factory=list)
+    already: list[str] = field(default_factory=list)
+    completed: list[str] = field(default_factory=list)
+    skipped: dict[str, str] = field(default_factory=dict)
+    runs: dict[str, str] = field(default_factory=dict)
+    parents: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def url(self) -> str | None:
+        """The experiment's page in the MLflow UI (an http(s) tracking URI only)."""
+        if not self.uri.startswith(("http://", "https://")):
+            return None
+        return f"{self.uri.rstrip('/')}/#/experiments/{self.experiment_id}"
+
+    def lines(self) -> list[str]:
+        counts = f"exported {len(self.exported)}, already there {len(self.already)}"
+        counts += f", completed {len(self.completed)}" if self.completed else ""
+        counts += f", left out {len(self.skipped)}" if self.skipped else ""
+        where = f"experiment {self.experiment!r} (id {self.experiment_id}) at {self.uri}"
+        return [*(f"left out {run}: {reason}" for run, reason in self.skipped.items()), f"{counts}: {where}",
+                *([self.url] if self.url else [])]
+
+
+def export(table_or_selection=None, uri: str = "", experiment: str = DEFAULT_EXPERIMENT, *,
+           where: str | None = None, root=DEFAULT_ROOT, tables: bool = True, client=None) -> Report:
+    """Write stored runs to the MLflow tracking server at `uri` (any tracking URI MlflowClient takes:
+    http://host:port, sqlite:///file.db, a directory); returns a `Report`.
+
+    table_or_selection: a `search` table (its rows, then `where`), a sweep (directory or name) or a
+    run (directory or id) under root, or None: the runs under root that `where` selects.
+    tables: also the stored tables as artifacts (run.json and config.yaml always)."""
+    try:
+        from mlflow import MlflowClient
+    except ImportError:
+        raise ValueError("export: MLflow is not installed (pip install 'rdsexp[mlflow]')") from None
+    table = select(table_or_selection, where, root)
+    if not uri:
+        raise ValueError("export: give the MLflow tracking URI (--mlflow URI)")
+    reachable(uri)
+    with _quiet():
+        return _export(table, client or MlflowClient(tracking_uri=uri), uri, experiment, tables)
+
+
+def _export(table: pd.DataFrame, client, uri: str, experiment: str, tables: bool) -> Report:
+    found = client.get_experiment_by_name(experiment)
+    if found is not None and found.lifecycle_stage != "active":
+        raise ValueError(f"export: MLflow experiment {experiment!r} is deleted at {uri}; restore it or name another")
+    experiment_id = found.experiment_id if found is not None else client.create_experiment(experiment)
+    report = Report(experiment, experiment_id, uri)
+    rows = [row for _, row in table.iterrows()]
+    for sweep_id in dict.fromkeys(r["sweep_id"] for r in rows if isinstance(r["sweep_id"], str)):
+        jobs = [r for r in rows if r["sweep_id"] == sweep_id]
+        existing, swept = _existing(client, experiment_id, SWEEP_KEY, sweep_id), _swept(jobs)
+        parent = _parent(client, experiment_id, sweep_id, jobs, swept, existing)
+        report.parents[sweep_id] = parent
+        for row in jobs:
+            name = f"{row['job']} " + " ".join(f"{k}={_text(row.get(f'params.{k}'))}" for k in swept)
+            _one(client, experiment_id, row, report, existing, parent, name.strip(), tables)
+    for row in (r for r in rows if not isinstance(r["sweep_id"], str)):
+        _one(client, experiment_id, row, report, _existing(client, experiment_id, RUN_KEY, row["id"]), None,
+             str(row["id"]), tables)
+    return report
+
+
+@contextmanager
+def _quiet():
+    """Without MLflow's "View run ... at" lines on stdout (MlflowClient.set_terminated prints them)."""
+    name = "MLFLOW_SUPPRESS_PRINTING_URL_TO_STDOUT"
+    saved = os.environ.get(name)
+    os.environ[name] = "true"
+    try:
+        yield
+    finally:
+        if saved is None:
+            os.environ.pop(name, None)
+        else:
+            os.environ[name] = saved
+
+
+def select(selection, where: str | None, root) -> pd.DataFrame:
+    """The runs table to export (see `export`)."""
+    root = Path(root)
+    if isinstance(selection, pd.DataFrame):
+        return query(selection, where) if where else selection
+    if selection is None:
+        if where is None:
+            raise ValueError("export: name a SWEEP or RUN, or give --where")
+        table = search(root, where)
+    else:
+        text = str(selection)
+        directory = locate_sweep(text, root) if not layout.is_run(Path(text)) else None
+        table = search(directory if directory is not None else locate(text, root), where)
+    if not len(table):
+        raise ValueError(f"export: no runs{f' of {selection}' if selection is not None else ''}"
+                         f"{f' with {where}' if where else ''}")
+    return table
+
+
+def reachable(uri: str) -> None:
+    """An http(s) tracking URI must answer (any HTTP status will do) before the client's retries
+    would wait minutes for it; ValueError in one line otherwise."""
+    if not uri.startswith(("http://", "https://")):
+        return
+    try:
+        urllib.request.urlopen(uri.rstrip("/") + "/health", timeout=10).close()
+    except urllib.error.HTTPError:
+        pass
+    except (urllib.error.URLError, OSError) as err:
+        reason = getattr(err, "reason", err)
+        raise ValueError(f"export: no MLflow tracking server answers at {uri} ({reason})") from None
+
+
+# ---------------------------------------------------------------- one run
+
+
+def _one(client, experiment_id: str, row: pd.Series, report: Report, existing: dict, parent: str | None,
+         name: str, tables: bool) -> None:
+    """Export one run unless it is there (complete), or complete an interrupted export of it."""
+    from mlflow.entities import Metric, Param, RunTag
+    run_id, run_dir = str(row["id"]), Path(row["dir"]).resolve()
+    there = existing.get(run_id)
+    if there is not None and there.data.tags.get(DONE) == "complete":
+        report.already.append(run_id)
+        report.runs[run_id] = there.info.run_id
+        return
+    try:
+        info = read_run(run_dir)
+    except DamagedRecord as err:
+        report.skipped[run_id] = f"damaged ({err})"
+        return
+    if info.get("status") == "incomplete":
+        report.skipped[run_id] = "incomplete (still running, or its process died)"
+        return
+    damage = run_damage(run_dir, info) if info.get("status") == "complete" else []
+    if damage:
+        report.skipped[run_id] = "damaged: " + "; ".join(damage)
+        return
+    params, truncated = _params(run_params(run_dir, info))
+    stamp = _millis(info.get("finished") or info.get("created")) or int(dt.datetime.now(dt.UTC).timestamp() * 1000)
+    metrics, words = _scalars(run_metrics(info))
+    tags = _tags(row, info, run_dir, parent, name) | words
+    if truncated:
+        tags["rdsexp.truncated_params"] = ", ".join(truncated)[:MAX_TAG]
+    curves = _curves(run_dir, info)
+    start = _millis(info.get("created"))
+    if there is None:
+        mlflow_id = client.create_run(experiment_id, start_time=start, tags=_tag_values(tags)).info.run_id
+        have_params, have_metrics, have_files = {}, {}, set()
+    else:
+        mlflow_id = there.info.run_id
+        have_params, have_metrics = there.data.params, there.data.metrics
+        have_files = {f.path for f in client.list_artifacts(mlflow_id)}
+    client.log_batch(mlflow_id, metrics=[Metric(k, v, stamp, 0) for k, v in metrics.items() if k not in have_metrics],
+                     params=[Param(k, v) for k, v in params.items() if k not in have_params],
+                     tags=[RunTag(k, v) for k, v in _tag_values(tags).items()])
+    points = []
+    for key, curve in curves.items():
+        steps = {m.step for m in client.get_metric_history(mlflow_id, key)} if key in have_metrics else set()
+        points += [Metric(key, v, stamp, k) for k, v in curve.items() if k not in steps]
+    client.log_batch(mlflow_id, metrics=points)
+    for source, artifact in _artifacts(run_dir, info, tables):
+        if artifact not in have_files:
+            client.log_artifact(mlflow_id, str(source))
+    end = _millis(info.get("finished")) or (start + int(1000 * (info.get("seconds") or 0)) if start else None)
+    client.set_terminated(mlflow_id, STATUS.get(info.get("status"), "FAILED"), end_time=end)
+    client.set_tag(mlflow_id, DONE, "complete")
+    (report.exported if there is None else report.completed).append(run_id)
+    report.runs[run_id] = mlflow_id
+
+
+def _params(params: dict) -> tuple[dict[str, str], list[str]]:
+    """{MLflow key: value as text} and the keys whose values were cut to MLflow's length."""
+    out, truncated = {}, []
+    for name, value in params.items():
+        key, text = mlflow_key(name.removeprefix("params."), out), _text(value)
+        if len(text) > MAX_PARAM:
+            text = text[:MAX_PARAM - len(TRUNCATED)] + TRUNCATED
+            truncated.append(key)
+        out[key] = text
+    return out, truncated
+
+
+def _scalars(metrics: dict) -> tuple[dict[str, float], dict[str, str]]:
+    """The summary's numbers as {MLflow metric key: value} (NaN: no value, left out) and its words
+    (verdicts, statuses) as tags summary.<name>."""
+    numbers_, words = {}, {}
+    first = [f"metrics.{name}" for name in FIRST if f"metrics.{name}" in metrics]
+    for name in [*first, *(m for m in metrics if m not in first)]:
+        value, name = metrics[name], name.removeprefix("metrics.")
+        if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Number):
+            if value is not None:
+                words[mlflow_key(f"summary.{name}", words)] = str(value)[:MAX_TAG]
+        elif not math.isnan(value):
+            numbers_[mlflow_key(name, numbers_)] = float(value)
+    return numbers_, words
+
+
+def _curves(run_dir: Path, info: dict) -> dict[str, dict[int, float]]:
+    """{rms/<loop>: {k: sqrt(E||q_k||^2)}} over the paths of the trajectories table (the mean over the
+    paths where q_k is finite, `analysis.rms_band`) and {rms/<loop>_exact: {k: rms}} of the exact table;
+    a table the run lacks (a run that failed) gives no curve."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+    stored = info.get("tables") or {}
+    curves = {}
+    try:        # a complete run's bytes were checked against run.json (run_damage)
+        path = run_dir / stored["trajectories"]["file"]
+        columns = [c for c in pq.read_schema(path).names if re.fullmatch(r"q\[\d+\]", c)]
+        frame = pd.read_parquet(path, columns=["experiment", "k", "path", *columns])
+        frame["sq"] = np.sum(frame[columns].to_numpy(dtype=float) ** 2, axis=1)
+        for loop, rows in frame.groupby("experiment", sort=False):
+            sq = rows.set_index(["k", "path"])["sq"].unstack("path").sort_index()      # (K+1, P)
+            mean = rms_band(sq.to_numpy())[0]
+            curves[f"rms/{loop}"] = {int(k): float(v) for k, v in zip(sq.index, mean) if np.isfinite(v)}
+    except (OSError, KeyError, TypeError, ValueError, pa.ArrowException):
+        pass
+    try:
+        exact = pd.read_parquet(run_dir / stored["exact"]["file"])
+        for loop, rows in exact.groupby("experiment", sort=False):
+            curves[f"rms/{loop}_exact"] = {int(k): float(v) for k, v in zip(rows["k"], rows["rms"]) if np.isfinite(v)}
+    except (OSError, KeyError, TypeError, ValueError, pa.ArrowException):
+        pass
+    return {mlflow_key(k, {}): v for k, v in curves.items() if v}
+
+
+def _tags(row: pd.Series, info: dict, run_dir: Path, parent: str | None, name: str) -> dict:
+    code = info.get("code") or {}
+    summary = info.get("summary") or {}
+    tags = {RUN_KEY: row["id"], "rdsexp.kind": "run", "rdsexp.code": code.get("version"),
+            "rdsexp.config_hash": info.get("config_hash"), "rdsexp.status": info.get("status"),
+            "rdsexp.plant": row.get("plant"), "rdsexp.model": row.get("model"), "rdsexp.method": row.get("method"),
+            "rdsexp.sweep": row.get("sweep"), SWEEP_KEY: row.get("sweep_id"), "rdsexp.job": row.get("job"),
+            "rdsexp.seed": row.get("seed"), "rdsexp.overrides": row.get("overrides") or None,
+            "rdsexp.reused_from": row.get("reused_from"), "rdsexp.created": info.get("created"),
+            "rdsexp.dir": str(run_dir), "rdsexp.error": info.get("error"),
+            "rdsexp.rate_window": ",".join(map(str, summary["rate_window"])) if summary.get("rate_window") else None,
+            "mlflow.runName": name, "mlflow.parentRunId": parent, "mlflow.source.git.commit": code.get("commit")}
+    recording = run_dir / ((info.get("recording") or {}).get("file") or layout.RECORDING)
+    if info.get("recording") and recording.exists():
+        tags["rdsexp.recording"] = str(recording)
+    tags["mlflow.note.content"] = _note(row, info, run_dir, tags.get("rdsexp.recording"))
+    return tags
+
+
+def _note(row: pd.Series, info: dict, run_dir: Path, recording: str | None) -> str:
+    lines = [f"rdsexp run `{row['id']}`: status {info.get('status')}, code `{(info.get('code') or {}).get('version')}`",
+             "", f"- directory: `{run_dir}`"]
+    if info.get("command"):
+        lines.append(f"- command: `{info['command']}`")
+    if recording:
+        lines.append(f"- recording (not copied): `{recording}`; open it with `rdsexp-runs view {run_dir}` "
+                     f"or `rerun {recording}`")
+    return "\n".join(lines)
+
+
+def _artifacts(run_dir: Path, info: dict, tables: bool) -> list[tuple[Path, str]]:
+    """(file, its name among the run's artifacts): run.json, config.yaml and the stored tables."""
+    files = [(run_dir / layout.RUN_JSON, layout.RUN_JSON), (run_dir / layout.HYDRA_CONFIG, "config.yaml")]
+    if tables:
+        files += [(run_dir / meta["file"], Path(meta["file"]).name) for meta in (info.get("tables") or {}).values()
+                  if isinstance(meta, dict) and isinstance(meta.get("file"), str)]
+    return [(source, name) for source, name in files if source.is_file()]
+
+
+# ---------------------------------------------------------------- sweeps
+
+
+def _parent(client, experiment_id: str, sweep_id: str, jobs: list[pd.Series], swept: list[str],
+            existing: dict) -> str:
+    """The MLflow run of the sweep (created on first export, completed if that was interrupted); its run id."""
+    from mlflow.entities import RunTag
+    there = existing.get(sweep_id)
+    if there is not None and there.data.tags.get(DONE) == "complete":
+        return there.info.run_id
+    sweep_dir = Path(jobs[0]["dir"]).resolve().parent
+    name = next((j["sweep"] for j in jobs if isinstance(j.get("sweep"), str)), None) or sweep_id
+    tags = {SWEEP_KEY: sweep_id, "rdsexp.kind": "sweep", "rdsexp.sweep": name, "rdsexp.dir": str(sweep_dir),
+            "rdsexp.swept": ", ".join(swept) or None, "mlflow.runName": name}
+    overrides = _overrides(sweep_dir)
+    if overrides:
+        tags["rdsexp.overrides"] = " ".join(overrides)
+    summary = sweep_dir / layout.SUMMARY_RECORDING
+    if summary.exists():
+        tags["rdsexp.recording"] = str(summary)
+    tags["mlflow.note.content"] = (f"rdsexp sweep `{sweep_id}` ({name})\n\n- directory: `{sweep_dir}`"
+                                   + (f"\n- recording (not copied): `{summary}`" if summary.exists() else ""))
+    created = [_millis(j.get("created")) for j in jobs]
+    if there is None:
+        run_id = client.create_run(experiment_id, start_time=min((c for c in created if c), default=None),
+                                   tags=_tag_values(tags)).info.run_id
+    else:
+        run_id = there.info.run_id
+        client.log_batch(run_id, tags=[RunTag(k, v) for k, v in _tag_values(tags).items()])
+    have = {f.path for f in client.list_artifacts(run_id)} if there is not None else set()
+    if (sweep_dir / layout.MULTIRUN).is_file() and layout.MULTIRUN not in have:
+        client.log_artifact(run_id, str(sweep_dir / layout.MULTIRUN))
+    client.set_terminated(run_id, "FINISHED")
+    client.set_tag(run_id, DONE, "complete")
+    return run_id
+
+
+def _swept(jobs: list[pd.Series]) -> list[str]:
+    """The config keys whose values differ between the sweep's jobs (those of the whole sweep on
+    disk where it is there, else those of the jobs exported)."""
+    sweep_dir = Path(jobs[0]["dir"]).resolve().parent
+    table = search(sweep_dir, copies=True) if layout.is_sweep(sweep_dir) else pd.DataFrame(jobs)
+    if not len(table):
+        table = pd.DataFrame(jobs)
+    return [c.removeprefix("params.") for c in changed_params(table)]
+
+
+def _overrides(sweep_dir: Path) -> list[str]:
+    import yaml
+    try:
+        config = yaml.safe_load((sweep_dir / layout.MULTIRUN).read_text())
+        return [str(o) for o in ((config or {}).get("hydra") or {}).get("overrides", {}).get("task") or []]
+    except (OSError, yaml.YAMLError, AttributeError):
+        return []
+
+
+def _existing(client, experiment_id: str, key: str, value: str) -> dict:
+    """{rdsexp run id or sweep id: MLflow run} of the active runs tagged key=value: a sweep's parent
+    and its jobs (key rdsexp.sweep_id), or one run (rdsexp.run_id)."""
+    found, token = {}, None
+    while True:
+        page = client.search_runs([experiment_id], filter_string=f"tags.`{key}` = '{value}'", max_results=1000,
+                                  page_token=token)
+        for run in page:
+            tags = run.data.tags
+            ident = tags.get(RUN_KEY) if tags.get("rdsexp.kind") == "run" else tags.get(SWEEP_KEY)
+            if ident is not None:
+                found.setdefault(ident, run)
+        token = page.token
+        if not token:
+            return found
+
+
+# ---------------------------------------------------------------- names and values
+
+
+def mlflow_key(name: str, taken: dict | None = None) -> str:
+    """`name` as MLflow allows a param, metric or tag key: xi_mean[0] -> xi_mean.0, other characters
+    than letters, digits, _ - . space : / -> _, at most 250 characters (a longer one ends in a hash of
+    the name); a key already in `taken` gets ~2, ~3, ..."""
+    key = re.sub(r"\[([^\]]*)\]", lambda m: "." + re.sub(r"\s*,\s*", ".", m.group(1)), name)
+    key = re.sub(r"[^\w.\- :/]", "_", key)
+    key = re.sub(r"/+", "/", key).strip("/") or "_"
+    if len(key) > MAX_KEY:
+        key = key[:MAX_KEY - 9] + "~" + hashlib.sha1(name.encode()).hexdigest()[:8]
+    base, n = key, 1
+    while taken and key in taken:
+        n += 1
+        key = f"{base[:MAX_KEY - len(str(n)) - 1]}~{n}"
+    return key
+
+
+def _text(value) -> str:
+    """A param's value as MLflow stores it (text, as MlflowClient.log_param would: str)."""
+    return str(value.item() if isinstance(value, np.generic) else value)
+
+
+def _tag_values(tags: dict) -> dict[str, str]:
+    """Tags with a value, as text of at most MLflow's length."""
+    out = {}
+    for key, value in tags.items():
+        if value is None or (isinstance(value, float) and math.isnan(value)) or value is pd.NA:
+            continue
+        out[key] = _text(value)[:MAX_TAG]
+    return out
+
+
+def _millis(stamp) -> int | None:
+    """Milliseconds since the epoch of an ISO time (run.json's created, finished); None without one."""
+    if not isinstance(stamp, str):
+        return None
+    try:
+        when = dt.datetime.fromisoformat(stamp)
+    except ValueError:
+        return None
+    when = when if when.tzinfo else when.replace(tzinfo=dt.UTC)
+    return int(when.timestamp() * 1000)
