@@ -217,15 +217,21 @@ class IdentificationSettings:
 
 @dataclass(frozen=True)
 class DesignSettings:
-    """conf/gain: the method whose gain the closed loop uses, with its options; every method is also
-    designed with `options_by_method` for the gains table. source: identified | reported | fixed
-    (a given gain F (m, n))."""
+    """conf/gain: the method whose gain the closed loop uses, with its options, and the comparison
+    designs (`designs`) for the gains table, each with `options_by_method`. source: identified |
+    reported | fixed (a given gain F (m, n))."""
 
     method: str
     options: dict
     options_by_method: dict
     source: str
     F: np.ndarray | None
+    designs: tuple[str, ...] = ()
+
+    @property
+    def methods(self) -> list[str]:
+        """What a run designs: the loop's method and the comparison designs, in METHODS order."""
+        return [m for m in METHODS if m == self.method or m in self.designs]
 
     @classmethod
     def from_config(cls, cfg, model: AffineRandomSystem, reported) -> DesignSettings:
@@ -236,10 +242,16 @@ class DesignSettings:
         if poles is not None:
             with key("plant.poles"):
                 check_options("pole_placement", {"poles": poles}, model)
-        # every method is designed (the gains table); pole placement only with poles from the config
+        # the comparison designs with their default options; pole placement only with poles from the config
         by_method = {m: {} for m in METHODS} | {"pole_placement": {"poles": poles}, method: options}
         source, F = _gain_source(cfg, model, reported)
-        return cls(method=method, options=options, options_by_method=by_method, source=source, F=F)
+        designs = plain(OmegaConf.select(cfg, "gain.designs", default=[]))
+        designs = list(METHODS) if designs == "all" else designs
+        if not isinstance(designs, list) or any(d not in METHODS for d in designs):
+            raise ConfigError(f"gain.designs: {designs!r} is not allowed, expected all or a list of "
+                              f"{', '.join(METHODS)}")
+        return cls(method=method, options=options, options_by_method=by_method, source=source, F=F,
+                   designs=tuple(designs))
 
 
 @dataclass(frozen=True)
@@ -554,7 +566,8 @@ TOP_LEVEL = ("seed", "reuse", "objective", "objective_penalty")
 # keys `build` reads with a default when the group's file does not set them: `+key=value` may add them
 OPTIONAL_KEYS = ("plant.name", "plant.C", "plant.D", "plant.q0", "plant.poles", "plant.reference",
                  "plant.identification_feedback", "plant.rate_window", "plant.filter_sees_disturbance",
-                 "plant.observer_xi", "plant.initial_xi", "plant.loop_estimate", "plant.model", "model.name",
+                 "plant.observer_xi", "plant.initial_xi", "plant.loop_estimate", "plant.designs", "plant.model",
+                 "model.name",
                  "model.A", "model.B", "model.C", "model.D", "model.reported", "gain.source", "gain.F", "gain.options",
                  "identification.feedback", "identification.xi_guess")
 # mappings whose keys are checked where they are used (gain options by the method, xi by its family)

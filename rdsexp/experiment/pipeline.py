@@ -30,7 +30,7 @@ from ..numerics.enkf import truth_map
 from ..numerics.modeling import model_distribution, nominal_gain
 from ..numerics.online import OnlineController, rates
 from ..numerics.simulation import Trajectories, simulate
-from ..numerics.synthesis import METHODS, SynthesisResult, synthesize
+from ..numerics.synthesis import SynthesisResult, synthesize
 from ..numerics.systems import MomentModel
 from ..numerics.verdict import FAILURES, loop_verdict, place_window, window_start
 from .config import Experiment
@@ -116,12 +116,13 @@ def run_experiment(exp: Experiment, sink=None) -> Outcome:
             dist = model_distribution(xi, K0, K1)
             summary["modeling_status"] = "ok"
     with timed(timings, "synthesis"):
-        # every method on the identified moments (the selected one with its configured options) and,
-        # when the config gives them, on the moments a paper reports; a design that cannot be applied
-        # or fails is a status in the gains table, never the end of the run
+        # the loop's method and the comparison designs (gain.designs) on the identified moments (the
+        # selected one with its configured options) and, when the config gives them, on the moments a
+        # paper reports; a design that cannot be applied or fails is a status in the gains table, never
+        # the end of the run
         designs = {}
         for source, moments in (("identified", dist), ("reported", exp.reported)):
-            for method in METHODS if moments is not None else ():
+            for method in exp.design.methods if moments is not None else ():
                 options = exp.design.options_by_method[method]
                 designs[source, method] = (moments, safe_synthesize(exp.model, moments, method, options))
         selected = (exp.design.source, exp.design.method)

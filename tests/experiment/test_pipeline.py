@@ -9,7 +9,7 @@ from rdsexp.experiment.config import build
 
 def experiment(*extra):
     with initialize_config_module(config_module="rdsexp.conf", version_base="1.3"):
-        return build(compose("config", overrides=[*SMALL, "tracking=off", *extra]))
+        return build(compose("config", overrides=[*SMALL, "tracking=off", "gain.designs=all", *extra]))
 
 
 def test_identical_designs_are_reused_within_a_process_with_the_same_tables():
@@ -30,3 +30,15 @@ def test_identical_designs_are_reused_within_a_process_with_the_same_tables():
     pipeline._DESIGNS.clear()
     fresh = pipeline.run_experiment(experiment("seed=4"))
     pd.testing.assert_frame_equal(fresh.tables["gains"], other.tables["gains"], check_exact=True)
+
+
+def test_a_run_designs_its_method_and_the_designs_it_asks_for():
+    """gain.designs: the loop's method plus the listed comparison designs, on the identified and the
+    reported moments; the summary and the gains table name exactly those."""
+    out = pipeline.run_experiment(experiment("gain=lqr_mean", "gain.designs=[robust_box]"))
+    gains = out.tables["gains"]
+    for source in ("identified", "reported"):
+        assert list(gains[gains["distribution"] == source]["method"]) == ["lqr_mean", "robust_box"]
+    assert set(out.summary["designs"]) == {"lqr_mean", "robust_box"}
+    assert set(out.timings["synthesis_by_method"]) == {f"{s}/{m}" for s in ("identified", "reported")
+                                                        for m in ("lqr_mean", "robust_box")}
