@@ -5,6 +5,7 @@ layer above the store and is added here.
     rdsexp-runs plot SWEEP|--where "..." --x KEY [--x KEY2] --y METRIC [--hue KEY] [--logx] [--logy] [--out DIR]
     rdsexp-runs export --mlflow URI [SWEEP|RUN] [--where "..."] [--experiment NAME] [--no-tables] [--root DIR]
 """
+import os
 import sys
 from pathlib import Path
 
@@ -92,7 +93,12 @@ def main(argv=None) -> int:
 
 def cli() -> None:
     """Console entry point `rdsexp-runs`."""
-    sys.exit(main())
+    try:
+        code = main()
+    except BrokenPipeError:            # `rdsexp-runs list | head`: the reader stopped early, not an error
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        code = 0
+    sys.exit(code)
 
 
 if __name__ == "__main__":

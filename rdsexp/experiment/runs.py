@@ -356,6 +356,13 @@ def _command(args) -> int:
         return 1
     if args.command == "show":
         from omegaconf import OmegaConf
+
+        from .store.table import identity
+        who = identity(run_dir, info)                   # the catalog's identity of the run, first
+        job = f" job {who['job']}" if who["job"] is not None else ""
+        reused = f", reused from {who['reused_from']}" if who["reused_from"] else ""
+        print(f"run {who['id']}: plant {who['plant']} (model {who['model']}), sweep {who['sweep'] or '-'}{job}, "
+              f"seed {who['seed']}, overrides {who['overrides'] or '(none)'}{reused}")
         print(OmegaConf.to_yaml({k: v for k, v in info.items() if k not in ("environment", "traceback", "params")}))
         for problem in run_damage(run_dir, info) if info.get("status") == "complete" else []:
             print(f"damaged: {run_dir / problem}")

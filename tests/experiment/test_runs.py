@@ -281,6 +281,16 @@ def test_plot_a_sweep_from_the_command_line_and_from_python(root, tmp_path, caps
     np.testing.assert_allclose(points["mean"], [0.9, 0.92, 0.94])
 
 
+def test_show_a_run_names_its_identity_first(tmp_path, capsys):
+    run = fake_run(tmp_path, "S", 1, ["seed=4"], summary(0.8, 0.9) | {"model": "paper"})
+    info = json.loads((run / "run.json").read_text())
+    (run / "run.json").write_text(json.dumps(info | {"seed": {"root": 4}, "overrides": ["seed=4"],
+                                                     "reused_from": "T/0"}))
+    assert runs.main(["show", "S/1", "--root", str(tmp_path)]) == 0
+    assert capsys.readouterr().out.splitlines()[0] == \
+        "run S/1: plant paper (model paper), sweep noise job 1, seed 4, overrides seed=4, reused from T/0"
+
+
 def test_plot_needs_a_selection(root, capsys):
     assert runs.main(["plot", "--root", str(root), "--x", "q_scale", "--y", "lam"]) == 2
     assert capsys.readouterr().err.strip() == "rdsexp-runs: plot: name a SWEEP or give --where"
