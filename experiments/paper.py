@@ -25,6 +25,7 @@ import fig_gains
 import fig_online
 import fig_sweeps
 import identification_input
+import pandas as pd
 import pole_sets
 import reproduction_table
 import robust_width
@@ -50,13 +51,30 @@ PAGE = (("figure", "estimation", "Identification run (Sec. V-A, Fig. estimation)
 
 
 def ensure_sweeps(root, extra_overrides=()) -> None:
-    for sweep in SWEEPS:
-        if not report.load_runs(root, sweep):
-            print(f"no stored runs of sweep {sweep!r} under {root}: running python -m rdsexp +sweep={sweep}",
-                  flush=True)
-            subprocess.run([sys.executable, "-m", "rdsexp", f"+sweep={sweep}", f"store={root.resolve()}",
-                            *extra_overrides],
-                           check=True)
+    """Run every sweep of SWEEPS that has no stored runs, saying which (i of n); each sweep shows its
+    own bar of jobs done out of total with the time left."""
+    for i, sweep in enumerate(SWEEPS, 1):
+        if report.load_runs(root, sweep):
+            print(f"[{i}/{len(SWEEPS)}] sweep {sweep}: stored", flush=True)
+            continue
+        print(f"[{i}/{len(SWEEPS)}] no stored runs of sweep {sweep!r} under {root}: running python -m rdsexp "
+              f"+sweep={sweep}", flush=True)
+        subprocess.run([sys.executable, "-m", "rdsexp", f"+sweep={sweep}", f"store={root.resolve()}",
+                        *extra_overrides], check=True)
+
+
+def stage_totals(runs: list[report.Run]) -> pd.Series:
+    """Seconds per stage summed over the runs that computed (a reused job's timings are its original's,
+    counted once), from run.json's timings; the total last."""
+    computed = [r for r in runs if not r.info.get("reused_from")]
+    totals: dict[str, float] = {}
+    for r in computed:
+        for stage, seconds in (r.info.get("timings") or {}).items():
+            if isinstance(seconds, (int, float)):            # not the per-method breakdown of synthesis
+                totals[stage] = totals.get(stage, 0.0) + seconds
+    series = pd.Series(totals, dtype=float).sort_values(ascending=False)
+    total = float(sum(r.info.get("seconds") or 0 for r in computed))
+    return pd.concat([series[series > 0], pd.Series({"total": total})])
 
 
 def index(out: Path, counts) -> str:
@@ -107,6 +125,9 @@ def main(argv=None) -> None:
     counts = reproduction_table.verdict_counts(results)
     files.atomic_write_bytes(args.out / "index.md", index(args.out, counts).encode())
     print(counts.to_string())
+    runs = [r for sweep in SWEEPS for r in report.load_runs(args.root, sweep)]
+    print(f"compute of the {sum(not r.info.get('reused_from') for r in runs)} runs behind the report, seconds "
+          f"by stage:\n" + stage_totals(runs).round(1).to_string())
     print(f"report written to {args.out}/ (one page: {args.out}/index.md)")
 
 

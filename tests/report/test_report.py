@@ -296,3 +296,14 @@ def test_report_scripts_without_stored_runs_end_with_one_line(tmp_path, capsys):
     lines = proc.stderr.strip().splitlines()
     assert proc.returncode == 1 and len(lines) == 1 and "no stored" in lines[0], proc.stderr
     assert not (tmp_path / "report").exists()
+
+
+def test_stage_totals_count_each_computation_once():
+    """paper.py's per-stage seconds: summed over the runs that computed; a reused copy (its original's
+    timings) and the per-method breakdown of synthesis are not added."""
+    from rdsexp.experiment.store import Run
+    infos = [{"timings": {"synthesis": 2.0, "closed_loop": 1.0, "synthesis_by_method": {"a": 2.0}}, "seconds": 3.5},
+             {"timings": {"synthesis": 0.5, "closed_loop": 3.0}, "seconds": 4.0},
+             {"timings": {"synthesis": 2.0, "closed_loop": 1.0}, "seconds": 3.5, "reused_from": "x"}]
+    totals = paper.stage_totals([Run(Path(f"/nowhere/{i}"), info) for i, info in enumerate(infos)])
+    assert totals.to_dict() == {"closed_loop": 4.0, "synthesis": 2.5, "total": 7.5}
