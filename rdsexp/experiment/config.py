@@ -14,7 +14,7 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from ..errors import ConfigError, one_line
 from ..numerics.distributions import from_spec
-from ..numerics.enkf import VARIANTS, EnKF, check_covariance, truth_map, xi_support
+from ..numerics.enkf import VARIANTS, AdaptiveInflation, EnKF, check_covariance, truth_map, xi_support
 from ..numerics.modeling import mls_input
 from ..numerics.online import MEMORIES, OnlineSettings
 from ..numerics.simulation import ESTIMATES, check_estimate
@@ -164,10 +164,24 @@ class FilterSettings:
         variant = get(cfg, "enkf.variant")
         if variant not in VARIANTS:
             raise ConfigError(f"enkf.variant: {variant!r} is not allowed, expected one of {', '.join(VARIANTS)}")
-        inflation = _number(get(cfg, "enkf.inflation"), "enkf.inflation", low=1)
+        inflation = get(cfg, "enkf.inflation")          # rho >= 1, or adaptive with the enkf.adaptive settings
+        if variant == "enkf_n" and inflation != 1:
+            raise ConfigError(f"enkf.inflation: {inflation!r} is not allowed with enkf.variant=enkf_n, which estimates "
+                              f"the inflation itself (Bocquet 2011); expected 1")
+        if inflation == "adaptive":
+            smoothing = _number(get(cfg, "enkf.adaptive.smoothing"), "enkf.adaptive.smoothing", low=0, high=1)
+            low = _number(get(cfg, "enkf.adaptive.low"), "enkf.adaptive.low", low=0, low_open=True)
+            inflation = AdaptiveInflation(smoothing, low, _number(get(cfg, "enkf.adaptive.high"), "enkf.adaptive.high",
+                                                                  low=low))
+        else:
+            try:
+                inflation = _number(inflation, "enkf.inflation", low=1)
+            except ConfigError as err:
+                raise ConfigError(f"{err} or adaptive") from None
         relaxation = _number(get(cfg, "enkf.relaxation"), "enkf.relaxation", low=0, high=1)
-        if variant == "etkf" and np.linalg.eigvalsh(R).min() <= 1e-12 * max(np.abs(R).max(), 1e-300):
-            raise ConfigError("enkf.R: must be positive definite with enkf.variant=etkf (its transform uses R^-1)")
+        if variant in ("etkf", "enkf_n") and np.linalg.eigvalsh(R).min() <= 1e-12 * max(np.abs(R).max(), 1e-300):
+            raise ConfigError(f"enkf.R: must be positive definite with enkf.variant={variant} (its transform uses "
+                              f"R^-1)")
         support = get(cfg, "enkf.xi_support")
         if support not in XI_SUPPORT:
             raise ConfigError(f"enkf.xi_support: {support!r} is not allowed, expected one of {', '.join(XI_SUPPORT)}")

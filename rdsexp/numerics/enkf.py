@@ -18,10 +18,40 @@ Variants (`EnKF.variant`), both batched the same way:
   [coefficients, correction] @ [Y; 1] product as the stochastic update, and the analysis sample
   covariance is exactly Cov(psi_{k|k-1}) - U (V_z + R)^-1 U^T, the Kalman update of the forecast
   ensemble's moments.
-Options for small ensembles, for both variants: `inflation` rho >= 1 scales the forecast
-anomalies psi^(i) - mean by rho after each prediction; `relaxation` alpha in [0, 1] relaxes the
-analysis spread to the prior spread per component (RTPS, Whitaker & Hamill 2012):
+- "enkf_n": the finite-size EnKF (Bocquet 2011) in the dual form of Bocquet, Raanes & Hannart 2015:
+  the ETKF with the prior's scale integrated out under Jeffreys' hyperprior, so that it has no
+  inflation to tune. With N = M, eps_N = 1 + 1/N, unscaled anomalies X = [psi^(i) - mean] (n+p, M),
+  Y = [h(psi^(i)) - z_mean] (ny, M) and delta = y - z_mean, the analysis w minimises
+  J(w) = 1/2 |delta - Y w|^2_(R^-1) + N/2 ln(eps_N + w^T w), whose dual over a scalar zeta is
+  D(zeta) = 1/2 delta^T (R + Y Y^T / zeta)^-1 delta + eps_N zeta / 2 + N/2 ln(N / zeta) - N/2,
+  minimised over 0 < zeta <= N / eps_N. With its minimiser zeta_a, w_a = (Y^T R^-1 Y + zeta_a I)^-1
+  Y^T R^-1 delta, the mean moves to mean + X w_a and the anomalies become
+  sqrt(N-1) X (Y^T R^-1 Y + zeta_a I)^(-1/2) (the Hessian without its rank-one term): exactly the
+  ETKF above applied to the forecast ensemble with its anomalies scaled by lambda = sqrt((N-1) / zeta_a),
+  which is how it is computed. With R^(-1/2) Y Y^T R^(-1/2) = E diag(mu) E^T (ny x ny) and
+  b = E^T R^(-1/2) delta, D(zeta) = 1/2 sum_i zeta b_i^2 / (zeta + mu_i) + eps_N zeta / 2 - N/2 ln zeta
+  + const, one scalar problem per path, solved for all paths at once (`enkf_n_zeta`). Its
+  stationarity condition sum_i b_i^2 mu_i zeta / (zeta + mu_i)^2 + eps_N zeta = N holds somewhere in
+  (0, N / eps_N], so the bound is never active but at b = 0 (lambda^2 = (N-1)(N+1)/N^2 then).
+Options for small ensembles: `inflation` rho >= 1 scales the forecast anomalies psi^(i) - mean by
+rho after each prediction (stochastic, etkf); `relaxation` alpha in [0, 1] relaxes the analysis
+spread to the prior spread per component (RTPS, Whitaker & Hamill 2012):
 sigma_a <- alpha sigma_f + (1 - alpha) sigma_a, by scaling the analysis anomalies.
+Adaptive inflation (`inflation` = "adaptive" or an `AdaptiveInflation`; stochastic, etkf): rho is
+estimated per path and step from the innovations with the observation-space statistics of Miyoshi
+2011: with d = y - z_mean (outputs without perturbations), E[d^T d] = Delta tr(H P^f H^T) + tr R for
+the covariance inflation Delta = rho^2, so Delta^o_k = (d^T d - tr R) / tr(V_z), V_z the sample
+covariance of the predicted outputs. It is smoothed in time with a fixed weight a (the temporal
+smoothing of Li, Kalnay & Miyoshi 2009, where Miyoshi 2011 weighs by Gaussian variances instead):
+Delta_k = a Delta_{k-1} + (1 - a) Delta^o_k, clipped to [low^2, high^2] (a step with tr(V_z) = 0 or
+non-finite moments keeps Delta_{k-1}), and rho_k = sqrt(Delta_k) scales the forecast anomalies of
+step k before its analysis (the stochastic variant's output perturbations are drawn after it).
+Delta^o_k estimates the inflation of the forecast as `predict` made it, so Delta_k is the total
+inflation the forecast needs, not an increment. rho_{k-1} is carried from one update to the next:
+`update(..., inflation=...)` takes it explicitly (`Analysis.inflation` of the previous update);
+`simulate` reuses one scratch buffer `work` per run, and the estimate is kept with that buffer
+(dropped when it is freed), so a run, and each chunk of paths, starts at rho = 1 (clipped to
+[low, high]) and every path has its own estimate.
 Support of xi (`xi_bounds`): a linear update moves members anywhere, but a Bernoulli coefficient
 outside [0, 1] or a uniform one outside [low, high] is a plant that cannot occur, and propagating
 the state with it (eq. state-pred2) can make the estimate diverge. With xi_bounds = (low, high)
@@ -44,6 +74,7 @@ numbers of each member. Inputs may be stored in any layout.
 """
 from __future__ import annotations
 
+import weakref
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -54,7 +85,10 @@ from .systems import AffineRandomSystem, MomentModel, _finite_array, affine_appl
 # an innovation covariance V with condition number above this is singular to working precision
 # (1 / (45 eps)); a merely large spread of the outputs stays well below it
 V_COND_LIMIT = 1e14
-VARIANTS = ("stochastic", "etkf")
+VARIANTS = ("stochastic", "etkf", "enkf_n")
+# the adaptive inflation rho_{k-1} (...,) of each run, keyed by id() of the scratch buffer `work` that
+# `simulate` passes to every `_update` of the run (module docstring); an entry is dropped with its buffer
+_CARRIED: dict[int, np.ndarray] = {}
 
 
 def check_covariance(name: str, value, dim: int) -> np.ndarray:
@@ -82,22 +116,43 @@ def sqrtm_psd(S: np.ndarray) -> np.ndarray:
     return (V * np.sqrt(np.clip(w, 0.0, None))) @ V.T
 
 
+@dataclass(frozen=True)
+class AdaptiveInflation:
+    """Settings of the adaptive multiplicative inflation (module docstring; Miyoshi 2011's estimate):
+    Delta_k = smoothing Delta_{k-1} + (1 - smoothing) Delta^o_k per path, rho_k = sqrt(Delta_k) kept in
+    [low, high]. smoothing in [0, 1] (0: each step's own estimate; 1: rho stays at its start, 1
+    clipped to [low, high]); 0 < low <= high."""
+
+    smoothing: float = 0.95
+    low: float = 1.0
+    high: float = 2.0
+
+    def __post_init__(self):
+        if not (_real(self.smoothing) and 0 <= self.smoothing <= 1):
+            raise ValueError(f"smoothing: {self.smoothing!r} is not allowed, expected a number in [0, 1]")
+        if not (_real(self.low) and self.low > 0):
+            raise ValueError(f"low: {self.low!r} is not allowed, expected a finite number > 0")
+        if not (_real(self.high) and self.high >= self.low):
+            raise ValueError(f"high: {self.high!r} is not allowed, expected a finite number >= low = {self.low}")
+
+
 @dataclass(frozen=True, eq=False)
 class EnKF:
     """EnKF for `model`, process noise Q (n+p, n+p), output noise R (ny, ny) (module docstring).
 
     Q and R may be given as scalars (times I) or diagonals. variant: "stochastic" (the paper's,
-    perturbed outputs) or "etkf" (needs R positive definite); inflation rho >= 1 of the forecast
-    anomalies (1: none); relaxation alpha in [0, 1] to the prior spread (0: none); xi_bounds: None or
-    (low, high) (p,) each, the box the xi part of analysed members is projected onto (+-inf: free);
-    xi_prior: None (the random walk) or a MomentModel the predicted xi is drawn from i.i.d.
+    perturbed outputs), "etkf" or "enkf_n" (both need R positive definite); inflation: rho >= 1 of the
+    forecast anomalies (1: none), or "adaptive" / an AdaptiveInflation (estimated per path); enkf_n
+    estimates its own and takes none (1 only); relaxation alpha in [0, 1] to the prior spread (0: none);
+    xi_bounds: None or (low, high) (p,) each, the box the xi part of analysed members is projected onto
+    (+-inf: free); xi_prior: None (the random walk) or a MomentModel the predicted xi is drawn from i.i.d.
     """
 
     model: AffineRandomSystem
     Q: np.ndarray
     R: np.ndarray
     variant: str = "stochastic"
-    inflation: float = 1.0
+    inflation: float | str | AdaptiveInflation = 1.0
     relaxation: float = 0.0
     xi_bounds: tuple[np.ndarray, np.ndarray] | None = None
     xi_prior: MomentModel | None = None
@@ -118,19 +173,28 @@ class EnKF:
         object.__setattr__(self, "_R_sqrt", sqrtm_psd(self.R))
         if self.variant not in VARIANTS:
             raise ValueError(f"variant: {self.variant!r} is not allowed, expected one of {', '.join(VARIANTS)}")
-        if not (_real(self.inflation) and self.inflation >= 1):
-            raise ValueError(f"inflation: {self.inflation!r} is not allowed, expected a finite number >= 1")
+        if isinstance(self.inflation, str) and self.inflation == "adaptive":
+            object.__setattr__(self, "inflation", AdaptiveInflation())
+        adaptive = isinstance(self.inflation, AdaptiveInflation)
+        if not (adaptive or _real(self.inflation) and self.inflation >= 1):
+            raise ValueError(f"inflation: {self.inflation!r} is not allowed, expected a finite number >= 1 or "
+                             f"'adaptive'")
+        if self.variant == "enkf_n" and (adaptive or self.inflation != 1):
+            raise ValueError(f"inflation: {self.inflation!r} is not allowed with variant enkf_n, which estimates "
+                             f"the prior's scale itself (Bocquet 2011); expected 1")
+        object.__setattr__(self, "_rho", 1.0 if adaptive else self.inflation)   # of `_predict`
         if not (_real(self.relaxation) and 0 <= self.relaxation <= 1):
             raise ValueError(f"relaxation: {self.relaxation!r} is not allowed, expected a number in [0, 1]")
-        if self.variant == "etkf":
+        if self.variant in ("etkf", "enkf_n"):
             w, E = np.linalg.eigh(self.R)
             if w.min() <= 1e-12 * max(w.max(), 1e-300):
-                raise ValueError("R: must be positive definite for the etkf variant (its transform uses R^-1)")
+                raise ValueError(f"R: must be positive definite for the {self.variant} variant (its transform "
+                                 f"uses R^-1)")
             object.__setattr__(self, "_R_isqrt", (E / np.sqrt(w)) @ E.T)              # R^(-1/2), symmetric
 
     @property
     def output_noise_dim(self) -> int:
-        """Standard normals per member and step for the output perturbations: ny (stochastic), 0 (etkf)."""
+        """Standard normals per member and step for the output perturbations: ny (stochastic), 0 (etkf, enkf_n)."""
         return self.model.ny if self.variant == "stochastic" else 0
 
     @property
@@ -152,17 +216,19 @@ class EnKF:
         return self._predict(psi, u, e_w, out=component_major(e_w.shape))
 
     def update(self, psi: np.ndarray, u: np.ndarray, y: np.ndarray, e_v: np.ndarray,
-               psi_mean: np.ndarray | None = None) -> Analysis:
+               psi_mean: np.ndarray | None = None, inflation: np.ndarray | None = None) -> Analysis:
         """Output prediction and filtering, eqs. (output-pred2), (filtering)-(kalman-v).
 
         psi: (..., M, n+p) predicted ensemble psi_{k|k-1}, u: (..., m) input at k, y: (..., ny)
-        measured output, e_v: (..., M, ny) standard normal draws (v = R^(1/2) e_v; the etkf variant
-        draws none: pass None), psi_mean: the ensemble mean (eq. state-pred1) if already computed.
+        measured output, e_v: (..., M, ny) standard normal draws (v = R^(1/2) e_v; the etkf and enkf_n
+        variants draw none: pass None), psi_mean: the ensemble mean (eq. state-pred1) if already computed.
+        inflation: with adaptive inflation, rho_{k-1} (...,) of the previous update (its
+        `Analysis.inflation`); None starts at 1 (clipped to [low, high]).
         Where the innovation covariance V_k is singular, `ok` is False and the ensemble is returned
         unfiltered (K_k = 0). The filtered ensemble is component-major.
         """
         work = component_major(psi.shape[:-1] + (self.dim + self.model.ny + 1,))
-        return self._update(psi, u, y, e_v, psi_mean, out=component_major(psi.shape), work=work)
+        return self._update(psi, u, y, e_v, psi_mean, out=component_major(psi.shape), work=work, inflation=inflation)
 
     # `simulate` calls the two steps below with buffers it reuses at every step: allocating the
     # large arrays afresh costs a page fault per 4 kB once the allocator has returned them to the OS.
@@ -183,36 +249,50 @@ class EnKF:
             psi_next[n:] += self.xi_prior.mean.reshape((-1,) + (1,) * (psi_next.ndim - 1))
             if self.xi_bounds is not None:       # a Gaussian draw of moments also leaves the support
                 self._clip_xi(psi_next[n:])
-        if self.inflation != 1:                     # rho (psi - mean) + mean; skipped at 1 (bit-identical)
+        if self._rho != 1:                          # rho (psi - mean) + mean; skipped at 1 (bit-identical)
             mean = components(ensemble_mean(out))[..., None]
             psi_next -= mean
-            psi_next *= self.inflation
+            psi_next *= self._rho
             psi_next += mean
         return out
 
     def _update(self, psi: np.ndarray, u: np.ndarray, y: np.ndarray, e_v: np.ndarray,
-                psi_mean: np.ndarray | None, out: np.ndarray, work: np.ndarray) -> Analysis:
+                psi_mean: np.ndarray | None, out: np.ndarray, work: np.ndarray,
+                inflation: np.ndarray | None = None) -> Analysis:
         """`update` with the filtered ensemble written into `out` (..., M, n+p) and `work`
-        (..., M, n+p+ny+1) as scratch, both component-major; neither may overlap psi."""
+        (..., M, n+p+ny+1) as scratch, both component-major; neither may overlap psi. With adaptive
+        inflation and inflation=None, rho_{k-1} is the one kept with `work` (module docstring)."""
         d, ny, M = self.dim, self.model.ny, psi.shape[-2]
         x, xi = self.split(psi)
+        # the forecast anomalies are scaled per path before the analysis: by the EnKF-N's lambda or
+        # the adaptive rho_k, both computed from the outputs without perturbations
+        scaled = self.variant == "enkf_n" or isinstance(self.inflation, AdaptiveInflation)
         # rows [psi - psi_mean; z - z_mean; 1] of all members, as X (d+ny+1, ..., M) for the
         # elementwise work and as Xb (..., d+ny+1, M), a matrix per path, for the products: the
         # Gram matrix of Xb holds U and V, and one more product with it filters every member
         X = components(work)
         Xb = np.moveaxis(X, 0, -2)
         dpsi, dz = X[:d], X[d:-1]
-        if self.variant == "stochastic":
+        if self.variant == "stochastic" and not scaled:
             np.matmul(self._R_sqrt.T, e_v.swapaxes(-1, -2), out=Xb[..., d:-1, :])    # v = R^(1/2) e_v
             dz += components(affine_apply(self.model.C, xi, x))                        # eq. (output-pred2)
         else:
-            dz[...] = components(affine_apply(self.model.C, xi, x))                    # no perturbation
+            dz[...] = components(affine_apply(self.model.C, xi, x))                    # no perturbation (yet)
         if self.model.D.any():
             dz += components(affine_apply(self.model.D, xi, u[..., None, :]))
         psi_mean = ensemble_mean(psi) if psi_mean is None else psi_mean              # eq. (state-pred1)
         z_mean = ensemble_mean(np.moveaxis(dz, 0, -1))                                # eq. (output-pred1)
         dz -= components(z_mean)[..., None]
         np.subtract(components(psi), components(psi_mean)[..., None], out=dpsi)
+        factor = None
+        if scaled:
+            factor = self._forecast_inflation(Xb[..., d:-1, :], y - z_mean, work, inflation)
+            X[:-1] *= factor[..., None]
+            if self.variant == "stochastic":     # z^(i) = h(psi^(i)) + v^(i) of the inflated members
+                v = self._R_sqrt.T @ e_v.swapaxes(-1, -2)                              # (..., ny, M)
+                v_mean = v.mean(axis=-1)
+                Xb[..., d:-1, :] += v - v_mean[..., None]
+                z_mean = z_mean + v_mean
         X[-1] = 1.0
         S = Xb[..., :-1, :] @ Xb[..., :-1, :].swapaxes(-1, -2) / (M - 1)   # sample covariance of [psi; z]
         cov_pred, U, V = S[..., :d, :d], S[..., :d, d:], S[..., d:, d:]    # eqs. (kalman-u), (kalman-v)
@@ -229,7 +309,11 @@ class EnKF:
         np.matmul(np.concatenate([coefficients, correction[..., None]], axis=-1), Xb[..., d:, :],
                   out=out.swapaxes(-1, -2))
         filtered = components(out)
-        filtered += components(psi)
+        if scaled:                                   # mean + factor (psi - mean), the anomalies held in dpsi
+            filtered += dpsi
+            filtered += components(psi_mean)[..., None]
+        else:
+            filtered += components(psi)
         # moments of psi_{k|k} from the same products: psi_{k|k} - mean = dpsi - K dz, so its sample
         # covariance is Cov(psi_{k|k-1}) - U K^T (exactly, for the sample moments; for the etkf
         # Cov(psi_{k|k-1}) - U (V_z + R)^-1 U^T, the same expression with its K)
@@ -241,7 +325,40 @@ class EnKF:
             filt_std = self._relax(filtered, filt_mean, pred_std, filt_std)
         if self.xi_bounds is not None:
             filt_mean, filt_std = self._project(filtered, filt_mean, filt_std)
-        return Analysis(psi=out, ok=ok, pred_mean=psi_mean, pred_std=pred_std, filt_mean=filt_mean, filt_std=filt_std)
+        return Analysis(psi=out, ok=ok, pred_mean=psi_mean, pred_std=pred_std, filt_mean=filt_mean, filt_std=filt_std,
+                        inflation=factor)
+
+    def _forecast_inflation(self, Y: np.ndarray, delta: np.ndarray, work: np.ndarray,
+                            previous: np.ndarray | None) -> np.ndarray:
+        """The factor (...,) on this update's forecast anomalies (module docstring): the EnKF-N's
+        lambda = sqrt((N-1) / zeta_a) or the adaptive rho_k. Y: (..., ny, M) output anomalies without
+        perturbations, delta = y - z_mean (..., ny); previous: rho_{k-1} (...,), or None for the one
+        kept with `work`. Non-finite moments give 1 (enkf_n) or rho_{k-1} (adaptive)."""
+        M = Y.shape[-1]
+        finite = np.all(np.isfinite(Y), axis=(-2, -1)) & np.all(np.isfinite(delta), axis=-1)
+        Y, delta = np.where(finite[..., None, None], Y, 0.0), np.where(finite[..., None], delta, 0.0)
+        if self.variant == "enkf_n":
+            mu, E = np.linalg.eigh(self._R_isqrt @ (Y @ Y.swapaxes(-1, -2)) @ self._R_isqrt)
+            b = (E.swapaxes(-1, -2) @ (self._R_isqrt @ delta[..., None]))[..., 0]     # E^T R^(-1/2) delta
+            zeta = enkf_n_zeta(np.clip(mu, 0.0, None), b * b, M)
+            return np.where(finite, np.sqrt((M - 1) / zeta), 1.0)
+        settings, carried = self.inflation, previous is None
+        if carried:
+            previous = _CARRIED.get(id(work))
+            if previous is None:                         # a new run: forget the estimate with its buffer
+                weakref.finalize(work, _CARRIED.pop, id(work), None)
+        start = min(max(1.0, settings.low), settings.high)
+        previous = np.broadcast_to(start if previous is None else previous, finite.shape)
+        spread = np.sum(Y * Y, axis=(-2, -1)) / (M - 1)                               # tr(V_z)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            estimate = (np.sum(delta * delta, axis=-1) - np.trace(self.R)) / spread    # Delta^o_k (Miyoshi 2011)
+        a = settings.smoothing
+        smoothed = a * previous ** 2 + (1 - a) * estimate
+        keep = ~(finite & (spread > 0) & np.isfinite(smoothed))
+        rho = np.sqrt(np.clip(np.where(keep, previous ** 2, smoothed), settings.low ** 2, settings.high ** 2))
+        if carried:
+            _CARRIED[id(work)] = rho
+        return rho
 
     def _transform(self, U: np.ndarray, V_z: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """ETKF: (K, L, ok) with K = U (V_z + R)^-1 (..., n+p, ny) for the mean and L (..., n+p, ny)
@@ -291,7 +408,9 @@ class EnKF:
 
 class Analysis(NamedTuple):
     """Result of one EnKF update: filtered ensemble (..., M, n+p), ok (...,), and the ensemble
-    mean and spread (std over members, ddof 1) before (pred_*) and after (filt_*) filtering, (..., n+p)."""
+    mean and spread (std over members, ddof 1) before (pred_*) and after (filt_*) filtering, (..., n+p).
+    inflation: the factor (...,) this update scaled the forecast anomalies by (enkf_n: lambda;
+    adaptive inflation: rho_k), None otherwise; pred_std is the spread after the scaling."""
 
     psi: np.ndarray
     ok: np.ndarray
@@ -299,6 +418,58 @@ class Analysis(NamedTuple):
     pred_std: np.ndarray
     filt_mean: np.ndarray
     filt_std: np.ndarray
+    inflation: np.ndarray | None = None
+
+
+def enkf_n_zeta(mu: np.ndarray, b2: np.ndarray, N: int, grid: int = 32, iterations: int = 40) -> np.ndarray:
+    """zeta_a (...,) minimising the EnKF-N's dual cost D(zeta) over 0 < zeta <= N / eps_N (module
+    docstring; Bocquet, Raanes & Hannart 2015), for N members, the eigenvalues mu (..., ny) >= 0 of
+    R^(-1/2) Y Y^T R^(-1/2) and b2 (..., ny), the squares of b = E^T R^(-1/2) delta.
+
+    In t = ln zeta, 2 dD/dt = g(t) = sum_i b_i^2 mu_i zeta / (zeta + mu_i)^2 + eps_N zeta - N. As
+    mu zeta / (zeta + mu)^2 <= min(zeta / mu, 1/4), g < 0 below zeta_lo = max(N / (eps_N + sum b^2 / mu),
+    (N - sum b^2 / 4) / eps_N), and g(N / eps_N) >= 0: every minimum lies in [zeta_lo, N / eps_N]. D is
+    not always convex (two minima when the innovation is far outside the forecast spread), so it is
+    evaluated on a log grid of `grid` points there, and the two lowest local minima of the grid are
+    refined: Newton steps on g(t) within the neighbouring grid points, bisecting whenever a step leaves
+    that bracket (at most `iterations`, all paths at once, until every step is below 1e-14 in t); the
+    lower of the two is zeta_a."""
+    eps = 1.0 + 1.0 / N
+    top = N / eps
+    mu, b2 = mu[..., None, :], b2[..., None, :]                                     # (..., 1, ny)
+    ratio = np.divide(b2, mu, out=np.zeros_like(mu), where=mu > 0).sum(axis=-1)
+    with np.errstate(over="ignore"):
+        low = np.maximum(N / (eps + ratio), (N - b2.sum(axis=-1) / 4) / eps)
+    low = np.clip(low, top * 1e-30, top)
+    cost = lambda t: 0.5 * np.sum(np.exp(t)[..., None] * b2 / (np.exp(t)[..., None] + mu), axis=-1) \
+        + 0.5 * eps * np.exp(t) - 0.5 * N * t                                                # D + const
+    ts = np.linspace(np.log(low), np.full_like(low, np.log(top)), grid, axis=-1)[..., 0, :]   # (..., grid)
+    values = cost(ts)
+    padded = np.concatenate([values[..., :1] + 1, values, values[..., -1:] + 1], axis=-1)
+    local = (values <= padded[..., :-2]) & (values <= padded[..., 2:])            # a grid point below its neighbours
+    order = np.argsort(np.where(local, values, np.inf), axis=-1)
+    j = order[..., :2]                                                                 # (..., 2) candidates
+    j[..., 1] = np.where(local.sum(axis=-1) > 1, j[..., 1], j[..., 0])                 # one minimum: twice
+    left = np.take_along_axis(ts, np.maximum(j - 1, 0), axis=-1)
+    right = np.take_along_axis(ts, np.minimum(j + 1, grid - 1), axis=-1)
+    t = np.take_along_axis(ts, j, axis=-1)
+    for _ in range(iterations):
+        z = np.exp(t)
+        q = z[..., None] + mu
+        terms = b2 * mu * z[..., None] / (q * q)
+        g = np.sum(terms, axis=-1) + eps * z - N
+        slope = np.sum(terms * (mu - z[..., None]) / q, axis=-1) + eps * z
+        below = g < 0
+        left, right = np.where(below, t, left), np.where(below, right, t)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            step = t - g / slope
+        step = np.where((slope > 0) & (step >= left) & (step <= right), step, 0.5 * (left + right))
+        done = np.all(np.abs(step - t) <= 1e-14 * np.maximum(1.0, np.abs(t)))
+        t = step
+        if done:
+            break
+    best = np.argmin(cost(t), axis=-1)[..., None]
+    return np.exp(np.take_along_axis(t, best, axis=-1)[..., 0])
 
 
 def components(a: np.ndarray) -> np.ndarray:

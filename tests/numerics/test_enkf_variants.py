@@ -1,5 +1,6 @@
 """EnKF variants (stochastic, etkf), inflation and relaxation: the Kalman update they approximate,
-the square-root transform against its M x M definition, and the config settings."""
+the square-root transform against its M x M definition, and the config settings (enkf_n and
+adaptive inflation: test_enkf_n.py)."""
 import numpy as np
 import pytest
 from hydra import compose, initialize_config_module
@@ -166,7 +167,7 @@ def test_truth_map_of_the_paper_and_of_a_model_that_is_the_plant():
 
 
 BAD = [
-    ("enkf.variant=enkf_n", "enkf.variant: 'enkf_n' is not allowed, expected one of stochastic, etkf"),
+    ("enkf.variant=enkf_x", "enkf.variant: 'enkf_x' is not allowed, expected one of stochastic, etkf, enkf_n"),
     ("enkf.inflation=0.9", "enkf.inflation: 0.9 is not allowed, expected a finite number >= 1"),
     ("enkf.inflation=inf", "enkf.inflation: inf is not allowed, expected a finite number >= 1"),
     ("enkf.inflation=nan", "enkf.inflation: nan is not allowed, expected a finite number >= 1"),
