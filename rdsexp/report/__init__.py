@@ -6,6 +6,7 @@ names the runs, the hashes of the tables drawn from, the script and the code ver
 """
 from __future__ import annotations
 
+import functools
 from pathlib import Path
 
 import matplotlib
@@ -126,27 +127,67 @@ def select(runs: list[Run], **where) -> list[Run]:
     return [r for r in runs if all(r.get(k.replace("__", ".")) == v for k, v in where.items())]
 
 
+@functools.lru_cache(maxsize=1)
+def drawing_code() -> str:
+    """The code version of this report process (`provenance.code_version`), once per process."""
+    return provenance.code_version()["version"]
+
+
 def lineage(runs: list[Run], script: str, **extra) -> dict:
-    """What an output was drawn from: the runs whose tables it read (ids, table hashes), script, code version."""
+    """What an output was drawn from: the runs whose tables it read (ids, table hashes), their code
+    version, the script and the code version that drew it (`drawn_by`)."""
     used = [r for r in runs if r.used]
     # an output computed from configs alone (no stored run, e.g. pole_sets) names the code that made it
-    version = check_versions(used, allow_mixed=True) if used else provenance.code_version()["version"]
-    return {"script": script, "code_version": version,
+    version = check_versions(used, allow_mixed=True) if used else drawing_code()
+    return {"script": script, "code_version": version, "drawn_by": drawing_code(),
             "runs": [{"id": r.id, "dir": str(r.dir), "tables": dict(sorted(r.used.items()))} for r in used], **extra}
+
+
+def _stored_lineage(out_dir: Path, name: str) -> dict | None:
+    try:
+        return files.read_json(Path(out_dir) / f"{name}.json")
+    except (OSError, ValueError):
+        return None
+
+
+def _same_source(a: dict, b: dict) -> bool:
+    """Two lineage records of the same runs, tables, script and code (whatever their outputs)."""
+    return {k: v for k, v in a.items() if k != "outputs"} == {k: v for k, v in b.items() if k != "outputs"}
+
+
+def up_to_date(out_dir: Path, name: str, record: dict) -> bool:
+    """Whether name.json holds this lineage `record` (a figure and a table of one name share it) and
+    every output the record names exists: the same runs, table hashes and code made them, so writing
+    them again would give the same bytes."""
+    stored = _stored_lineage(out_dir, name)
+    return stored is not None and _same_source(stored, record) and set(record["outputs"]) <= set(stored["outputs"]) \
+        and all((Path(out_dir) / o).exists() for o in record["outputs"])
+
+
+def write_lineage(out_dir: Path, name: str, record: dict) -> None:
+    """name.json: the lineage `record`, its outputs joined with those already recorded there from the
+    same source (a figure and a table of one name)."""
+    stored = _stored_lineage(out_dir, name)
+    if stored is not None and _same_source(stored, record):
+        record = record | {"outputs": sorted(set(stored["outputs"]) | set(record["outputs"]))}
+    files.write_json(Path(out_dir) / f"{name}.json", record)
 
 
 def save_figure(fig, out_dir: Path, name: str, runs: list[Run], script: str, caption: str = "") -> list[Path]:
     """PNG + PDF (byte-identical on re-runs), name.caption.md (the numbers, out of the figure) and
-    name.json with the lineage."""
+    name.json with the lineage; nothing is rewritten when the lineage is unchanged (`up_to_date`)."""
     out_dir.mkdir(parents=True, exist_ok=True)
-    paths = [out_dir / f"{name}.png", out_dir / f"{name}.pdf"]
+    paths = [out_dir / f"{name}.png", out_dir / f"{name}.pdf"] + ([out_dir / f"{name}.caption.md"] if caption else [])
+    record = lineage(runs, script, outputs=[p.name for p in paths])
+    if up_to_date(out_dir, name, record):          # rendering is most of a report's second call
+        plt.close(fig)
+        return paths
     fig.savefig(paths[0], metadata={"Software": None})
     fig.savefig(paths[1], metadata={"CreationDate": None, "ModDate": None, "Producer": None, "Creator": None})
     plt.close(fig)
     if caption:
-        paths.append(out_dir / f"{name}.caption.md")
         files.atomic_write_bytes(paths[-1], (caption.strip() + "\n").encode())
-    files.write_json(out_dir / f"{name}.json", lineage(runs, script, outputs=[p.name for p in paths]))
+    write_lineage(out_dir, name, record)
     return paths
 
 
@@ -209,7 +250,7 @@ def write_table(frame: pd.DataFrame, out_dir: Path, name: str, runs: list[Run], 
     out_dir.mkdir(parents=True, exist_ok=True)
     files.atomic_write_bytes(out_dir / f"{name}.csv", frame.to_csv(index=False).encode())
     files.atomic_write_bytes(out_dir / f"{name}.md", _markdown(frame).encode())
-    files.write_json(out_dir / f"{name}.json", lineage(runs, script, outputs=[f"{name}.csv", f"{name}.md"], **extra))
+    write_lineage(out_dir, name, lineage(runs, script, outputs=[f"{name}.csv", f"{name}.md"], **extra))
 
 
 def write_caption(out_dir: Path, name: str, text: str) -> Path:

@@ -268,11 +268,16 @@ class Run:
         """A stored table (optionally some columns). The first read of each table reads it whole and
         checks it against run.json's hash; DamagedRecord if it is missing, unreadable or modified."""
         if name in self.used:
-            return pd.read_parquet(self.dir / self.info["tables"][name]["file"], columns=columns)
-        table = read_table(self.dir, self.info, name, check_hash=check_hash)
-        if check_hash:
-            self.used[name] = self.info["tables"][name].get("sha256")
-        return table if columns is None else table[columns]
+            table = pd.read_parquet(self.dir / self.info["tables"][name]["file"], columns=columns)
+        else:
+            table = read_table(self.dir, self.info, name, check_hash=check_hash)
+            if check_hash:
+                self.used[name] = self.info["tables"][name].get("sha256")
+            table = table if columns is None else table[columns]
+        # the schema metadata stays in the file: in attrs, pandas deep-copies it into every derived frame
+        # (seconds of every report call)
+        table.attrs = {}
+        return table
 
     def damage(self) -> list[str]:
         """What is wrong with the run's files, one line each; [] when intact (see `run_damage`)."""
