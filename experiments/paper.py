@@ -1,6 +1,6 @@
 """Regenerate every figure and table of the report into outputs/report/ from stored runs.
 
-    python experiments/paper.py [--root outputs] [--out outputs/report] [--allow-mixed]
+    python experiments/paper.py [--root outputs] [--out outputs/report] [--allow-mixed] [--jobs N]
 
 Finds the latest stored `paper`, `ensemble_size`, `noise`, `window`, `identification_input` and
 `closed_loop_rate` sweeps under --root; a missing one is run first (`python -m rdsexp
@@ -13,6 +13,7 @@ identical files and simulates nothing. Refuses runs of different code versions u
 --allow-mixed. Last, index.md: one page with every figure (in the paper's order, then any other
 figure present with its table), its caption and the tables, then every other table.
 """
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -50,9 +51,15 @@ PAGE = (("figure", "estimation", "Identification run (Sec. V-A, Fig. estimation)
         ("figure", "sweeps", "Sweeps beyond the paper"))
 
 
-def ensure_sweeps(root, extra_overrides=()) -> None:
-    """Run every sweep of SWEEPS that has no stored runs, saying which (i of n); each sweep shows its
-    own bar of jobs done out of total with the time left."""
+def launcher(jobs: int) -> list[str]:
+    """The overrides that run a sweep's jobs in `jobs` worker processes (Hydra's joblib launcher; the
+    tables are identical to the basic launcher's, tests/experiment/test_sweep.py); [] for 1."""
+    return [] if jobs <= 1 else ["hydra/launcher=joblib", f"hydra.launcher.n_jobs={jobs}"]
+
+
+def ensure_sweeps(root, extra_overrides=(), jobs: int = 1) -> None:
+    """Run every sweep of SWEEPS that has no stored runs, in `jobs` processes, saying which (i of n);
+    each sweep shows its own bar of jobs done out of total with the time left."""
     for i, sweep in enumerate(SWEEPS, 1):
         if report.load_runs(root, sweep):
             print(f"[{i}/{len(SWEEPS)}] sweep {sweep}: stored", flush=True)
@@ -60,7 +67,7 @@ def ensure_sweeps(root, extra_overrides=()) -> None:
         print(f"[{i}/{len(SWEEPS)}] no stored runs of sweep {sweep!r} under {root}: running python -m rdsexp "
               f"+sweep={sweep}", flush=True)
         subprocess.run([sys.executable, "-m", "rdsexp", f"+sweep={sweep}", f"store={root.resolve()}",
-                        *extra_overrides], check=True)
+                        *launcher(jobs), *extra_overrides], check=True)
 
 
 def stage_totals(runs: list[report.Run]) -> pd.Series:
@@ -108,8 +115,11 @@ def index(out: Path, counts) -> str:
 
 
 def main(argv=None) -> None:
-    args = report.arguments(__doc__.splitlines()[0], argv)
-    ensure_sweeps(args.root)
+    parser = report.parser(__doc__.splitlines()[0])
+    parser.add_argument("--jobs", type=int, default=os.cpu_count() or 1,
+                        help="worker processes for the sweeps it runs (default: every core; 1: one after the other)")
+    args = parser.parse_args(argv)
+    ensure_sweeps(args.root, jobs=args.jobs)
     common = ["--root", str(args.root), "--out", str(args.out)] + (["--allow-mixed"] if args.allow_mixed else [])
     for script in (fig_estimation, fig_decay, fig_gains, fig_sweeps, identification_input, closed_loop_rate,
                    pole_sets):
