@@ -28,7 +28,7 @@ def points(runs: list[report.Run]) -> pd.DataFrame:
     for r in runs:
         m = r.table("metrics").set_index("experiment")
         loop = m.loc["closed_loop"] if "closed_loop" in m.index else None
-        rows.append({"variant": r.get("enkf.variant"), "inflation": float(r.get("enkf.inflation")),
+        rows.append({"variant": r.get("enkf.variant"), "inflation": inflation(r.get("enkf.inflation")),
                      "relaxation": float(r.get("enkf.relaxation")), "M": int(r.get("enkf.ensemble_size")),
                      "seed": r.get("seed"),
                      # no closed loop (no gain from the identified model) counts as diverged
@@ -37,8 +37,13 @@ def points(runs: list[report.Run]) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
-def label(variant, inflation, relaxation) -> str:
-    extra = [f"$\\rho$={inflation:g}"] * (inflation != 1) + [f"$\\alpha$={relaxation:g}"] * (relaxation != 0)
+def inflation(value) -> str:
+    """enkf.inflation as text, one type for grouping: "1", "1.1", or "adaptive"."""
+    return value if isinstance(value, str) else f"{float(value):g}"
+
+
+def label(variant, rho: str, relaxation) -> str:
+    extra = [f"$\\rho$={rho}"] * (rho != "1") + [f"$\\alpha$={relaxation:g}"] * (relaxation != 0)
     return " ".join([variant, *extra])
 
 
@@ -58,7 +63,7 @@ def summary(frame: pd.DataFrame) -> pd.DataFrame:
 
 def frontier(stats: pd.DataFrame) -> tuple[pd.DataFrame, float, str]:
     """Smallest M per filter with |rate - reference| <= TOLERANCE and no divergence in any seed."""
-    ref_rows = stats[(stats["variant"] == "stochastic") & (stats["inflation"] == 1) & (stats["relaxation"] == 0)
+    ref_rows = stats[(stats["variant"] == "stochastic") & (stats["inflation"] == "1") & (stats["relaxation"] == 0)
                      & (stats["M"] == stats["M"].max())]
     ref = float(ref_rows["rate"].iloc[0]) if len(ref_rows) else np.nan
     Mref = int(stats["M"].max())

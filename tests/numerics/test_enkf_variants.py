@@ -202,12 +202,14 @@ def test_frontier_is_the_smallest_M_within_tolerance_without_divergence():
     import fig_filters
     import pandas as pd
     rows = [("stochastic", 1.0, 300, 0.850, 0), ("stochastic", 1.0, 100, 0.855, 0), ("stochastic", 1.0, 20, 0.851, 1),
-            ("etkf", 1.1, 10, 0.845, 0), ("etkf", 1.1, 300, 0.86, 0), ("etkf", 1.0, 20, 0.8615, 0)]
-    stats = pd.DataFrame([{"variant": v, "inflation": rho, "relaxation": 0.0, "M": M, "rate": r, "seeds_diverged": dv}
-                          for v, rho, M, r, dv in rows])
+            ("etkf", 1.1, 10, 0.845, 0), ("etkf", 1.1, 300, 0.86, 0), ("etkf", 1.0, 20, 0.8615, 0),
+            ("etkf", "adaptive", 20, 0.852, 0)]
+    stats = pd.DataFrame([{"variant": v, "inflation": fig_filters.inflation(rho), "relaxation": 0.0, "M": M, "rate": r,
+                           "seeds_diverged": dv} for v, rho, M, r, dv in rows])
     table, ref, sentence = fig_filters.frontier(stats)
     assert ref == 0.850
     smallest = {(r.variant, r.inflation): r.smallest_M for r in table.itertuples()}
-    assert smallest[("stochastic", 1.0)] == 100 and smallest[("etkf", 1.1)] == 10
-    assert pd.isna(smallest[("etkf", 1.0)])                 # 0.0115 away
+    assert smallest[("stochastic", "1")] == 100 and smallest[("etkf", "1.1")] == 10
+    assert smallest[("etkf", "adaptive")] == 20             # adaptive inflation: a text among numbers
+    assert pd.isna(smallest[("etkf", "1")])                 # 0.0115 away
     assert "etkf: none of M = 20" in sentence and "etkf rho=1.1: M = 10" in sentence
