@@ -241,6 +241,8 @@ class DesignSettings:
     source: str
     F: np.ndarray | None
     designs: tuple[str, ...] = ()
+    lmi_max_n: int | None = None          # LMI designs on larger systems are not_applicable
+    fallback: str | None = None           # the loop's method when its own is not_applicable
 
     @property
     def methods(self) -> list[str]:
@@ -264,8 +266,14 @@ class DesignSettings:
         if not isinstance(designs, list) or any(d not in METHODS for d in designs):
             raise ConfigError(f"gain.designs: {designs!r} is not allowed, expected all or a list of "
                               f"{', '.join(METHODS)}")
+        lmi_max_n = OmegaConf.select(cfg, "gain.lmi_max_n", default=None)
+        lmi_max_n = None if lmi_max_n is None else _number(lmi_max_n, "gain.lmi_max_n", integer=True, low=1)
+        fallback = OmegaConf.select(cfg, "gain.fallback", default=None)
+        if fallback is not None and fallback not in METHODS:
+            raise ConfigError(f"gain.fallback: {fallback!r} is not allowed, expected null or one of "
+                              f"{', '.join(METHODS)}")
         return cls(method=method, options=options, options_by_method=by_method, source=source, F=F,
-                   designs=tuple(designs))
+                   designs=tuple(designs), lmi_max_n=lmi_max_n, fallback=fallback)
 
 
 @dataclass(frozen=True)

@@ -124,7 +124,8 @@ def run_experiment(exp: Experiment, sink=None) -> Outcome:
         for source, moments in (("identified", dist), ("reported", exp.reported)):
             for method in exp.design.methods if moments is not None else ():
                 options = exp.design.options_by_method[method]
-                designs[source, method] = (moments, safe_synthesize(exp.model, moments, method, options))
+                designs[source, method] = (moments, safe_synthesize(exp.model, moments, method, options,
+                                                                    exp.design.lmi_max_n))
         selected = (exp.design.source, exp.design.method)
         if exp.design.source == "fixed":      # a given F (e.g. a paper's own gain): no design, its exact rate
             selected, moments = ("fixed", "fixed"), dist if dist is not None else exp.reported
@@ -132,6 +133,18 @@ def run_experiment(exp: Experiment, sink=None) -> Outcome:
             nbar = int(exp.model.Gbar(moments).shape[0]) if moments is not None else 0
             designs[selected] = (moments, SynthesisResult("fixed", exp.design.F, rate, "fixed", nbar=nbar))
         chosen = designs.get(selected, (None, None))[1]
+        fallback = exp.design.fallback
+        if chosen is not None and chosen.status == "not_applicable" and fallback not in (None, selected[1]):
+            # the loop's method cannot run on this system (e.g. an LMI design above gain.lmi_max_n): the
+            # loop uses gain.fallback, designed on the same moments, and the summary says so
+            moments = designs[selected][0]
+            if (selected[0], fallback) not in designs:
+                designs[selected[0], fallback] = (moments, safe_synthesize(
+                    exp.model, moments, fallback, exp.design.options_by_method[fallback], exp.design.lmi_max_n))
+            summary["gain_fallback"] = {"method": fallback, "instead_of": selected[1],
+                                        "because": chosen.info.get("reason", chosen.status)}
+            selected = (selected[0], fallback)
+            chosen = designs[selected][1]
         observer = loop_observer(exp, designs.get(selected, (None, None))[0])
 
     # closed and open loop in chunks of paths: rows go to the sink chunk by chunk, the metrics keep a
@@ -190,6 +203,8 @@ def run_experiment(exp: Experiment, sink=None) -> Outcome:
     if online is not None:
         add_online_tables(exp, tables, online, chosen, summary)
     summary.update(_summary(exp, dist, chosen, tables))
+    if "gain_fallback" in summary:                      # the method whose gain the loop uses
+        summary["gain_method"] = summary["gain_fallback"]["method"]
     timings["synthesis_by_method"] = {f"{source}/{method}": round(res.seconds, 4)
                                       for (source, method), (_, res) in designs.items()}
     recorded = pd.concat([tables["identification"], *sample], ignore_index=True)
@@ -320,7 +335,8 @@ def add_online_tables(exp: Experiment, tables: dict, online, chosen, summary: di
     # the optimal rate on the true plant: the better of Theorem 2's bisection and policy iteration
     # (policy iteration from F = 0 can stall on an open-loop unstable plant)
     truth = exp.plant.check_distribution(None)
-    optimum = min((safe_synthesize(exp.plant, truth, method, {}) for method in ("proposed", "policy_iteration")),
+    optimum = min((safe_synthesize(exp.plant, truth, method, {}, exp.design.lmi_max_n)
+                   for method in ("proposed", "policy_iteration")),
                   key=lambda res: res.lam if np.isfinite(res.lam) else np.inf)
     offline = safe_rate(exp.plant, None, chosen.F) if chosen is not None and chosen.F is not None else np.nan
     window = tuple(summary["rate_window"])          # as the metrics stage resolved it
@@ -349,16 +365,25 @@ _DESIGNS: dict[str, SynthesisResult] = {}
 _DESIGNS_KEPT = 256
 
 
-def safe_synthesize(model, moments, method: str, options: dict) -> SynthesisResult:
+LMI_METHODS = ("proposed", "nominal_lmi", "robust_box")      # designs that solve semidefinite programs
+
+
+def safe_synthesize(model, moments, method: str, options: dict, lmi_max_n: int | None = None) -> SynthesisResult:
     """`synthesize`, with every way a design can fail on this system as a status, never an exception.
 
-    not_applicable: pole placement without poles in the config. failed: <reason>: the method raised
+    not_applicable: pole placement without poles in the config, or an LMI design (LMI_METHODS) on a
+    system with more than `lmi_max_n` states (config gain.lmi_max_n: its SDPs would run for hours, the
+    SDP-free designs do not). failed: <reason>: the method raised
     (e.g. a Riccati equation without a solution) or returned a gain that is not finite. A design
     this process computed before from the same model, moments, method and options is reused (a
     copy, with seconds 0: no time spent in this run)."""
     if method == "pole_placement" and options.get("poles") is None:
         return SynthesisResult(method, None, float("nan"), "not_applicable", nbar=0,
                                info={"reason": "no poles in the config (plant.poles or gain.options.poles)"})
+    if method in LMI_METHODS and lmi_max_n is not None and model.n > lmi_max_n:
+        return SynthesisResult(method, None, float("nan"), "not_applicable", nbar=0,
+                               info={"reason": f"n = {model.n} > gain.lmi_max_n = {lmi_max_n}: an SDP of this size "
+                                               f"runs for hours; policy_iteration and ms_lqr need none"})
     key = _design_key(model, moments, method, options)
     if key in _DESIGNS:
         res = copy.deepcopy(_DESIGNS[key])

@@ -51,6 +51,10 @@ def summary_text(info: dict, run_dir: Path) -> str:
     elif s.get("modeling_status") is not None:
         lines.append(f"  no model: {s.get('modeling_status')}" +
                      ("; no gain designed, no closed loop" if s.get("synthesis_status") is None else ""))
+    if s.get("gain_fallback"):
+        f = s["gain_fallback"]
+        lines.append(f"  gain {f['instead_of']}: not_applicable ({f['because']}); the loop uses gain.fallback "
+                     f"{f['method']}")
     if s.get("synthesis_status") is not None:
         lines.append(f"  gain {s.get('gain_method')}: {s.get('synthesis_status')}, lambda {fmt(s.get('lam'))}"
                      f"{beside('lam')}, exact rate on the true plant {fmt(s.get('rate_plant'))}")

@@ -42,3 +42,21 @@ def test_a_run_designs_its_method_and_the_designs_it_asks_for():
     assert set(out.summary["designs"]) == {"lqr_mean", "robust_box"}
     assert set(out.timings["synthesis_by_method"]) == {f"{s}/{m}" for s in ("identified", "reported")
                                                         for m in ("lqr_mean", "robust_box")}
+
+
+def test_lmi_designs_above_the_size_limit_are_not_applicable_and_the_loop_falls_back():
+    """gain.lmi_max_n: an LMI design on a larger system is not_applicable at once (no SDP solved), the
+    SDP-free designs run, and the loop uses gain.fallback (policy iteration) and says so; without a
+    fallback the run still completes with its statuses and no loop."""
+    out = pipeline.run_experiment(experiment("gain.lmi_max_n=5", "gain.designs=[nominal_lmi]"))
+    gains = out.tables["gains"].set_index(["distribution", "method"])
+    for method in ("proposed", "nominal_lmi"):                       # the paper's model has n = 6 > 5
+        assert gains.loc[("identified", method), "status"] == "not_applicable"
+        assert out.timings["synthesis_by_method"][f"identified/{method}"] < 0.01
+    assert gains.loc[("identified", "policy_iteration"), "selected"]
+    assert out.summary["gain_fallback"] == {"method": "policy_iteration", "instead_of": "proposed", "because":
+                                            "n = 6 > gain.lmi_max_n = 5: an SDP of this size runs for hours; "
+                                            "policy_iteration and ms_lqr need none"}
+    assert out.summary["gain_method"] == "policy_iteration" and "closed_loop_status" in out.summary
+    bare = pipeline.run_experiment(experiment("gain.lmi_max_n=5", "gain.fallback=null"))
+    assert bare.summary["synthesis_status"] == "not_applicable" and "closed_loop_status" not in bare.summary

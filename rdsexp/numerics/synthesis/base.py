@@ -20,7 +20,8 @@ STATUSES = {
     "not_ms_stabilizable": "proven: no gain makes the design moments mean-square stable (lower bound >= 1)",
     "infeasible": "robust_box: no gain is certified over the whole box",
     "solver_failed": "the solver returned no usable gain; the rate is not certified",
-    "not_applicable": "the method does not apply to this system or config (e.g. pole placement without poles)",
+    "not_applicable": "the method does not apply to this system or config (pole placement without poles, or an LMI "
+                      "design on more states than gain.lmi_max_n)",
     "fixed": "a given gain (gain.source=fixed): no design, its exact rate",
     "failed: <reason>": "the method raised or returned a gain that is not finite; the reason follows",
 }
