@@ -395,7 +395,7 @@ class Experiment:
 
     def simulation(self) -> dict:
         """simulate()'s initial-state, filter and feedback-estimate arguments: q0, psi0, P0, ensemble_size,
-        estimate (closed_loop.estimate; the identification run sets its own)."""
+        estimate (every loop the controller closes uses the same estimate, identification's included)."""
         f = self.filter
         return dict(q0=self.q0, psi0=f.psi0, P0=f.P0, ensemble_size=f.ensemble_size, estimate=self.loop.estimate)
 

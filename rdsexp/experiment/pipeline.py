@@ -92,12 +92,9 @@ def run_experiment(exp: Experiment, sink=None) -> Outcome:
 
     with timed(timings, "identification"):
         F_id, info = identification_feedback(exp)
-        # the identification input is added on top of the feedback; the EnKF is told the applied input.
-        # Its feedback keeps the paper's x_{k|k-1} whatever closed_loop.estimate: with x_{k|k}, the plant
-        # diverged under the nominal gain on 3 of 50 random plants (seed 2), 2 of which x_{k|k-1} identifies
+        # the identification input is added on top of the feedback; the EnKF is told the applied input
         identify = lambda F: simulate(exp.plant, exp.filter.enkf, F=F, d=exp.identification.input, paths=1,
-                                      seed=root("identification"), filter_sees_d=True, keep_members=keep,
-                                      **(sim | {"estimate": "predicted"}))
+                                      seed=root("identification"), filter_sees_d=True, keep_members=keep, **sim)
         ident = identify(F_id)
         if info.get("used") == "open_loop" and ident.failure[0] == "diverged":
             # auto chose the open loop on the guess, which knows no spread of xi (the spread only raises
