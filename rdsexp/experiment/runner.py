@@ -25,9 +25,13 @@ from .store.table import flat_params
 log = logging.getLogger("rdsexp")
 
 
-def record(writer: RunWriter, outcome: Outcome, exp: Experiment, info: dict, streamed: dict) -> dict:
+def record(writer: RunWriter, outcome: Outcome, exp: Experiment, info: dict, streamed: dict,
+           index=None) -> dict:
     """Write the remaining tables, the recording and the final run.json of the run; `streamed`:
-    the tables the pipeline already wrote through a ParquetSink. Returns the run.json content."""
+    the tables the pipeline already wrote through a ParquetSink; `index(info)` is called with the
+    complete content just before run.json says so, so that a process killed in between leaves no
+    complete run that the reuse index does not know (an entry naming a run not yet complete is
+    never reused). Returns the run.json content."""
     timings = dict(outcome.timings)
     with timed(timings, "tables"):
         hashes = writer.store_tables({name: attach(name, table, info["id"])       # attach: schema metadata
@@ -46,6 +50,8 @@ def record(writer: RunWriter, outcome: Outcome, exp: Experiment, info: dict, str
                 log.info("no recording: Rerun is disabled (RERUN=off)")
     info.update(status="complete", finished=provenance.now(), summary=outcome.summary, tables=hashes,
                 timings=timings, seconds=round(sum(v for v in timings.values() if isinstance(v, float)), 3))
+    if index is not None:
+        index(info)
     return writer.finish(info)
 
 
@@ -161,12 +167,12 @@ def execute(cfg: DictConfig, run_dir: Path) -> dict:
     outcome.timings |= timings
     with timed(outcome.timings, "streamed_tables"):
         streamed = sink.close()
-    info = record(writer, outcome, exp, info, streamed)
-    try:                                    # the index is derived data: a run is complete without it
-        store.index(run_dir, info)
-    except WriteError as err:
-        log.warning("run %s not indexed for reuse: %s", info["id"], err)
-    return info
+    def index(complete: dict) -> None:
+        try:                                # the index is derived data: a run is complete without it
+            store.index(run_dir, complete)
+        except WriteError as err:
+            log.warning("run %s not indexed for reuse: %s", complete["id"], err)
+    return record(writer, outcome, exp, info, streamed, index)
 
 
 def reusable_run(cfg: DictConfig, store: RunStore, info: dict) -> Path | None:
