@@ -9,6 +9,7 @@ import warnings
 
 import numpy as np
 import scipy.linalg
+import scipy.linalg.lapack
 import scipy.sparse.linalg
 from scipy.special import ndtri
 
@@ -18,60 +19,145 @@ from .systems import AffineRandomSystem, MomentModel
 def second_moment_operator(system: AffineRandomSystem, dist: MomentModel | None, F) -> np.ndarray:
     """E[Acl (x) Acl], shape (n^2, n^2): row-major vec(X_{k+1}) = this @ vec(X_k) for d = 0.
 
-    Dense: for small n and for checks; `ms_rate` never forms it for n > DENSE_MAX_N."""
+    Dense: for small n and for checks; rdsexp's analysis applies it as `MomentMap` beyond DENSE_MAX_N."""
     Abar, Bbar = system.moment_factors(dist)
     Acl = Abar + Bbar @ system.check_gain(F)                 # (nbar, n, n)
     n = system.n
     return np.einsum("rij,rkl->ikjl", Acl, Acl).reshape(n * n, n * n)
 
 
-DENSE_MAX_N = 8      # up to n^2 = 64 the dense eigenvalue problem is as fast as an Arnoldi iteration
+# ------------------------------------------------------ the second-moment map without n^2 x n^2 matrices
+# E[x_{k+1} x_{k+1}^T] = T(E[x_k x_k^T]) for d = 0 with T(X) = sum_r Acl_r X Acl_r^T over the closed
+# loop's moment factors Acl_r = Abar_r + Bbar_r F, and the generalized Lyapunov operator is its adjoint
+# T*(P) = sum_r Acl_r^T P Acl_r. Both map the PSD cone into itself. Above the sizes below nothing forms
+# the n^2 x n^2 matrix E[Acl (x) Acl]: T is applied in O(nbar n^3) and its Perron root found by a
+# Davidson iteration preconditioned by the dominant Kronecker term (`DominantTerm`).
+#
+# The switches from dense, measured (experiments/benchmark_scale_designs.py --switch: one thread, CPU
+# ms, median over 10 random systems of experiments/benchmark_synthesis.py's kind, dense / matrix-free):
+#   eigenvalues:  n = 8: 0.78 / 3.4,  n = 10: 2.5 / 2.8,  n = 12: 5.8 / 4.0,  n = 14: 11.7 / 5.5
+DENSE_MAX_N = 10          # `perron`, `ms_rate`: dense eigenvalues of E[Acl (x) Acl] up to this n
+PERRON_TOL = 1e-13        # the Perron pair's relative residual ||T(X) - rho X|| / (rho ||X||) (Frobenius)
+EIGENBASIS_COND = 1e8     # above this condition of M0's eigenbasis, `DominantTerm` solves in its Schur basis
 
 
-def perron(Acl: np.ndarray, *, adjoint: bool = False, v0: np.ndarray | None = None) -> tuple[float, np.ndarray]:
+class MomentMap:
+    """X (n, n) -> T(X) = sum_r M_r X M_r^T with M = Acl (nbar, n, n), or M_r = Acl_r^T (adjoint=True).
+
+    T(X) = E[Acl X Acl^T] and T*(P) = E[Acl^T P Acl]. One application is two BLAS products over the
+    stacked factors: 2 nbar n^3 multiply-adds and O(nbar n^2) memory (E[Acl (x) Acl] has n^4 entries)."""
+
+    def __init__(self, Acl: np.ndarray, *, adjoint: bool = False):
+        M = np.asarray(Acl, dtype=float)
+        self.M = M.transpose(0, 2, 1) if adjoint else M                        # T(X) = sum_r M_r X M_r^T
+        self.nbar, self.n = self.M.shape[0], self.M.shape[1]
+        self.rows = np.ascontiguousarray(self.M.reshape(-1, self.n))                     # [M_1; ...; M_nbar]
+        self.cols = np.ascontiguousarray(self.M.transpose(0, 2, 1).reshape(-1, self.n))  # [M_1^T; ...]
+
+    def __call__(self, X: np.ndarray) -> np.ndarray:
+        nbar, n = self.nbar, self.n
+        Z = self.rows @ X                                                  # blocks M_r X, (nbar n, n)
+        if nbar > 1:       # [M_1 X, ..., M_nbar X] (n, nbar n) @ [M_1^T; ...] = sum_r M_r X M_r^T in one product
+            Z = Z.reshape(nbar, n, n).transpose(1, 0, 2).reshape(n, nbar * n)
+        return Z @ self.cols
+
+
+class DominantTerm:
+    """The dominant Kronecker term T0(X) = M0 X M0^T of T(X) = sum_r M_r X M_r^T, M (nbar, n, n), and
+    C -> (sigma - T0)^-1 C in O(n^3) (`solve`).
+
+    Rotating the factors by an orthogonal matrix leaves T unchanged, so with u the top left singular
+    vector of the stacked factors (nbar, n^2), M0 = sum_r u_r M_r and the other singular directions
+    give T = T0 + T1 with T1 a sum of Kronecker squares: T1 maps the PSD cone into itself, hence
+    rho0 = rho(T0) = rho(M0)^2 <= rho(T), and (sigma - T0)^-1 T1 is a regular splitting of sigma - T.
+    In M0's eigenbasis (real: [Re v, Im v] for a complex pair) T0 is elementwise, (sigma - T0)^-1
+    divides by sigma - w_i w_j: four n x n products. Where that basis is ill-conditioned (a Jordan
+    block, cond > EIGENBASIS_COND) a Schur-based Stein solve (scipy) instead."""
+
+    def __init__(self, M: np.ndarray):
+        nbar, n, _ = M.shape
+        flat = M.reshape(nbar, n * n)
+        u = np.linalg.eigh(flat @ flat.T)[1][:, -1]                # top left singular vector of the stack
+        self.M0 = np.tensordot(u, M, axes=1)                                  # (n, n)
+        w, V = np.linalg.eig(self.M0)
+        self.rho0 = float(np.abs(w).max() ** 2) if n else 0.0
+        # LAPACK returns a conjugate pair adjacent, positive imaginary part first: put the pairs first
+        first = np.flatnonzero(w.imag > 0)
+        order = np.concatenate([np.stack([first, first + 1], axis=1).ravel(), np.flatnonzero(w.imag == 0)])
+        w, V = w[order], V[:, order]
+        self.pairs = 2 * len(first)
+        Vr = V.real.copy()
+        Vr[:, 1:self.pairs:2] = V[:, 0:self.pairs:2].imag      # V[:, k] = Vr[:, k] + i Vr[:, k+1] for a pair
+        try:
+            W = np.linalg.inv(Vr)
+            cond = np.linalg.norm(Vr, 1) * np.linalg.norm(W, 1)
+        except np.linalg.LinAlgError:
+            W, cond = None, np.inf
+        self.eigenbasis = bool(cond <= EIGENBASIS_COND)
+        self.Vr, self.W, self.ww = Vr, W, np.outer(w, w)
+
+    def solve(self, C: np.ndarray, sigma: float) -> np.ndarray:
+        """X (n, n) with sigma X - M0 X M0^T = C, sigma > rho0 (C symmetric: X symmetric)."""
+        if not self.eigenbasis:
+            return scipy.linalg.solve_discrete_lyapunov(self.M0 / np.sqrt(sigma), C / sigma)
+        Z = self._pairs(self.W @ C @ self.W.T, _TO_EIG) / (sigma - self.ww)
+        return self.Vr @ self._pairs(Z, _FROM_EIG).real @ self.Vr.T
+
+    def _pairs(self, Y: np.ndarray, R: np.ndarray) -> np.ndarray:
+        """R Y_k R^T on every pair block (rows, then columns): between the real basis [Re v, Im v]
+        and the complex eigenvectors [v, conj v] (`_TO_EIG`, `_FROM_EIG`)."""
+        Y = Y.astype(complex)
+        q, n = self.pairs, len(Y)
+        Y[:q] = (R @ Y[:q].reshape(-1, 2, n)).reshape(q, n)
+        Y[:, :q] = (Y[:, :q].reshape(n, -1, 2) @ R.T).reshape(n, q)
+        return Y
+
+
+_TO_EIG = np.array([[0.5, -0.5j], [0.5, 0.5j]])       # [v, conj v] = [Re v, Im v] [[1, 1], [i, -i]]
+_FROM_EIG = np.array([[1, 1], [1j, -1j]])
+
+
+def _balanced(Acl: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(D^-1 Acl D, d): a diagonal similarity of every factor (the spectrum of T is unchanged, X = D Xd D)
+    that evens out rows and columns, so that gains with large entries do not cost accuracy."""
+    n = Acl.shape[1]
+    if not np.all(np.isfinite(Acl)):
+        return Acl, np.ones(n)
+    _, (d, _) = scipy.linalg.matrix_balance(np.abs(Acl).sum(axis=0), permute=False, separate=True)
+    return Acl * d[None, None, :] / d[None, :, None], d
+
+
+def perron(Acl: np.ndarray, *, adjoint: bool = False, v0: np.ndarray | None = None,
+           tol: float = PERRON_TOL) -> tuple[float, np.ndarray]:
     """Spectral radius rho and a Perron eigenvector V (n, n) of T(X) = sum_r Acl_r X Acl_r^T.
 
     Acl: (nbar, n, n). adjoint=True uses T*(P) = sum_r Acl_r^T P Acl_r (same spectrum). T maps the
     PSD cone into itself, so rho is an eigenvalue with a PSD eigenvector (Krein-Rutman); V is
-    returned symmetrised with a nonnegative trace (PSD up to rounding). For n > DENSE_MAX_N an
-    Arnoldi iteration (ARPACK, tolerance 0 = working precision, started from v0 if given) applies T
-    as nbar pairs of n x n products, O(nbar n^3) per step, instead of an O(n^6) dense eigensolve;
-    there the closed loop is first balanced (a diagonal similarity, which leaves the spectrum
-    unchanged) so that gains with large entries do not cost accuracy. (The dense eigensolver
-    balances the n^2 x n^2 matrix itself.)
+    returned symmetrised with a nonnegative trace (PSD up to rounding).
+
+    n <= DENSE_MAX_N: the eigenvalues of the n^2 x n^2 matrix. Beyond, matrix-free on the balanced
+    closed loop, started from v0 (default I): `_perron_davidson`, else ARPACK's Arnoldi iteration for
+    the eigenvalue of largest real part (every eigenvalue has modulus <= rho, so that is rho, also
+    where complex eigenvalues share its modulus). Accuracy: the returned pair has
+    ||T(V) - rho V||_F <= tol rho ||V||_F (tol = PERRON_TOL = 1e-13 by default), so rho is exact to tol
+    times its condition number (tests/numerics/test_matrix_free.py: the dense eigenvalues to 1e-10 on
+    random and degenerate systems; beyond, `collatz_wielandt` brackets).
     """
     Acl = np.asarray(Acl, dtype=float)
     n = Acl.shape[1]
     if adjoint:
         Acl = Acl.transpose(0, 2, 1)
-    scale = np.ones(n)
     if n > DENSE_MAX_N and np.all(np.isfinite(Acl)):
-        _, (scale, _) = scipy.linalg.matrix_balance(np.abs(Acl).sum(axis=0), permute=False, separate=True)
-        Acl = Acl * scale[None, None, :] / scale[None, :, None]         # D^-1 Acl D
-    w = V = L = None
-    if n > DENSE_MAX_N:
-        AclT = np.ascontiguousarray(Acl.transpose(0, 2, 1))
-        op = scipy.sparse.linalg.LinearOperator(
-            (n * n, n * n), dtype=float, matvec=lambda x: (Acl @ x.reshape(n, n) @ AclT).sum(axis=0).ravel())
-        start = None if v0 is None else (np.asarray(v0, dtype=float) / np.outer(scale, scale)).ravel()
-        try:
-            # one eigenvalue (fewer products than two); only if it comes back complex (a complex
-            # pair of the same modulus as the real Perron root) are more asked for, to find the real one
-            w, V = scipy.sparse.linalg.eigs(op, k=1, which="LM", tol=0, v0=start, maxiter=20 * n * n)
-            if abs(w[0].imag) > 1e-9 * abs(w[0]):
-                w, V = scipy.sparse.linalg.eigs(op, k=4, which="LM", tol=0, v0=start, maxiter=20 * n * n)
-        except scipy.sparse.linalg.ArpackError:
-            w = None                                   # no convergence (e.g. nilpotent T): dense below
-    if w is None:
-        L = np.einsum("rij,rkl->ikjl", Acl, Acl).reshape(n * n, n * n)
-        w, V = np.linalg.eig(L)
+        return _perron_matrix_free(Acl, v0, tol)
+    L = np.einsum("rij,rkl->ikjl", Acl, Acl).reshape(n * n, n * n)
+    w, V = np.linalg.eig(L)
     i = np.argmax(np.abs(w))
     rho = float(np.abs(w[i]))
     # among eigenvalues of modulus rho pick the real one (the Perron root)
     close = np.flatnonzero(np.abs(w) >= rho * (1 - 1e-9))
     i = close[np.argmin(np.abs(w[close].imag))]
     v = V[:, i].real
-    if L is not None and w[i].imag == 0 and rho > 0:
+    if w[i].imag == 0 and rho > 0:
         # LAPACK's balanced eigenvectors can have residuals far above rounding on non-normal maps;
         # two steps of inverse iteration with the computed eigenvalue as shift restore a
         # working-precision eigenvector
@@ -86,18 +172,173 @@ def perron(Acl: np.ndarray, *, adjoint: bool = False, v0: np.ndarray | None = No
             v = V[:, i].real
         if not np.all(np.isfinite(v)):
             v = V[:, i].real
-    X = v.reshape(n, n) * np.outer(scale, scale)             # back from the balanced basis
+    return rho, _normalised(v.reshape(n, n))
+
+
+def _normalised(X: np.ndarray) -> np.ndarray:
+    """X symmetrised, scaled to max |entry| 1 with a nonnegative trace."""
     X = (X + X.T) / 2
-    X /= np.sign(np.trace(X)) * np.abs(X).max() if np.trace(X) != 0 else np.abs(X).max() or 1.0
+    top = np.abs(X).max()
+    if top == 0 or not np.isfinite(top):
+        return X
+    return X / (top * (np.sign(np.trace(X)) or 1.0))
+
+
+def _perron_matrix_free(Acl: np.ndarray, v0: np.ndarray | None, tol: float) -> tuple[float, np.ndarray]:
+    """`perron` beyond DENSE_MAX_N on the balanced loop scaled to ||T|| ~ 1: Davidson, else ARPACK
+    (Arnoldi for the eigenvalue of largest real part), else the power iteration (rho = 0)."""
+    n = Acl.shape[1]
+    if len(Acl) == 1:            # T(X) = A X A^T: rho = rho(A)^2, V = Re(v v^H) for A v = lambda v (exact)
+        w, U = np.linalg.eig(Acl[0])
+        i = int(np.argmax(np.abs(w)))
+        return float(np.abs(w[i]) ** 2), _normalised(np.outer(U[:, i], U[:, i].conj()).real)
+    Acl, d = _balanced(Acl)
+    unit = float(np.sqrt(np.einsum("rij,rij->", Acl, Acl) / n))      # ~ sqrt(||T||)
+    if unit == 0:
+        return 0.0, np.eye(n)
+    T = MomentMap(Acl / unit)
+    start = np.eye(n) if v0 is None else np.asarray(v0, dtype=float) / np.outer(d, d)
+    if not np.all(np.isfinite(start)) or not np.any(start):
+        start = np.eye(n)
+    found = _perron_davidson(T, (start + start.T) / 2, tol=tol)
+    if found is None:
+        found = _perron_davidson(T, (start + start.T) / 2, anchored=False, tol=tol)
+    if found is None:
+        op = scipy.sparse.linalg.LinearOperator((n * n, n * n), dtype=float,
+                                                matvec=lambda x: T(x.reshape(n, n)).ravel())
+        try:
+            w, V = scipy.sparse.linalg.eigs(op, k=1, which="LR", tol=tol, v0=start.ravel(),
+                                            ncv=min(n * n - 2, 24), maxiter=100 * n)
+            found = float(w[0].real), V[:, 0].real.reshape(n, n)
+        except scipy.sparse.linalg.ArpackError:
+            found = _perron_power(T, start)      # T nilpotent (rho = 0): the Ritz values do not settle
+    rho, X = found
+    return max(rho, 0.0) * unit ** 2, _normalised(X * np.outer(d, d))       # back from the balanced basis
+
+
+def _perron_davidson(T: MomentMap, X: np.ndarray, *, anchored: bool = True, tol: float = PERRON_TOL,
+                     basis: int = 20, max_iter: int = 60):
+    """(rho, X) of T by a Davidson iteration preconditioned by the dominant term, or None.
+
+    With T = T0 + T1 (`DominantTerm`), T X = rho X iff X = K_rho X for K_sigma = (sigma - T0)^-1 T1, a
+    positive map whose Perron root is 1 at sigma = rho and whose other eigenvalues are small where T0
+    dominates (random systems: |mu_2| < 0.5). anchored: the basis grows by the power sequence
+    z <- K_sigma z (one T, one T0 and one (sigma - T0)^-1 application per step; sigma the current
+    estimate), Rayleigh-Ritz of T on the basis accelerates it, and the Ritz pair followed is the one
+    closest to z: on a non-normal T the rightmost Ritz value can be a spurious one beyond rho. Not
+    anchored (where rho ~ rho0 and K's second eigenvalue is near 1): Davidson's correction
+    (sigma - T0)^-1 (T x - theta x) of the rightmost Ritz pair, sigma = max(theta, rho0 (1 + 1e-6)),
+    there nearly a shift-and-invert step. Thick restart at `basis` vectors. None when the residual is
+    not below tol rho in max_iter steps."""
+    n = T.n
+    N = n * n
+    dom = DominantTerm(T.M)
+    size = basis + 2
+    V, TV, H = np.empty((size, N)), np.empty((size, N)), np.empty((size, size))
+    k = 0
+
+    def add(v: np.ndarray) -> np.ndarray | None:
+        """Orthonormalise v (N,) against the basis, append it with its T product: v's coefficients (k,)."""
+        nonlocal k
+        c = V[:k] @ v
+        t = v - c @ V[:k]
+        norm = np.linalg.norm(t)
+        if norm < 0.7 * np.linalg.norm(v):                   # cancellation: once more (DGKS)
+            c2 = V[:k] @ t
+            t -= c2 @ V[:k]
+            c += c2
+            norm = np.linalg.norm(t)
+        if not (np.isfinite(norm) and norm > 1e-14 * np.linalg.norm(v)):      # in the span already
+            return None
+        V[k] = t / norm
+        TV[k] = T(V[k].reshape(n, n)).ravel()
+        H[:k, k] = V[:k] @ TV[k]
+        H[k, :k + 1] = TV[:k + 1] @ V[k]
+        k += 1
+        return np.append(c, norm)
+
+    cz = add(X.ravel() / np.linalg.norm(X))
+    for _ in range(max_iter):
+        w, S = _eig(H[:k, :k])
+        j = int(np.argmax(np.abs(cz @ S))) if anchored else int(np.argmax(w.real))   # the pair followed
+        s = S[:, j].real if np.any(S[:, j].real) else S[:, j].imag
+        s /= np.linalg.norm(s)
+        theta = float(w[j].real)
+        x, Tx = s @ V[:k], s @ TV[:k]
+        R = Tx - theta * x
+        if np.linalg.norm(R) <= tol * abs(theta):
+            return theta, x.reshape(n, n)
+        sigma = max(theta, dom.rho0 * (1 + 1e-6))
+        if anchored:                                                           # K_sigma z
+            v = dom.solve((cz @ TV[:k]).reshape(n, n) - dom.M0 @ (cz @ V[:k]).reshape(n, n) @ dom.M0.T, sigma)
+        else:                                                                  # Davidson's correction
+            v = dom.solve(R.reshape(n, n), sigma)
+        if k > basis:              # thick restart on x and the two rightmost Ritz vectors: no new products
+            Sk, Rk = np.linalg.qr(np.column_stack([s, S[:, np.argsort(-w.real)[:2]].real]))
+            Sk = Sk[:, np.abs(np.diag(Rk)) > 1e-8]
+            V[:Sk.shape[1]], TV[:Sk.shape[1]] = Sk.T @ V[:k], Sk.T @ TV[:k]
+            H[:Sk.shape[1], :Sk.shape[1]] = Sk.T @ H[:k, :k] @ Sk
+            k = Sk.shape[1]
+        v = (v + v.T).ravel()
+        norm = np.linalg.norm(v)
+        cz = add(v / norm) if np.isfinite(norm) and norm > 0 else None
+        if cz is None:
+            return None
+    return None
+
+
+def _eig(H: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Eigenvalues (k,) and unit eigenvectors (k, k) of a small real H (LAPACK dgeev, without numpy's overhead)."""
+    wr, wi, _, vr, info = scipy.linalg.lapack.dgeev(H, compute_vl=0)
+    if info != 0:
+        raise np.linalg.LinAlgError("dgeev did not converge")
+    S = vr.astype(complex)
+    for j in np.flatnonzero(wi > 0):                    # a conjugate pair: vr[:, j] +- i vr[:, j + 1]
+        S[:, j] = vr[:, j] + 1j * vr[:, j + 1]
+        S[:, j + 1] = S[:, j].conj()
+    return wr + 1j * wi, S / np.linalg.norm(S, axis=0)
+
+
+def _perron_power(T: MomentMap, X: np.ndarray, steps: int = 5000) -> tuple[float, np.ndarray]:
+    """Power iteration X <- T(X) / max |T(X)| from the PSD part of X (I if none): (rho, X)."""
+    w, U = np.linalg.eigh((X + X.T) / 2)
+    X = (U * np.clip(w, 0, None)) @ U.T if w.max() > 0 else np.eye(len(X))
+    X = X / np.abs(X).max()
+    rho = 0.0
+    for _ in range(steps):
+        Y = T(X)
+        size = np.abs(Y).max()
+        if size == 0:
+            return 0.0, X
+        change = np.abs(Y / size - X).max()
+        rho, X = float(size), Y / size
+        if change <= 1e-14:
+            break
     return rho, X
+
+
+def collatz_wielandt(Acl: np.ndarray, X: np.ndarray, *, adjoint: bool = False) -> tuple[float, float]:
+    """A proven bracket (lower, upper) of rho(T) from any positive definite X (n, n) (Collatz-Wielandt).
+
+    T(X) >= a X gives T^k(X) >= a^k X, so rho >= a; T(X) <= b X with X > 0 gives rho <= b. a, b are the
+    extreme eigenvalues of X^-1/2 T(X) X^-1/2 (Cholesky), so the bracket closes as X approaches the
+    Perron vector when that is positive definite. (0, inf) when X is not positive definite."""
+    T = MomentMap(Acl, adjoint=adjoint)
+    try:
+        C = np.linalg.cholesky((X + X.T) / 2)
+    except np.linalg.LinAlgError:
+        return 0.0, float("inf")
+    Y = scipy.linalg.solve_triangular(C, scipy.linalg.solve_triangular(C, T(X), lower=True).T, lower=True)
+    w = np.linalg.eigvalsh((Y + Y.T) / 2)
+    return float(max(w[0], 0.0)), float(w[-1])
 
 
 def ms_rate(system: AffineRandomSystem, dist: MomentModel | None, F) -> float:
     """Exact mean-square decay rate sqrt(rho(E[Acl (x) Acl])) of the ideal closed loop.
 
     This is the smallest lambda of eq. (exp-def) for the gain F (>= 1: not mean-square stable).
-    `dist` None uses the system's own xi_dist. Computed by `perron` (dense up to DENSE_MAX_N,
-    Arnoldi beyond, both to working precision).
+    `dist` None uses the system's own xi_dist. Computed by `perron`: dense eigenvalues up to
+    DENSE_MAX_N, matrix-free beyond (rho to PERRON_TOL relative residual).
     """
     Abar, Bbar = system.moment_factors(dist)
     Acl = Abar + Bbar @ system.check_gain(F)
@@ -136,7 +377,8 @@ def second_moments(system: AffineRandomSystem, dist: MomentModel | None, F, x0, 
     for k in range(K):                                          # a recursion in time, not over samples
         T = np.concatenate([Acl_bar, (Bbar @ d[k])[:, :, None]], axis=2)       # (nbar, n, n+1)
         Z = np.block([[second[k], mean[k][:, None]], [mean[k][None, :], np.ones((1, 1))]])
-        second[k + 1] = np.einsum("rij,rkj->ik", T @ Z, T)          # sum_r T_r Z T_r^T
+        TZ = (T @ Z).transpose(1, 0, 2).reshape(system.n, -1)         # [T_1 Z, ..., T_nbar Z]
+        second[k + 1] = TZ @ T.transpose(1, 0, 2).reshape(system.n, -1).T   # sum_r T_r Z T_r^T: one product
         mean[k + 1] = Acl_mu @ mean[k] + B_mu @ d[k]
     return mean, second
 
