@@ -30,13 +30,16 @@ def second_moment_operator(system: AffineRandomSystem, dist: MomentModel | None,
 # E[x_{k+1} x_{k+1}^T] = T(E[x_k x_k^T]) for d = 0 with T(X) = sum_r Acl_r X Acl_r^T over the closed
 # loop's moment factors Acl_r = Abar_r + Bbar_r F, and the generalized Lyapunov operator is its adjoint
 # T*(P) = sum_r Acl_r^T P Acl_r. Both map the PSD cone into itself. Above the sizes below nothing forms
-# the n^2 x n^2 matrix E[Acl (x) Acl]: T is applied in O(nbar n^3) and its Perron root found by a
-# Davidson iteration preconditioned by the dominant Kronecker term (`DominantTerm`).
+# the n^2 x n^2 matrix E[Acl (x) Acl]: T is applied in O(nbar n^3), its Perron root found by a
+# preconditioned Davidson iteration and P - T*(P) = Qbar solved by preconditioned GMRES, both
+# preconditioned by the dominant Kronecker term (`DominantTerm`).
 #
 # The switches from dense, measured (experiments/benchmark_scale_designs.py --switch: one thread, CPU
 # ms, median over 10 random systems of experiments/benchmark_synthesis.py's kind, dense / matrix-free):
 #   eigenvalues:  n = 8: 0.78 / 3.4,  n = 10: 2.5 / 2.8,  n = 12: 5.8 / 4.0,  n = 14: 11.7 / 5.5
+#   solve (rate 0.9):  n = 14: 0.40 / 1.8,  n = 16: 0.88 / 1.6,  n = 18: 2.6 / 1.7,  n = 20: 4.8 / 2.0
 DENSE_MAX_N = 10          # `perron`, `ms_rate`: dense eigenvalues of E[Acl (x) Acl] up to this n
+DENSE_SOLVE_MAX_N = 16    # `lyapunov`, `ms_lqr`: dense solve of (I - E[Acl^T (x) Acl^T]) vec P = vec Qbar
 PERRON_TOL = 1e-13        # the Perron pair's relative residual ||T(X) - rho X|| / (rho ||X||) (Frobenius)
 EIGENBASIS_COND = 1e8     # above this condition of M0's eigenbasis, `DominantTerm` solves in its Schur basis
 
@@ -460,14 +463,15 @@ def cost_matrix(system: AffineRandomSystem, dist: MomentModel | None, F, *, stat
                 input_weight=1.0) -> np.ndarray:
     """P (n, n) with x0^T P x0 = E sum_{k>=0} (x_k^T Q x_k + u_k^T R u_k), u = F x: the exact LQ cost matrix.
 
-    Solves the generalized Lyapunov equation above as one linear system in vec(P) (`lyapunov`).
-    All entries inf when the loop is not mean-square stable
-    (ms_rate >= 1): then x^T P x grows without bound for every x outside a proper subspace.
+    Solves the generalized Lyapunov equation above (`lyapunov`). All entries inf when the loop is not
+    mean-square stable (ms_rate >= 1; beyond DENSE_SOLVE_MAX_N: when `lyapunov` finds no positive
+    definite solution, which certifies that): then x^T P x grows without bound for every x outside
+    a proper subspace.
     """
     dist = system.check_distribution(dist)
     F = system.check_gain(F)
     Q, R = weight("state_weight", state_weight, system.n), weight("input_weight", input_weight, system.m)
-    if ms_rate(system, dist, F) >= 1:
+    if system.n <= DENSE_SOLVE_MAX_N and ms_rate(system, dist, F) >= 1:
         return np.full((system.n, system.n), np.inf)
     Abar, Bbar = system.moment_factors(dist)
     P = lyapunov(Abar + Bbar @ F, Q + F.T @ R @ F)
@@ -479,9 +483,19 @@ def lyapunov(Acl: np.ndarray, Qbar: np.ndarray) -> np.ndarray | None:
 
     For Qbar > 0 a positive definite solution exists iff the loop is mean-square stable (P is then a
     Lyapunov function: E[Acl^T P Acl] = P - Qbar < P), so None (no positive definite solution) means
-    not mean-square stable; the Cholesky test costs less than the spectrum.
+    not mean-square stable; the Cholesky test costs less than the spectrum. n <= DENSE_SOLVE_MAX_N:
+    one dense solve in vec(P). Beyond, `stein_solve` to working precision, and P is returned only
+    with its certificate: P > 0 and Qbar + E > 0 for the computed residual E = Qbar + T*(P) - P.
     """
     n = Acl.shape[1]
+    if n > DENSE_SOLVE_MAX_N:
+        P, E = stein_solve(Acl, Qbar)
+        try:
+            np.linalg.cholesky(P)
+            np.linalg.cholesky(Qbar + (E + E.T) / 2)
+        except (np.linalg.LinAlgError, ValueError, TypeError):      # TypeError: P None
+            return None
+        return P
     L = np.einsum("rji,rlk->ikjl", Acl, Acl).reshape(n * n, n * n)   # row-major vec(A^T P A) = (A^T (x) A^T) vec P
     try:
         P = np.linalg.solve(np.eye(n * n) - L, Qbar.ravel()).reshape(n, n)
@@ -490,6 +504,87 @@ def lyapunov(Acl: np.ndarray, Qbar: np.ndarray) -> np.ndarray | None:
     except np.linalg.LinAlgError:
         return None
     return P
+
+
+def stein_solve(Acl: np.ndarray, C: np.ndarray, *, X0: np.ndarray | None = None, rtol: float = 0.0,
+                max_iter: int = 500) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """(X, E): X (n, n) solving X - sum_r Acl_r^T X Acl_r = C (symmetric) matrix-free, E = C + T*(X) - X.
+
+    Acl (nbar, n, n). GMRES on vec(X) with the right preconditioner (1 - T0)^-1 of `DominantTerm`
+    (the dominant Kronecker term of T*, a regular splitting), from X0 (default 0), until ||E||_F <=
+    rtol ||E0||_F or the rounding level 8 eps (||C|| + 2 ||X|| + ||T*(X)||) (rtol 0: working precision).
+    (None, None) when the dominant term alone has spectral radius >= 1: then so has T*, and the loop is
+    not mean-square stable. Each iteration: one T* and one preconditioner application, O(nbar n^3).
+    """
+    n = Acl.shape[1]
+    L = MomentMap(Acl, adjoint=True)
+    dom = DominantTerm(L.M)
+    if not dom.rho0 < 1:
+        return None, None
+    C = (C + C.T) / 2
+    X = np.zeros((n, n)) if X0 is None else np.array(X0, dtype=float)
+    residual = lambda X: C + L(X) - X                                      # noqa: E731
+    E = residual(X)
+    start = np.linalg.norm(E)
+    for _ in range(6):                    # each pass gains up to 10 digits (GMRES's own rounding)
+        floor = 8 * np.finfo(float).eps * (np.linalg.norm(C) + 2 * np.linalg.norm(X) + np.linalg.norm(E - C + X))
+        target = max(rtol * start, floor)
+        size = np.linalg.norm(E)
+        if size <= target or max_iter <= 0:
+            break
+        dX, used = _gmres(lambda v: v - L(v.reshape(n, n)).ravel(),
+                          lambda v: dom.solve(v.reshape(n, n), 1.0).ravel(),
+                          E.ravel(), max(target, 1e-10 * size), max_iter)
+        max_iter -= used
+        dX = dX.reshape(n, n)
+        X = X + (dX + dX.T) / 2
+        E_new = residual(X)
+        if np.linalg.norm(E_new) > 0.5 * size:       # stagnation: rounding (or no convergence)
+            E = E_new
+            break
+        E = E_new
+    return X, E
+
+
+def _gmres(apply, precond, b: np.ndarray, tol: float, max_iter: int, restart: int = 30) -> tuple[np.ndarray, int]:
+    """(x, iterations): ||b - apply(x)|| <= tol (estimated) by restarted right-preconditioned GMRES from 0.
+
+    Vectors (N,); precond may change between steps (flexible GMRES: the preconditioned vectors are kept)."""
+    N = b.size
+    x, r, used = np.zeros(N), b.copy(), 0
+    beta = np.linalg.norm(r)
+    while beta > tol and used < max_iter:
+        V, Z = np.empty((restart + 1, N)), np.empty((restart, N))
+        H = np.zeros((restart + 1, restart))
+        cs, sn, g = np.zeros(restart), np.zeros(restart), np.zeros(restart + 1)
+        g[0], V[0] = beta, r / beta
+        j = 0
+        while j < restart and used < max_iter:
+            Z[j] = precond(V[j])
+            w = apply(Z[j])
+            used += 1
+            h = V[:j + 1] @ w
+            w -= h @ V[:j + 1]
+            h2 = V[:j + 1] @ w                              # classical Gram-Schmidt, twice
+            w -= h2 @ V[:j + 1]
+            H[:j + 1, j], H[j + 1, j] = h + h2, np.linalg.norm(w)
+            for i in range(j):                              # the previous Givens rotations on the new column
+                H[i, j], H[i + 1, j] = cs[i] * H[i, j] + sn[i] * H[i + 1, j], cs[i] * H[i + 1, j] - sn[i] * H[i, j]
+            size = np.hypot(H[j, j], H[j + 1, j])
+            cs[j], sn[j] = (H[j, j] / size, H[j + 1, j] / size) if size > 0 else (1.0, 0.0)
+            H[j, j], last = size, H[j + 1, j]
+            g[j + 1], g[j] = -sn[j] * g[j], cs[j] * g[j]
+            j += 1
+            if abs(g[j]) <= tol or last == 0:
+                break
+            V[j] = w / last
+        y = scipy.linalg.solve_triangular(H[:j, :j], g[:j], check_finite=False)
+        x += y @ Z[:j]
+        r = b - apply(x)
+        old, beta = beta, np.linalg.norm(r)
+        if beta > 0.5 * old:                                # a restart that gains nothing: rounding level
+            break
+    return x, used
 
 
 def lq_cost(system: AffineRandomSystem, dist: MomentModel | None, F, x0=None, *, state_weight=1.0,

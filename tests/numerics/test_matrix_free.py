@@ -1,4 +1,4 @@
-"""Matrix-free mean-square numerics (analysis.MomentMap, perron, ms_rate) against dense references written here.
+"""Matrix-free mean-square numerics (analysis: ms_rate, perron, lyapunov, exact costs) against dense references.
 
 Up to n = 30 every result equals the dense n^2 x n^2 computation (a copy of the code before the
 matrix-free path) to 1e-10, on random and degenerate systems; at n = 50 and 100, where the dense
@@ -12,7 +12,20 @@ import scipy.linalg
 
 import rdsexp as rx
 from rdsexp.numerics import analysis
-from rdsexp.numerics.analysis import DENSE_MAX_N, DominantTerm, MomentMap, perron, second_moments
+from rdsexp.numerics.analysis import (
+    DENSE_MAX_N,
+    DENSE_SOLVE_MAX_N,
+    DominantTerm,
+    MomentMap,
+    cost_matrix,
+    exact_costs,
+    h2_norm,
+    lq_cost,
+    lyapunov,
+    perron,
+    second_moments,
+    stein_solve,
+)
 
 KINDS = ("random", "repeated", "zero_noise_factor", "non_normal", "deterministic", "uncontrollable")
 
@@ -34,7 +47,7 @@ def closed_loop(system, dist, F):
 
 def T_of(Acl, X):
     """sum_r Acl_r X Acl_r^T by einsum (independent of MomentMap)."""
-    return np.einsum("rij,jk,rlk->il", Acl, X, Acl)
+    return np.einsum("rij,jk,rlk->il", Acl, X, Acl, optimize=True)
 
 
 # --------------------------------------------------------------------------------------- systems
@@ -152,3 +165,70 @@ def test_ms_rate_at_scale_is_consistent(n):
         assert analysis.collatz_wielandt(Acl, X) == pytest.approx((low, high), rel=1e-10)
         low, high = bracket(Acl, power_iteration_moments(system, dist, F, 200, rng))
         assert low <= rho * (1 + 1e-13) and rho <= high * (1 + 1e-13) and high - low <= 5e-2 * rho
+
+
+# ------------------------------------------------------------ generalized Lyapunov equation, exact costs
+def dense_lyapunov(Acl, C):
+    """P = C + sum_r Acl_r^T P Acl_r as one dense solve in vec(P) (the computation before the matrix-free one)."""
+    n = Acl.shape[1]
+    L = sum(np.kron(a.T, a.T) for a in Acl)                 # row-major vec(A^T P A) = (A^T (x) A^T) vec(P)
+    return np.linalg.solve(np.eye(n * n) - L, C.ravel()).reshape(n, n)
+
+
+def stable_gain(system, dist):
+    """F = 0 where the open loop is mean-square stable, else the rate-optimal gain (None if not stabilizable)."""
+    F = np.zeros((system.m, system.n))
+    if rx.ms_rate(system, dist, F) < 1:
+        return F
+    res = rx.synthesize(system, dist, "policy_iteration")
+    return res.F if res.lam < 1 else None
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_lyapunov_and_exact_costs_equal_the_dense_solve(kind):
+    rng = np.random.default_rng(10 + KINDS.index(kind))
+    for n in (DENSE_SOLVE_MAX_N + 1, 20):
+        system, dist = system_of(rng, n, kind)
+        F = stable_gain(system, dist)
+        if F is None:                                       # (uncontrollable: |1.05| whatever the gain)
+            assert kind == "uncontrollable"
+            F = rng.normal(size=(2, n)) * 0.1
+            assert np.all(cost_matrix(system, dist, F) == np.inf) and lq_cost(system, dist, F) == np.inf
+            assert lyapunov(closed_loop(system, dist, F), np.eye(n)) is None
+            continue
+        Q = np.diag(rng.uniform(0.5, 2, n))
+        Acl = closed_loop(system, dist, F)
+        P = dense_lyapunov(Acl, Q + 3 * F.T @ F)
+        np.testing.assert_allclose(cost_matrix(system, dist, F, state_weight=Q, input_weight=3.0), P,
+                                   rtol=1e-10, atol=1e-10 * np.abs(P).max())
+        x0 = rng.normal(size=n)
+        costs = exact_costs(system, dist, F, x0, state_weight=Q, input_weight=3.0)
+        _, Bbar = system.moment_factors(dist)
+        assert costs["lq_cost_x0"] == pytest.approx(x0 @ P @ x0, rel=1e-10)
+        assert costs["lq_cost"] == pytest.approx(np.trace(P), rel=1e-10)
+        assert costs["h2"] == pytest.approx(np.sqrt(np.einsum("rji,jk,rki->", Bbar, P, Bbar)), rel=1e-10)
+        assert h2_norm(system, dist, F, state_weight=Q, input_weight=3.0) == pytest.approx(costs["h2"], rel=1e-12)
+        unstable = 1.2 / np.sqrt(dense_rho(Acl)) * Acl      # the same loop made mean-square unstable
+        assert lyapunov(unstable, np.eye(n)) is None
+
+
+@pytest.mark.parametrize("n", [50, 100])
+def test_lyapunov_at_scale_is_consistent(n):
+    """The residual at working precision, P > 0, and P against the fixed point P <- Qbar + T*(P) iterated
+    from 0 (Smith's iteration, written here) on a loop of rate 0.9."""
+    rng = np.random.default_rng(n + 1)
+    system, dist = system_of(rng, n)
+    Acl = closed_loop(system, dist, np.zeros((2, n)))
+    Acl *= 0.9 / np.sqrt(perron(Acl)[0])
+    C = np.eye(n) + 0.1 * np.ones((n, n))
+    P = lyapunov(Acl, C)
+    At = Acl.transpose(0, 2, 1)
+    assert np.abs(C + T_of(At, P) - P).max() <= 1e-13 * np.abs(P).max()
+    assert np.linalg.eigvalsh(P).min() > 0
+    smith = np.zeros((n, n))
+    for _ in range(400):                                        # 0.81^400 < 1e-36
+        smith = C + T_of(At, smith)
+    np.testing.assert_allclose(P, smith, rtol=1e-9, atol=1e-11 * np.abs(P).max())
+    D, E = stein_solve(Acl, C, rtol=1e-3)                        # a loose solve stops early with its residual
+    assert 1e-16 * np.abs(P).max() < np.linalg.norm(E) <= 1e-3 * np.linalg.norm(C)
+    np.testing.assert_allclose(E, C + T_of(At, D) - D, atol=1e-12 * np.abs(P).max())
