@@ -507,19 +507,21 @@ def lyapunov(Acl: np.ndarray, Qbar: np.ndarray) -> np.ndarray | None:
 
 
 def stein_solve(Acl: np.ndarray, C: np.ndarray, *, X0: np.ndarray | None = None, rtol: float = 0.0,
-                max_iter: int = 500) -> tuple[np.ndarray | None, np.ndarray | None]:
-    """(X, E): X (n, n) solving X - sum_r Acl_r^T X Acl_r = C (symmetric) matrix-free, E = C + T*(X) - X.
+                max_iter: int = 500, dominant: DominantTerm | None = None) -> tuple:
+    """(X, E) (n, n) each: X solving X - sum_r Acl_r^T X Acl_r = C (symmetric) matrix-free, E = C + T*(X) - X.
 
     Acl (nbar, n, n). GMRES on vec(X) with the right preconditioner (1 - T0)^-1 of `DominantTerm`
     (the dominant Kronecker term of T*, a regular splitting), from X0 (default 0), until ||E||_F <=
     rtol ||E0||_F or the rounding level 8 eps (||C|| + 2 ||X|| + ||T*(X)||) (rtol 0: working precision).
     (None, None) when the dominant term alone has spectral radius >= 1: then so has T*, and the loop is
     not mean-square stable. Each iteration: one T* and one preconditioner application, O(nbar n^3).
+    dominant: a `DominantTerm` of a nearby loop's T* (Acl^T stacked) to precondition with instead
+    (Newton's steps in `ms_lqr`: the loop changes little); no stability check then.
     """
     n = Acl.shape[1]
     L = MomentMap(Acl, adjoint=True)
-    dom = DominantTerm(L.M)
-    if not dom.rho0 < 1:
+    dom = DominantTerm(L.M) if dominant is None else dominant
+    if dominant is None and not dom.rho0 < 1:
         return None, None
     C = (C + C.T) / 2
     X = np.zeros((n, n)) if X0 is None else np.array(X0, dtype=float)

@@ -51,8 +51,9 @@ def T_of(Acl, X):
 
 
 # --------------------------------------------------------------------------------------- systems
-def system_of(rng, n, kind="random", m=2, p=2):
-    """A random affine system and moments of rdsexp's benchmark kind, or one of the degenerate KINDS."""
+def system_of(rng, n, kind="random", m=2, p=2, a_scale=1.0):
+    """A random affine system and moments of rdsexp's benchmark kind, or one of the degenerate KINDS
+    (a_scale multiplies A_0: > 1 for open loops that are not mean-square stable)."""
     p = 0 if kind == "deterministic" else p
     A = [0.9 * rng.normal(size=(n, n)) / np.sqrt(n)] + [0.3 * rng.normal(size=(n, n)) / np.sqrt(n) for _ in range(p)]
     B = [rng.normal(size=(n, m))] + [0.3 * rng.normal(size=(n, m)) for _ in range(p)]
@@ -69,6 +70,7 @@ def system_of(rng, n, kind="random", m=2, p=2):
             M[0, :] = 0
         A[0][0, 0] = 1.05
     L = rng.normal(size=(p, p)) * 0.5
+    A[0] = A[0] * a_scale
     return rx.AffineRandomSystem(A=A, B=B), rx.MomentModel(mean=rng.normal(size=p) * 0.3, cov=L @ L.T)
 
 
@@ -232,3 +234,80 @@ def test_lyapunov_at_scale_is_consistent(n):
     D, E = stein_solve(Acl, C, rtol=1e-3)                        # a loose solve stops early with its residual
     assert 1e-16 * np.abs(P).max() < np.linalg.norm(E) <= 1e-3 * np.linalg.norm(C)
     np.testing.assert_allclose(E, C + T_of(At, D) - D, atol=1e-12 * np.abs(P).max())
+
+
+# ---------------------------------------------------------------------------------------- ms_lqr
+def expect(M, N, P):
+    """sum_r M_r^T P N_r over factors (nbar, n, .) (written here)."""
+    return np.einsum("rji,jk,rkl->il", M, P, N, optimize=True)
+
+
+def dense_ms_lqr(system, dist, Q, R):
+    """The gain and cost matrix of Newton's (Hewer's) iteration with dense Lyapunov solves, from F = 0 or
+    the rate-optimal gain, until the step is below 1e-13 (the computation before the matrix-free one);
+    None where policy iteration finds no stabilizing gain."""
+    Abar, Bbar = system.moment_factors(dist)
+    F = np.zeros((system.m, system.n))
+    if dense_rho(Abar) >= 1:
+        F = rx.synthesize(system, dist, "policy_iteration").F
+        if dense_rho(Abar + Bbar @ F) >= 1:
+            return None
+    P = dense_lyapunov(Abar + Bbar @ F, Q + F.T @ R @ F)
+    for _ in range(50):
+        F = -np.linalg.solve(R + expect(Bbar, Bbar, P), expect(Bbar, Abar, P))
+        P_new = dense_lyapunov(Abar + Bbar @ F, Q + F.T @ R @ F)
+        step, P = np.abs(P_new - P).max(), P_new
+        if step <= 1e-13 * np.abs(P).max():
+            break
+    return -np.linalg.solve(R + expect(Bbar, Bbar, P), expect(Bbar, Abar, P)), P
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_ms_lqr_equals_the_dense_newton_iteration(kind):
+    """n = 17 from the open loop, n = 20 with A_0 scaled by 1.2, an open loop that is not mean-square
+    stable (the start is then a value-iteration gain, or none)."""
+    rng = np.random.default_rng(20 + KINDS.index(kind))
+    for n, a_scale in ((DENSE_SOLVE_MAX_N + 1, 1.0), (20, 1.2)):
+        system, dist = system_of(rng, n, kind, a_scale=a_scale)
+        assert (dense_rho(system.moment_factors(dist)[0]) >= 1) == (a_scale > 1 or kind == "uncontrollable")
+        Q = np.diag(rng.uniform(0.5, 2, n))
+        res = rx.synthesize(system, dist, "ms_lqr", state_weight=Q, input_weight=0.5)
+        dense = dense_ms_lqr(system, dist, Q, 0.5 * np.eye(2))
+        if dense is None:                              # e.g. uncontrollable: |1.05| whatever the gain
+            assert (res.status, res.F) == ("not_ms_stabilizable", None) and res.info["rate_optimal_lower"] >= 1
+            continue
+        F, P = dense
+        assert res.status == "optimal"
+        np.testing.assert_allclose(res.F, F, rtol=0, atol=1e-10 * np.abs(F).max())
+        assert res.info["cost_trace"] == pytest.approx(np.trace(P), rel=1e-10)
+        assert res.lam == pytest.approx(np.sqrt(dense_rho(closed_loop(system, dist, F))), rel=1e-10)
+        assert res.info["riccati_residual"] < 1e-13
+        if kind == "deterministic":                    # the DARE of the one model
+            A, B, _, _ = system.at(dist.mean)
+            X = scipy.linalg.solve_discrete_are(A, B, Q, 0.5 * np.eye(2))
+            assert np.trace(X) == pytest.approx(res.info["cost_trace"], rel=1e-9)
+
+
+@pytest.mark.parametrize("n", [50, 100])
+def test_ms_lqr_at_scale_is_consistent(n):
+    """The cost matrix of the returned gain by Smith's iteration (written here) solves the generalized
+    Riccati equation and has the reported trace; the rate is the gain's (eigen-equation residual)."""
+    rng = np.random.default_rng(n + 2)
+    system, dist = system_of(rng, n)
+    res = rx.synthesize(system, dist, "ms_lqr")
+    assert res.status == "optimal" and res.info["riccati_residual"] < 1e-13
+    Abar, Bbar = system.moment_factors(dist)
+    Acl = Abar + Bbar @ res.F
+    C = np.eye(n) + res.F.T @ res.F
+    P = np.zeros((n, n))
+    for _ in range(5000):
+        P, old = C + expect(Acl, Acl, P), P
+        if np.abs(P - old).max() <= 1e-15 * np.abs(P).max():
+            break
+    residual = np.eye(n) + expect(Abar, Abar, P) - expect(Abar, Bbar, P) @ np.linalg.solve(
+        np.eye(2) + expect(Bbar, Bbar, P), expect(Bbar, Abar, P)) - P
+    assert np.abs(residual).max() <= 1e-11 * np.abs(P).max()
+    assert res.info["cost_trace"] == pytest.approx(np.trace(P), rel=1e-11)
+    rho, X = perron(Acl)
+    assert res.lam == pytest.approx(np.sqrt(rho), rel=1e-14)
+    assert np.linalg.norm(T_of(Acl, X) - rho * X) <= 1e-12 * rho * np.linalg.norm(X)

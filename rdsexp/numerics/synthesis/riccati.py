@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.linalg
 
-from ..analysis import perron
+from ..analysis import PERRON_TOL, perron
 from .base import SynthesisResult, designed, mean_model
 
 BRACKET_TOL = 1e-7           # status `optimal` when (lam - lam_lower) / lam is below this
@@ -24,7 +24,8 @@ def scaled_blocks(Abar: np.ndarray, Bbar: np.ndarray, P: np.ndarray) -> tuple[np
     g = np.sqrt(np.sum(G ** 2, axis=(0, 1)))
     g[g == 0] = 1.0
     G = G / g
-    S = np.einsum("rji,rjl->il", G, P @ G)                       # (P @ G: one BLAS call over r)
+    k = G.shape[2]
+    S = G.reshape(-1, k).T @ (P @ G).reshape(-1, k)              # sum_r G_r^T P G_r: two BLAS products
     return (S + S.T) / 2, g
 
 
@@ -86,6 +87,17 @@ def rate_lower_bound(Abar: np.ndarray, Bbar: np.ndarray, P: np.ndarray) -> float
     return 0.0
 
 
+def policy_steps(Abar: np.ndarray, Bbar: np.ndarray, F: np.ndarray, *, tol: float = PERRON_TOL):
+    """Policy iteration's steps from F (m, n): yields (F, rho, P) with rho and P (n, n) the Perron root and
+    PSD vector of T_F(P) = E[Acl^T P Acl] (to relative residual tol, `analysis.perron`), then moves to
+    F = `greedy_gain` of P; ends at a gain that is not finite. Each Perron solve starts from the previous P."""
+    P = None
+    while np.all(np.isfinite(F)):
+        rho, P = perron(Abar + Bbar @ F, adjoint=True, v0=P, tol=tol)
+        yield F, rho, P
+        F = greedy_gain(Abar, Bbar, P)
+
+
 def policy_iteration(system, dist, *, max_iter: int = 200, tol: float = 1e-9, F0=None):
     """Optimal mean-square rate without an SDP, with a certified bracket [lam_lower, lam].
 
@@ -105,19 +117,15 @@ def policy_iteration(system, dist, *, max_iter: int = 200, tol: float = 1e-9, F0
     """
     Abar, Bbar = system.moment_factors(dist)
     n, m = system.n, system.m
-    F = np.zeros((m, n)) if F0 is None else system.check_gain(F0)
-    best_F, best_P, lam, lower, P, it = F, None, np.inf, 0.0, None, 0
-    for it in range(1, max_iter + 1):
-        rho, P = perron(Abar + Bbar @ F, adjoint=True, v0=P)
+    start = np.zeros((m, n)) if F0 is None else system.check_gain(F0)
+    best_F, best_P, lam, lower, it = start, None, np.inf, 0.0, 0
+    for it, (F, rho, P) in enumerate(policy_steps(Abar, Bbar, start), start=1):
         rate = float(np.sqrt(rho))
         improved = rate < lam * (1 - STALL_TOL)
         if rate < lam:
             best_F, best_P, lam = F, P, rate
         lower = max(lower, rate_lower_bound(Abar, Bbar, P))
-        if lam - lower <= tol * lam or (not improved and it > 1):
-            break
-        F = greedy_gain(Abar, Bbar, P)
-        if not np.all(np.isfinite(F)):
+        if lam - lower <= tol * lam or (not improved and it > 1) or it >= max_iter:
             break
     # accuracy of lam: the Perron root's condition number ||X|| ||P|| / <X, P> (right and left
     # eigenvectors) times rounding of T; near dead beat (a nilpotent closed loop, Jordan blocks)
