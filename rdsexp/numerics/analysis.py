@@ -203,25 +203,25 @@ def _perron_matrix_free(Acl: np.ndarray, v0: np.ndarray | None, tol: float) -> t
     start = np.eye(n) if v0 is None else np.asarray(v0, dtype=float) / np.outer(d, d)
     if not np.all(np.isfinite(start)) or not np.any(start):
         start = np.eye(n)
-    found = _perron_davidson(T, (start + start.T) / 2, tol=tol)
-    if found is None:
-        found = _perron_davidson(T, (start + start.T) / 2, anchored=False, tol=tol)
-    if found is None:
+    dom = DominantTerm(T.M)
+    rho, X, done = _perron_davidson(T, dom, (start + start.T) / 2, tol=tol)
+    if not done:                                 # each attempt starts from the last one's best Ritz vector
+        rho, X, done = _perron_davidson(T, dom, X, anchored=False, tol=tol)
+    if not done:
         op = scipy.sparse.linalg.LinearOperator((n * n, n * n), dtype=float,
                                                 matvec=lambda x: T(x.reshape(n, n)).ravel())
         try:
-            w, V = scipy.sparse.linalg.eigs(op, k=1, which="LR", tol=tol, v0=start.ravel(),
+            w, V = scipy.sparse.linalg.eigs(op, k=1, which="LR", tol=tol, v0=X.ravel(),
                                             ncv=min(n * n - 2, 24), maxiter=100 * n)
-            found = float(w[0].real), V[:, 0].real.reshape(n, n)
+            rho, X = float(w[0].real), V[:, 0].real.reshape(n, n)
         except scipy.sparse.linalg.ArpackError:
-            found = _perron_power(T, start)      # T nilpotent (rho = 0): the Ritz values do not settle
-    rho, X = found
+            rho, X = _perron_power(T, start)     # T nilpotent (rho = 0): the Ritz values do not settle
     return max(rho, 0.0) * unit ** 2, _normalised(X * np.outer(d, d))       # back from the balanced basis
 
 
-def _perron_davidson(T: MomentMap, X: np.ndarray, *, anchored: bool = True, tol: float = PERRON_TOL,
-                     basis: int = 20, max_iter: int = 60):
-    """(rho, X) of T by a Davidson iteration preconditioned by the dominant term, or None.
+def _perron_davidson(T: MomentMap, dom: DominantTerm, X: np.ndarray, *, anchored: bool = True,
+                     tol: float = PERRON_TOL, basis: int = 20, max_iter: int = 60) -> tuple[float, np.ndarray, bool]:
+    """(rho, X (n, n), converged) for T by a Davidson iteration preconditioned by its dominant term `dom`.
 
     With T = T0 + T1 (`DominantTerm`), T X = rho X iff X = K_rho X for K_sigma = (sigma - T0)^-1 T1, a
     positive map whose Perron root is 1 at sigma = rho and whose other eigenvalues are small where T0
@@ -231,11 +231,10 @@ def _perron_davidson(T: MomentMap, X: np.ndarray, *, anchored: bool = True, tol:
     closest to z: on a non-normal T the rightmost Ritz value can be a spurious one beyond rho. Not
     anchored (where rho ~ rho0 and K's second eigenvalue is near 1): Davidson's correction
     (sigma - T0)^-1 (T x - theta x) of the rightmost Ritz pair, sigma = max(theta, rho0 (1 + 1e-6)),
-    there nearly a shift-and-invert step. Thick restart at `basis` vectors. None when the residual is
-    not below tol rho in max_iter steps."""
+    there nearly a shift-and-invert step. Thick restart at `basis` vectors. Not converged: the residual
+    is not below tol rho in max_iter steps (then the Ritz pair of smallest residual seen)."""
     n = T.n
     N = n * n
-    dom = DominantTerm(T.M)
     size = basis + 2
     V, TV, H = np.empty((size, N)), np.empty((size, N)), np.empty((size, size))
     k = 0
@@ -261,6 +260,7 @@ def _perron_davidson(T: MomentMap, X: np.ndarray, *, anchored: bool = True, tol:
         return np.append(c, norm)
 
     cz = add(X.ravel() / np.linalg.norm(X))
+    best = (np.inf, 0.0, X)
     for _ in range(max_iter):
         w, S = _eig(H[:k, :k])
         j = int(np.argmax(np.abs(cz @ S))) if anchored else int(np.argmax(w.real))   # the pair followed
@@ -269,8 +269,11 @@ def _perron_davidson(T: MomentMap, X: np.ndarray, *, anchored: bool = True, tol:
         theta = float(w[j].real)
         x, Tx = s @ V[:k], s @ TV[:k]
         R = Tx - theta * x
-        if np.linalg.norm(R) <= tol * abs(theta):
-            return theta, x.reshape(n, n)
+        rel = np.linalg.norm(R) / max(abs(theta), 1e-300)
+        if rel < best[0]:
+            best = (rel, theta, x.reshape(n, n))
+        if rel <= tol:
+            return theta, x.reshape(n, n), True
         sigma = max(theta, dom.rho0 * (1 + 1e-6))
         if anchored:                                                           # K_sigma z
             v = dom.solve((cz @ TV[:k]).reshape(n, n) - dom.M0 @ (cz @ V[:k]).reshape(n, n) @ dom.M0.T, sigma)
@@ -286,8 +289,8 @@ def _perron_davidson(T: MomentMap, X: np.ndarray, *, anchored: bool = True, tol:
         norm = np.linalg.norm(v)
         cz = add(v / norm) if np.isfinite(norm) and norm > 0 else None
         if cz is None:
-            return None
-    return None
+            break
+    return best[1], best[2], False
 
 
 def _eig(H: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

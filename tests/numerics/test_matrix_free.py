@@ -311,3 +311,62 @@ def test_ms_lqr_at_scale_is_consistent(n):
     rho, X = perron(Acl)
     assert res.lam == pytest.approx(np.sqrt(rho), rel=1e-14)
     assert np.linalg.norm(T_of(Acl, X) - rho * X) <= 1e-12 * rho * np.linalg.norm(X)
+
+
+# ------------------------------------------------------------------------------------- policy iteration
+def dense_policy_iteration(system, dist, steps=60):
+    """Policy iteration with dense Perron vectors (eigenvectors of sum_r Acl_r^T (x) Acl_r^T, written here):
+    the optimal rate it reaches."""
+    Abar, Bbar = system.moment_factors(dist)
+    F, best = np.zeros((system.m, system.n)), np.inf
+    for _ in range(steps):
+        Acl = Abar + Bbar @ F
+        w, V = np.linalg.eig(sum(np.kron(a.T, a.T) for a in Acl))
+        i = np.argmax(w.real)
+        P = V[:, i].real.reshape(system.n, system.n)
+        P = (P + P.T) * np.sign(np.trace(P))
+        rate = np.sqrt(w[i].real)
+        if rate >= best * (1 - 1e-13):
+            break
+        best = rate
+        F = -np.linalg.pinv(expect(Bbar, Bbar, P)) @ expect(Bbar, Abar, P)
+    return best
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_policy_iteration_bracket_at_n_up_to_30(kind):
+    """lam is the exact rate of F (dense eigenvalues), lam_lower is below the rate of every gain tried,
+    `optimal` only with a bracket below 1e-7, and lam is the optimum a dense policy iteration reaches."""
+    rng = np.random.default_rng(30 + KINDS.index(kind))
+    for n in (DENSE_MAX_N + 2, 16) if kind != "random" else (DENSE_MAX_N + 2, 16, 30):
+        system, dist = system_of(rng, n, kind)
+        res = rx.synthesize(system, dist, "policy_iteration")
+        assert res.lam == pytest.approx(np.sqrt(dense_rho(closed_loop(system, dist, res.F))), rel=1e-10)
+        for F in [res.F] + [res.F + s * rng.normal(size=res.F.shape) for s in (1e-3, 1e-1)]:
+            assert res.lam_lower <= np.sqrt(dense_rho(closed_loop(system, dist, F))) * (1 + 1e-12)
+        assert res.status in ("optimal", "not_ms_stabilizable", "not_converged")
+        if res.status != "not_converged":
+            assert res.lam - res.lam_lower <= 1e-7 * res.lam or res.lam_lower >= 1
+        if kind == "uncontrollable":
+            assert res.status == "not_ms_stabilizable" and res.lam_lower >= 1.05 * (1 - 1e-7)
+        if res.status == "optimal" and n <= 16:
+            assert dense_policy_iteration(system, dist) == pytest.approx(res.lam, abs=1e-10)
+
+
+@pytest.mark.parametrize("n", [50, 100])
+def test_policy_iteration_at_scale(n):
+    """A proven bracket of width <= 1e-6 at n = 50, 100: lam is F's rate (its Perron pair's residual and
+    a Collatz-Wielandt bracket), lam_lower below the rates of nearby gains."""
+    rng = np.random.default_rng(n + 3)
+    system, dist = system_of(rng, n)
+    res = rx.synthesize(system, dist, "policy_iteration")
+    assert res.status == "optimal" and res.lam - res.lam_lower <= 1e-6
+    Acl = closed_loop(system, dist, res.F)
+    rho, X = perron(Acl)
+    assert res.lam == pytest.approx(np.sqrt(rho), rel=1e-12)
+    assert np.linalg.norm(T_of(Acl, X) - rho * X) <= 1e-12 * rho * np.linalg.norm(X)
+    low, high = bracket(Acl, X)
+    assert np.sqrt(low) - 1e-8 <= res.lam <= np.sqrt(high) + 1e-8
+    for scale in (1e-3, 1e-2):
+        F = res.F + scale * rng.normal(size=res.F.shape)
+        assert res.lam_lower <= rx.ms_rate(system, dist, F) * (1 + 1e-12)

@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.linalg
 
-from ..analysis import PERRON_TOL, perron
+from ..analysis import DENSE_MAX_N, PERRON_TOL, perron
 from .base import SynthesisResult, designed, mean_model
 
 BRACKET_TOL = 1e-7           # status `optimal` when (lam - lam_lower) / lam is below this
@@ -128,15 +128,20 @@ def policy_iteration(system, dist, *, max_iter: int = 200, tol: float = 1e-9, F0
         if lam - lower <= tol * lam or (not improved and it > 1) or it >= max_iter:
             break
     # accuracy of lam: the Perron root's condition number ||X|| ||P|| / <X, P> (right and left
-    # eigenvectors) times rounding of T; near dead beat (a nilpotent closed loop, Jordan blocks)
-    # <X, P> -> 0 and no floating-point rate, upper or lower, is accurate
+    # eigenvectors) times the backward error of the computed pair; near dead beat (a nilpotent closed
+    # loop, Jordan blocks) <X, P> -> 0 and no floating-point rate, upper or lower, is accurate
     Acl = Abar + Bbar @ best_F
     _, X = perron(Acl)
     P = best_P
     overlap = float(np.sum(X * P))
-    size = float(np.sum(np.abs(Acl).sum(axis=(1, 2)) ** 2))
     kappa = np.linalg.norm(X) * np.linalg.norm(P) / overlap if overlap > 0 else np.inf
-    error = 64 * np.finfo(float).eps * size * kappa                # absolute error of rho = lam^2
+    eps = np.finfo(float).eps
+    if n <= DENSE_MAX_N:         # the dense eigensolver on the n^2 x n^2 matrix: rounding ~ its entries
+        error = 64 * eps * float(np.sum(np.abs(Acl).sum(axis=(1, 2)) ** 2)) * kappa    # absolute, of rho = lam^2
+    else:   # the matrix-free pair: its residual, PERRON_TOL rho, and the rounding of T(X) = sum_r Acl_r X Acl_r^T,
+        # |fl(T(X)) - T(X)| <= 2 (n + nbar) eps sum_r |Acl_r| |X| |Acl_r|^T (norm <= that times ||Acl_r||_F^2)
+        size = float(np.sum(Acl ** 2))
+        error = kappa * (PERRON_TOL * lam ** 2 + 2 * (n + len(Acl)) * eps * size)
     info = {"iterations": it, "rate_error": float(np.sqrt(lam ** 2 + error) - lam) if np.isfinite(error) else np.inf}
     lower = min(lower, lam)
     if info["rate_error"] > BRACKET_TOL / 10 * lam:
