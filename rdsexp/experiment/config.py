@@ -24,6 +24,7 @@ from ..numerics.systems import AffineRandomSystem, MomentModel
 TRACKING_LEVELS = ("off", "summary", "full")
 FEEDBACK_MODES = ("none", "nominal", "auto")     # identification.feedback, or a gain F (m x n)
 OBSERVER_XI = ("random_walk", "model")   # closed_loop.observer_xi: the paper's xi random walk, or i.i.d. model draws
+COVARIANCES = ("sample", "total")    # identification.covariance: eq. (sample-mean), or plus the filtered covariance
 INITIAL_XI = ("guess", "zero")       # enkf.initial.xi: members' xi at identification.xi_guess, or at 0 (the paper)
 XI_SUPPORT = ("project", "free")     # enkf.xi_support: members projected onto the plant family's support box, or not
 
@@ -215,6 +216,7 @@ class IdentificationSettings:
     feedback: str
     gain: np.ndarray | None
     xi_guess: np.ndarray
+    covariance: str = "sample"
 
     @classmethod
     def from_config(cls, cfg, plant: AffineRandomSystem) -> IdentificationSettings:
@@ -226,7 +228,11 @@ class IdentificationSettings:
                               f"identification.horizon = {K_id}")
         u_id = identification_input(cfg, K_id, plant.m)
         feedback, F_id, xi_guess = _identification_feedback(cfg, plant)
-        return cls(input=u_id, K0=K0, K1=K1, feedback=feedback, gain=F_id, xi_guess=xi_guess)
+        covariance = get(cfg, "identification.covariance")
+        if covariance not in COVARIANCES:
+            raise ConfigError(f"identification.covariance: {covariance!r} is not allowed, expected one of "
+                              f"{', '.join(COVARIANCES)}")
+        return cls(input=u_id, K0=K0, K1=K1, feedback=feedback, gain=F_id, xi_guess=xi_guess, covariance=covariance)
 
 
 @dataclass(frozen=True)
@@ -481,7 +487,7 @@ def _flag(cfg, name: str) -> bool:
 
 CONTROLLERS = ("offline", "online")
 ONLINE_KEYS = {"type", "initial", "warmup", "period", "memory", "window", "forgetting", "method", "options",
-               "safeguard"}
+               "safeguard", "resamples", "block"}
 
 
 def _controller(cfg, model: AffineRandomSystem, K: int) -> tuple[str, OnlineSettings | None, str | np.ndarray]:
@@ -500,7 +506,7 @@ def _controller(cfg, model: AffineRandomSystem, K: int) -> tuple[str, OnlineSett
     if extra:
         raise ConfigError(f"controller: {extra!r} is not allowed, expected keys among {', '.join(sorted(ONLINE_KEYS))}")
     ints = {name: _number(get(cfg, f"controller.{name}"), f"controller.{name}", integer=True, low=low)
-            for name, low in (("warmup", 0), ("period", 1), ("window", 2))}
+            for name, low in (("warmup", 0), ("period", 1), ("window", 2), ("resamples", 0), ("block", 1))}
     memory = get(cfg, "controller.memory")
     if memory not in MEMORIES:
         raise ConfigError(f"controller.memory: {memory!r} is not allowed, expected one of {', '.join(MEMORIES)}")
@@ -587,7 +593,8 @@ GROUPS = ("plant", "model", "enkf", "identification", "gain", "closed_loop", "tr
 TOP_LEVEL = ("seed", "reuse", "objective", "objective_penalty")
 # keys `build` reads with a default when the group's file does not set them: `+key=value` may add them
 OPTIONAL_KEYS = ("plant.name", "plant.C", "plant.D", "plant.q0", "plant.poles", "plant.reference",
-                 "plant.identification_feedback", "plant.rate_window", "plant.filter_sees_disturbance",
+                 "plant.identification_feedback", "plant.identification_covariance",
+                 "plant.rate_window", "plant.filter_sees_disturbance",
                  "plant.observer_xi", "plant.initial_xi", "plant.loop_estimate", "plant.designs", "plant.model",
                  "model.name",
                  "model.A", "model.B", "model.C", "model.D", "model.reported", "gain.source", "gain.F", "gain.options",

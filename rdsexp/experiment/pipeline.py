@@ -93,8 +93,10 @@ def run_experiment(exp: Experiment, sink=None) -> Outcome:
     with timed(timings, "identification"):
         F_id, info = identification_feedback(exp)
         # the identification input is added on top of the feedback; the EnKF is told the applied input
+        total = exp.identification.covariance == "total"
         identify = lambda F: simulate(exp.plant, exp.filter.enkf, F=F, d=exp.identification.input, paths=1,
-                                      seed=root("identification"), filter_sees_d=True, keep_members=keep, **sim)
+                                      seed=root("identification"), filter_sees_d=True, keep_members=keep,
+                                      keep_xi_cov=total, **sim)
         ident = identify(F_id)
         if info.get("used") == "open_loop" and ident.failure[0] == "diverged":
             # auto chose the open loop on the guess, which knows no spread of xi (the spread only raises
@@ -113,8 +115,9 @@ def run_experiment(exp: Experiment, sink=None) -> Outcome:
             k_fail = ident.failed_at[0] if ident.failed_at[0] >= 0 else "window"
             summary["modeling_status"] = f"identification failed at k = {k_fail}: {FAILURES.get(reason, reason)}"
         else:
-            dist = model_distribution(xi, K0, K1)
+            dist = model_distribution(xi, K0, K1, ident.xi_filt_cov[:, 0] if total else None)
             summary["modeling_status"] = "ok"
+            summary["modeling_covariance"] = exp.identification.covariance
     with timed(timings, "synthesis"):
         # the loop's method and the comparison designs (gain.designs) on the identified moments (the
         # selected one with its configured options) and, when the config gives them, on the moments a
@@ -308,6 +311,8 @@ def add_online_tables(exp: Experiment, tables: dict, online, chosen, summary: di
                 "reason": np.concatenate([np.full(count, "initial", dtype=object), d.reason]),
                 "rate_model": np.concatenate([np.full(count, np.nan), d.rate_model]),
                 "rate_current": np.concatenate([np.full(count, np.nan), d.rate_current]),
+                "rate_worst": np.concatenate([np.full(count, np.nan), d.rate_worst]),
+                "rate_current_worst": np.concatenate([np.full(count, np.nan), d.rate_current_worst]),
                 "rate_plant": np.concatenate([initial_plant, rate_plant])}
         mean = np.concatenate([np.full((count, p), np.nan), d.mean])
         rows |= {f"mean[{i}]": mean[:, i] for i in range(p)}

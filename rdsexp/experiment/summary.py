@@ -45,6 +45,8 @@ def summary_text(info: dict, run_dir: Path) -> str:
                      f"nbar {s.get('nbar')}{beside('nbar')}")
         if "xi_std" in s:
             line = f"    modeled xi std {vec(s['xi_std'])}"
+            if s.get("modeling_covariance") == "total":
+                line += " (the spread of xi_{k|k} plus the EnKF's mean filtered spread)"
             if "plant_xi_mean" in s:
                 line += f"; the plant file's xi: mean {vec(s['plant_xi_mean'])}, std {vec(s['plant_xi_std'])}"
             lines.append(line)

@@ -76,9 +76,19 @@ def window_samples(xi_filt_mean: np.ndarray, K0: int, K1: int) -> np.ndarray:
     return xi_filt_mean[K0:K0 + K1 + 1]
 
 
-def model_distribution(xi_filt_mean: np.ndarray, K0: int, K1: int) -> MomentModel:
-    """The modeled distribution of xi from one path's xi_{k|k} (K+1, p), eq. (sample-mean)."""
-    return MomentModel.from_samples(window_samples(xi_filt_mean, K0, K1))
+def model_distribution(xi_filt_mean: np.ndarray, K0: int, K1: int,
+                       xi_filt_cov: np.ndarray | None = None) -> MomentModel:
+    """The modeled distribution of xi from one path's xi_{k|k} (K+1, p), eq. (sample-mean).
+
+    With xi_filt_cov (K+1, p, p), the EnKF's filtered covariance of xi at each k, the covariance is
+    the law of total variance, Cov(xi) = Cov_k(E[xi_k | Y_k]) + E_k[Cov(xi_k | Y_k)]: eq. (sample-mean)'s
+    covariance of the filtered means plus the mean filtered covariance over the window. The filtered
+    mean of a per-step xi is shrunk toward its prediction wherever the outputs tell little about
+    xi_k (one output, several xi), so the first term alone underestimates the spread."""
+    model = MomentModel.from_samples(window_samples(xi_filt_mean, K0, K1))
+    if xi_filt_cov is None:
+        return model
+    return MomentModel(mean=model.mean, cov=model.cov + window_samples(xi_filt_cov, K0, K1).mean(axis=0))
 
 
 def nominal_gain(model, xi_guess) -> SynthesisResult:

@@ -10,7 +10,10 @@ can model the distribution of xi from its own filtered estimates xi_{k|k} and re
                                              F_new = design(model, moments) by `method`
                                              adopted from k+1 on if lam(F_new) < 1 and
                                              lam(F_new) < lam(F_k), both exact rates on the new
-                                             moments (the safeguard; can be switched off)
+                                             moments (the safeguard; can be switched off); with
+                                             `resamples` > 0 both rates are also taken at their
+                                             worst over a moving-block bootstrap of the window,
+                                             and the candidate must pass there too
 
 No identification run. `OnlineController` is what `simulation.simulate(controller=...)` calls
 after filtering; every decision (adopted or not, and why) is kept in `decisions()`.
@@ -29,7 +32,7 @@ from .synthesis import METHODS, check_options, synthesize
 from .systems import AffineRandomSystem, MomentModel
 
 MEMORIES = ("window", "all", "exponential")
-REASONS = ("adopted", "adopted_unchecked", "not_stabilizing", "no_improvement", "failed")
+REASONS = ("adopted", "adopted_unchecked", "not_stabilizing", "no_improvement", "not_robust", "failed")
 
 
 @dataclass(frozen=True)
@@ -39,7 +42,10 @@ class OnlineSettings:
     warmup: estimates xi_{k|k} with k <= warmup are not used (the EnKF has not converged yet);
     period: steps between re-designs; memory: "window" (the last `window` estimates), "all"
     (every estimate since warm-up) or "exponential" (all, weighted forgetting^(k - k'));
-    method / options: a `synthesis.METHODS` design; safeguard: adopt only certified improvements.
+    method / options: a `synthesis.METHODS` design; safeguard: adopt only certified improvements;
+    resamples: 0 (the window's model only) or B moving-block bootstrap resamples of the window (blocks
+    of `block` consecutive estimates: xi_{k|k} are correlated in k), over which the candidate's worst
+    rate must be < 1 and below the worst rate of the gain in use (else `not_robust`).
     """
 
     warmup: int = 20
@@ -50,10 +56,12 @@ class OnlineSettings:
     method: str = "policy_iteration"
     options: dict = field(default_factory=dict)
     safeguard: bool = True
+    resamples: int = 0
+    block: int = 5
 
     def check(self, system: AffineRandomSystem, horizon: int | None = None) -> OnlineSettings:
         """One-line ValueError naming the setting; returns self."""
-        for name, low in (("warmup", 0), ("period", 1), ("window", 2)):
+        for name, low in (("warmup", 0), ("period", 1), ("window", 2), ("resamples", 0), ("block", 1)):
             value = getattr(self, name)
             if not (isinstance(value, (int, np.integer)) and not isinstance(value, bool) and value >= low):
                 raise ValueError(f"{name}: {value!r} is not allowed, expected an integer >= {low}")
@@ -75,13 +83,14 @@ class OnlineSettings:
 
 # ------------------------------------------------------------------ batched moments and rates
 def weighted_moments(xi: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per-path weighted mean (P, p) and covariance (P, p, p) of samples xi (N, P, p), weights w (N,).
+    """Per-path weighted mean (..., P, p) and covariance (..., P, p, p) of samples xi (..., N, P, p),
+    weights w (..., N) (leading axes: batches, e.g. bootstrap resamples).
 
     With equal weights this is eq. (sample-mean), the 1/N covariance of `MomentModel.from_samples`."""
-    w = w / w.sum()
-    mean = np.einsum("t,tjp->jp", w, xi)
-    dev = xi - mean
-    return mean, np.einsum("t,tjp,tjq->jpq", w, dev, dev)
+    w = w / w.sum(axis=-1, keepdims=True)
+    mean = np.einsum("...t,...tjp->...jp", w, xi)
+    dev = xi - mean[..., None, :, :]
+    return mean, np.einsum("...t,...tjp,...tjq->...jpq", w, dev, dev)
 
 
 def moment_factors(system: AffineRandomSystem, mean: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -206,6 +215,7 @@ class Decisions:
     k: the step after whose filtering it happened (the gain acts from k+1); mean (U, p), cov (U, p, p):
     the modeled moments; F (U, m, n): the designed gain (NaN if none); rate_model: its exact rate on
     the modeled moments; rate_current: the exact rate of the gain in use on the same moments;
+    rate_worst / rate_current_worst: their maxima over the bootstrap resamples (NaN without);
     adopted and reason (REASONS; "failed: ..." with the method's error)."""
 
     k: np.ndarray
@@ -215,6 +225,8 @@ class Decisions:
     F: np.ndarray
     rate_model: np.ndarray
     rate_current: np.ndarray
+    rate_worst: np.ndarray
+    rate_current_worst: np.ndarray
     adopted: np.ndarray
     reason: np.ndarray
 
@@ -264,19 +276,47 @@ class OnlineController:
             rate_new = rates(Abar, Bbar, np.nan_to_num(F_new))
             rate_new[failed != ""] = np.nan
             rate_cur = rates(Abar, Bbar, self.F[idx])
+        worst_new = worst_cur = np.full(idx.size, np.nan)
+        if self.settings.safeguard and self.settings.resamples:
+            worst_new, worst_cur = self._worst_rates(k, samples[:, idx], w, np.nan_to_num(F_new), self.F[idx])
+            worst_new[failed != ""] = np.nan
         if self.settings.safeguard:
-            adopt = (failed == "") & (rate_new < 1) & (rate_new < rate_cur)
+            model_ok = (failed == "") & (rate_new < 1) & (rate_new < rate_cur)
+            robust = (worst_new < 1) & (worst_new < worst_cur) if self.settings.resamples else True
+            adopt = model_ok & robust
             reason = np.where(failed != "", failed, np.where(
-                adopt, "adopted", np.where(rate_new >= 1, "not_stabilizing", "no_improvement")))
+                adopt, "adopted", np.where(rate_new >= 1, "not_stabilizing",
+                                           np.where(model_ok, "not_robust", "no_improvement"))))
         else:
             adopt = failed == ""
             reason = np.where(adopt, "adopted_unchecked", failed)
         self._rows.append(dict(k=np.full(idx.size, k), path=idx, mean=mean, cov=cov, F=F_new, rate_model=rate_new,
-                               rate_current=rate_cur, adopted=adopt, reason=reason.astype(object)))
+                               rate_current=rate_cur, rate_worst=worst_new, rate_current_worst=worst_cur,
+                               adopted=adopt, reason=reason.astype(object)))
         if not adopt.any():
             return None
         self.F[idx[adopt]] = F_new[adopt]
         return idx[adopt], F_new[adopt]
+
+    def resample_steps(self, k: int, T: int) -> np.ndarray:
+        """(B, T) indices into a window of T estimates: each row is a moving-block bootstrap resample,
+        ceil(T / L) blocks of L = min(block, T) consecutive indices with uniform starts, cut to T. Drawn from
+        a generator seeded by (k, T), the same for every path, so the controller stays deterministic."""
+        B, L = self.settings.resamples, min(self.settings.block, T)
+        starts = np.random.default_rng([k, T]).integers(0, T - L + 1, size=(B, -(-T // L)))
+        return (starts[..., None] + np.arange(L)).reshape(B, -1)[:, :T]
+
+    def _worst_rates(self, k: int, samples: np.ndarray, w: np.ndarray, F_new: np.ndarray,
+                     F_cur: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The largest exact rates of F_new and F_cur (U, m, n) over B moving-block bootstrap resamples of
+        the window samples (T, U, p) with weights w (T,) (`resample_steps`): (U,) each."""
+        steps = self.resample_steps(k, samples.shape[0])
+        with np.errstate(all="ignore"):
+            mean, cov = weighted_moments(samples[steps], w[steps])                 # (B, U, p), (B, U, p, p)
+            B, U, p = mean.shape
+            Abar, Bbar = moment_factors(self.system, mean.reshape(B * U, p), cov.reshape(B * U, p, p))
+            worst = [rates(Abar, Bbar, np.tile(F, (B, 1, 1))).reshape(B, U).max(axis=0) for F in (F_new, F_cur)]
+        return worst[0], worst[1]
 
     def _design(self, idx, mean, cov, Abar, Bbar) -> tuple[np.ndarray, np.ndarray]:
         """Gains (U, m, n) for the paths idx and a failure text per path ("" if designed)."""
@@ -313,7 +353,8 @@ class OnlineController:
         if not self._rows:
             empty = {"mean": (0, p), "cov": (0, p, p), "F": (0, m, n)}
             return Decisions(k=np.zeros(0, int), path=np.zeros(0, int), **{a: np.zeros(s) for a, s in empty.items()},
-                             rate_model=np.zeros(0), rate_current=np.zeros(0), adopted=np.zeros(0, bool),
+                             rate_model=np.zeros(0), rate_current=np.zeros(0), rate_worst=np.zeros(0),
+                             rate_current_worst=np.zeros(0), adopted=np.zeros(0, bool),
                              reason=np.zeros(0, object))
         return Decisions(**{name: np.concatenate([r[name] for r in self._rows]) for name in self._rows[0]})
 

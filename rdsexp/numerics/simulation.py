@@ -50,7 +50,8 @@ class Trajectories:
     and psi_{k|k}; split with `x(...)`/`xi(...)`. failed_at (P,): first step whose values are
     not kept (-1 if none); failure (P,): "" / "diverged" (the plant state) / "filter_diverged" (the
     EnKF mean only) / "singular_innovation". Values of a
-    failed path from failed_at on are NaN. members: filtered ensembles (K+1, P, M, n+p) if kept.
+    failed path from failed_at on are NaN. members: filtered ensembles (K+1, P, M, n+p) if kept;
+    xi_filt_cov: the ensemble covariance (ddof 1) of the filtered xi, (K+1, P, p, p), if kept.
     s: the plant's coefficients (K+1, P, p_plant), s_k moving q_k to q_{k+1} (all steps drawn).
     gain_index (K+1, P): with a controller, how many gains path j had adopted before step k (0: the
     initial gain) -- the gain in use at k is that path's gain_index-th adopted one; None without.
@@ -67,6 +68,7 @@ class Trajectories:
     failure: np.ndarray
     n: int
     members: np.ndarray | None = None
+    xi_filt_cov: np.ndarray | None = None
     s: np.ndarray | None = None
     gain_index: np.ndarray | None = None
 
@@ -132,7 +134,7 @@ def check_settings(plant: AffineRandomSystem, enkf: EnKF, F, d, q0, psi0, P0, pa
 
 def simulate(plant: AffineRandomSystem, enkf: EnKF, *, F=None, d, q0, psi0, P0=None, ensemble_size: int,
              paths: int, seed, first_path: int = 0, filter_sees_d: bool = True, keep_members: bool = False,
-             block: int = 16, bound: float = DIVERGENCE_BOUND, progress=None,
+             keep_xi_cov: bool = False, block: int = 16, bound: float = DIVERGENCE_BOUND, progress=None,
              controller: GainController | None = None, estimate: str = "predicted") -> Trajectories:
     """Closed loop (open loop when F is None) of `plant` observed by `enkf`, P = `paths` sample paths.
 
@@ -141,6 +143,7 @@ def simulate(plant: AffineRandomSystem, enkf: EnKF, *, F=None, d, q0, psi0, P0=N
     at psi0, as in the paper). first_path: index of the first of the P paths, so that a run split into
     chunks of paths (first_path = 0, P1, P1 + P2, ...) gives exactly the paths of one batch.
     filter_sees_d: the EnKF is told the applied input u_k (True) or only F x_{k|k-1} (False).
+    keep_members / keep_xi_cov: keep the filtered ensembles / the filtered xi's covariance per step.
     estimate: the feedback's state estimate, "predicted" x_{k|k-1} (eq. sf-enkf) or "filtered" x_{k|k}
     (needs D = 0 in plant and model; see the module docstring).
     block: steps of noise drawn per generator call (does not change results).
@@ -173,7 +176,8 @@ def simulate(plant: AffineRandomSystem, enkf: EnKF, *, F=None, d, q0, psi0, P0=N
     out = Trajectories(q=nan(plant.n), y=nan(ny), u=nan(model.m), psi_pred_mean=nan(dim),
                        psi_pred_std=nan(dim), psi_filt_mean=nan(dim), psi_filt_std=nan(dim),
                        failed_at=np.full(P, -1), failure=np.full(P, "", dtype=object), n=model.n,
-                       members=nan(M, dim) if keep_members else None, s=s)
+                       members=nan(M, dim) if keep_members else None,
+                       xi_filt_cov=nan(model.p, model.p) if keep_xi_cov else None, s=s)
     q = np.broadcast_to(q0, (P, plant.n)).copy()
     alive = np.ones(P, dtype=bool)
     if controller is not None:
@@ -237,6 +241,10 @@ def simulate(plant: AffineRandomSystem, enkf: EnKF, *, F=None, d, q0, psi0, P0=N
                 getattr(out, name)[k] = np.where(keep, value, np.nan)
             if keep_members:
                 out.members[k] = np.where(keep[:, :, None], a.psi, np.nan)
+            if keep_xi_cov:
+                dev = a.psi[..., model.n:] - a.filt_mean[:, None, model.n:]                    # (P, M, p)
+                cov = np.einsum("jip,jiq->jpq", dev, dev) / (M - 1)
+                out.xi_filt_cov[k] = np.where(keep[:, :, None], cov, np.nan)
             if progress is not None:
                 progress(k)
             if k == K:

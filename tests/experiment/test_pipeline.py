@@ -1,4 +1,5 @@
 """The stage pipeline: designs computed once per process for identical inputs, the same tables."""
+import numpy as np
 import pandas as pd
 from conftest import SMALL
 from hydra import compose, initialize_config_module
@@ -60,3 +61,16 @@ def test_lmi_designs_above_the_size_limit_are_not_applicable_and_the_loop_falls_
     assert out.summary["gain_method"] == "policy_iteration" and "closed_loop_status" in out.summary
     bare = pipeline.run_experiment(experiment("gain.lmi_max_n=5", "gain.fallback=null"))
     assert bare.summary["synthesis_status"] == "not_applicable" and "closed_loop_status" not in bare.summary
+
+
+def test_modeled_covariance_is_total_for_a_user_plant_and_the_papers_for_the_paper():
+    """identification.covariance: a library plant defaults to total (eq. sample-mean's covariance plus the
+    mean filtered covariance: same mean, every variance at least as large, and larger somewhere); the
+    paper's plant file keeps eq. (sample-mean)."""
+    out = {c: pipeline.run_experiment(experiment("plant=dropout", f"identification.covariance={c}")).summary
+           for c in ("sample", "total")}
+    assert pipeline.run_experiment(experiment("plant=dropout")).summary["modeling_covariance"] == "total"
+    assert out["sample"]["xi_mean"] == out["total"]["xi_mean"]
+    sample, total = (np.array(out[c]["xi_std"]) for c in ("sample", "total"))
+    assert np.all(total >= sample) and np.any(total > sample * 1.01)
+    assert pipeline.run_experiment(experiment()).summary["modeling_covariance"] == "sample"

@@ -171,6 +171,56 @@ def test_safeguard_never_adopts_a_gain_not_certified_on_the_current_model(memory
     assert checked > 0
 
 
+def test_bootstrap_safeguard_reports_the_worst_rates_and_adopts_only_what_passes_them():
+    """With resamples: rate_worst / rate_current_worst are the largest exact rates (checked independently)
+    over the moving-block resamples of the window; a gain is adopted only when it passes on the model and
+    on the worst resample, `not_robust` when only the model passes; at the first re-design the adopted
+    paths are a subset of those the model-only safeguard adopts; the decisions repeat exactly."""
+    rng = np.random.default_rng(11)
+    checked = robust_refusals = 0
+    for trial in range(4):
+        system = random_system(rng, 3, 1, 2, degenerate=trial == 3)
+        system = rx.AffineRandomSystem(A=system.A * 1.2, B=system.B, xi_dist=system.xi_dist)
+        settings = OnlineSettings(warmup=2, period=4, memory="window", window=8, resamples=6, block=3)
+        ctrl = feed(system, settings, K=30, paths=4, seed=trial)
+        d = ctrl.decisions()
+        again = feed(system, settings, K=30, paths=4, seed=trial).decisions()
+        for name in ("rate_worst", "rate_current_worst", "adopted"):
+            np.testing.assert_array_equal(getattr(d, name), getattr(again, name))
+        current = {j: ctrl.F0[j] for j in range(4)}
+        for i in range(len(d.k)):
+            k, j = d.k[i], d.path[i]
+            first, w = ctrl.weights(k)
+            steps = ctrl.resample_steps(k, k + 1 - first)
+            assert steps.shape == (6, k + 1 - first) and np.all(np.diff(steps[:, :3], axis=1) == 1)
+            worst = [max(kron_rate(system, *moments(ctrl.xi[first:k + 1, j][s], w[s]), F) for s in steps)
+                     for F in (d.F[i], current[j])]
+            if np.all(np.isfinite(d.F[i])):
+                assert d.rate_worst[i] == pytest.approx(worst[0], rel=1e-8)
+            assert d.rate_current_worst[i] == pytest.approx(worst[1], rel=1e-8)
+            model_ok = d.rate_model[i] < 1 and d.rate_model[i] < d.rate_current[i]
+            passes = worst[0] < 1 and worst[0] < worst[1]
+            assert d.adopted[i] == (model_ok and passes)
+            assert d.reason[i] == ("adopted" if d.adopted[i] else "not_robust" if model_ok else d.reason[i])
+            robust_refusals += d.reason[i] == "not_robust"
+            if d.adopted[i]:
+                current[j] = d.F[i]
+                checked += 1
+        plain = feed(system, OnlineSettings(**{**settings.__dict__, "resamples": 0}), K=30, paths=4,
+                     seed=trial).decisions()
+        at_first = d.k == d.k.min()
+        assert set(d.path[at_first & d.adopted]) <= set(plain.path[(plain.k == plain.k.min()) & plain.adopted])
+        assert np.isnan(plain.rate_worst).all()
+    assert checked > 0 and robust_refusals > 0
+
+
+def moments(xi, w):
+    """Weighted mean (p,) and 1/sum(w) covariance (p, p) of samples xi (T, p), computed directly."""
+    w = w / w.sum()
+    mean = w @ xi
+    return mean, (xi - mean).T @ np.diag(w) @ (xi - mean)
+
+
 @pytest.mark.parametrize("method", ["lqr_mean", "proposed"])
 def test_other_methods_path_by_path(method):
     """Methods without a batched form design path by path; the recorded rate is the gain's exact rate on

@@ -118,6 +118,25 @@ def test_identification_models_a_stabilising_distribution():
         assert best <= rx.ms_rate(paper.plant(), None, res.F) < best + 0.03
 
 
+def test_filtered_xi_covariance_is_the_members_and_models_the_total_variance():
+    """keep_xi_cov keeps, per step and path, the covariance (ddof 1) of the filtered members' xi (checked
+    against the kept members), whose diagonal is psi_filt_std's square; the `total` model adds its mean
+    over the window to eq. (sample-mean)'s covariance of xi_{k|k} and keeps the mean."""
+    u = mls_input(30, m=1, register_length=7, amplitude=10.0)
+    tr = run(None, paths=2, M=25, horizon=30, d=u, keep_members=True, keep_xi_cov=True)
+    assert run(None, paths=1, M=25, horizon=5).xi_filt_cov is None
+    n = paper.model().n
+    members = tr.members[..., n:]                                                  # (K+1, P, M, p)
+    direct = np.array([[np.cov(members[k, j].T) for j in range(2)] for k in range(31)])
+    np.testing.assert_allclose(tr.xi_filt_cov, direct, rtol=1e-10, atol=1e-14)
+    np.testing.assert_allclose(np.diagonal(tr.xi_filt_cov, axis1=-2, axis2=-1), tr.psi_filt_std[..., n:] ** 2,
+                               rtol=1e-10, atol=1e-14)
+    xi, K0, K1 = tr.xi(tr.psi_filt_mean)[:, 0], 5, 20
+    sample, total = model_distribution(xi, K0, K1), model_distribution(xi, K0, K1, tr.xi_filt_cov[:, 0])
+    np.testing.assert_array_equal(total.mean, sample.mean)
+    np.testing.assert_allclose(total.cov, sample.cov + tr.xi_filt_cov[K0:K0 + K1 + 1, 0].mean(axis=0), rtol=1e-12)
+
+
 def test_identification_input_options():
     """Levels map the bits, hold repeats them, a state or seed is a phase of the same m-sequence,
     taps that do not give a maximal sequence are refused, channels are shifted copies."""
