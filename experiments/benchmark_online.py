@@ -26,10 +26,10 @@ class Timed(OnlineController):
 
     seconds = 0.0
 
-    def update(self, k, psi_filt_mean, alive):
+    def update(self, k, psi_filt_mean, alive, xi_filt_cov=None):
         start = time.perf_counter()
         try:
-            return super().update(k, psi_filt_mean, alive)
+            return super().update(k, psi_filt_mean, alive, xi_filt_cov)
         finally:
             self.seconds += time.perf_counter() - start
 

@@ -487,7 +487,7 @@ def _flag(cfg, name: str) -> bool:
 
 CONTROLLERS = ("offline", "online")
 ONLINE_KEYS = {"type", "initial", "warmup", "period", "memory", "window", "forgetting", "method", "options",
-               "safeguard", "resamples", "block"}
+               "safeguard", "resamples", "block", "covariance"}
 
 
 def _controller(cfg, model: AffineRandomSystem, K: int) -> tuple[str, OnlineSettings | None, str | np.ndarray]:
@@ -519,8 +519,13 @@ def _controller(cfg, model: AffineRandomSystem, K: int) -> tuple[str, OnlineSett
     safeguard = get(cfg, "controller.safeguard")
     if not isinstance(safeguard, bool):
         raise ConfigError(f"controller.safeguard: {safeguard!r} is not allowed, expected true or false")
+    covariance = get(cfg, "controller.covariance")
+    if covariance not in COVARIANCES:
+        raise ConfigError(f"controller.covariance: {covariance!r} is not allowed, expected one of "
+                          f"{', '.join(COVARIANCES)}")
     with key("controller.options"):
         settings = OnlineSettings(memory=memory, forgetting=forgetting, method=method, options=options,
+                                  covariance=covariance,
                                   safeguard=safeguard, **ints).check(model, K)
     initial = get(cfg, "controller.initial")
     if isinstance(initial, list):

@@ -45,7 +45,8 @@ class OnlineSettings:
     method / options: a `synthesis.METHODS` design; safeguard: adopt only certified improvements;
     resamples: 0 (the window's model only) or B moving-block bootstrap resamples of the window (blocks
     of `block` consecutive estimates: xi_{k|k} are correlated in k), over which the candidate's worst
-    rate must be < 1 and below the worst rate of the gain in use (else `not_robust`).
+    rate must be < 1 and below the worst rate of the gain in use (else `not_robust`); covariance:
+    "sample" (eq. sample-mean of the estimates) or "total" (plus their mean filtered covariance).
     """
 
     warmup: int = 20
@@ -58,6 +59,7 @@ class OnlineSettings:
     safeguard: bool = True
     resamples: int = 0
     block: int = 5
+    covariance: str = "sample"
 
     def check(self, system: AffineRandomSystem, horizon: int | None = None) -> OnlineSettings:
         """One-line ValueError naming the setting; returns self."""
@@ -73,6 +75,8 @@ class OnlineSettings:
             raise ValueError(f"window: {self.window} is not allowed, longer than the horizon {horizon}")
         if not isinstance(self.safeguard, bool):
             raise ValueError(f"safeguard: {self.safeguard!r} is not allowed, expected true or false")
+        if self.covariance not in ("sample", "total"):
+            raise ValueError(f"covariance: {self.covariance!r} is not allowed, expected sample or total")
         check_options(self.method, dict(self.options), system)       # unknown method / option
         return self
 
@@ -82,15 +86,20 @@ class OnlineSettings:
 
 
 # ------------------------------------------------------------------ batched moments and rates
-def weighted_moments(xi: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def weighted_moments(xi: np.ndarray, w: np.ndarray, xi_cov: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Per-path weighted mean (..., P, p) and covariance (..., P, p, p) of samples xi (..., N, P, p),
     weights w (..., N) (leading axes: batches, e.g. bootstrap resamples).
 
-    With equal weights this is eq. (sample-mean), the 1/N covariance of `MomentModel.from_samples`."""
+    With equal weights this is eq. (sample-mean), the 1/N covariance of `MomentModel.from_samples`;
+    with xi_cov (..., N, P, p, p), the EnKF's filtered covariances of the samples, their weighted mean
+    is added (the law of total variance, `modeling.model_distribution`)."""
     w = w / w.sum(axis=-1, keepdims=True)
     mean = np.einsum("...t,...tjp->...jp", w, xi)
     dev = xi - mean[..., None, :, :]
-    return mean, np.einsum("...t,...tjp,...tjq->...jpq", w, dev, dev)
+    cov = np.einsum("...t,...tjp,...tjq->...jpq", w, dev, dev)
+    if xi_cov is not None:
+        cov += np.einsum("...t,...tjpq->...jpq", w, xi_cov)
+    return mean, cov
 
 
 def moment_factors(system: AffineRandomSystem, mean: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -245,6 +254,9 @@ class OnlineController:
         self.F = np.broadcast_to(np.asarray(F0, dtype=float), (self.P, m, n)).copy()   # gains in use
         self.F0 = self.F.copy()
         self.xi = np.full((self.K + 1, self.P, system.p), np.nan)                  # xi_{k|k}, k = 0..K
+        # their filtered covariances, with covariance = "total" (simulate passes them when asked)
+        self.needs_xi_cov = settings.covariance == "total"
+        self.xi_cov = np.full((self.K + 1, self.P, system.p, system.p), np.nan) if self.needs_xi_cov else None
         self._rows: list[dict] = []
         self._updates = set(settings.updates(self.K).tolist())
 
@@ -258,18 +270,22 @@ class OnlineController:
         w = s.forgetting ** (k - t) if s.memory == "exponential" else np.ones(t.size)
         return first, w
 
-    def update(self, k: int, psi_filt_mean: np.ndarray, alive: np.ndarray):
-        """Store xi_{k|k} (P, n+p -> the last p); at a re-design step return (paths, new gains)."""
+    def update(self, k: int, psi_filt_mean: np.ndarray, alive: np.ndarray, xi_filt_cov: np.ndarray | None = None):
+        """Store xi_{k|k} (P, n+p -> the last p) and, with covariance = "total", its filtered covariance
+        (P, p, p); at a re-design step return (paths, new gains)."""
         self.xi[k] = psi_filt_mean[:, self.system.n:]
+        if self.needs_xi_cov:
+            self.xi_cov[k] = xi_filt_cov
         if k not in self._updates:
             return None
         first, w = self.weights(k)
         samples = self.xi[first:k + 1]
+        covs = self.xi_cov[first:k + 1] if self.needs_xi_cov else None
         idx = np.flatnonzero(alive & np.all(np.isfinite(samples), axis=(0, 2)))
         if idx.size == 0:
             return None
         with np.errstate(all="ignore"):
-            mean, cov = weighted_moments(samples[:, idx], w)
+            mean, cov = weighted_moments(samples[:, idx], w, None if covs is None else covs[:, idx])
             Abar, Bbar = moment_factors(self.system, mean, cov)
         F_new, failed = self._design(idx, mean, cov, Abar, Bbar)
         with np.errstate(all="ignore"):
@@ -278,7 +294,8 @@ class OnlineController:
             rate_cur = rates(Abar, Bbar, self.F[idx])
         worst_new = worst_cur = np.full(idx.size, np.nan)
         if self.settings.safeguard and self.settings.resamples:
-            worst_new, worst_cur = self._worst_rates(k, samples[:, idx], w, np.nan_to_num(F_new), self.F[idx])
+            worst_new, worst_cur = self._worst_rates(k, samples[:, idx], w, None if covs is None else covs[:, idx],
+                                                     np.nan_to_num(F_new), self.F[idx])
             worst_new[failed != ""] = np.nan
         if self.settings.safeguard:
             model_ok = (failed == "") & (rate_new < 1) & (rate_new < rate_cur)
@@ -306,13 +323,14 @@ class OnlineController:
         starts = np.random.default_rng([k, T]).integers(0, T - L + 1, size=(B, -(-T // L)))
         return (starts[..., None] + np.arange(L)).reshape(B, -1)[:, :T]
 
-    def _worst_rates(self, k: int, samples: np.ndarray, w: np.ndarray, F_new: np.ndarray,
+    def _worst_rates(self, k: int, samples: np.ndarray, w: np.ndarray, covs: np.ndarray | None, F_new: np.ndarray,
                      F_cur: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The largest exact rates of F_new and F_cur (U, m, n) over B moving-block bootstrap resamples of
-        the window samples (T, U, p) with weights w (T,) (`resample_steps`): (U,) each."""
+        the window samples (T, U, p) with weights w (T,) and filtered covariances covs (T, U, p, p) or None
+        (`resample_steps`): (U,) each."""
         steps = self.resample_steps(k, samples.shape[0])
         with np.errstate(all="ignore"):
-            mean, cov = weighted_moments(samples[steps], w[steps])                 # (B, U, p), (B, U, p, p)
+            mean, cov = weighted_moments(samples[steps], w[steps], None if covs is None else covs[steps])
             B, U, p = mean.shape
             Abar, Bbar = moment_factors(self.system, mean.reshape(B * U, p), cov.reshape(B * U, p, p))
             worst = [rates(Abar, Bbar, np.tile(F, (B, 1, 1))).reshape(B, U).max(axis=0) for F in (F_new, F_cur)]

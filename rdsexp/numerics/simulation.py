@@ -88,9 +88,13 @@ class Trajectories:
 class GainController(Protocol):
     """What `simulate` asks of a controller that changes the per-path gains during the loop."""
 
-    def update(self, k: int, psi_filt_mean: np.ndarray, alive: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-        """After filtering at step k: psi_{k|k} means (P, n+p) and alive (P,) -> None (no change) or
-        (paths (U,) int, gains (U, m, n)): the gains those paths use from step k+1 on."""
+    needs_xi_cov: bool      # whether update wants the filtered xi covariance (else it gets None)
+
+    def update(self, k: int, psi_filt_mean: np.ndarray, alive: np.ndarray,
+               xi_filt_cov: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray] | None:
+        """After filtering at step k: psi_{k|k} means (P, n+p), alive (P,) and the filtered xi covariance
+        (P, p, p) -> None (no change) or (paths (U,) int, gains (U, m, n)): the gains those paths use
+        from step k+1 on."""
 
 
 def check_estimate(plant: AffineRandomSystem, model: AffineRandomSystem, estimate: str) -> None:
@@ -241,10 +245,12 @@ def simulate(plant: AffineRandomSystem, enkf: EnKF, *, F=None, d, q0, psi0, P0=N
                 getattr(out, name)[k] = np.where(keep, value, np.nan)
             if keep_members:
                 out.members[k] = np.where(keep[:, :, None], a.psi, np.nan)
-            if keep_xi_cov:
+            xi_cov = None
+            if keep_xi_cov or (controller is not None and controller.needs_xi_cov):
                 dev = a.psi[..., model.n:] - a.filt_mean[:, None, model.n:]                    # (P, M, p)
-                cov = np.einsum("jip,jiq->jpq", dev, dev) / (M - 1)
-                out.xi_filt_cov[k] = np.where(keep[:, :, None], cov, np.nan)
+                xi_cov = np.where(keep[:, :, None], np.einsum("jip,jiq->jpq", dev, dev) / (M - 1), np.nan)
+            if keep_xi_cov:
+                out.xi_filt_cov[k] = xi_cov
             if progress is not None:
                 progress(k)
             if k == K:
@@ -253,7 +259,7 @@ def simulate(plant: AffineRandomSystem, enkf: EnKF, *, F=None, d, q0, psi0, P0=N
                 break
             if controller is not None:
                 out.gain_index[k] = adopted
-                change = controller.update(k, np.where(keep, a.filt_mean, np.nan), alive.copy())
+                change = controller.update(k, np.where(keep, a.filt_mean, np.nan), alive.copy(), xi_cov)
                 if change is not None:                  # the new gains act from step k+1 on
                     idx, gains = change
                     F[idx] = gains

@@ -76,10 +76,36 @@ def test_weighted_moments_are_the_sample_moments_with_equal_weights():
         np.testing.assert_allclose(cov[j], ref.cov, rtol=1e-12, atol=1e-15)
 
 
-def closed_loop(F, paths=4, M=20, horizon=30, controller=None):
+def closed_loop(F, paths=4, M=20, horizon=30, controller=None, **kw):
     return simulate(paper.plant(), EnKF(paper.model(), paper.Q, paper.R), F=F, d=paper.disturbance(horizon),
                     q0=paper.q0, psi0=paper.psi0, ensemble_size=M, paths=paths, seed=3, filter_sees_d=False,
-                    controller=controller)
+                    controller=controller, **kw)
+
+
+def test_total_covariance_adds_the_mean_filtered_covariance_of_the_window():
+    """covariance = total: each decision's modeled covariance is eq. (sample-mean)'s over the window plus
+    the weighted mean of the EnKF's filtered xi covariances there (both from simulate's own record), the
+    mean unchanged; weighted_moments adds exactly the weighted mean of the given covariances."""
+    settings = OnlineSettings(warmup=3, period=6, memory="exponential", forgetting=0.8, safeguard=False,
+                              covariance="total")
+    ctrl = OnlineController(paper.model(), settings, np.zeros((1, 6)), paths=3, horizon=30)
+    tr = closed_loop(np.zeros((1, 6)), paths=3, controller=ctrl, keep_xi_cov=True)
+    xi, d = tr.xi(tr.psi_filt_mean), ctrl.decisions()
+    assert len(d.k) > 0
+    for i in range(len(d.k)):
+        first, w = ctrl.weights(d.k[i])
+        window, p = slice(first, d.k[i] + 1), w / w.sum()
+        samples = xi[window, d.path[i]]
+        mean = p @ samples
+        cov = (samples - mean).T @ np.diag(p) @ (samples - mean) + np.einsum("t,tab->ab", p, tr.xi_filt_cov[window, d.path[i]])
+        np.testing.assert_allclose(d.mean[i], mean, rtol=1e-12)
+        np.testing.assert_allclose(d.cov[i], cov, rtol=1e-10, atol=1e-15)
+    samples, covs = np.random.default_rng(1).normal(size=(2, 7, 3, 2)), np.random.default_rng(2).normal(size=(7, 3, 2, 2))
+    w = np.arange(1.0, 8.0)
+    plain_mean, plain_cov = weighted_moments(samples[0], w)
+    mean, cov = weighted_moments(samples[0], w, covs)
+    np.testing.assert_array_equal(mean, plain_mean)
+    np.testing.assert_allclose(cov, plain_cov + np.einsum("t,tjab->jab", w / w.sum(), covs), rtol=1e-12)
 
 
 def test_period_beyond_the_horizon_is_the_fixed_gain_closed_loop_bit_for_bit():
@@ -252,6 +278,8 @@ def hydra_context():
     ("controller=online controller.initial=random", "controller.initial: 'random' is not allowed"),
     ("controller=online controller.forgetting=1.0", "controller.forgetting: 1 is not allowed"),
     ("controller=online controller.safeguard=maybe", "controller.safeguard: 'maybe' is not allowed"),
+    ("controller=online controller.covariance=full", "controller.covariance: 'full' is not allowed"),
+    ("controller=online controller.resamples=-1", "controller.resamples: -1 is not allowed"),
     ("controller=online +controller.options.max_iter=-1", "controller.options: max_iter: -1 is not allowed"),
     ("controller.type=hybrid", "controller.type: 'hybrid' is not allowed"),
     ("+controller.period=5", "controller.period: not read by controller=offline"),
