@@ -25,6 +25,7 @@ TRACKING_LEVELS = ("off", "summary", "full")
 FEEDBACK_MODES = ("none", "nominal", "auto")     # identification.feedback, or a gain F (m x n)
 OBSERVER_XI = ("random_walk", "model")   # closed_loop.observer_xi: the paper's xi random walk, or i.i.d. model draws
 COVARIANCES = ("sample", "total")    # identification.covariance: eq. (sample-mean), or plus the filtered covariance
+XI_MODELS = ("random_walk", "iterated")   # identification.xi_model: the paper's, or passes drawing xi i.i.d.
 INITIAL_XI = ("guess", "zero")       # enkf.initial.xi: members' xi at identification.xi_guess, or at 0 (the paper)
 XI_SUPPORT = ("project", "free")     # enkf.xi_support: members projected onto the plant family's support box, or not
 
@@ -217,6 +218,8 @@ class IdentificationSettings:
     gain: np.ndarray | None
     xi_guess: np.ndarray
     covariance: str = "sample"
+    xi_model: str = "random_walk"
+    passes: int = 0
 
     @classmethod
     def from_config(cls, cfg, plant: AffineRandomSystem) -> IdentificationSettings:
@@ -232,7 +235,13 @@ class IdentificationSettings:
         if covariance not in COVARIANCES:
             raise ConfigError(f"identification.covariance: {covariance!r} is not allowed, expected one of "
                               f"{', '.join(COVARIANCES)}")
-        return cls(input=u_id, K0=K0, K1=K1, feedback=feedback, gain=F_id, xi_guess=xi_guess, covariance=covariance)
+        xi_model = get(cfg, "identification.xi_model")
+        if xi_model not in XI_MODELS:
+            raise ConfigError(f"identification.xi_model: {xi_model!r} is not allowed, expected one of "
+                              f"{', '.join(XI_MODELS)}")
+        passes = _number(get(cfg, "identification.passes"), "identification.passes", integer=True, low=1)
+        return cls(input=u_id, K0=K0, K1=K1, feedback=feedback, gain=F_id, xi_guess=xi_guess, covariance=covariance,
+                   xi_model=xi_model, passes=passes)
 
 
 @dataclass(frozen=True)
@@ -598,7 +607,7 @@ GROUPS = ("plant", "model", "enkf", "identification", "gain", "closed_loop", "tr
 TOP_LEVEL = ("seed", "reuse", "objective", "objective_penalty")
 # keys `build` reads with a default when the group's file does not set them: `+key=value` may add them
 OPTIONAL_KEYS = ("plant.name", "plant.C", "plant.D", "plant.q0", "plant.poles", "plant.reference",
-                 "plant.identification_feedback", "plant.identification_covariance",
+                 "plant.identification_feedback", "plant.identification_covariance", "plant.identification_xi",
                  "plant.rate_window", "plant.filter_sees_disturbance",
                  "plant.observer_xi", "plant.initial_xi", "plant.loop_estimate", "plant.designs", "plant.model",
                  "model.name",

@@ -94,9 +94,9 @@ def run_experiment(exp: Experiment, sink=None) -> Outcome:
         F_id, info = identification_feedback(exp)
         # the identification input is added on top of the feedback; the EnKF is told the applied input
         total = exp.identification.covariance == "total"
-        identify = lambda F: simulate(exp.plant, exp.filter.enkf, F=F, d=exp.identification.input, paths=1,
-                                      seed=root("identification"), filter_sees_d=True, keep_members=keep,
-                                      keep_xi_cov=total, **sim)
+        identify = lambda F, enkf=exp.filter.enkf: simulate(
+            exp.plant, enkf, F=F, d=exp.identification.input, paths=1, seed=root("identification"),
+            filter_sees_d=True, keep_members=keep, keep_xi_cov=total, **sim)
         ident = identify(F_id)
         if info.get("used") == "open_loop" and ident.failure[0] == "diverged":
             # auto chose the open loop on the guess, which knows no spread of xi (the spread only raises
@@ -107,16 +107,12 @@ def run_experiment(exp: Experiment, sink=None) -> Outcome:
                 ident = identify(F_id)
         summary["identification_feedback"] = info
     with timed(timings, "modeling"):
-        xi = ident.xi(ident.psi_filt_mean)[:, 0]
-        K0, K1 = exp.identification.K0, exp.identification.K1
-        if ident.status != "ok" or not np.all(np.isfinite(xi[K0:K0 + K1 + 1])):
-            dist = None
-            reason = ident.failure[0] or "the filtered xi is not finite"
-            k_fail = ident.failed_at[0] if ident.failed_at[0] >= 0 else "window"
-            summary["modeling_status"] = f"identification failed at k = {k_fail}: {FAILURES.get(reason, reason)}"
-        else:
-            dist = model_distribution(xi, K0, K1, ident.xi_filt_cov[:, 0] if total else None)
-            summary["modeling_status"] = "ok"
+        dist, failure = identified_moments(exp, ident)
+        if exp.identification.xi_model == "iterated" and exp.model.p:     # (nothing to iterate without xi)
+            ident, dist, failure, summary["identification_passes"] = iterate_identification(
+                exp, lambda enkf: identify(F_id, enkf), ident, dist, failure, sim["psi0"])
+        summary["modeling_status"] = failure or "ok"
+        if dist is not None:
             summary["modeling_covariance"] = exp.identification.covariance
     with timed(timings, "synthesis"):
         # the loop's method and the comparison designs (gain.designs) on the identified moments (the
@@ -421,6 +417,52 @@ def _design_key(model, moments, method: str, options: dict) -> str:
         h.update(f"{array.shape}".encode())
         h.update(array.tobytes())
     return h.hexdigest()
+
+
+PASS_TOL = 1e-3        # iterated identification: stop when the moments move less than this (relative)
+
+
+def identified_moments(exp: Experiment, ident: Trajectories) -> tuple[MomentModel | None, str]:
+    """The moments modeled from an identification run's xi_{k|k} over the window K0..K0+K1
+    (identification.covariance), or (None, why not)."""
+    xi = ident.xi(ident.psi_filt_mean)[:, 0]
+    K0, K1 = exp.identification.K0, exp.identification.K1
+    if ident.status != "ok" or not np.all(np.isfinite(xi[K0:K0 + K1 + 1])):
+        reason = ident.failure[0] or "the filtered xi is not finite"
+        k_fail = ident.failed_at[0] if ident.failed_at[0] >= 0 else "window"
+        return None, f"identification failed at k = {k_fail}: {FAILURES.get(reason, reason)}"
+    total = exp.identification.covariance == "total"
+    return model_distribution(xi, K0, K1, ident.xi_filt_cov[:, 0] if total else None), ""
+
+
+def iterate_identification(exp: Experiment, identify, ident, dist, failure: str, psi0: np.ndarray):
+    """identification.xi_model = iterated: passes whose EnKF draws each step's xi i.i.d. from the
+    previous pass's moments (Assumption 1, `EnKF.xi_prior`), so that the next output estimates it, and
+    whose modeled moments are the next pass's prior, until mean and standard deviations change by less
+    than PASS_TOL (relative to the largest standard deviation) or identification.passes are done: the
+    moments as a fixed point of their own estimation. Without a first model (the random-walk pass
+    failed) the first prior is xi at the initial ensemble's with enkf.Q's xi block as covariance.
+    Returns (the last successful pass's run, moments, failure, info for the summary)."""
+    n = exp.model.n
+    prior = dist if dist is not None else MomentModel(mean=psi0[n:], cov=exp.filter.enkf.Q[n:, n:])
+    info = {"first": "random_walk" if dist is not None else f"the prior guess ({failure})", "passes": 0,
+            "converged": False}
+    for _ in range(exp.identification.passes):
+        tr = identify(dataclasses.replace(exp.filter.enkf, xi_prior=prior))
+        new, why = identified_moments(exp, tr)
+        if new is None:
+            info["failed"] = why
+            break
+        info["passes"] += 1
+        ident, dist, failure = tr, new, ""
+        scale = max(np.sqrt(np.diag(new.cov)).max(initial=0.0), 1e-12)
+        change = max(np.abs(new.mean - prior.mean).max(),
+                     np.abs(np.sqrt(np.diag(new.cov)) - np.sqrt(np.diag(prior.cov))).max()) / scale
+        prior = new
+        if change < PASS_TOL:
+            info["converged"] = True
+            break
+    return ident, dist, failure, info
 
 
 def identification_feedback(exp: Experiment, force_nominal: bool = False) -> tuple[np.ndarray | None, dict]:

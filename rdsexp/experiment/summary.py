@@ -40,6 +40,14 @@ def summary_text(info: dict, run_dir: Path) -> str:
                 line += " (it does not stabilize the true plant in mean square)"
         lines.append(line)
     vec = lambda v: np.round(v, 4).tolist()
+    passes = s.get("identification_passes")
+    if passes:
+        line = (f"  identification iterated: from {passes['first']}, {passes['passes']} run(s) drawing xi i.i.d. "
+                f"from the previous run's moments, ")
+        line += "converged" if passes["converged"] else "stopped before the moments settled"
+        if passes.get("failed"):
+            line += f"; a further run failed ({passes['failed']}), its previous moments kept"
+        lines.append(line)
     if s.get("modeling_status") == "ok":
         lines.append(f"  modeling ok: xi mean {vec(s.get('xi_mean', []))}{beside('xi_mean')}, "
                      f"nbar {s.get('nbar')}{beside('nbar')}")

@@ -61,11 +61,12 @@ and spread are those of the projected ensemble. Infinite bounds leave a componen
 xi drawn from a known distribution (`xi_prior`): the paper's xi part is a random walk,
 xi_{k+1|k} = xi_{k|k} + w, which is how the identification run learns xi. Once a model of the
 distribution (mean mu, covariance S) is known, as in the closed loop after identification, the
-observer can use it as Assumption 1 states it: xi_k i.i.d., so every member's predicted xi is a
-fresh draw mu + S^(1/2) e (the xi part of e_w), while its x part moves with the member's own
-analysed xi. The ensemble's x spread then carries the multiplicative uncertainty of the random
-dynamics, and no xi can drift away where x, and with it xi, is unobservable. The draws are
-projected onto xi_bounds too.
+observer can use it as Assumption 1 states it: xi_k i.i.d., so every member draws a fresh
+xi_k = mu + S^(1/2) e (the xi part of e_w), moves its x part with it and keeps it, so that the update
+with y_{k+1} estimates the coefficient of the step that produced y_{k+1} (the filtered xi at k+1 is
+xi_k's posterior; the next prediction draws afresh). The ensemble's x spread then carries the
+multiplicative uncertainty of the random dynamics, and no xi can drift away where x, and with it
+xi, is unobservable. The draws are projected onto xi_bounds too.
 
 Ensembles returned by `predict` and `update` are stored component-major: they are (..., M, n+p)
 views of (n+p, ..., M) arrays, so each component of all paths and members is one contiguous block
@@ -239,16 +240,19 @@ class EnKF:
         x, xi = self.split(psi)
         np.matmul(self._Q_sqrt.T, e_w.swapaxes(-1, -2), out=out.swapaxes(-1, -2))    # w = Q^(1/2) e_w
         psi_next = components(out)
-        psi_next[:n] += components(affine_apply(self.model.A, xi, x))                 # eq. (f-A-B)
-        psi_next[:n] += components(affine_apply(self.model.B, xi, u[..., None, :]))
-        if self.xi_prior is None:
-            psi_next[n:] += components(xi)                                             # random walk
-        elif self.model.p:                                     # Assumption 1 with the known moments
+        if self.xi_prior is not None and self.model.p:        # Assumption 1 with the known moments:
+            # xi_k drawn i.i.d. moves x_k to x_{k+1} and stays in the ensemble, so that the update with
+            # y_{k+1} estimates the coefficient of the step that produced it
             np.matmul(self._xi_prior_sqrt, components(e_w)[n:].reshape(self.model.p, -1),
                       out=psi_next[n:].reshape(self.model.p, -1))
             psi_next[n:] += self.xi_prior.mean.reshape((-1,) + (1,) * (psi_next.ndim - 1))
             if self.xi_bounds is not None:       # a Gaussian draw of moments also leaves the support
                 self._clip_xi(psi_next[n:])
+            xi = out[..., n:]
+        psi_next[:n] += components(affine_apply(self.model.A, xi, x))                 # eq. (f-A-B)
+        psi_next[:n] += components(affine_apply(self.model.B, xi, u[..., None, :]))
+        if self.xi_prior is None:
+            psi_next[n:] += components(xi)                                             # random walk
         if self._rho != 1:                          # rho (psi - mean) + mean; skipped at 1 (bit-identical)
             mean = components(ensemble_mean(out))[..., None]
             psi_next -= mean

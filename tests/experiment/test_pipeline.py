@@ -1,4 +1,6 @@
 """The stage pipeline: designs computed once per process for identical inputs, the same tables."""
+import copy
+
 import numpy as np
 import pandas as pd
 from conftest import SMALL
@@ -67,10 +69,46 @@ def test_modeled_covariance_is_total_for_a_user_plant_and_the_papers_for_the_pap
     """identification.covariance: a library plant defaults to total (eq. sample-mean's covariance plus the
     mean filtered covariance: same mean, every variance at least as large, and larger somewhere); the
     paper's plant file keeps eq. (sample-mean)."""
-    out = {c: pipeline.run_experiment(experiment("plant=dropout", f"identification.covariance={c}")).summary
+    out = {c: pipeline.run_experiment(experiment("plant=dropout", f"identification.covariance={c}",
+                                                 "identification.xi_model=random_walk")).summary
            for c in ("sample", "total")}
     assert pipeline.run_experiment(experiment("plant=dropout")).summary["modeling_covariance"] == "total"
     assert out["sample"]["xi_mean"] == out["total"]["xi_mean"]
     sample, total = (np.array(out[c]["xi_std"]) for c in ("sample", "total"))
     assert np.all(total >= sample) and np.any(total > sample * 1.01)
     assert pipeline.run_experiment(experiment()).summary["modeling_covariance"] == "sample"
+
+
+def test_iterated_identification_models_from_its_last_pass_and_stops_at_a_fixed_point():
+    """identification.xi_model = iterated (a library plant's default): the model is eq. (sample-mean) of
+    the identification table's xi_{k|k}, the last pass's; the summary counts the passes. A pass that
+    reproduces its prior stops the iteration (converged), and a failing pass keeps the last model. The
+    paper's plant file keeps the random walk (no passes)."""
+    out = pipeline.run_experiment(experiment("plant=dropout", "identification.covariance=sample",
+                                             "identification.passes=2"))
+    info = out.summary["identification_passes"]
+    assert info["first"] == "random_walk" and 1 <= info["passes"] <= 2
+    ident = out.tables["identification"]
+    window = ident[(ident["k"] >= 5) & (ident["k"] <= 25)]
+    xi = window[[c for c in window.columns if c.startswith("xi_filt_mean")]].to_numpy()
+    model = out.tables["model"]
+    mean = model[model["quantity"] == "mean"].sort_values("row")["value"].to_numpy()
+    np.testing.assert_allclose(mean, xi.mean(axis=0), rtol=1e-12)
+    assert "identification_passes" not in pipeline.run_experiment(experiment()).summary
+
+    exp = experiment("plant=dropout")
+    first = pipeline.simulate(exp.plant, exp.filter.enkf, F=None, d=exp.identification.input, paths=1, seed=1,
+                              keep_xi_cov=True, **exp.simulation())
+    dist, failure = pipeline.identified_moments(exp, first)
+    assert failure == ""
+    _, same, _, info = pipeline.iterate_identification(exp, lambda enkf: first, first, dist, "",
+                                                       exp.simulation()["psi0"])
+    assert info == {"first": "random_walk", "passes": 1, "converged": True}
+    np.testing.assert_array_equal(same.mean, dist.mean)
+    failing = copy.copy(first)
+    failing.failed_at = np.array([7])
+    failing.failure = np.array(["filter_diverged"], dtype=object)
+    kept, model, why, info = pipeline.iterate_identification(exp, lambda enkf: failing, first, dist, "",
+                                                            exp.simulation()["psi0"])
+    assert kept is first and model is dist and why == "" and info["passes"] == 0
+    assert info["failed"] == "identification failed at k = 7: the EnKF estimate diverged"

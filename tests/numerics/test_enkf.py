@@ -149,18 +149,20 @@ def test_xi_support_follows_the_plant_file_through_the_truth_map():
 
 
 def test_xi_prior_draws_the_predicted_xi_from_the_model():
-    """With xi_prior the predicted xi of every member is mean + S^(1/2) e (the xi part of e_w), the x
-    part is the random walk's (it moves with the member's analysed xi)."""
+    """With xi_prior the predicted xi of every member is mean + S^(1/2) e (the xi part of e_w) and its x
+    part moves with that drawn xi (the coefficient the next output then estimates): the random walk's
+    prediction from the same members with their xi replaced by the draws."""
     from rdsexp.numerics.enkf import sqrtm_psd
     rng = np.random.default_rng(5)
     model = rx.paper.model()
     prior = rx.MomentModel(mean=[0.4, 0.2, 0.5], cov=[[0.04, 0.01, 0], [0.01, 0.09, 0], [0, 0, 0.01]])
     P, M = 3, 6
     psi, u, e_w = rng.normal(size=(P, M, 9)), rng.normal(size=(P, 1)), rng.normal(size=(P, M, 9))
-    walk = EnKF(model, rx.paper.Q, rx.paper.R).predict(psi, u, e_w)
     drawn = EnKF(model, rx.paper.Q, rx.paper.R, xi_prior=prior).predict(psi, u, e_w)
-    np.testing.assert_array_equal(drawn[..., :6], walk[..., :6])
-    np.testing.assert_allclose(drawn[..., 6:], prior.mean + e_w[..., 6:] @ sqrtm_psd(prior.cov).T, atol=1e-14)
+    draws = prior.mean + e_w[..., 6:] @ sqrtm_psd(prior.cov).T
+    np.testing.assert_allclose(drawn[..., 6:], draws, atol=1e-14)
+    walk = EnKF(model, rx.paper.Q, rx.paper.R).predict(np.concatenate([psi[..., :6], draws], axis=-1), u, e_w)
+    np.testing.assert_allclose(drawn[..., :6], walk[..., :6], rtol=1e-13, atol=1e-13)
     # over many members the predicted xi has the prior's moments (Monte Carlo, 5 standard errors)
     big = rng.normal(size=(1, 40_000, 9))
     xi = EnKF(model, rx.paper.Q, rx.paper.R, xi_prior=prior).predict(np.zeros((1, 40_000, 9)), np.zeros((1, 1)),
