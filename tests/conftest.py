@@ -4,7 +4,10 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
+
+import rdsexp as rx
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -75,3 +78,14 @@ def small_run(tmp_path_factory):
     rdsexp(*SMALL, cwd=cwd)
     (run_dir,) = (cwd / "outputs" / "runs").iterdir()
     return run_dir
+
+
+def linear_gaussian(seed, n=3, ny=2):
+    """A random linear system with known parameters (p = 0), y = C x, and a random R > 0: (system, C, R,
+    the generator that drew them), for the EnKF variants' tests against the Kalman analysis."""
+    rng = np.random.default_rng(seed)
+    C = rng.normal(size=(ny, n))
+    L = rng.normal(size=(ny, ny))
+    R = L @ L.T + 0.1 * np.eye(ny)
+    system = rx.AffineRandomSystem(A=[rng.normal(size=(n, n))], B=[np.zeros((n, 1))], C=[C])
+    return system, C, R, rng

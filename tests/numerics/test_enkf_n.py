@@ -3,6 +3,7 @@ direct computation of its analysis, its large-ensemble limit (the ETKF), and ada
 (Miyoshi 2011's innovation estimate, smoothed in time) on a case whose correct inflation is known."""
 import numpy as np
 import pytest
+from conftest import linear_gaussian
 from hydra import compose, initialize_config_module
 from scipy.optimize import brentq
 
@@ -14,15 +15,6 @@ from rdsexp.numerics.simulation import simulate
 
 paper = rx.paper
 ARRAYS = ("q", "y", "u", "psi_pred_mean", "psi_pred_std", "psi_filt_mean", "psi_filt_std", "failed_at")
-
-
-def linear(seed, n=3, ny=2):
-    """A random linear system (p = 0), y = C x, and a random R > 0."""
-    rng = np.random.default_rng(seed)
-    C = rng.normal(size=(ny, n))
-    L = rng.normal(size=(ny, ny))
-    R = L @ L.T + 0.1 * np.eye(ny)
-    return rx.AffineRandomSystem(A=[rng.normal(size=(n, n))], B=[np.zeros((n, 1))], C=[C]), C, R, rng
 
 
 def direct_enkf_n(psi, z, y, R):
@@ -65,7 +57,7 @@ def test_enkf_n_equals_its_direct_computation(seed, M, ny):
     """Four paths at once (one with y = z_mean, where zeta_a = N / eps_N, and one whose innovation
     is far outside the forecast spread): members, mean, inflation factor and zeta_a agree with the
     direct M x M computation to 1e-8."""
-    system, C, R, rng = linear(seed, ny=ny)
+    system, C, R, rng = linear_gaussian(seed, ny=ny)
     P = 4
     psi = rng.normal(size=(P, M, 3)) @ rng.normal(size=(3, 3)) + rng.normal(size=(P, 1, 3))
     y = rng.normal(size=(P, ny))
@@ -119,7 +111,7 @@ def test_enkf_n_approaches_the_etkf_for_a_large_ensemble():
     """The prior's scale is then well determined: with the same innovation (of the forecast spread's
     size) at every M, lambda^2 - 1 = O(1/M) (here M (lambda^2 - 1) ~ 0.5 and ~ 0.005 on the two paths),
     and the analysis members differ from the ETKF's by O(1/M) relative to the forecast spread."""
-    system, C, R, rng = linear(11)
+    system, C, R, rng = linear_gaussian(11)
     L, e = rng.normal(size=(3, 3)), rng.normal(size=(2, 3))
     diff = {}
     for M in (50, 500, 5000):

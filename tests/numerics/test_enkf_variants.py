@@ -3,6 +3,7 @@ the square-root transform against its M x M definition, and the config settings 
 adaptive inflation: test_enkf_n.py)."""
 import numpy as np
 import pytest
+from conftest import linear_gaussian
 from hydra import compose, initialize_config_module
 
 import rdsexp as rx
@@ -13,16 +14,6 @@ from rdsexp.numerics.simulation import simulate
 
 paper = rx.paper
 ARRAYS = ("q", "y", "u", "psi_pred_mean", "psi_pred_std", "psi_filt_mean", "psi_filt_std", "failed_at")
-
-
-def linear_gaussian(seed, n=3, ny=2):
-    """A random linear system with known parameters (p = 0), y = C x, and a random R > 0."""
-    rng = np.random.default_rng(seed)
-    C = rng.normal(size=(ny, n))
-    L = rng.normal(size=(ny, ny))
-    R = L @ L.T + 0.1 * np.eye(ny)
-    system = rx.AffineRandomSystem(A=[rng.normal(size=(n, n))], B=[np.zeros((n, 1))], C=[C])
-    return system, C, R, rng
 
 
 def kalman(m, P, C, R, y):
