@@ -173,6 +173,8 @@ def config_error_text(err: BaseException) -> str | None:
     import yaml
     from hydra.errors import ConfigCompositionException
     from omegaconf.errors import ConfigAttributeError, ConfigKeyError
+
+    from .config import TOP_LEVEL
     chain = []
     while err is not None and err not in chain:
         chain.append(err)
@@ -181,6 +183,13 @@ def config_error_text(err: BaseException) -> str | None:
         if isinstance(err, yaml.MarkedYAMLError) and err.problem_mark is not None:
             return yaml_error_text(err)
         cause = err.__cause__
+        shadowed = re.match(r"Could not override '([^']+)'\. No match in the defaults list\.", str(err))
+        if isinstance(err, ConfigCompositionException) and shadowed and shadowed.group(1) in (*TOP_LEVEL, "store"):
+            # a directory of that name in a --config-dir is a config group to Hydra: `store=...` then
+            # overrides a group that no default selects (e.g. a run store kept inside the config directory)
+            return (f"{shadowed.group(1)}: a directory named {shadowed.group(1)!r} in the --config-dir is read "
+                    f"by Hydra as a config group and hides the key {shadowed.group(1)}; move it out of the "
+                    f"config directory")
         if isinstance(err, ConfigCompositionException) and isinstance(cause, (ConfigAttributeError, ConfigKeyError)):
             # "Could not override 'enkf.ensemble_sze'.\nTo append to your config use +enkf.ensemble_sze=50"
             name = re.search(r"override '([^']+)'", str(err))

@@ -35,6 +35,18 @@ def test_unknown_key_without_plus_is_one_line_with_the_closest_key(tmp_path, arg
     assert not (tmp_path / "outputs").exists()            # neither a run nor a sweep directory
 
 
+def test_a_directory_named_like_a_key_in_the_config_dir_is_one_line(tmp_path):
+    """A run store kept inside the --config-dir (DIR/store) is a config group to Hydra, which then refuses
+    store=...: one line that says why, exit 2, nothing written."""
+    (tmp_path / "conf" / "store").mkdir(parents=True)
+    proc = rdsexp("--config-dir", str(tmp_path / "conf"), f"store={tmp_path / 'conf' / 'store'}", *TINY,
+                  cwd=tmp_path, check=False)
+    assert proc.returncode == 2
+    assert one_line(proc) == ("rdsexp: config error: store: a directory named 'store' in the --config-dir is read "
+                              "by Hydra as a config group and hides the key store; move it out of the config directory")
+    assert not any((tmp_path / "conf" / "store").iterdir())
+
+
 @pytest.mark.parametrize("args, message", [
     (["plant=bad"], "conf/plant/bad.yaml:3:5: mapping values are not allowed here"),
     (["-m", "plant=paper,unclosed"], "conf/plant/unclosed.yaml:4:1: expected ',' or ']', but got '<scalar>' "
