@@ -492,19 +492,26 @@ def lyapunov(Acl: np.ndarray, Qbar: np.ndarray) -> np.ndarray | None:
     """
     n = Acl.shape[1]
     if n > DENSE_SOLVE_MAX_N:
-        P, E = stein_solve(Acl, Qbar)
-        try:
-            np.linalg.cholesky(P)
-            np.linalg.cholesky(Qbar + (E + E.T) / 2)
-        except (np.linalg.LinAlgError, ValueError, TypeError):      # TypeError: P None
-            return None
-        return P
+        return certified_stein(Acl, Qbar)
     L = np.einsum("rji,rlk->ikjl", Acl, Acl).reshape(n * n, n * n)   # row-major vec(A^T P A) = (A^T (x) A^T) vec P
     try:
         P = np.linalg.solve(np.eye(n * n) - L, Qbar.ravel()).reshape(n, n)
         P = (P + P.T) / 2
         np.linalg.cholesky(P)
     except np.linalg.LinAlgError:
+        return None
+    return P
+
+
+def certified_stein(Acl: np.ndarray, Qbar: np.ndarray, **options) -> np.ndarray | None:
+    """`stein_solve`'s P (n, n) (options passed on) only with its certificate of mean-square stability:
+    P > 0 and Qbar + E > 0 for the computed residual E = Qbar + T*(P) - P (then P - T*(P) > 0 exactly
+    for the returned P); None otherwise, or when the solve did not converge."""
+    P, E = stein_solve(Acl, Qbar, **options)
+    try:
+        np.linalg.cholesky(P)
+        np.linalg.cholesky(Qbar + (E + E.T) / 2)
+    except (np.linalg.LinAlgError, ValueError, TypeError):      # TypeError: P None
         return None
     return P
 

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..analysis import DENSE_SOLVE_MAX_N, DominantTerm, lyapunov, ms_rate, stein_solve, weight
+from ..analysis import DENSE_SOLVE_MAX_N, DominantTerm, certified_stein, lyapunov, ms_rate, stein_solve, weight
 from ..systems import AffineRandomSystem
 from .base import SynthesisResult
 from .riccati import policy_iteration
@@ -101,14 +101,7 @@ def _result(system, dist, Abar, Bbar, P, Q, R, status, iterations) -> SynthesisR
 def _certified_cost(Abar, Bbar, F, Q, R) -> np.ndarray | None:
     """The cost matrix of F to relative residual START_RTOL, or None unless it certifies F mean-square
     stabilizing (P > 0 and Q + F^T R F + E > 0 for the computed residual E, `analysis.lyapunov`)."""
-    C = Q + F.T @ R @ F
-    P, E = stein_solve(Abar + Bbar @ F, C, rtol=START_RTOL, max_iter=START_GMRES)
-    try:
-        np.linalg.cholesky(P)
-        np.linalg.cholesky(C + (E + E.T) / 2)
-    except (np.linalg.LinAlgError, ValueError, TypeError):      # TypeError: P None
-        return None
-    return P
+    return certified_stein(Abar + Bbar @ F, Q + F.T @ R @ F, rtol=START_RTOL, max_iter=START_GMRES)
 
 
 def _ms_lqr_matrix_free(system, dist, Abar, Bbar, Q, R, tol, max_iter) -> SynthesisResult:
