@@ -15,7 +15,7 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 from ..errors import ConfigError, one_line
 from ..numerics.distributions import from_spec
 from ..numerics.enkf import VARIANTS, AdaptiveInflation, EnKF, check_covariance, truth_map, xi_support
-from ..numerics.modeling import mls_input
+from ..numerics.modeling import COVARIANCES, mls_input
 from ..numerics.online import MEMORIES, OnlineSettings
 from ..numerics.simulation import ESTIMATES, check_estimate
 from ..numerics.synthesis import METHODS, check_options
@@ -24,7 +24,6 @@ from ..numerics.systems import AffineRandomSystem, MomentModel
 TRACKING_LEVELS = ("off", "summary", "full")
 FEEDBACK_MODES = ("none", "nominal", "auto")     # identification.feedback, or a gain F (m x n)
 OBSERVER_XI = ("random_walk", "model")   # closed_loop.observer_xi: the paper's xi random walk, or i.i.d. model draws
-COVARIANCES = ("sample", "total")    # identification.covariance: eq. (sample-mean), or plus the filtered covariance
 XI_MODELS = ("random_walk", "iterated")   # identification.xi_model: the paper's, or passes drawing xi i.i.d.
 INITIAL_XI = ("guess", "zero")       # enkf.initial.xi: members' xi at identification.xi_guess, or at 0 (the paper)
 XI_SUPPORT = ("project", "free")     # enkf.xi_support: members projected onto the plant family's support box, or not

@@ -68,6 +68,9 @@ def mls_input(horizon: int, m: int = 1, register_length: int = 7, amplitude: flo
     return amplitude * np.stack([seq[(k + j * period // m) % seq.size] for j in range(m)], axis=1)
 
 
+COVARIANCES = ("sample", "total")   # the modeled covariance: eq. (sample-mean), or plus the mean filtered covariance
+
+
 def window_samples(xi_filt_mean: np.ndarray, K0: int, K1: int) -> np.ndarray:
     """xi_{k|k} for k = K0..K0+K1: (K+1, ..., p) -> (K1+1, ..., p)."""
     K = xi_filt_mean.shape[0] - 1

@@ -28,6 +28,7 @@ import numpy as np
 
 from ..errors import one_line
 from .analysis import DENSE_MAX_N, perron
+from .modeling import COVARIANCES
 from .synthesis import METHODS, check_options, synthesize
 from .systems import AffineRandomSystem, MomentModel
 
@@ -75,8 +76,9 @@ class OnlineSettings:
             raise ValueError(f"window: {self.window} is not allowed, longer than the horizon {horizon}")
         if not isinstance(self.safeguard, bool):
             raise ValueError(f"safeguard: {self.safeguard!r} is not allowed, expected true or false")
-        if self.covariance not in ("sample", "total"):
-            raise ValueError(f"covariance: {self.covariance!r} is not allowed, expected sample or total")
+        if self.covariance not in COVARIANCES:
+            raise ValueError(f"covariance: {self.covariance!r} is not allowed, expected one of "
+                             f"{', '.join(COVARIANCES)}")
         check_options(self.method, dict(self.options), system)       # unknown method / option
         return self
 
