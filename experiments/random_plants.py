@@ -1,7 +1,7 @@
 """Random plants through the command line: how often does the default experiment end stable?
 
 Draws N random plant files from one seed and runs each through `python -m rdsexp` with the default
-configuration (identification, modeling, the proposed gain from the identified moments, the
+configuration (identification, modeling, the default design's gain from the identified moments, the
 closed-loop Monte Carlo), then reads every run's record from the store and prints one row per plant:
 
 - the draw: n, m, ny, p, the family of xi, the exact open-loop mean-square rate (F = 0) on the true

@@ -12,6 +12,7 @@ HYDRA_FULL_ERROR=1 shows the complete traceback instead.
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
@@ -75,6 +76,8 @@ def record_failure(err: Exception, cfg: DictConfig, run_dir: Path, job: int | No
     if job is None and f.status in ("config_error", "write_error"):
         if f.status == "config_error":                   # nothing that could pass for a result
             shutil.rmtree(run_dir, ignore_errors=True)
+            with contextlib.suppress(OSError):           # and no empty runs/ that Hydra made for it
+                run_dir.parent.rmdir()
         else:
             RunWriter(run_dir).fail(f.status, f.message, fallback=_fallback(cfg))
         print(f.line, file=sys.stderr)

@@ -130,9 +130,22 @@ def user_dir(tmp_path, name, plant):
     return str(tmp_path / "conf")
 
 
-def test_not_stabilizable_and_diverged_paths_are_stated(tmp_path):
+def test_not_stabilizable_default_design_is_stated(tmp_path):
+    # the default design (ms_lqr) proves that no gain exists and returns none: no closed loop, said so
     conf = user_dir(tmp_path, "stuck", STUCK)
-    proc = rdsexp("--config-dir", conf, "plant=stuck", *SMALL[:-1], "closed_loop.horizon=60", cwd=tmp_path)
+    proc = rdsexp("--config-dir", conf, "plant=stuck", *SMALL[:-1], cwd=tmp_path)
+    assert "Traceback" not in proc.stderr
+    assert "no stabilizing gain: ms_lqr returned none (not_ms_stabilizable); no closed loop" in proc.stdout
+    assert "not_ms_stabilizable: proven: no gain makes the design moments mean-square stable" in proc.stdout
+    (run,) = (tmp_path / "outputs" / "runs").iterdir()
+    assert json.loads((run / "run.json").read_text())["summary"]["synthesis_status"] == "not_ms_stabilizable"
+
+
+def test_not_stabilizable_and_diverged_paths_are_stated(tmp_path):
+    # Theorem 2's bisection returns its best gain (rate 1.5 on the model): the loop runs and diverges
+    conf = user_dir(tmp_path, "stuck", STUCK)
+    proc = rdsexp("--config-dir", conf, "plant=stuck", "gain=proposed", *SMALL[:-1], "closed_loop.horizon=60",
+                  cwd=tmp_path)
     assert "Traceback" not in proc.stderr
     (run,) = (tmp_path / "outputs" / "runs").iterdir()
     s = json.loads((run / "run.json").read_text())["summary"]
