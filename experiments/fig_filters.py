@@ -1,12 +1,16 @@
-"""EnKF variants against ensemble size M: closed-loop rate, diverged fraction and xi RMSE.
+"""EnKF variants against ensemble size M: closed-loop rate, diverged fraction, xi RMSE and the model's CRPS.
 
 From the `filters` sweeps (conf/sweep/filters.yaml) of each plant (files filters_<plant>.*; the latest
-run of each point), per filter (variant, inflation rho, relaxation alpha) and M, over seeds: the empirical k = 60..80
+run of each point), per filter (variant, inflation rho, relaxation alpha) and M, over seeds: the empirical
 closed-loop rate (mean with a 95% t-interval over the seeds whose loop kept every path; an open
 marker where some seed diverged), the fraction of closed-loop paths that diverged (mean over
-seeds), and the RMSE of the filtered xi against the true xi. Also a table (filters_<plant>_frontier)
-and the sentence: the smallest M at which each filter's rate is within 0.01 of the stochastic EnKF
-at M = 300 (no inflation, no relaxation) with no path diverged in any seed.
+seeds), the RMSE of the filtered xi against the true xi, and the expected CRPS of the modeled
+distribution of xi against the plant's (summary xi_crps, a proper score: it rewards the right mean
+and the right spread). Tables: filters_<plant>_summary (every filter and M), filters_<plant>_best
+(each variant at each M with its best knob, as DAPPER draws a frontier: the setting with the fewest
+diverged paths, then the lowest CRPS) and filters_<plant>_frontier with its sentence: the smallest M
+at which each filter's rate is within 0.01 of the stochastic EnKF at M = 300 (no inflation, no
+relaxation) with no path diverged in any seed.
 
     python experiments/fig_filters.py [--root outputs] [--out outputs/report]
 """
@@ -30,7 +34,7 @@ def points(runs: list[report.Run]) -> pd.DataFrame:
         loop = m.loc["closed_loop"] if "closed_loop" in m.index else None
         rows.append({"variant": r.get("enkf.variant"), "inflation": inflation(r.get("enkf.inflation")),
                      "relaxation": float(r.get("enkf.relaxation")), "M": int(r.get("enkf.ensemble_size")),
-                     "seed": r.get("seed"),
+                     "seed": r.get("seed"), "xi_crps": r.info.get("summary", {}).get("xi_crps", np.nan),
                      # no closed loop (no gain from the identified model) counts as diverged
                      **{c: (loop[c] if loop is not None else (1.0 if c == "failed_fraction" else np.nan))
                         for c in ("rate", "failed_fraction", "xi_rmse", "x_rmse", "xi_spread_error")}})
@@ -57,8 +61,23 @@ def summary(frame: pd.DataFrame) -> pd.DataFrame:
                      "seeds_diverged": int((~ok).sum()), "diverged_fraction": float(g["failed_fraction"].mean()),
                      "rate": mean, "rate_low": lo, "rate_high": hi,
                      "xi_rmse": float(g.loc[ok, "xi_rmse"].mean()) if ok.any() else np.nan,
-                     "xi_spread_error": float(g.loc[ok, "xi_spread_error"].mean()) if ok.any() else np.nan})
+                     "xi_spread_error": float(g.loc[ok, "xi_spread_error"].mean()) if ok.any() else np.nan,
+                     # the model is scored in every seed that has one (a diverged loop does not undo it)
+                     "xi_crps": float(g["xi_crps"].mean())})
     return pd.DataFrame(rows)
+
+
+def best_tuned(stats: pd.DataFrame, ref: float) -> pd.DataFrame:
+    """Each variant at each M with its best knob (inflation, relaxation): the fewest diverged paths, then
+    the lowest CRPS of the modeled xi (a variant without knobs, enkf_n, is its own best)."""
+    order = stats.assign(crps_rank=stats["xi_crps"].fillna(np.inf)).sort_values(
+        ["variant", "M", "diverged_fraction", "crps_rank"])
+    best = order.groupby(["variant", "M"], as_index=False).first().drop(columns="crps_rank")
+    knobs = stats.groupby("variant").apply(lambda g: g[["inflation", "relaxation"]].drop_duplicates().shape[0],
+                                           include_groups=False)
+    best["knobs_tried"] = best["variant"].map(knobs)
+    best["rate_minus_reference"] = best["rate"] - ref
+    return best
 
 
 def frontier(stats: pd.DataFrame) -> tuple[pd.DataFrame, float, str]:
@@ -100,7 +119,8 @@ MARKERS = [("o", "-"), ("s", "--"), ("^", ":"), ("D", "-."), ("v", "-"), ("x", "
 
 
 def draw(stats: pd.DataFrame, ref: float, plant: str):
-    fig, axes = report.figure(report.PAGE_WIDTH, 2.6, 1, 3)
+    fig, axes = report.figure(report.PAGE_WIDTH, 4.6, 2, 2)
+    axes = axes.ravel()
     options = sorted({(r.inflation, r.relaxation) for r in stats.itertuples()})     # one marker per (rho, alpha)
     for (v, rho, a), g in stats.groupby(["variant", "inflation", "relaxation"]):
         g = g.sort_values("M")
@@ -113,11 +133,13 @@ def draw(stats: pd.DataFrame, ref: float, plant: str):
                      color=kw["color"])
         axes[1].plot(g["M"], g["diverged_fraction"], **kw)
         axes[2].plot(g["M"], g["xi_rmse"], **kw)
+        axes[3].plot(g["M"], g["xi_crps"], **kw)
     if np.isfinite(ref):
         axes[0].axhspan(ref - TOLERANCE, ref + TOLERANCE, color="0.9", zorder=0,
                         label=f"stochastic M=300 $\\pm${TOLERANCE}")
     titles = ("closed-loop rate (open marker: some seed\ndiverged, rate over the others)",
-              "diverged fraction of paths\n(mean over seeds)", "RMSE of $\\xi_{k|k}$\n(seeds without divergence)")
+              "diverged fraction of paths\n(mean over seeds)", "RMSE of $\\xi_{k|k}$\n(seeds without divergence)",
+              "CRPS of the modeled $\\xi$ against the plant's\n(mean over seeds, lower is better)")
     sizes = sorted(stats["M"].unique())
     for ax, title in zip(axes, titles):
         ax.set_xscale("log")
@@ -127,6 +149,8 @@ def draw(stats: pd.DataFrame, ref: float, plant: str):
         ax.set_xlabel("ensemble size M")
         ax.set_title(title)
     axes[1].set_ylim(-0.02, 1.02)
+    if (stats["xi_crps"] > 0).any():                      # from the true spread up to a model far off
+        axes[3].set_yscale("log")
     rates = stats["rate"].to_numpy(float)
     if np.isfinite(rates).any():        # the means in view; t-intervals over a few seeds may leave the frame
         lo, hi = np.nanmin(np.append(rates, ref)), np.nanmax(np.append(rates, ref))
@@ -151,6 +175,7 @@ def main(argv=None):
         paths += report.save_figure(draw(stats, ref, plant), args.out, name, runs, __file__, caption=sentence)
         report.write_table(stats, args.out, f"{name}_summary", runs, __file__)
         report.write_table(table, args.out, f"{name}_frontier", runs, __file__)
+        report.write_table(best_tuned(stats, ref), args.out, f"{name}_best", runs, __file__)
         files.atomic_write_bytes(args.out / f"{name}_frontier.txt", (sentence + "\n").encode())
         print(sentence)
     return paths

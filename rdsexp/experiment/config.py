@@ -464,7 +464,7 @@ def build(cfg) -> Experiment:
 
 # metrics a job may return as its objective (config `objective`), all minimized
 OBJECTIVES = ("lam", "rate_plant", "closed_loop_rate", "open_loop_rate", "online_rate", "closed_loop_exact_rate",
-              "xi_mean_error", "xi_std_error", "closed_loop_failed_fraction", "seconds")
+              "xi_mean_error", "xi_std_error", "xi_crps", "closed_loop_failed_fraction", "seconds")
 
 
 def check_objective(cfg) -> None:

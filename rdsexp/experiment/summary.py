@@ -57,6 +57,8 @@ def summary_text(info: dict, run_dir: Path) -> str:
                 line += " (the spread of xi_{k|k} plus the EnKF's mean filtered spread)"
             if "plant_xi_mean" in s:
                 line += f"; the plant file's xi: mean {vec(s['plant_xi_mean'])}, std {vec(s['plant_xi_std'])}"
+            if "xi_crps" in s:           # a proper score of the modeled marginals against the plant's xi
+                line += f"; CRPS {s['xi_crps']:.4f}"
             lines.append(line)
     elif s.get("modeling_status") is not None:
         lines.append(f"  no model: {s.get('modeling_status')}" +

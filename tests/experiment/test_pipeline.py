@@ -112,3 +112,21 @@ def test_iterated_identification_models_from_its_last_pass_and_stops_at_a_fixed_
                                                             exp.simulation()["psi0"])
     assert kept is first and model is dist and why == "" and info["passes"] == 0
     assert info["failed"] == "identification failed at k = 7: the EnKF estimate diverged"
+
+
+def test_xi_crps_scores_the_modeled_marginals_against_the_plant_file():
+    """summary xi_crps: the expected CRPS of the modeled N(mean, std^2) against the plant file's xi, here a
+    Bernoulli(gamma) dropout, whose expectation is exact: gamma CRPS(1) + (1 - gamma) CRPS(0). The summary's
+    estimate from its fixed draws agrees within 4 Monte Carlo standard errors."""
+    from scipy.stats import norm
+    exp = experiment("plant=dropout")
+    s = pipeline.run_experiment(exp).summary
+    (gamma,), (m,), (sd,) = exp.plant.xi_dist.prob, s["xi_mean"], s["xi_std"]
+
+    def crps(y):
+        z = (y - m) / sd
+        return sd * (z * (2 * norm.cdf(z) - 1) + 2 * norm.pdf(z) - 1 / np.sqrt(np.pi))
+
+    exact = gamma * crps(1.0) + (1 - gamma) * crps(0.0)
+    error = abs(crps(1.0) - crps(0.0)) * np.sqrt(gamma * (1 - gamma) / pipeline.CRPS_DRAWS)
+    assert abs(s["xi_crps"] - exact) <= 4 * error

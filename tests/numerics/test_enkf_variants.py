@@ -204,3 +204,24 @@ def test_frontier_is_the_smallest_M_within_tolerance_without_divergence():
     assert smallest[("etkf", "adaptive")] == 20             # adaptive inflation: a text among numbers
     assert pd.isna(smallest[("etkf", "1")])                 # 0.0115 away
     assert "etkf: none of M = 20" in sentence and "etkf rho=1.1: M = 10" in sentence
+
+
+def test_best_tuned_takes_the_fewest_diverged_paths_then_the_lowest_crps():
+    """experiments/fig_filters.py: each variant at each M keeps the knob with the fewest diverged paths
+    and, among those, the lowest CRPS of the modeled xi."""
+    import sys
+
+    from conftest import REPO
+    sys.path.insert(0, str(REPO / "experiments"))
+    import fig_filters
+    import pandas as pd
+    rows = [("etkf", 1.0, 20, 0.86, 0.0, 0.10), ("etkf", 1.1, 20, 0.85, 0.0, 0.08), ("etkf", "adaptive", 20, 0.84, 0.1, 0.01),
+            ("etkf", 1.0, 50, 0.85, 0.0, 0.05), ("etkf", 1.1, 50, 0.85, 0.0, float("nan")),
+            ("enkf_n", 1.0, 20, 0.85, 0.2, 0.30)]
+    stats = pd.DataFrame([{"variant": v, "inflation": fig_filters.inflation(rho), "relaxation": 0.0, "M": M, "rate": r,
+                           "diverged_fraction": dv, "xi_crps": c} for v, rho, M, r, dv, c in rows])
+    best = fig_filters.best_tuned(stats, ref=0.85).set_index(["variant", "M"])
+    assert best.loc[("etkf", 20), "inflation"] == "1.1"          # adaptive diverged, 1.1 scores better than 1
+    assert best.loc[("etkf", 50), "inflation"] == "1"            # an unscored setting ranks last
+    assert best.loc[("enkf_n", 20), "knobs_tried"] == 1 and best.loc[("etkf", 20), "knobs_tried"] == 3
+    assert abs(best.loc[("etkf", 20), "rate_minus_reference"]) < 1e-12
