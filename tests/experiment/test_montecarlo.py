@@ -75,6 +75,24 @@ def test_parquet_sink_hash_equals_whole_table_hash(tmp_path, whole):
     assert [p.name for p in tmp_path.iterdir()] == ["trajectories.parquet"]
 
 
+def test_a_stored_table_with_any_nan_reads_back_with_its_hash(tmp_path):
+    # inf - inf is a NaN with the sign bit set; parquet stores every NaN as null and reads back np.nan,
+    # so the content hash counts every NaN as one (a failed loop's rates are such NaNs)
+    from rdsexp.experiment.store.run import read_table
+    with np.errstate(invalid="ignore"):
+        rates = np.array([0.5, np.inf, np.nan]) - np.array([0.0, np.inf, 0.0])
+    assert np.signbit(rates[1]) and np.isnan(rates[1:]).all()
+    table = pd.DataFrame({"rate": rates, "k": [1, 2, 3]})
+    meta = files.store_table(tmp_path / "metrics.parquet", table)
+    assert meta["sha256"] == files.table_hash(pd.read_parquet(tmp_path / "metrics.parquet"))
+    pd.testing.assert_frame_equal(read_table(tmp_path, {"tables": {"metrics": meta}}, "metrics"), table)
+    # a record whose content hash took the NaN bits (written before): the intact file's own hash decides
+    old = dict(meta, sha256="0" * 64)
+    read_table(tmp_path, {"tables": {"metrics": old}}, "metrics")
+    with pytest.raises(Exception, match="modified after the run"):
+        read_table(tmp_path, {"tables": {"metrics": dict(old, file_sha256="1" * 64)}}, "metrics")
+
+
 @pytest.mark.parametrize("override, message", [
     ("closed_loop.chunk_paths=0", "closed_loop.chunk_paths: 0 is not allowed, expected an integer >= 1"),
     ("closed_loop.workers=0", "closed_loop.workers: 0 is not allowed, expected an integer >= 1"),

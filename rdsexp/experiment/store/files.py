@@ -122,6 +122,8 @@ def _hash_columns(columns) -> str:
     for name, column in columns:
         h.update(f"{name}:{column.dtype}".encode())
         values = column.to_numpy()
+        if values.dtype.kind == "f":     # every NaN as one: parquet stores NaN as null and reads back the
+            values = np.where(np.isnan(values), np.nan, values)   # canonical NaN, whatever bits it had (inf - inf)
         h.update(values.tobytes() if values.dtype.kind in "biuf" else "\x1f".join(map(str, values)).encode())
     return h.hexdigest()
 
