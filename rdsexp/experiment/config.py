@@ -603,7 +603,7 @@ def _identification_feedback(cfg, plant: AffineRandomSystem) -> tuple[str, np.nd
 
 # ------------------------------------------------------------------------- strict overrides
 GROUPS = ("plant", "model", "enkf", "identification", "gain", "closed_loop", "tracking")
-TOP_LEVEL = ("seed", "reuse", "objective", "objective_penalty")
+TOP_LEVEL = ("seed", "reuse", "cache", "objective", "objective_penalty")
 # keys `build` reads with a default when the group's file does not set them: `+key=value` may add them
 OPTIONAL_KEYS = ("plant.name", "plant.C", "plant.D", "plant.q0", "plant.poles", "plant.reference",
                  "plant.identification_feedback", "plant.identification_covariance", "plant.identification_xi",

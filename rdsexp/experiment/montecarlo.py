@@ -29,6 +29,12 @@ def chunk_size(exp, *, keep_members: bool) -> int:
     return int(min(exp.loop.paths, max(1, MEMORY_BUDGET // (3 * per_path))))
 
 
+def chunk_starts(exp, *, keep_members: bool) -> list[tuple[int, int]]:
+    """The loop's chunks as (first path, number of paths), in path order."""
+    size = chunk_size(exp, keep_members=keep_members)
+    return [(j, min(size, exp.loop.paths - j)) for j in range(0, exp.loop.paths, size)]
+
+
 def _simulate_chunk(plant, enkf, first: int, count: int, settings: dict, controller=None, progress=None):
     """One chunk of paths; `controller(paths=count)` makes the chunk's gain controller (None: fixed
     gains). Returns the trajectories and the controller with its decisions."""
@@ -49,8 +55,7 @@ def run_chunks(exp, settings: dict, *, keep_members: bool, workers: int = 1,
     order, at most 2 * workers chunks in flight. progress(steps) is called with the number of
     path-steps done. enkf: the loop's observer (default exp.filter.enkf)."""
     enkf = exp.filter.enkf if enkf is None else enkf
-    size = chunk_size(exp, keep_members=keep_members)
-    starts = [(j, min(size, exp.loop.paths - j)) for j in range(0, exp.loop.paths, size)]
+    starts = chunk_starts(exp, keep_members=keep_members)
     steps = exp.loop.disturbance.shape[0]
     settings = dict(settings, keep_members=keep_members)
     if workers <= 1 or len(starts) == 1:

@@ -35,7 +35,7 @@ from ..numerics.synthesis import SynthesisResult, synthesize
 from ..numerics.systems import MomentModel
 from ..numerics.verdict import FAILURES, loop_verdict, place_window, window_start
 from .config import Experiment
-from .montecarlo import LoopSummary, run_chunks
+from .montecarlo import LoopSummary, chunk_starts, run_chunks
 
 log = logging.getLogger("rdsexp")
 # the online loop shares the closed loop's seeds: the same plant samples and EnKF noise, a paired comparison
@@ -80,41 +80,43 @@ def _progress(desc: str, total: int):
     return bar, lambda k: bar.update(1)
 
 
-def run_experiment(exp: Experiment, sink=None) -> Outcome:
+def run_experiment(exp: Experiment, sink=None, cache=None) -> Outcome:
     """Compute every stage of the experiment; numerical failures become statuses in the tables.
 
     The large tables (STREAMED: trajectories, members) go to `sink.append(name, rows)` chunk by
     chunk (store.files.ParquetSink writes them as they come); without a sink they are collected and
-    returned in Outcome.tables with the others."""
+    returned in Outcome.tables with the others.
+
+    cache: a stage cache (store.stages.StageCache) or None (compute everything, as `verify` does).
+    With one, a stage whose inputs equal those of a stored entry is loaded from it instead of
+    computed, and a computed one is stored: identification with modeling (keyed by the plant, model,
+    EnKF, identification settings, initial state and seed), each design (model, moments, method,
+    options) and the open loop (what `simulate` reads: plant, the loop's observer with the moments it
+    draws xi from, disturbance, initial state, seed, chunks of paths; not the gain). Tables and
+    summary are the same either way. Not with tracking level full (every loop's members)."""
+    if cache is not None and exp.tracking.level == "full":
+        cache = None
     timings, summary = {}, {}
     root = lambda stage: np.random.SeedSequence(exp.seed, spawn_key=SPAWN_KEYS[stage])
     sim = exp.simulation()
     keep = exp.tracking.level == "full"
 
-    with timed(timings, "identification"):
-        F_id, info = identification_feedback(exp)
-        # the identification input is added on top of the feedback; the EnKF is told the applied input
-        total = exp.identification.covariance == "total"
-        identify = lambda F, enkf=exp.filter.enkf: simulate(
-            exp.plant, enkf, F=F, d=exp.identification.input, paths=1, seed=root("identification"),
-            filter_sees_d=True, keep_members=keep, keep_xi_cov=total, **sim)
-        ident = identify(F_id)
-        if info.get("used") == "open_loop" and ident.failure[0] == "diverged":
-            # auto chose the open loop on the guess, which knows no spread of xi (the spread only raises
-            # the mean-square rate): the plant itself diverged, so identify again under nominal feedback
-            F_id, retry = identification_feedback(exp, force_nominal=True)
-            if F_id is not None:
-                info = retry | {"open_loop_diverged_at": int(ident.failed_at[0])}
-                ident = identify(F_id)
-        summary["identification_feedback"] = info
-    with timed(timings, "modeling"):
-        dist, failure = identified_moments(exp, ident)
-        if exp.identification.xi_model == "iterated" and exp.model.p:     # (nothing to iterate without xi)
-            ident, dist, failure, summary["identification_passes"] = iterate_identification(
-                exp, lambda enkf: identify(F_id, enkf), ident, dist, failure, sim["psi0"])
-        summary["modeling_status"] = failure or "ok"
-        if dist is not None:
-            summary["modeling_covariance"] = exp.identification.covariance
+    stored = None
+    if cache is not None:
+        key = cache.key("identification", plant=exp.plant, model=exp.model, filter=exp.filter,
+                        identification=exp.identification, simulation=sim, seed=root("identification"),
+                        keep_members=keep)
+        stored = cache.load("identification", key)
+    if stored is not None:
+        with timed(timings, "identification"):
+            ident, dist, failure = stored["ident"], stored["dist"], stored["failure"]
+            summary.update(stored["summary"])
+    else:
+        ident, dist, failure = identify_and_model(exp, timings, summary, root("identification"), sim, keep)
+        if cache is not None:
+            cache.save("identification", key, {"ident": ident, "dist": dist, "failure": failure,
+                                               "summary": {k: summary[k] for k in IDENTIFICATION_SUMMARY
+                                                           if k in summary}})
     with timed(timings, "synthesis"):
         # the loop's method and the comparison designs (gain.designs) on the identified moments (the
         # selected one with its configured options) and, when the config gives them, on the moments a
@@ -125,7 +127,8 @@ def run_experiment(exp: Experiment, sink=None) -> Outcome:
             for method in exp.design.methods if moments is not None else ():
                 options = exp.design.options_by_method[method]
                 designs[source, method] = (moments, safe_synthesize(exp.model, moments, method, options,
-                                                                    exp.design.lmi_max_n))
+                                                                    exp.design.lmi_max_n, cache=cache,
+                                                                    label=f"synthesis/{source}/{method}"))
         selected = (exp.design.source, exp.design.method)
         if exp.design.source == "fixed":      # a given F (e.g. a paper's own gain): no design, its exact rate
             selected, moments = ("fixed", "fixed"), dist if dist is not None else exp.reported
@@ -140,7 +143,8 @@ def run_experiment(exp: Experiment, sink=None) -> Outcome:
             moments = designs[selected][0]
             if (selected[0], fallback) not in designs:
                 designs[selected[0], fallback] = (moments, safe_synthesize(
-                    exp.model, moments, fallback, exp.design.options_by_method[fallback], exp.design.lmi_max_n))
+                    exp.model, moments, fallback, exp.design.options_by_method[fallback], exp.design.lmi_max_n,
+                    cache=cache, label=f"synthesis/{selected[0]}/{fallback}"))
             summary["gain_fallback"] = {"method": fallback, "instead_of": selected[1],
                                         "because": chosen.info.get("reason", chosen.status)}
             selected = (selected[0], fallback)
@@ -162,13 +166,23 @@ def run_experiment(exp: Experiment, sink=None) -> Outcome:
                 bar, _ = _progress(name.replace("_", " "), exp.loop.paths * exp.loop.disturbance.shape[0])
                 parts = []
                 with bar, logging_redirect_tqdm():
-                    for first, tr, _ in run_chunks(exp, dict(settings, F=F, seed=root(name)), keep_members=keep,
-                                                   enkf=observer, workers=exp.loop.workers, progress=bar.update):
-                        rows = trajectory_table(name, tr, first)
-                        if exp.controller.kind == "online":     # the gain in use, as in the online rows
-                            rows = with_gains(rows, np.zeros((exp.model.m, exp.model.n)) if F is None else F)
-                        parts.append(stream_chunk(exp, name, tr, first, rows, sink, sample, sample_members))
-                        tr = rows = None                    # free the chunk before the next
+                    chunks, writer = loop_chunks(exp, name, dict(settings, F=F, seed=root(name)), observer, keep,
+                                                 bar.update, cache if name in CACHED_LOOPS else None)
+                    try:
+                        for first, tr in chunks:
+                            if writer is not None:
+                                writer.add({"first": first, "trajectories": tr})
+                            rows = trajectory_table(name, tr, first)
+                            if exp.controller.kind == "online":     # the gain in use, as in the online rows
+                                rows = with_gains(rows, np.zeros((exp.model.m, exp.model.n)) if F is None else F)
+                            parts.append(stream_chunk(exp, name, tr, first, rows, sink, sample, sample_members))
+                            tr = rows = None                    # free the chunk before the next
+                    except BaseException:
+                        if writer is not None:
+                            writer.abort()
+                        raise
+                    if writer is not None:
+                        writer.commit()
                 loops[name] = LoopSummary.concat(parts)
     if not loops:                              # no gain to simulate: the table's columns, no rows
         sink.append("trajectories", trajectory_table("closed_loop", None, exp=exp))
@@ -211,6 +225,67 @@ def run_experiment(exp: Experiment, sink=None) -> Outcome:
     recorded_members = pd.concat(sample_members, ignore_index=True) if keep else None
     return Outcome(tables=tables, summary=summary, timings=timings, recorded=recorded,
                    recorded_members=recorded_members, squares={name: loop.sq for name, loop in loops.items()})
+
+
+# what the identification and modeling stages put in the run summary (and the stage cache stores)
+IDENTIFICATION_SUMMARY = ("identification_feedback", "identification_passes", "modeling_status",
+                          "modeling_covariance")
+
+
+def identify_and_model(exp: Experiment, timings: dict, summary: dict, seed, sim: dict, keep: bool):
+    """The identification run(s) and the moments they model: (the Trajectories the moments come from,
+    MomentModel or None, why not); the decisions go into `summary` (IDENTIFICATION_SUMMARY)."""
+    with timed(timings, "identification"):
+        F_id, info = identification_feedback(exp)
+        # the identification input is added on top of the feedback; the EnKF is told the applied input
+        total = exp.identification.covariance == "total"
+        identify = lambda F, enkf=exp.filter.enkf: simulate(
+            exp.plant, enkf, F=F, d=exp.identification.input, paths=1, seed=seed,
+            filter_sees_d=True, keep_members=keep, keep_xi_cov=total, **sim)
+        ident = identify(F_id)
+        if info.get("used") == "open_loop" and ident.failure[0] == "diverged":
+            # auto chose the open loop on the guess, which knows no spread of xi (the spread only raises
+            # the mean-square rate): the plant itself diverged, so identify again under nominal feedback
+            F_id, retry = identification_feedback(exp, force_nominal=True)
+            if F_id is not None:
+                info = retry | {"open_loop_diverged_at": int(ident.failed_at[0])}
+                ident = identify(F_id)
+        summary["identification_feedback"] = info
+    with timed(timings, "modeling"):
+        dist, failure = identified_moments(exp, ident)
+        if exp.identification.xi_model == "iterated" and exp.model.p:     # (nothing to iterate without xi)
+            ident, dist, failure, summary["identification_passes"] = iterate_identification(
+                exp, lambda enkf: identify(F_id, enkf), ident, dist, failure, sim["psi0"])
+        summary["modeling_status"] = failure or "ok"
+        if dist is not None:
+            summary["modeling_covariance"] = exp.identification.covariance
+    return ident, dist, failure
+
+
+CACHED_LOOPS = ("open_loop",)      # loops the stage cache keeps: the open loop does not depend on the gain, so
+                                   # every design of a seed shares it; a closed loop is its run's own
+
+
+def loop_chunks(exp: Experiment, name: str, settings: dict, observer, keep: bool, progress, cache=None):
+    """((first path, Trajectories) of the loop's chunks in path order, an EntryWriter or None): from the
+    stage cache when it holds the loop (keyed by exactly what `simulate` reads: the plant, the
+    observer, the settings with gain, disturbance, initial state and seed, and the chunks of paths),
+    else simulated (`run_chunks`), with a writer that stores them when there is a cache."""
+    if cache is None:
+        return ((first, tr) for first, tr, _ in run_chunks(exp, settings, keep_members=keep, enkf=observer,
+                                                           workers=exp.loop.workers, progress=progress)), None
+    starts = chunk_starts(exp, keep_members=keep)
+    key = cache.key(name, plant=exp.plant, observer=observer, settings=settings, chunks=starts, keep_members=keep)
+    stored = cache.load_parts(name, key)
+    if stored is not None:
+        steps = exp.loop.disturbance.shape[0]
+        def replay():
+            for part in stored:
+                progress(part["trajectories"].q.shape[1] * steps)
+                yield part["first"], part["trajectories"]
+        return replay(), None
+    chunks, _ = loop_chunks(exp, name, settings, observer, keep, progress)
+    return chunks, cache.writer(name, key)
 
 
 def stream_chunk(exp: Experiment, name: str, tr: Trajectories, first: int, rows: pd.DataFrame, sink,
@@ -363,14 +438,16 @@ def add_online_tables(exp: Experiment, tables: dict, online, chosen, summary: di
 # designs computed in this process, by what they are computed from: the jobs of a sweep that share a
 # model, moments and options (every job's reported moments; the identified ones of jobs that differ
 # only after identification) design once. Synthesis is deterministic, so the tables are the same.
-_DESIGNS: dict[str, SynthesisResult] = {}
+# Each with (stage cache directory, run) that stored it there or it was loaded from (None: no cache).
+_DESIGNS: dict[str, tuple[SynthesisResult, tuple[str, str] | None]] = {}
 _DESIGNS_KEPT = 256
 
 
 LMI_METHODS = ("proposed", "nominal_lmi", "robust_box")      # designs that solve semidefinite programs
 
 
-def safe_synthesize(model, moments, method: str, options: dict, lmi_max_n: int | None = None) -> SynthesisResult:
+def safe_synthesize(model, moments, method: str, options: dict, lmi_max_n: int | None = None, *,
+                    cache=None, label: str | None = None) -> SynthesisResult:
     """`synthesize`, with every way a design can fail on this system as a status, never an exception.
 
     not_applicable: pole placement without poles in the config, or an LMI design (LMI_METHODS) on a
@@ -378,7 +455,8 @@ def safe_synthesize(model, moments, method: str, options: dict, lmi_max_n: int |
     SDP-free designs do not). failed: <reason>: the method raised
     (e.g. a Riccati equation without a solution) or returned a gain that is not finite. A design
     this process computed before from the same model, moments, method and options is reused (a
-    copy, with seconds 0: no time spent in this run)."""
+    copy, with seconds 0: no time spent in this run), and so is one the stage cache holds (`cache`,
+    stage "synthesis"; `label` names the design in run.json's stages_reused)."""
     if method == "pole_placement" and options.get("poles") is None:
         return SynthesisResult(method, None, float("nan"), "not_applicable", nbar=0,
                                info={"reason": "no poles in the config (plant.poles or gain.options.poles)"})
@@ -387,9 +465,23 @@ def safe_synthesize(model, moments, method: str, options: dict, lmi_max_n: int |
                                info={"reason": f"n = {model.n} > gain.lmi_max_n = {lmi_max_n}: an SDP of this size "
                                                f"runs for hours; policy_iteration and ms_lqr need none"})
     key = _design_key(model, moments, method, options)
+    stage_key = cache.key("synthesis", design=key) if cache is not None else None
+    label = label or f"synthesis/{method}"
     if key in _DESIGNS:
-        res = copy.deepcopy(_DESIGNS[key])
+        res, origin = copy.deepcopy(_DESIGNS[key][0]), _DESIGNS[key][1]
         log.info("design %s: reused the identical design computed earlier in this process", method)
+        if cache is not None and origin is not None and origin[0] == str(cache.dir):
+            # stored in (or loaded from) this store's stage cache by a run of this process
+            cache.note(label, "synthesis", stage_key, origin[1] if origin[1] != cache.run else None)
+        elif cache is not None:                 # computed without this store's cache: store it there
+            cache.note(label, "synthesis", stage_key, None)
+            cache.save("synthesis", stage_key, res)
+            _remember(key, res, (str(cache.dir), cache.run))
+    else:
+        res = cache.load("synthesis", stage_key, label) if cache is not None else None
+        if res is not None:
+            _remember(key, res, (str(cache.dir), cache.reused[label]["run"]))
+    if res is not None:
         if res.status.startswith("failed"):
             log.warning("design %s %s", method, res.status)
         res.seconds = 0.0
@@ -404,10 +496,17 @@ def safe_synthesize(model, moments, method: str, options: dict, lmi_max_n: int |
     if res.F is not None and not np.all(np.isfinite(res.F)):
         res = SynthesisResult(method, None, float("nan"), "failed: the gain is not finite", nbar=res.nbar)
     res.seconds = res.seconds or time.perf_counter() - start
-    if len(_DESIGNS) >= _DESIGNS_KEPT:
-        _DESIGNS.pop(next(iter(_DESIGNS)))                # the oldest
-    _DESIGNS[key] = copy.deepcopy(res)
+    if cache is not None:
+        cache.save("synthesis", stage_key, res)
+    _remember(key, res, (str(cache.dir), cache.run) if cache is not None else None)
     return res
+
+
+def _remember(key: str, res: SynthesisResult, origin: tuple[str, str] | None) -> None:
+    """Keep a copy of a design in this process (_DESIGNS), the oldest dropped beyond _DESIGNS_KEPT."""
+    if len(_DESIGNS) >= _DESIGNS_KEPT:
+        _DESIGNS.pop(next(iter(_DESIGNS)))
+    _DESIGNS[key] = (copy.deepcopy(res), origin)
 
 
 def _design_key(model, moments, method: str, options: dict) -> str:

@@ -103,7 +103,8 @@ def run_info(run_dir: Path, job_config: dict, seed: int) -> tuple[dict, str]:
     }, code["diff"]
 
 
-NOT_COMPUTED = ("store", "objective", "objective_penalty")     # config keys that do not change what a run computes
+# config keys that do not change what a run computes
+NOT_COMPUTED = ("store", "objective", "objective_penalty", "cache")
 
 
 def job_config(cfg: DictConfig) -> dict:
@@ -158,13 +159,15 @@ def execute(cfg: DictConfig, run_dir: Path) -> dict:
         if previous is not None:
             return writer.reuse(previous, info)
         writer.start(info, diff)                        # run.json "incomplete" until the end
-    sink = writer.sink()
+    sink, cache = writer.sink(), stage_cache(cfg, store, info)
     try:
-        outcome = run_experiment(exp, _Described(sink, info["id"]))
+        outcome = run_experiment(exp, _Described(sink, info["id"]), cache=cache)
     except BaseException:                   # no partial table left behind (run.json says what happened)
         sink.abort()
         raise
     outcome.timings |= timings
+    if cache is not None:               # where each reused stage came from; every stage's key
+        info.update(stages_reused=cache.reused, stage_keys=cache.keys)
     with timed(outcome.timings, "streamed_tables"):
         streamed = sink.close()
     def index(complete: dict) -> None:
@@ -173,6 +176,14 @@ def execute(cfg: DictConfig, run_dir: Path) -> dict:
         except WriteError as err:
             log.warning("run %s not indexed for reuse: %s", complete["id"], err)
     return record(writer, outcome, exp, info, streamed, index)
+
+
+def stage_cache(cfg: DictConfig, store: RunStore, info: dict):
+    """The run store's stage cache as this run uses it (config key `cache`, default true), or None."""
+    if not cfg.get("cache", False):
+        return None
+    from .store.stages import StageCache
+    return StageCache(store.root, info["code"]["version"], info["id"])
 
 
 def reusable_run(cfg: DictConfig, store: RunStore, info: dict) -> Path | None:

@@ -120,6 +120,9 @@ def summary_text(info: dict, run_dir: Path) -> str:
                      f"(10-90% {fmt(o['final_rate_plant_q10'])}-{fmt(o['final_rate_plant_q90'])}), "
                      f"{100 * o['final_stable_fraction']:.0f}% stable, {o['adoptions_per_path']:.1f} adoptions per "
                      f"path; offline gain {fmt(o['offline_rate_plant'])}, optimum {fmt(o['optimal_rate_plant'])}")
+    reused = stages_reused_text(info)
+    if reused:
+        lines.append(f"  {reused}")
     lines.append(f"  run directory: {run_dir}")
     if (run_dir / layout.RECORDING).exists():
         lines.append(f"  view: rerun {run_dir / layout.RECORDING}")
@@ -144,3 +147,18 @@ def gap(s: dict) -> list[str]:
                 f"loop's rate over the same window is {s.get('closed_loop_exact_rate', float('nan')):.4f} (a transient "
                 f"of the window, or too few paths to see the growth)"]
     return []
+
+
+def stages_reused_text(info: dict) -> str:
+    """What the run loaded from the stage cache instead of computing it, and from which runs (run.json
+    `stages_reused`), in one line; "" when nothing."""
+    reused = info.get("stages_reused") or {}
+    if not reused:
+        return ""
+    designs = [label for label, entry in reused.items() if entry.get("stage") == "synthesis"]
+    parts = [label.replace("_", " ") for label in reused if label not in designs]
+    if designs:
+        parts.append(f"{len(designs)} design{'s' if len(designs) > 1 else ''}")
+    runs = sorted({entry.get("run") for entry in reused.values()})
+    origin = f"run {runs[0]}" if len(runs) == 1 else f"{len(runs)} runs"
+    return f"reused from the stage cache ({origin}): {', '.join(parts)}"

@@ -19,6 +19,7 @@ from omegaconf import OmegaConf  # noqa: E402
 
 from ..errors import DamagedRecord, LineageError, warnings_as_lines  # noqa: E402
 from ..experiment.store import Run, RunStore, files, layout, provenance  # noqa: E402
+from ..experiment.store.run import run_damage, warn  # noqa: E402
 from ..numerics.analysis import rms_band  # noqa: E402
 
 COLUMN_WIDTH, PAGE_WIDTH = 3.5, 7.16        # IEEE column and page widths, inches
@@ -80,13 +81,21 @@ def load_runs(root: Path, sweep: str | None = None) -> list[Run]:
     """Complete runs under root (optionally of one sweep name, and then only the runs of the shipped
     sweep's experiment, `of_shipped_sweep`), the latest sweep of that name only. A damaged run
     (run.json or a table unreadable, missing or modified) is named in one warning line and left out."""
-    runs = sorted(RunStore(root).intact(), key=lambda run: str(run.dir))
+    runs = sorted(RunStore(root).runs(), key=lambda run: str(run.dir))
     runs = [r for r in runs if r.info.get("status") == "complete" and r.info.get("tables")]
     if sweep is not None:
         runs = [r for r in runs if (r.info.get("sweep") or {}).get("name") == sweep and of_shipped_sweep(r, sweep)]
-        if runs:
-            latest = max(r.info["sweep"]["dir"] for r in runs)
-            runs = [r for r in runs if r.info["sweep"]["dir"] == latest]
+    intact = []                     # the files of the selected runs only (each file hashed once per process)
+    for r in runs:
+        problems = run_damage(r.dir, r.info)
+        if problems:
+            warn(DamagedRecord(r.dir, "; ".join(problems)))
+        else:
+            intact.append(r)
+    runs = intact
+    if sweep is not None and runs:
+        latest = max(r.info["sweep"]["dir"] for r in runs)
+        runs = [r for r in runs if r.info["sweep"]["dir"] == latest]
     return runs
 
 

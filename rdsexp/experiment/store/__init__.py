@@ -12,6 +12,7 @@ folder name is in `layout`; the command line, sweeps, recordings and the report 
     writer      writing one run directory (`RunWriter`)
     table       the runs table (catalog, search, sweep summaries)
     index       the reuse index
+    stages      the stage cache (identification, designs, open loop by the hash of their inputs)
     check       checking a store, quarantine
     runstore    `RunStore`, the one entry to all of the above
 
@@ -25,7 +26,8 @@ from .layout import DEFAULT_ROOT, INDEX, QUARANTINE
 _NAMES = {"RunStore": "runstore", "Run": "run", "RunWriter": "writer", "Finding": "check", "check": "check",
           "quarantine": "check", "find_reusable": "index", "index_add": "index", "index_key": "index",
           "rebuild_index": "index", "read_run": "run", "read_runs": "run", "read_table": "run",
-          "run_damage": "run", "intact_runs": "run", "runs_table": "table", "write_sweep_summary": "table"}
+          "run_damage": "run", "intact_runs": "run", "runs_table": "table", "write_sweep_summary": "table",
+          "StageCache": "stages"}
 
 
 def __getattr__(name: str):

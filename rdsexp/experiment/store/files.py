@@ -105,6 +105,20 @@ def file_hash(path: Path) -> str:
     return h.hexdigest()
 
 
+_FILE_HASHES: dict[tuple, str] = {}
+
+
+def stored_file_hash(path: Path) -> str:
+    """`file_hash` of a stored (read-only) file, computed once per process while the file is unchanged:
+    keyed by its inode, size, modification and change times (an edit, a chmod or a replacement changes
+    the change time, which no user can set back). What a report reading the same runs many times uses."""
+    stat = os.stat(path)
+    key = (str(path), stat.st_ino, stat.st_size, stat.st_mtime_ns, stat.st_ctime_ns)
+    if key not in _FILE_HASHES:
+        _FILE_HASHES[key] = file_hash(path)
+    return _FILE_HASHES[key]
+
+
 def table_hash(table: pd.DataFrame) -> str:
     """sha256 over column names, dtypes and values: equal for equal tables, whatever the file bytes."""
     return _hash_columns((name, table[name]) for name in table.columns)

@@ -5,6 +5,8 @@
         sweeps/<stamp>_<uid>/     one sweep: multirun.yaml, summary.parquet (+ .csv), summary.rrd
             <job>/                one job, a run directory like any other
         index/                    the reuse index, one small JSON file per config hash and code version
+        stages/<stage>/<key>/     the stage cache: one stage's result by the sha256 of what it is computed
+                                  from (`stages`)
         quarantine/               damaged records moved aside by `rdsexp-runs check --quarantine`
 
 A run directory holds RUN_JSON, Hydra's .hydra/ (HYDRA_CONFIG), one parquet file per table
@@ -19,7 +21,7 @@ import uuid
 from pathlib import Path
 
 DEFAULT_ROOT = "outputs"            # conf/config.yaml's `store` (a test checks they agree)
-RUNS, SWEEPS, INDEX, QUARANTINE = "runs", "sweeps", "index", "quarantine"
+RUNS, SWEEPS, INDEX, QUARANTINE, STAGES = "runs", "sweeps", "index", "quarantine", "stages"
 
 RUN_JSON = "run.json"
 HYDRA_DIR = ".hydra"
@@ -39,6 +41,11 @@ INDEX_BUILT = ".built"               # in index/: the index was built from a ful
 def table_file(name: str) -> str:
     """The file of a run's table `name`."""
     return f"{name}.parquet"
+
+
+def stage_entry(root: Path, stage: str, key: str) -> Path:
+    """The stage cache's entry of `stage` under `key` in the store `root`."""
+    return Path(root) / STAGES / stage / key
 
 
 def is_run(directory: Path) -> bool:

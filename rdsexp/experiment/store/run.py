@@ -20,7 +20,7 @@ import pandas as pd
 
 from ...errors import DamagedRecord, RecordWarning, one_line
 from . import files
-from .layout import HYDRA_CONFIG, INDEX, QUARANTINE, RUN_JSON, table_file
+from .layout import HYDRA_CONFIG, INDEX, QUARANTINE, RUN_JSON, STAGES, table_file
 
 REQUIRED = ("id", "status")          # what every run.json of every rdsexp version has
 # fields readers use, with the type they expect (older records may lack them, not change their type)
@@ -80,7 +80,7 @@ def run_damage(run_dir: Path, info: dict) -> list[str]:
         path = run_dir / meta["file"]
         try:
             if meta.get("file_sha256"):
-                if files.file_hash(path) == meta["file_sha256"]:
+                if files.stored_file_hash(path) == meta["file_sha256"]:
                     continue
                 if path.suffix == ".parquet":
                     pd.read_parquet(path)           # unreadable (truncated), or readable but modified?
@@ -119,12 +119,12 @@ def read_table(run_dir: Path, info: dict, name: str, check_hash: bool = True) ->
 
 
 def run_json_paths(root: Path) -> list[Path]:
-    """Every run.json under root, except under the store's quarantine/ and index/."""
+    """Every run.json under root, except under the store's quarantine/, index/ and stages/."""
     root = Path(root)
     found = []
     for top, dirs, names in os.walk(root):
         if Path(top) == root:
-            dirs[:] = [d for d in dirs if d not in (QUARANTINE, INDEX)]
+            dirs[:] = [d for d in dirs if d not in (QUARANTINE, INDEX, STAGES)]
         dirs.sort()
         if RUN_JSON in names or RUN_JSON in dirs:
             found.append(Path(top) / RUN_JSON)
