@@ -34,7 +34,16 @@ import functools
 
 import numpy as np
 
-from ..analysis import DENSE_MAX_N, DENSE_SOLVE_MAX_N, DominantTerm, certified_stein, ms_rate, stein_solve, weight
+from ..analysis import (
+    DENSE_MAX_N,
+    DENSE_SOLVE_MAX_N,
+    DominantTerm,
+    certified_stein,
+    ms_rate,
+    perron,
+    stein_solve,
+    weight,
+)
 from ..systems import AffineRandomSystem
 from .base import SynthesisResult
 from .riccati import policy_iteration
@@ -245,7 +254,7 @@ def _no_stabilizing_start(system, dist, start) -> SynthesisResult:
 def _result(system, dist, Abar, Bbar, P, Q, R, status, iterations) -> SynthesisResult:
     """The gain of the last P, its exact rate (`solver_failed` if >= 1) and the Riccati residual at P."""
     residual, F = riccati_residual(Abar, Bbar, P, Q, R)
-    lam = _rate(system, dist, Abar + Bbar @ F, F)
+    lam = _rate(Abar + Bbar @ F)
     if lam >= 1:                                          # the gain of the last P must itself be stabilizing
         status = "solver_failed"
     return SynthesisResult("ms_lqr", F, lam, status, len(Abar),
@@ -253,14 +262,19 @@ def _result(system, dist, Abar, Bbar, P, Q, R, status, iterations) -> SynthesisR
                                  "riccati_residual": float(np.abs(residual).max() / np.abs(P).max())})
 
 
-def _rate(system, dist, Acl, F) -> float:
-    """The exact mean-square rate of F: `analysis.ms_rate`, except for SYM_RATE_MIN_N <= n <= DENSE_MAX_N
-    the largest eigenvalue modulus of T* on symmetric matrices (`_sym_operator`), the same Perron root from
-    the dense eigenvalues of an N x N matrix, N = n (n + 1) / 2, instead of n^2 x n^2 (a sixth of the work
-    at n = 10)."""
-    n = system.n
-    if not SYM_RATE_MIN_N <= n <= DENSE_MAX_N or not np.all(np.isfinite(Acl)):
-        return ms_rate(system, dist, F)
+def _rate(Acl: np.ndarray) -> float:
+    """The exact mean-square rate of the loop Acl = Abar + Bbar F: `analysis.ms_rate` (on the moment factors
+    at hand, bit for bit), except for SYM_RATE_MIN_N <= n <= DENSE_MAX_N the largest eigenvalue modulus of
+    T* on symmetric matrices (`_sym_operator`): the same Perron root from the dense eigenvalues of an N x N
+    matrix, N = n (n + 1) / 2, instead of n^2 x n^2 (a sixth of the work at n = 10)."""
+    n = Acl.shape[1]
+    if not np.all(np.isfinite(Acl)):
+        return float("inf")
+    if n > DENSE_MAX_N:
+        return float(np.sqrt(perron(Acl)[0]))
+    if n < SYM_RATE_MIN_N:
+        L = np.einsum("rij,rkl->ikjl", Acl, Acl).reshape(n * n, n * n)
+        return float(np.sqrt(np.abs(np.linalg.eigvals(L)).max()))
     return float(np.sqrt(np.abs(np.linalg.eigvals(_sym_operator(Acl))).max()))
 
 
