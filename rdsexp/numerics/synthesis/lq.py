@@ -24,9 +24,10 @@ Newton's quadratic convergence at a fraction of the GMRES steps.
 The returned gain is the one of the last P; its rate is exact (`_rate`: `analysis.ms_rate`, or the same
 Perron root from the dense eigenvalues on symmetric matrices for SYM_RATE_MIN_N <= n <= DENSE_MAX_N) and
 info["riccati_residual"] is the residual at that P. Measured (experiments/benchmark_scale_designs.py,
-README): the rate of the result is about as costly as the whole Riccati solve, and at n = 10 ... 100
-ms_lqr takes 1.5 to 3 times value iteration's time at its usual stopping rule (relative change 1e-6),
-with a residual 1e8 times smaller.
+README; median CPU s, one thread): 0.0018 s at n = 10, 0.012 at 20, 0.023 at 50, 0.047 at 100, 0.42 at
+200, residuals <= 1e-13; value iteration at its usual stopping rule (relative change 1e-6) takes 0.26 to
+0.6 of that up to n = 100 (1.15 times it at n = 200) with residuals 2e7 times larger. The exact rate of
+the result costs about as much as the Riccati solve (0.6 of 1.8 ms at n = 10).
 """
 from __future__ import annotations
 
