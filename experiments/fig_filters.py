@@ -149,13 +149,16 @@ def draw(stats: pd.DataFrame, ref: float, plant: str):
         ax.set_xlabel("ensemble size M")
         ax.set_title(title)
     axes[1].set_ylim(-0.02, 1.02)
-    if (stats["xi_crps"] > 0).any():                      # from the true spread up to a model far off
+    crps = stats["xi_crps"].to_numpy(float)
+    crps = crps[np.isfinite(crps) & (crps > 0)]
+    if len(crps) and crps.max() > 10 * crps.min():         # from the true spread up to a model far off
         axes[3].set_yscale("log")
     rates = stats["rate"].to_numpy(float)
     if np.isfinite(rates).any():        # the means in view; t-intervals over a few seeds may leave the frame
         lo, hi = np.nanmin(np.append(rates, ref)), np.nanmax(np.append(rates, ref))
         axes[0].set_ylim(lo - 0.1, hi + 0.1)
-    axes[0].legend(frameon=False, fontsize=5.5)
+    handles, labels = axes[0].get_legend_handles_labels()       # below the panels, clear of every curve
+    fig.legend(handles, labels, frameon=False, fontsize=6, loc="outside lower center", ncol=4)
     fig.suptitle(f"plant {plant}", fontsize=8)
     return fig
 
