@@ -74,6 +74,20 @@ def timed(timings: dict, stage: str):
     log.info("%s done in %.3f s", stage, timings[stage])
 
 
+@contextmanager
+def console_to_tqdm():
+    """Console log records through tqdm.write (they do not break a progress bar), at the console
+    handler's own level: tqdm's handler takes every level, which would put INFO lines on the terminal."""
+    console = [h for h in logging.root.handlers
+               if isinstance(h, logging.StreamHandler) and not isinstance(h, logging.FileHandler)]
+    before = list(logging.root.handlers)
+    with logging_redirect_tqdm():
+        for handler in logging.root.handlers:
+            if handler not in before and console:
+                handler.setLevel(console[0].level)
+        yield
+
+
 def _progress(desc: str, total: int):
     """A tqdm bar (silent when not on a terminal) and its per-step callback."""
     bar = tqdm(total=total, desc=desc, disable=None, leave=False, file=sys.stderr)
@@ -165,7 +179,7 @@ def run_experiment(exp: Experiment, sink=None, cache=None) -> Outcome:
             with timed(timings, name):
                 bar, _ = _progress(name.replace("_", " "), exp.loop.paths * exp.loop.disturbance.shape[0])
                 parts = []
-                with bar, logging_redirect_tqdm():
+                with bar, console_to_tqdm():
                     chunks, writer = loop_chunks(exp, name, dict(settings, F=F, seed=root(name)), observer, keep,
                                                  bar.update, cache if name in CACHED_LOOPS else None)
                     try:
@@ -336,7 +350,7 @@ def online_loop(exp: Experiment, seed, keep: bool, sim: dict, sink, sample: list
     bar, _ = _progress("online", exp.loop.paths * (K + 1))
     settings = dict(F=F0, d=exp.loop.disturbance, seed=seed, filter_sees_d=exp.loop.filter_sees_disturbance, **sim)
     make = partial(OnlineController, exp.model, exp.controller.online, F0, horizon=K)
-    with bar, logging_redirect_tqdm():
+    with bar, console_to_tqdm():
         for first, tr, controller in run_chunks(exp, settings, keep_members=keep, workers=exp.loop.workers,
                                                 progress=bar.update, controller=make):
             count = tr.q.shape[1]

@@ -166,3 +166,15 @@ def test_two_writers_of_one_key_leave_one_entry(tmp_path):
     assert [e.name for e in entries] == [key]
     parts = list(StageCache(tmp_path, "v", "run-c").load_parts("open_loop", key))
     assert [p["first"] for p in parts] == [0, 4] and np.array_equal(parts[1]["values"], np.arange(2.0))
+
+
+def test_a_reused_stage_is_said_in_the_summary_and_the_log_not_on_the_terminal(tmp_path):
+    # the open loop is loaded under its progress bar, where console logging goes through tqdm: the
+    # console handler's level (warnings) still holds there
+    args = (*SMALL, "tracking.recording=false")
+    rdsexp(*args, cwd=tmp_path)
+    proc = rdsexp(*args, cwd=tmp_path)
+    assert "reused from the stage cache" in proc.stdout and "open loop" in proc.stdout
+    assert "INFO" not in proc.stderr, proc.stderr
+    (run,) = sorted((tmp_path / "outputs" / "runs").iterdir())[-1:]
+    assert "open_loop: reused from run" in (run / "rdsexp.log").read_text()
