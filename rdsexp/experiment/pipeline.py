@@ -823,10 +823,10 @@ def exact_table(exp: Experiment, chosen: SynthesisResult | None) -> pd.DataFrame
     gains = ([("closed_loop", chosen.F)] if chosen is not None and chosen.F is not None else []) + \
         [("open_loop", np.zeros((exp.plant.m, exp.plant.n)))]
     for name, F in gains:
-        with np.errstate(all="ignore"):
+        with np.errstate(all="ignore"):     # a growing loop overflows: its curve is inf or NaN there
             _, second = second_moments(exp.plant, None, F, exp.q0, exp.loop.disturbance)
-        frames.append(pd.DataFrame({"experiment": name, "k": np.arange(second.shape[0]),
-                                    "rms": np.sqrt(np.trace(second, axis1=1, axis2=2))}))
+            rms = np.sqrt(np.trace(second, axis1=1, axis2=2))
+        frames.append(pd.DataFrame({"experiment": name, "k": np.arange(second.shape[0]), "rms": rms}))
     return pd.concat(frames, ignore_index=True)
 
 
