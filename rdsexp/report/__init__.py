@@ -50,13 +50,15 @@ SIZES = ("seed", "store", "reuse", "enkf.ensemble_size", "closed_loop.paths", "c
          "identification.K1", "tracking")
 
 
-def swept_keys(sweep: str) -> set[str] | None:
-    """The keys the shipped sweep config rdsexp.conf/sweep/NAME.yaml varies; None if none is shipped."""
+@functools.cache
+def swept_keys(sweep: str) -> frozenset[str] | None:
+    """The keys the shipped sweep config rdsexp.conf/sweep/NAME.yaml varies; None if none is shipped.
+    Read once per process (a report asks it for every run)."""
     from importlib.resources import files as package_files
     path = package_files("rdsexp.conf") / "sweep" / f"{sweep}.yaml"
     if not path.is_file():
         return None
-    return set(OmegaConf.select(OmegaConf.create(path.read_text()), "hydra.sweeper.params") or {})
+    return frozenset(OmegaConf.select(OmegaConf.create(path.read_text()), "hydra.sweeper.params") or {})
 
 
 def of_shipped_sweep(run: Run, sweep: str) -> bool:

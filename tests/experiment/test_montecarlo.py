@@ -115,3 +115,19 @@ def test_cli_streams_tables_and_verify_passes(tmp_path):
     proc = rdsexp("verify", str(run), cwd=tmp_path, module="rdsexp.runs")
     assert "verify: identical" in proc.stdout
     np.testing.assert_equal(pd.read_parquet(run / "trajectories.parquet")["path"].unique(), np.arange(5))
+
+
+def test_a_table_checked_once_is_checked_again_when_its_file_changes(tmp_path):
+    # read_table remembers the files it verified (by size and mtime): a file rewritten later is checked again
+    import os
+
+    from rdsexp.errors import DamagedRecord
+    from rdsexp.experiment.store.run import read_table
+    path = tmp_path / "metrics.parquet"
+    info = {"tables": {"metrics": files.store_table(path, pd.DataFrame({"rate": [0.5, 0.7]}))}}
+    read_table(tmp_path, info, "metrics")
+    os.chmod(path, 0o644)
+    pd.DataFrame({"rate": [0.5, 0.8]}).to_parquet(path, index=False)
+    os.utime(path, ns=(path.stat().st_atime_ns, path.stat().st_mtime_ns + 1_000_000))
+    with pytest.raises(DamagedRecord, match="modified after the run"):
+        read_table(tmp_path, info, "metrics")

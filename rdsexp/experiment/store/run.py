@@ -110,12 +110,22 @@ def read_table(run_dir: Path, info: dict, name: str, check_hash: bool = True) ->
         raise DamagedRecord(path, "missing") from None
     except (OSError, pa.ArrowException, ValueError) as err:
         raise DamagedRecord(path, f"unreadable ({one_line(err)})") from None
-    if check_hash and meta.get("sha256") and files.table_hash(table) != meta["sha256"] and not (
+    if not check_hash or not meta.get("sha256"):
+        return table
+    stat = path.stat()
+    seen = (str(path.resolve()), stat.st_size, stat.st_mtime_ns, meta["sha256"])
+    if seen in _VERIFIED:                  # this file, unchanged since, was checked in this process
+        return table
+    if files.table_hash(table) != meta["sha256"] and not (
             # a record written before NaNs were hashed as one can disagree on the content of an intact
             # file: the file's own hash decides
             meta.get("file_sha256") and files.file_hash(path) == meta["file_sha256"]):
         raise DamagedRecord(path, "modified after the run (does not match the hash in run.json)")
+    _VERIFIED.add(seen)
     return table
+
+
+_VERIFIED: set[tuple] = set()       # (file, size, mtime, content hash) of the tables read_table checked
 
 
 def run_json_paths(root: Path) -> list[Path]:
@@ -161,6 +171,7 @@ def intact_runs(root: Path) -> list[tuple[Path, dict]]:
     return runs
 
 
+_FULL_CONFIGS: dict[tuple, object] = {}    # Run.config by (path, size, mtime)
 MATRIX = "<not a scalar>"           # stands for a nested list while a config is resolved
 _CONFIGS: dict[tuple, dict] = {}    # scalar_config by (path, size, mtime): a stored config never changes
 
@@ -235,9 +246,17 @@ class Run:
 
     @cached_property
     def config(self):
-        """The composed config (.hydra/config.yaml) as an OmegaConf node."""
+        """The composed config (.hydra/config.yaml) as a read-only OmegaConf node, parsed once per
+        process and file (a report's scripts each load the runs again)."""
         from omegaconf import OmegaConf
-        return OmegaConf.load(self.dir / HYDRA_CONFIG)
+        path = self.dir / HYDRA_CONFIG
+        stat = path.stat()
+        key = (str(path.resolve()), stat.st_size, stat.st_mtime_ns)
+        if key not in _FULL_CONFIGS:
+            cfg = OmegaConf.load(path)
+            OmegaConf.set_readonly(cfg, True)
+            _FULL_CONFIGS[key] = cfg
+        return _FULL_CONFIGS[key]
 
     @property
     def id(self) -> str:
