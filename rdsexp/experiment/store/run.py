@@ -113,7 +113,7 @@ def read_table(run_dir: Path, info: dict, name: str, check_hash: bool = True) ->
     if not check_hash or not meta.get("sha256"):
         return table
     stat = path.stat()
-    seen = (str(path.resolve()), stat.st_size, stat.st_mtime_ns, meta["sha256"])
+    seen = (str(path.resolve()), stat.st_size, stat.st_mtime_ns, meta["sha256"], meta.get("file_sha256"))
     if seen in _VERIFIED:                  # this file, unchanged since, was checked in this process
         return table
     if files.table_hash(table) != meta["sha256"] and not (
@@ -125,7 +125,7 @@ def read_table(run_dir: Path, info: dict, name: str, check_hash: bool = True) ->
     return table
 
 
-_VERIFIED: set[tuple] = set()       # (file, size, mtime, content hash) of the tables read_table checked
+_VERIFIED: set[tuple] = set()       # (file, size, mtime, the hashes it was checked against) of read_table's tables
 
 
 def run_json_paths(root: Path) -> list[Path]:
