@@ -108,12 +108,18 @@ def file_hash(path: Path) -> str:
 _FILE_HASHES: dict[tuple, str] = {}
 
 
-def stored_file_hash(path: Path) -> str:
-    """`file_hash` of a stored (read-only) file, computed once per process while the file is unchanged:
-    keyed by its inode, size, modification and change times (an edit, a chmod or a replacement changes
-    the change time, which no user can set back). What a report reading the same runs many times uses."""
+def unchanged_key(path: Path) -> tuple:
+    """What identifies a file while it is unchanged: its path, inode, size, modification and change
+    times (an edit, a chmod or a replacement changes the change time, which no user can set back).
+    The key of the checks a process does once per stored file."""
     stat = os.stat(path)
-    key = (str(path), stat.st_ino, stat.st_size, stat.st_mtime_ns, stat.st_ctime_ns)
+    return str(path), stat.st_ino, stat.st_size, stat.st_mtime_ns, stat.st_ctime_ns
+
+
+def stored_file_hash(path: Path) -> str:
+    """`file_hash` of a stored (read-only) file, computed once per process while the file is unchanged
+    (`unchanged_key`). What a report reading the same runs many times uses."""
+    key = unchanged_key(path)
     if key not in _FILE_HASHES:
         _FILE_HASHES[key] = file_hash(path)
     return _FILE_HASHES[key]

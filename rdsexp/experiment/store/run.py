@@ -112,8 +112,7 @@ def read_table(run_dir: Path, info: dict, name: str, check_hash: bool = True) ->
         raise DamagedRecord(path, f"unreadable ({one_line(err)})") from None
     if not check_hash or not meta.get("sha256"):
         return table
-    stat = path.stat()
-    seen = (str(path.resolve()), stat.st_size, stat.st_mtime_ns, meta["sha256"], meta.get("file_sha256"))
+    seen = (*files.unchanged_key(path), meta["sha256"], meta.get("file_sha256"))
     if seen in _VERIFIED:                  # this file, unchanged since, was checked in this process
         return table
     if files.table_hash(table) != meta["sha256"] and not (
@@ -125,7 +124,7 @@ def read_table(run_dir: Path, info: dict, name: str, check_hash: bool = True) ->
     return table
 
 
-_VERIFIED: set[tuple] = set()       # (file, size, mtime, the hashes it was checked against) of read_table's tables
+_VERIFIED: set[tuple] = set()       # (files.unchanged_key, the hashes it was checked against) of read_table's tables
 
 
 def run_json_paths(root: Path) -> list[Path]:
