@@ -25,6 +25,7 @@ from tqdm import tqdm
 from tqdm.contrib.logging import logging_redirect_tqdm
 
 from ..errors import ConfigError, StageError, WriteError, one_line
+from ..numerics import observer_loop
 from ..numerics.analysis import empirical_rate_sq, exact_costs, ms_rate, rms_band, second_moments
 from ..numerics.distributions import expected_crps
 from ..numerics.enkf import truth_map
@@ -257,12 +258,15 @@ def identify_and_model(exp: Experiment, timings: dict, summary: dict, seed, sim:
             exp.plant, enkf, F=F, d=exp.identification.input, paths=1, seed=seed,
             filter_sees_d=True, keep_members=keep, keep_xi_cov=total, **sim)
         ident = identify(F_id)
-        if info.get("used") == "open_loop" and ident.failure[0] == "diverged":
+        if info.get("used") == "open_loop" and ident.failure[0] in ("diverged", "filter_diverged"):
             # auto chose the open loop on the guess, which knows no spread of xi (the spread only raises
-            # the mean-square rate): the plant itself diverged, so identify again under nominal feedback
+            # the mean-square rate): the plant grew until it, or first the EnKF's estimate of it, diverged
+            # (random plants: 3 of 200 open-loop mean-square unstable plants stable at their mean),
+            # so identify again under nominal feedback
             F_id, retry = identification_feedback(exp, force_nominal=True)
             if F_id is not None:
-                info = retry | {"open_loop_diverged_at": int(ident.failed_at[0])}
+                info = retry | {"open_loop_diverged_at": int(ident.failed_at[0]),
+                                "open_loop_failure": str(ident.failure[0])}
                 ident = identify(F_id)
         summary["identification_feedback"] = info
     with timed(timings, "modeling"):
@@ -872,8 +876,32 @@ def _summary(exp: Experiment, dist, chosen, tables: dict) -> dict:
             s[f"{row.experiment}_failed"] = {"fraction": row.failed_fraction, "first_k": int(failed.min()),
                                              "median_k": float(failed.median()),
                                              "reasons": {str(r): int(c) for r, c in reasons.value_counts().items()}}
+    through_y = loop_through_outputs(exp, chosen, s)
+    if through_y:
+        s["closed_loop_through_y"] = through_y
     if exp.reference is not None:
         s["reference"] = exp.reference
     return s
+
+
+OBSERVER_SEARCH_MAX_N = 20    # the search for a linear observer runs on 2n states: up to this n (n = 6: 0.05-4 s)
+
+
+def loop_through_outputs(exp: Experiment, chosen, s: dict) -> dict | None:
+    """When the closed loop is not found stable although its gain stabilizes the true plant with the true
+    state: the exact rate of the loop through y with the best linear observer found (`best_observer` on the
+    true plant, the loop's estimate), which tells a plant whose outputs cannot carry this gain's loop (>= 1)
+    from an EnKF that falls short of a linear observer (< 1). None otherwise."""
+    rate, verdict = s.get("rate_plant"), s.get("closed_loop_verdict")
+    if verdict in (None, "stable") or rate is None or not rate < 1 or exp.plant.n > OBSERVER_SEARCH_MAX_N:
+        return None
+    why = observer_loop.applies(exp.plant)
+    if why:
+        return {"rate": None, "not_applicable": why}
+    try:
+        found = observer_loop.best_observer(exp.plant, None, chosen.F, estimate=exp.loop.estimate)
+    except (ValueError, np.linalg.LinAlgError) as err:
+        return {"rate": None, "not_applicable": str(err)}
+    return {"rate": found.rate, "kalman_rate": found.kalman_rate, "estimate": exp.loop.estimate}
 
 

@@ -6,7 +6,7 @@ from pathlib import Path
 import numpy as np
 
 from ..numerics.synthesis import status_meaning
-from ..numerics.verdict import ABOVE_FLOOR, AT_FLOOR
+from ..numerics.verdict import ABOVE_FLOOR, AT_FLOOR, FAILURES
 from .store import layout
 
 
@@ -33,7 +33,8 @@ def summary_text(info: dict, run_dir: Path) -> str:
         if "open_loop_rate_at_guess" in ident:
             line += f" (open-loop rate at xi_guess {fmt(ident['open_loop_rate_at_guess'])})"
         if "open_loop_diverged_at" in ident:
-            line += f"; the open-loop plant diverged at k = {ident['open_loop_diverged_at']}, identified again"
+            why = FAILURES.get(ident.get("open_loop_failure", "diverged"), "it diverged")
+            line += f"; in open loop {why} at k = {ident['open_loop_diverged_at']}, identified again"
         if ident.get("used", "").startswith("nominal"):
             line += f", gain {ident.get('method')} with rate {fmt(ident.get('rate_plant'))} on the true plant"
             if unstable(ident.get("rate_plant")):
@@ -139,9 +140,18 @@ def gap(s: dict) -> list[str]:
     at_floor = "noise floor" in s.get("closed_loop_verdict_reason", "")       # the reason explains it itself
     if rate < 1 and (verdict in ("unstable", "failed") or verdict == "undetermined" and not at_floor):
         x_hat = {"predicted": "x_{k|k-1}", "filtered": "x_{k|k}"}.get(est.get("estimate"), "x_{k|k-1}")
-        return [f"    the gain stabilizes the plant with the true state (exact rate {rate:.4f}), this loop feeds back "
+        line = (f"    the gain stabilizes the plant with the true state (exact rate {rate:.4f}), this loop feeds back "
                 f"the EnKF's estimate {x_hat}: its error RMS {est.get('x_error_rms', float('nan')):.3g} (the state's "
-                f"RMS at the window's end {est.get('rms_k_to', float('nan')):.3g}); the gap is the observer's"]
+                f"RMS at the window's end {est.get('rms_k_to', float('nan')):.3g})")
+        y = s.get("closed_loop_through_y") or {}
+        if y.get("rate") is None:
+            return [line + "; the gap is the observer's"]
+        if y["rate"] >= 1:
+            return [line + "; the gap is the outputs': with the best linear observer of y found (on the plant's "
+                    f"mean) this gain's loop has exact rate {y['rate']:.4f} >= 1, y does not carry enough of the "
+                    "state for it"]
+        return [line + f"; the gap is the EnKF's: a linear observer of y (on the plant's mean) gives this gain's loop "
+                f"exact rate {y['rate']:.4f} < 1"]
     if rate >= 1 and verdict == "stable":
         return [f"    the paths decay over this window although the gain's exact rate is {rate:.4f} >= 1: the ideal "
                 f"loop's rate over the same window is {s.get('closed_loop_exact_rate', float('nan')):.4f} (a transient "

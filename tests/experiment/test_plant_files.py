@@ -236,3 +236,44 @@ def test_plant_file_with_inline_model(tmp_path):
     (run,) = (tmp_path / "outputs" / "runs").iterdir()
     s = json.loads((run / "run.json").read_text())["summary"]
     assert s["model"] == "inline in the plant file" and len(s["xi_mean"]) == 2
+
+
+def test_a_loop_the_outputs_cannot_carry_is_explained_by_its_exact_rate(tmp_path):
+    # x2 doubles and y sees x1 only: the gain stabilizes the plant with the true state (rate 0.51), but no
+    # observer of y can estimate x2, so the loop through y has rate 2 whatever L: the summary says so
+    conf = user_dir(tmp_path, "blind", {"A": [[[0.5, 0.0], [0.0, 2.0]], [[0.1, 0.0], [0.0, 0.0]]], "B": [[[0.0], [1.0]]],
+                                        "C": [[[1.0, 0.0]]], "xi": {"mean": [0.0], "cov": [[1.0]]},
+                                        "identification_feedback": "none"})
+    proc = rdsexp("--config-dir", conf, "plant=blind", "gain.source=fixed", "+gain.F=[[0.0,-1.9]]", *SMALL[:-1],
+                  cwd=tmp_path)
+    assert "Traceback" not in proc.stderr
+    (run,) = (tmp_path / "outputs" / "runs").iterdir()
+    s = json.loads((run / "run.json").read_text())["summary"]
+    assert s["rate_plant"] == pytest.approx(np.sqrt(0.26), rel=1e-12) and s["closed_loop_verdict"] != "stable"
+    assert s["closed_loop_verdict"] == "failed" and s["closed_loop_through_y"]["rate"] == pytest.approx(2.0, rel=1e-9)
+    assert "the gap is the outputs': with the best linear observer of y found" in proc.stdout
+
+
+# a random plant (experiments/random_plants.py --seed 1, plant 42): mean-square unstable in open loop (1.24) but
+# stable at the mean of xi (0.73), so `auto` identifies it in open loop, where the EnKF's estimate diverges first
+UNSTABLE_BUT_STABLE_AT_MEAN = {
+    "A": [[[-1.76531, -0.0583627], [0.121774, 0.237077]], [[-0.474025, 0.494553], [0.0421395, -0.143605]],
+          [[0.931346, -1.36022], [0.885178, -0.354614]], [[0.935744, -0.75468], [-1.11291, -0.553699]]],
+    "B": [[[-0.0449377, 0.791972], [-0.630707, 0.610557]], [[0, 0], [0, 0]], [[0, 0], [0, 0]],
+          [[-1.02235, 0.0], [0.0, 0.0]]],
+    "C": [[[0.928649, 0.370959]]], "xi": {"family": "bernoulli", "prob": [0.67869, 0.877016, 0.715101]}}
+
+
+def test_open_loop_identification_whose_estimate_diverges_is_run_again_under_feedback(tmp_path):
+    conf = user_dir(tmp_path, "grows", UNSTABLE_BUT_STABLE_AT_MEAN)
+    proc = rdsexp("--config-dir", conf, "plant=grows", "closed_loop.paths=2", "closed_loop.floor_paths=2",
+                  "closed_loop.open_loop=false", cwd=tmp_path)
+    assert "Traceback" not in proc.stderr
+    (run,) = (tmp_path / "outputs" / "runs").iterdir()
+    s = json.loads((run / "run.json").read_text())["summary"]
+    feedback = s["identification_feedback"]
+    assert feedback["open_loop_rate_at_guess"] < 1 and feedback["used"] == "nominal"
+    assert feedback["open_loop_failure"] == "filter_diverged" and feedback["open_loop_diverged_at"] > 0
+    assert f"in open loop the EnKF estimate diverged at k = {feedback['open_loop_diverged_at']}, identified again" \
+        in proc.stdout
+    assert s["modeling_status"] == "ok"

@@ -17,3 +17,13 @@ def test_no_gap_when_the_verdict_agrees_or_the_floor_explains_it():
     assert gap(summary("filtered", verdict="undetermined", reason="the window ends at the noise floor")) == []
     assert gap(summary("filtered", verdict="unstable", rate=1.2)) == []
     assert "exact rate is 1.2000 >= 1" in gap(summary("filtered", verdict="stable", rate=1.2))[0]
+
+
+def test_the_gap_says_whether_the_outputs_or_the_enkf_fall_short():
+    # the exact rate of the loop through y with the best linear observer found decides whose gap it is
+    s = summary("filtered")
+    assert gap(s)[0].endswith("the gap is the observer's")                   # not computed (e.g. random C)
+    s["closed_loop_through_y"] = {"rate": 1.0328, "kalman_rate": 1.05}
+    assert "the gap is the outputs'" in gap(s)[0] and "exact rate 1.0328 >= 1" in gap(s)[0]
+    s["closed_loop_through_y"] = {"rate": 0.9361, "kalman_rate": 0.94}
+    assert "the gap is the EnKF's" in gap(s)[0] and "exact rate 0.9361 < 1" in gap(s)[0]
