@@ -9,10 +9,13 @@ closed-loop Monte Carlo), then reads every run's record from the store and print
 - the run: completed (run status `complete`), modeled (modeling_status `ok`), the selected gain's
   exact rate on the true plant (rate_plant), the closed loop's verdict (stable / unstable /
   undetermined / failed; "-" where the record has none), its empirical rate and interval [low, high],
-  and the fraction of failed paths;
-- totals: completed, modeled, stable with no failed path, and the contradictions: loops whose verdict
-  is unstable / undetermined / failed although the selected gain is mean-square stabilizing on the
-  true plant (rate_plant < 1).
+  and the fraction of failed paths; y_rate: the exact rate of the same gain fed by the best linear
+  observer of y found on the true plant (`observer_loop.best_observer`; "-" when the outputs depend on
+  xi or u): a loop through the outputs with this gain can decay only if some observer makes it < 1;
+- totals: completed, modeled, stable with no failed path (over all plants, and over the plants whose
+  y_rate is below 1 or not computed), and the contradictions: loops whose verdict is unstable /
+  undetermined / failed although the selected gain is mean-square stabilizing on the true plant
+  (rate_plant < 1).
 
 The draw (plant i depends on the seed and i only: plant i is drawn from child i of one numpy
 Generator seeded by --seed): n in 2..6, m in 1..2, ny in 1..n, p in 1..3, the family cycling through
@@ -64,6 +67,7 @@ import yaml
 
 from rdsexp.numerics.analysis import ms_rate
 from rdsexp.numerics.distributions import from_spec
+from rdsexp.numerics.observer_loop import applies, best_observer
 from rdsexp.numerics.synthesis import synthesize
 from rdsexp.numerics.systems import AffineRandomSystem
 
@@ -460,9 +464,32 @@ def results_table(plants: list[Plant], outcomes: dict[str, Outcome]) -> pd.DataF
                      "optimal_rate": p.optimal_rate, "completed": rec["run_status"] == "complete",
                      "modeled": rec["modeling_status"] == "ok",
                      **rec, "wall_seconds": round(o.seconds, 1), "returncode": o.returncode,
-                     "run_dir": str(o.run_dir) if o.run_dir else None, "log": str(o.log), "note": o.note})
+                     "run_dir": str(o.run_dir) if o.run_dir else None, "log": str(o.log), "note": o.note,
+                     "y_rate": through_outputs(p, o.run_dir)})
         rows[-1]["why"] = _why(rows[-1])
     return pd.DataFrame(rows)
+
+
+def through_outputs(plant: Plant, run_dir: Path | None) -> float | None:
+    """The exact rate of the run's selected gain fed by the best linear observer of y found on the true
+    plant (`observer_loop.best_observer`, the run's estimate x_{k|k} or x_{k|k-1}): below 1, a loop through
+    the outputs with this gain can decay; None when there is no gain or the outputs depend on xi or u."""
+    system, _ = system_of(plant.content)
+    if run_dir is None or applies(system) or not (run_dir / "gains.parquet").exists():
+        return None
+    try:
+        gains = pd.read_parquet(run_dir / "gains.parquet")
+        selected = gains[gains["selected"]]
+        estimate = (json.loads((run_dir / "run.json").read_text()).get("summary") or {}).get("loop", {}).get(
+            "estimate", "filtered")
+    except Exception:                                    # a damaged record: no number, not a crash
+        return None
+    if not len(selected):
+        return None
+    F = np.array([[selected.iloc[0][f"F[{i},{j}]"] for j in range(plant.n)] for i in range(plant.m)])
+    if not np.all(np.isfinite(F)):
+        return None
+    return best_observer(system, None, F, estimate=estimate).rate
 
 
 def _why(row: dict) -> str:
@@ -499,6 +526,7 @@ def print_results(table: pd.DataFrame) -> None:
         "cl_rate": table["cl_rate"].map(_f),
         "interval": [interval(r) for r in table.itertuples()],
         "failed": table["failed_fraction"].map(lambda v: _f(v, ".2f")),
+        "y_rate": table["y_rate"].map(_f),
         "s": table["wall_seconds"].map(lambda v: f"{v:.0f}"),
     })
     print(shown.to_string(index=False))
@@ -525,6 +553,13 @@ def print_results(table: pd.DataFrame) -> None:
           f"({stable / max(N, 1):.0%}; {basis})")
     print(f"contradictions (closed loop not found stable although rate_plant < 1): {len(contradictions)}"
           + (f": {', '.join(contradictions['plant'])}" if len(contradictions) else ""))
+    # the loops through y that can decay: a linear observer of y was found that makes the gain's loop decay,
+    # or none could be computed (no gain; outputs that depend on xi or u)
+    can_decay = table["y_rate"].map(lambda v: _missing(v) or v < 1)
+    stable_there = int(((table["verdict"] == "stable") & no_failed & can_decay).sum())
+    print(f"among the plants whose gain's loop through y can decay (y_rate < 1, or not computed): stable with no "
+          f"failed path {stable_there}/{int(can_decay.sum())} ({stable_there / max(int(can_decay.sum()), 1):.0%}); "
+          f"y_rate >= 1: {', '.join(f'{r.plant} ({r.verdict})' for r in table[~can_decay].itertuples()) or 'none'}")
     unexplained = [r.plant for r in contradictions.itertuples() if not _explained(r.log)]
     print(f"  of which the run's summary does not say why: {len(unexplained)}"
           + (f": {', '.join(unexplained)}" if unexplained else ""))
@@ -535,7 +570,8 @@ def print_results(table: pd.DataFrame) -> None:
 
 # what a run's summary (its printed output, in the plant's log) says when the closed loop's verdict
 # and the gain's exact rate disagree: the observer's gap, or a window at (or without one above) the floor
-EXPLANATIONS = ("the gap is the observer's", "the window ends at the noise floor", "no window to measure")
+EXPLANATIONS = ("the gap is the observer's", "the gap is the outputs'", "the gap is the EnKF's",
+                "the window ends at the noise floor", "no window to measure")
 
 
 def _explained(log) -> bool:
