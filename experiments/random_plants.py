@@ -553,6 +553,9 @@ def print_results(table: pd.DataFrame) -> None:
           f"({stable / max(N, 1):.0%}; {basis})")
     print(f"contradictions (closed loop not found stable although rate_plant < 1): {len(contradictions)}"
           + (f": {', '.join(contradictions['plant'])}" if len(contradictions) else ""))
+    unexplained = [r.plant for r in contradictions.itertuples() if not _explained(r.log)]
+    print(f"  of which the run's summary does not say why: {len(unexplained)}"
+          + (f": {', '.join(unexplained)}" if unexplained else ""))
     # the loops through y that can decay: a linear observer of y was found that makes the gain's loop decay,
     # or none could be computed (no gain; outputs that depend on xi or u)
     can_decay = table["y_rate"].map(lambda v: _missing(v) or v < 1)
@@ -560,9 +563,6 @@ def print_results(table: pd.DataFrame) -> None:
     print(f"among the plants whose gain's loop through y can decay (y_rate < 1, or not computed): stable with no "
           f"failed path {stable_there}/{int(can_decay.sum())} ({stable_there / max(int(can_decay.sum()), 1):.0%}); "
           f"y_rate >= 1: {', '.join(f'{r.plant} ({r.verdict})' for r in table[~can_decay].itertuples()) or 'none'}")
-    unexplained = [r.plant for r in contradictions.itertuples() if not _explained(r.log)]
-    print(f"  of which the run's summary does not say why: {len(unexplained)}"
-          + (f": {', '.join(unexplained)}" if unexplained else ""))
     print(f"run wall time: median {table['wall_seconds'].median():.1f} s, max {table['wall_seconds'].max():.1f} s")
     versions = sorted(v for v in table["code_version"].dropna().unique())
     print(f"code version{'s (the runs differ!)' if len(versions) > 1 else ''}: {', '.join(versions) or '-'}")
