@@ -8,7 +8,7 @@ import sys
 import time
 
 import pytest
-from conftest import SMALL, rdsexp
+from conftest import SMALL, rdsexp, serial
 
 TINY = ["closed_loop.paths=2", "enkf.ensemble_size=10", "closed_loop.horizon=20", "tracking.level=off"]
 
@@ -89,7 +89,7 @@ def test_hydra_full_error_keeps_the_traceback_and_the_environment(tmp_path, monk
 
 def start(tmp_path, *args) -> subprocess.Popen:
     # SIGINT ignored by the parent (a test runner in the background): rdsexp must still stop on it
-    return subprocess.Popen([sys.executable, "-m", "rdsexp", *args], cwd=tmp_path, stdout=subprocess.DEVNULL,
+    return subprocess.Popen([sys.executable, "-m", "rdsexp", *serial(args)], cwd=tmp_path, stdout=subprocess.DEVNULL,
                             stderr=subprocess.PIPE, text=True,
                             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
 

@@ -19,14 +19,14 @@ from pathlib import Path
 
 import pandas as pd
 import pytest
-from conftest import REPO, SMALL, rdsexp
+from conftest import REPO, SERIAL, SMALL, rdsexp
 
 from rdsexp import report
 from rdsexp.errors import warnings_as_lines
 from rdsexp.experiment import runs, store
 
 TINY = [*SMALL, "model.reported=null", "tracking.recording=false"]
-SWEEP = ["+sweep=seeds", "seed=range(0,3)", *TINY]
+SWEEP = ["+sweep=seeds", "seed=range(0,3)", *TINY, SERIAL]
 DAMAGED = 1                                  # the job a fault damages (when it damages one)
 
 
