@@ -213,9 +213,13 @@ def main(argv=None):
     tables = {plant: table(runs, plant) for plant, runs in per_plant.items()}
     summary = pd.concat(tables.values(), ignore_index=True)
     first = next(iter(per_plant))
+    paths = report.save_figure(draw(per_plant[first], tables[first], summary), args.out, NAME, every, __file__,
+                               caption(per_plant[first], tables[first], summary))
+    # after the figure: the table and the figure share NAME.json, one record of the tables either read
+    # (the figure reads the trajectories too); written before, the two records differed and every call
+    # found the figure out of date and rendered it again
     report.write_table(summary, args.out, NAME, every, __file__)
-    return report.save_figure(draw(per_plant[first], tables[first], summary), args.out, NAME, every, __file__,
-                              caption(per_plant[first], tables[first], summary))
+    return paths
 
 
 if __name__ == "__main__":

@@ -52,9 +52,10 @@ PAGE = (("figure", "estimation", "Identification run (Sec. V-A, Fig. estimation)
 
 
 def launcher(jobs: int) -> list[str]:
-    """The overrides that run a sweep's jobs in `jobs` worker processes (Hydra's joblib launcher; the
-    tables are identical to the basic launcher's, tests/experiment/test_sweep.py); [] for 1."""
-    return [] if jobs <= 1 else ["hydra/launcher=joblib", f"hydra.launcher.n_jobs={jobs}"]
+    """The overrides that run a sweep's jobs in `jobs` worker processes (Hydra's joblib launcher, the
+    shipped sweeps' own with n_jobs=jobs; the tables are identical to the basic launcher's,
+    tests/experiment/test_sweep.py); for 1, the basic launcher: one after the other in one process."""
+    return ["hydra/launcher=basic"] if jobs <= 1 else ["hydra/launcher=joblib", f"hydra.launcher.n_jobs={jobs}"]
 
 
 def ensure_sweeps(root, extra_overrides=(), jobs: int = 1) -> None:

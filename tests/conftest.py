@@ -15,6 +15,20 @@ REPO = Path(__file__).resolve().parent.parent
 SMALL = ["closed_loop.paths=4", "enkf.ensemble_size=20", "closed_loop.horizon=30", "closed_loop.rate_window=[10,20]",
          "closed_loop.disturbance.until=10", "identification.horizon=30", "identification.K0=5",
          "identification.K1=20"]
+# the shipped sweeps run their jobs in one worker process per core (conf/hydra/launcher/parallel.yaml);
+# a test's sweeps of tiny jobs run one after the other in the process that launched them: no worker
+# start-up per sweep (CI's time), an injected fault or a patch applies to every job, and a test's
+# in-process sweep never meets a reused worker started in another test's working directory.
+# tests/experiment/test_sweep.py runs the process launchers and checks their tables are the same.
+SERIAL = "hydra/launcher=basic"
+
+
+def serial(args) -> list:
+    """args, with SERIAL added to a shipped sweep's (+sweep=NAME) unless they choose a launcher."""
+    args = list(args)
+    sweeps = any(str(a).startswith("+sweep=") for a in args)
+    chosen = any(str(a).startswith(("hydra/launcher=", "hydra.launcher.")) for a in args)
+    return [*args, SERIAL] if sweeps and not chosen else args
 
 
 def rdsexp(*args, cwd, module="rdsexp", check=True, timeout=600, process=False):
@@ -22,6 +36,7 @@ def rdsexp(*args, cwd, module="rdsexp", check=True, timeout=600, process=False):
     this process (their main() with sys.argv, cwd, stdout and stderr swapped: no interpreter start
     and imports per call); `process=True`, or any other module, in a fresh interpreter (what needs
     a process of its own: signals, environment variables, warnings printed on stderr)."""
+    args = serial(args) if module == "rdsexp" else list(args)
     if process or module not in ("rdsexp", "rdsexp.runs"):
         env = dict(os.environ, PYTHONWARNINGS="ignore::DeprecationWarning")
         proc = subprocess.run([sys.executable, "-m", module, *args], cwd=cwd, capture_output=True, text=True,

@@ -95,8 +95,22 @@ def _fallback(cfg: DictConfig) -> dict:
     return {"config_hash": provenance.config_hash(job_config(cfg))}
 
 
+# Python's resource tracker (a process of its own under the joblib launcher and closed_loop.workers)
+# removes the semaphores of worker queues a Ctrl-C abandoned and says so on stderr, 2 lines after the
+# interrupt's one line: the removal stays, the lines go (the filter passes to every child by environment)
+QUIET_TRACKER = "ignore::UserWarning:multiprocessing.resource_tracker"
+
+
+def quiet_resource_tracker() -> None:
+    """Add QUIET_TRACKER to PYTHONWARNINGS, for the processes this one starts."""
+    current = os.environ.get("PYTHONWARNINGS", "")
+    if QUIET_TRACKER not in current.split(","):
+        os.environ["PYTHONWARNINGS"] = ",".join(filter(None, [current, QUIET_TRACKER]))
+
+
 def main() -> None:
     """Console entry point `rdsexp` (and `python -m rdsexp`)."""
+    quiet_resource_tracker()
     # Ctrl-C stops a run or sweep even when the launching process ignored SIGINT (a child inherits
     # an ignored SIGINT): Python's default handler raises KeyboardInterrupt, which ends the run
     # with run.json still "incomplete" and every finished file complete
@@ -250,15 +264,19 @@ def interrupted_text() -> str:
         bar.close()                                  # the bar's line ends before this one
     again = "run the same command again to resume: the completed jobs are reused"
     if not RUNNING:                                  # no job started here (or each in a launcher's worker)
-        return f"interrupted: the sweep stopped; {again}" if bar is not None else \
-            "interrupted before the run started; nothing was recorded"
-    if RUNNING["sweep_dir"] is None:
+        if bar is None:
+            return "interrupted before the run started; nothing was recorded"
+        if not bar.sweep_dir.is_dir():
+            return f"interrupted: the sweep stopped; {again}"
+        sweep_dir = bar.sweep_dir                    # the workers' jobs, counted from their run.json
+    elif RUNNING["sweep_dir"] is None:
         run_dir = RUNNING["run_dir"]
         if _status(run_dir) != "incomplete":
             return "interrupted: the run stopped before it recorded anything; run the same command again to start it"
         return (f'interrupted: run {_shown(run_dir)} stopped, its run.json stays "incomplete"; run the same '
                 "command again to start it over")
-    sweep_dir = RUNNING["sweep_dir"]
+    else:
+        sweep_dir = RUNNING["sweep_dir"]
     done = sum(_status(job) == "complete" for job in sweep_dir.iterdir() if job.is_dir())
     try:
         config = OmegaConf.load(sweep_dir / layout.MULTIRUN)

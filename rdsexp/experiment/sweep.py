@@ -2,8 +2,10 @@
 jobs, and the sweep's summary table written once all have returned."""
 from __future__ import annotations
 
+import json
 import os
 import sys
+import threading
 from pathlib import Path
 
 import pandas as pd
@@ -15,11 +17,68 @@ from ..errors import ConfigError, RunExit, WriteError
 from .config import build, check_overrides
 from .store import write_sweep_summary
 from .store.files import atomic_write_bytes
-from .store.layout import SUMMARY_CSV
+from .store.layout import RUN_JSON, SUMMARY_CSV
 from .store.run import read_runs
 from .store.table import as_text, runs_table, sweep_results
 
-_SWEEP_BARS: dict[int, tqdm] = {}      # the sweep's progress bar, in the process that launched it
+
+class SweepProgress:
+    """The sweep's progress bar (jobs done out of total, time left), in the process that launched it.
+
+    A job that runs in this process (the basic launcher) counts when its `on_job_end` callback
+    returns; jobs in other processes (joblib workers, Ray, Slurm), whose callbacks this process never
+    sees, count when their run.json leaves "incomplete", looked for every `poll` seconds in the sweep
+    directory (only the jobs not yet counted are read). A job counts once whichever way it is seen."""
+
+    def __init__(self, total, sweep_dir: Path, poll: float = 1.0, file=None, disable: bool | None = None):
+        # disable=None: shown on a terminal only
+        self.bar = tqdm(total=total, desc="sweep", unit="job", disable=disable, file=file or sys.stderr)
+        self.sweep_dir, self.poll = Path(sweep_dir), poll
+        self.done: set[str] = set()
+        self.lock = threading.Lock()
+        self.stop = threading.Event()
+        self.thread = None
+        if not self.bar.disable:
+            self.thread = threading.Thread(target=self._watch, name="rdsexp-sweep-progress", daemon=True)
+            self.thread.start()
+
+    def finished(self, job: str) -> None:
+        """Count job `job` (its subdirectory's name) as done, once."""
+        with self.lock:
+            if job not in self.done and not self.stop.is_set():
+                self.done.add(job)
+                self.bar.update(1)
+
+    def _watch(self) -> None:
+        while not self.stop.wait(self.poll):
+            self._scan()
+
+    def _scan(self) -> None:
+        try:
+            jobs = [d for d in self.sweep_dir.iterdir() if d.name not in self.done and d.is_dir()]
+        except OSError:                   # the sweep directory is not made yet
+            return
+        for job in jobs:
+            try:
+                status = json.loads((job / RUN_JSON).read_text()).get("status")
+            except (OSError, ValueError, AttributeError):   # not started, or being written
+                continue
+            if status not in (None, "incomplete"):
+                self.finished(job.name)
+
+    def close(self) -> None:
+        """Count the jobs that ended since the last look, stop looking, end the bar's line."""
+        if self.thread is not None:
+            self.stop.set()
+            self.thread.join()
+            self.stop.clear()
+            self._scan()
+        with self.lock:
+            self.stop.set()
+        self.bar.close()
+
+
+_SWEEP_BARS: dict[int, SweepProgress] = {}      # the sweep's progress bar, in the process that launched it
 
 
 def sweep_points(config: DictConfig) -> list[list[str]]:
@@ -137,12 +196,12 @@ class SweepSummary(Callback):
             skip_hydra_validation()
         writable_or_exit(Path(config.hydra.sweep.dir))
         total = len(points) if enumerable(config) else OmegaConf.select(config, "hydra.sweeper.n_trials")
-        _SWEEP_BARS[os.getpid()] = tqdm(total=total, desc="sweep", unit="job", disable=None, file=sys.stderr)
+        _SWEEP_BARS[os.getpid()] = SweepProgress(total, Path(config.hydra.sweep.dir))
 
     def on_job_end(self, config: DictConfig, job_return, **kwargs) -> None:
         bar = _SWEEP_BARS.get(os.getpid())      # None in launcher worker processes
         if bar is not None:
-            bar.update(1)
+            bar.finished(str(config.hydra.sweep.subdir))
 
     def on_multirun_end(self, config: DictConfig, **kwargs) -> None:
         _VALIDATED.discard(os.getpid())

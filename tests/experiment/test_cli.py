@@ -51,6 +51,21 @@ def test_every_sweep_point_composes_and_validates(sweep):
     validate_sweep(points)                # what a sweep runs first; exit 2 on the first bad point
 
 
+@pytest.mark.parametrize("sweep", SWEEPS)
+def test_shipped_sweeps_use_every_core_unless_told_serial(sweep):
+    """A shipped sweep's jobs run in one joblib worker per core; hydra/launcher=basic runs them one after
+    the other. An optimizing sweeper's (tune_enkf: seeded, one trial after the other) stays serial."""
+    def launcher(*overrides):
+        cfg = compose("config", overrides=[f"+sweep={sweep}", *overrides], return_hydra_config=True)
+        return cfg.hydra.launcher
+    default = launcher()
+    if enumerable(compose("config", overrides=[f"+sweep={sweep}"], return_hydra_config=True)):
+        assert default._target_.endswith("JoblibLauncher") and default.n_jobs == -1
+    else:
+        assert default._target_.endswith("BasicLauncher")
+    assert launcher("hydra/launcher=basic")._target_.endswith("BasicLauncher")
+
+
 def test_composing_once_per_group_choice_equals_a_full_compose():
     """The sweep validation's shortcut (group choices composed once, value overrides applied on top)
     gives every job exactly Hydra's config, for group and value overrides of every kind mixed."""

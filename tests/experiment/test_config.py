@@ -4,7 +4,7 @@ import sys
 
 import pandas as pd
 import pytest
-from conftest import SMALL, rdsexp
+from conftest import SERIAL, SMALL, rdsexp
 from hydra import compose, initialize_config_module
 
 from rdsexp.errors import ConfigError
@@ -78,7 +78,7 @@ def test_sweep_with_failed_job_writes_summary_and_exits_1(tmp_path):
     import subprocess
     script = tmp_path / "failing.py"
     script.write_text(FAILING)
-    proc = subprocess.run([sys.executable, str(script), "+sweep=seeds", "seed=range(0,3)", *SMALL,
+    proc = subprocess.run([sys.executable, str(script), "+sweep=seeds", "seed=range(0,3)", *SMALL, SERIAL,
                            "tracking.recording=false", "model.reported=null"], cwd=tmp_path, capture_output=True,
                           text=True, timeout=600)
     assert proc.returncode == 1, proc.stderr

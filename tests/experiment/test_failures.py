@@ -9,7 +9,7 @@ import time
 import numpy as np
 import pandas as pd
 import pytest
-from conftest import SMALL, rdsexp
+from conftest import SERIAL, SMALL, rdsexp, serial
 from hydra import compose, initialize_config_module
 
 import rdsexp as rx
@@ -180,7 +180,7 @@ def test_killed_sweep_resumes_and_keeps_every_result(tmp_path, sig):
             "model.reported=null"]
     # the child inherits an ignored SIGINT (as under a test runner started in the background):
     # rdsexp's entry point must still stop on it
-    proc = subprocess.Popen([sys.executable, "-m", "rdsexp", *args], cwd=tmp_path,
+    proc = subprocess.Popen([sys.executable, "-m", "rdsexp", *serial(args)], cwd=tmp_path,
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
     wait_for(lambda: len(complete_jobs(tmp_path)) >= 2)
@@ -214,7 +214,7 @@ def test_killed_run_is_marked_incomplete(tmp_path):
 
 def test_concurrent_sweeps_do_not_collide(tmp_path):
     args = [sys.executable, "-m", "rdsexp", "+sweep=seeds", "seed=range(0,3)", *SMALL, "tracking.recording=false",
-            "model.reported=null", "reuse=false"]
+            "model.reported=null", "reuse=false", SERIAL]
     procs = [subprocess.Popen(args, cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE) for _ in range(2)]
     for p in procs:
         assert p.wait(timeout=300) == 0, p.stderr.read()

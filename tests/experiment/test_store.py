@@ -19,14 +19,14 @@ from pathlib import Path
 
 import pandas as pd
 import pytest
-from conftest import REPO, SMALL, rdsexp
+from conftest import REPO, SERIAL, SMALL, rdsexp
 
 from rdsexp import report
 from rdsexp.errors import warnings_as_lines
 from rdsexp.experiment import runs, store
 
 TINY = [*SMALL, "model.reported=null", "tracking.recording=false"]
-SWEEP = ["+sweep=seeds", "seed=range(0,3)", *TINY]
+SWEEP = ["+sweep=seeds", "seed=range(0,3)", *TINY, SERIAL]
 DAMAGED = 1                                  # the job a fault damages (when it damages one)
 
 
@@ -431,3 +431,29 @@ def test_sweep_killed_during_its_summary_write(st, tmp_path, capsys):
     assert list(pd.read_parquet(new / "summary.parquet")["id"]) == [f"{new.name}/0"]
     assert call(capsys, "check", st.root)[0] == 0
     assert_undamaged_still_served(st, capsys, skip=None)
+
+
+@pytest.mark.parametrize("text, fast", [
+    ("a: {b: 2, s: x, n: null}\nc: ${oc.select:a.b,3}\nd: ${oc.select:a.zz,auto}\ne: ${oc.select:q,[]}\n"
+     "f: ${oc.select:q,True}\ng: ${oc.select:a.n,1}\nh: ${oc.select:a, 0.5}\ni: ${oc.select:q,-1e-3}\nj: '???'\n"
+     "k: ${oc.select:j,null}\nm: [[1, 2], [3, 4]]\nn: ${oc.select:m,none}\n", True),
+    ("a: 1\nb: ${a}\n", False),                                  # other interpolations: OmegaConf's
+    ("a: 1\nb: x_${oc.select:a,0}\n", False),
+    ("a: ${oc.select:c,1}\nb: ${oc.select:a,0}\n", False),       # a chain
+    ("a: 1\nb: ${oc.select:a,'q r'}\n", False),
+])
+def test_scalar_config_resolves_selects_as_omegaconf_does(tmp_path, text, fast):
+    """A stored config's `${oc.select:KEY,DEFAULT}` values are resolved without building OmegaConf nodes
+    (most of a report's time reading configs), to exactly what OmegaConf resolves; any other
+    interpolation goes through OmegaConf."""
+    import yaml
+    from omegaconf import OmegaConf
+
+    from rdsexp.experiment.store import run as stored
+    (tmp_path / ".hydra").mkdir()
+    (tmp_path / ".hydra" / "config.yaml").write_text(text)
+    node = stored.scalars_only(yaml.load(text, Loader=stored._yaml_loader()))
+    expected = OmegaConf.to_container(OmegaConf.create(node), resolve=True)
+    assert stored._resolve_selects(stored.scalars_only(yaml.load(text, Loader=stored._yaml_loader()))) is fast
+    got = stored.scalar_config(tmp_path)
+    assert got == expected and repr(got) == repr(expected)

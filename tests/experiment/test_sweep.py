@@ -74,3 +74,30 @@ def test_ray_cluster_gives_the_basic_tables(tmp_path, basic):
         subprocess.run([ray, "stop", "--force"], capture_output=True, timeout=300)
     hashes = table_hashes(sweep_dir)
     assert hashes == {k: basic[k] for k in hashes} and len(hashes) == 2
+
+
+def test_sweep_progress_counts_jobs_finished_in_other_processes_once(tmp_path):
+    # joblib, Ray and Slurm run a job's callbacks in their workers: the launching process sees a job end
+    # when its run.json leaves "incomplete"; a job it also sees end (basic launcher) counts once
+    import io
+    import time
+
+    from rdsexp.experiment.sweep import SweepProgress
+    for job, status in (("0", "complete"), ("1", "incomplete"), ("2", "failed")):
+        (tmp_path / job).mkdir()
+        (tmp_path / job / "run.json").write_text(json.dumps({"status": status}))
+    (tmp_path / "3").mkdir()                 # a job that has not written its run.json yet
+    progress = SweepProgress(4, tmp_path, poll=0.02, file=io.StringIO(), disable=False)
+    progress.finished("0")
+    deadline = time.time() + 10
+    while progress.bar.n < 2 and time.time() < deadline:
+        time.sleep(0.02)
+    time.sleep(0.1)
+    assert progress.bar.n == 2 and progress.done == {"0", "2"}
+    (tmp_path / "1" / "run.json").write_text(json.dumps({"status": "complete"}))
+    while progress.bar.n < 3 and time.time() < deadline:
+        time.sleep(0.02)
+    progress.close()
+    assert progress.bar.n == 3
+    progress.finished("3")                   # after close: nothing counts any more
+    assert progress.bar.n == 3

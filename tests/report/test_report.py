@@ -166,6 +166,22 @@ def test_rerun_rewrites_identical_files_without_simulating(root, written, tmp_pa
         assert (again / name).read_bytes() == data, name
 
 
+def test_second_call_on_the_same_output_renders_no_figure(root, written, tmp_path, monkeypatch):
+    """Every figure's lineage (shared with its table of the same name) is found up to date: nothing is
+    rendered again (rendering was most of a second call), and every file stays the same."""
+    import shutil
+
+    from matplotlib.figure import Figure
+    same = tmp_path / "same"
+    shutil.copytree(written, same)
+    rendered = []
+    monkeypatch.setattr(Figure, "savefig", lambda self, path, **kw: rendered.append(Path(path).name))
+    paper.main(["--root", str(root), "--out", str(same)])
+    assert rendered == []
+    for path in written.iterdir():
+        assert (same / path.name).read_bytes() == path.read_bytes(), path.name
+
+
 def test_missing_sweep_is_run_first_and_announced(tmp_path, monkeypatch, capsys):
     calls = []
     monkeypatch.setattr(paper.subprocess, "run", lambda cmd, **kw: calls.append(cmd))

@@ -127,6 +127,9 @@ def stored_file_hash(path: Path) -> str:
 
 def table_hash(table: pd.DataFrame) -> str:
     """sha256 over column names, dtypes and values: equal for equal tables, whatever the file bytes."""
+    if table.attrs:               # pandas deep-copies attrs (a stored table's schema) into every column taken
+        table = table.copy(deep=False)
+        table.attrs = {}
     return _hash_columns((name, table[name]) for name in table.columns)
 
 
