@@ -54,8 +54,7 @@ def applies(system: AffineRandomSystem) -> str | None:
 def _parts(system: AffineRandomSystem, dist: MomentModel, F: np.ndarray, estimate: str):
     """(Gamma0 (p+1, 2n, 2n): the loop's basis at L = 0, E (p+1, 2n, n): its derivative in L, read as
     d Gamma_c = E_c dL C placed in the e columns, C (ny, n), K ((p+1, p+1): moment factor weights))."""
-    mu1 = np.concatenate([[1.0], dist.mean])                     # E[1, xi]
-    Abar, Bbar = np.tensordot(mu1, system.A, 1), np.tensordot(mu1, system.B, 1)
+    Abar, Bbar = system.at(dist.mean)[:2]                          # the mean model
     delta = (np.arange(system.p + 1) == 0)[:, None, None].astype(float)   # delta_c: the constant term only
     Acl = system.A + system.B @ F                                  # (p+1, n, n): A_c + B_c F
     dBF = (system.B - delta * Bbar) @ F                            # (B_c - delta_c Bbar) F
@@ -128,8 +127,7 @@ def observer_loop_rate(system: AffineRandomSystem, dist: MomentModel | None, F, 
 def kalman_gain(system: AffineRandomSystem, dist: MomentModel, process: float, output: float = 1.0) -> np.ndarray:
     """Steady-state Kalman gain L (n, ny) of the mean model for the noises process I_n and output I_ny
     (the filter form: x_{k|k} = x_{k|k-1} + L (y_k - C x_{k|k-1}))."""
-    mu1 = np.concatenate([[1.0], dist.mean])
-    Abar, C = np.tensordot(mu1, system.A, 1), system.C[0]
+    Abar, C = system.at(dist.mean)[0], system.C[0]
     S = scipy.linalg.solve_discrete_are(Abar.T, C.T, process * np.eye(system.n), output * np.eye(system.ny))
     return S @ C.T @ np.linalg.inv(C @ S @ C.T + output * np.eye(system.ny))
 

@@ -212,6 +212,7 @@ _INT = re.compile(r"[+-]?\d+")
 _FLOAT = re.compile(r"[+-]?(\d+\.\d*|\.\d+|\d+)([eE][+-]?\d+)?")
 _WORD = re.compile(r"[A-Za-z_]\w*")
 _UNKNOWN = object()
+_ABSENT = object()
 
 
 def _default(text: str):
@@ -268,8 +269,6 @@ def _resolve_selects(config: dict) -> bool:
         parent[k] = value
     return True
 
-
-_ABSENT = object()
 
 
 @functools.cache
