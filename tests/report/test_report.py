@@ -3,6 +3,7 @@ number, lineage hashes that match the tables, identical re-runs, and the code-ve
 import json
 import sys
 from pathlib import Path
+from subprocess import CompletedProcess
 
 import numpy as np
 import pandas as pd
@@ -184,10 +185,25 @@ def test_second_call_on_the_same_output_renders_no_figure(root, written, tmp_pat
 
 def test_missing_sweep_is_run_first_and_announced(tmp_path, monkeypatch, capsys):
     calls = []
-    monkeypatch.setattr(paper.subprocess, "run", lambda cmd, **kw: calls.append(cmd))
+    monkeypatch.setattr(paper.subprocess, "run", lambda cmd, **kw: calls.append(cmd) or CompletedProcess(cmd, 0))
     paper.ensure_sweeps(tmp_path / "outputs")
     assert [c[3] for c in calls] == [f"+sweep={s}" for s in paper.SWEEPS]
     assert "running python -m rdsexp +sweep=paper" in capsys.readouterr().out
+
+
+def test_a_sweep_that_fails_ends_the_report_with_one_line_saying_how_to_resume(tmp_path, monkeypatch):
+    """A sweep subprocess that exits non-zero (a job's write error, a full disk) stops paper.py before
+    any figure with one line naming the sweep and the command that resumes it, not a traceback."""
+    calls = []
+    monkeypatch.setattr(paper.subprocess, "run", lambda cmd, **kw: calls.append(cmd) or CompletedProcess(
+        cmd, 1 if len(calls) == 2 else 0))
+    with pytest.raises(SystemExit) as exit_:
+        report.script(lambda: paper.main(["--root", str(tmp_path), "--out", str(tmp_path / "report"), "--jobs", "1"]))
+    message = exit_.value.code
+    second = list(paper.SWEEPS)[1]
+    assert len(calls) == 2 and isinstance(message, str) and "\n" not in message, message
+    assert f"sweep {second!r} ended with exit code 1" in message and f"+sweep={second}" in message
+    assert not (tmp_path / "report").exists()
 
 
 def test_report_refuses_mixed_code_versions(root, tmp_path):
