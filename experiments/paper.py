@@ -70,9 +70,9 @@ def ensure_sweeps(root, extra_overrides=(), jobs: int = 1) -> None:
         command = ["-m", "rdsexp", f"+sweep={sweep}", f"store={root.resolve()}", *launcher(jobs), *extra_overrides]
         code = subprocess.run([sys.executable, *command]).returncode
         if code != 0:          # its own lines above say why; the jobs it completed are stored and kept
-            raise report.LineageError(f"sweep {sweep!r} ended with exit code {code} (its output above): the report needs all "
-                               f"of it; `python {' '.join(command)}` resumes it (only the jobs not stored run), "
-                               f"then run this script again")
+            raise report.LineageError(f"sweep {sweep!r} ended with exit code {code} (its output above): the report "
+                                      f"needs all of it; `python {' '.join(command)}` resumes it (only the jobs "
+                                      f"not stored run), then run this script again")
 
 
 def stage_totals(runs: list[report.Run]) -> pd.Series:
