@@ -894,7 +894,8 @@ def loop_through_outputs(exp: Experiment, chosen, s: dict) -> dict | None:
     """When the closed loop is not found stable although its gain stabilizes the true plant with the true
     state: the exact rate of the loop through y with the best linear observer found (`best_observer` on the
     true plant, the loop's estimate), which tells a plant whose outputs cannot carry this gain's loop (>= 1)
-    from an EnKF that falls short of a linear observer (< 1). None otherwise."""
+    from an EnKF that falls short of a linear observer (< 1; the search stops at the first such observer,
+    which answers it). None otherwise."""
     rate, verdict = s.get("rate_plant"), s.get("closed_loop_verdict")
     if verdict in (None, "stable") or rate is None or not rate < 1 or exp.plant.n > OBSERVER_SEARCH_MAX_N:
         return None
@@ -903,7 +904,7 @@ def loop_through_outputs(exp: Experiment, chosen, s: dict) -> dict | None:
         return {"rate": None, "not_applicable": why}
     try:
         found = observer_loop.best_observer(exp.plant, None, chosen.F, estimate=exp.loop.estimate,
-                                            max_iter=OBSERVER_SEARCH_STEPS)
+                                            max_iter=OBSERVER_SEARCH_STEPS, stop_below=1.0)
     except (ValueError, np.linalg.LinAlgError) as err:
         return {"rate": None, "not_applicable": str(err)}
     return {"rate": found.rate, "kalman_rate": found.kalman_rate, "estimate": exp.loop.estimate}

@@ -147,10 +147,12 @@ KALMAN_SCALES = (1e-2, 1.0, 1e2)     # process / output noise ratios of the star
 
 
 def best_observer(system: AffineRandomSystem, dist: MomentModel | None, F, *, estimate: str = "filtered",
-                  max_iter: int = 200) -> ObserverSearch:
+                  max_iter: int = 200, stop_below: float | None = None) -> ObserverSearch:
     """The linear observer gain L that makes the loop through y with gain F decay fastest, searched
     locally (BFGS on the exact rate with its Perron gradient) from the best of the mean model's Kalman
-    gains for KALMAN_SCALES. The returned rate is the exact rate of the returned L (recomputed)."""
+    gains for KALMAN_SCALES. The returned rate is the exact rate of the returned L (recomputed).
+    stop_below: the search ends at the first L whose rate is below it (a question of which side of 1
+    the loop is on is answered there; iterations 0 when a Kalman gain already is)."""
     why = applies(system)
     if why:
         raise ValueError(f"system: {why}")
@@ -169,13 +171,20 @@ def best_observer(system: AffineRandomSystem, dist: MomentModel | None, F, *, es
         starts.append((_rate_and_gradient(parts, L0)[0], L0))
     kalman_rate, L0 = min(starts, key=lambda s: s[0])
     shape = L0.shape
+    if stop_below is not None and kalman_rate < stop_below:
+        return ObserverSearch(rate=observer_loop_rate(system, dist, F, L0, estimate=estimate), L=L0,
+                              kalman_rate=kalman_rate, iterations=0)
 
     def objective(v):
         rate, grad = _rate_and_gradient(parts, v.reshape(shape))
         return (rate, grad.ravel()) if np.isfinite(rate) else (1e6, np.zeros(v.size))
 
+    def below(intermediate_result):
+        if stop_below is not None and intermediate_result.fun < stop_below:
+            raise StopIteration
+
     with np.errstate(all="ignore"):
-        res = scipy.optimize.minimize(objective, L0.ravel(), jac=True, method="BFGS",
+        res = scipy.optimize.minimize(objective, L0.ravel(), jac=True, method="BFGS", callback=below,
                                       options={"maxiter": max_iter, "gtol": 1e-8})
     L = res.x.reshape(shape) if res.fun < kalman_rate else L0
     rate = observer_loop_rate(system, dist, F, L, estimate=estimate)

@@ -83,6 +83,24 @@ def test_best_observer_reports_the_rate_of_what_it_returns():
         assert found.rate <= found.kalman_rate + 1e-12                               # never worse than its start
 
 
+def test_stopping_below_one_answers_the_same_side_of_one_as_the_full_search():
+    """stop_below=1 follows the full search's path up to its first observer below 1: the same side of 1
+    on every system, the same result where none is found, never more iterations, and an exact rate."""
+    rng = np.random.default_rng(12)
+    sides, stopped_midway = set(), 0
+    for _ in range(12):
+        system, F, _, _, _ = random_case(rng)
+        full = best_observer(system, None, F, max_iter=20)
+        early = best_observer(system, None, F, max_iter=20, stop_below=1.0)
+        assert (early.rate < 1) == (full.rate < 1) and early.iterations <= full.iterations
+        assert early.rate == observer_loop_rate(system, None, F, early.L)
+        if full.rate >= 1:
+            assert early.rate == full.rate and np.array_equal(early.L, full.L)
+        sides.add(bool(full.rate < 1))
+        stopped_midway += early.kalman_rate >= 1 > early.rate
+    assert sides == {True, False} and stopped_midway    # both answers, and a stop inside the BFGS search
+
+
 def test_outputs_that_depend_on_xi_are_refused_in_one_line():
     system = AffineRandomSystem(A=[[[0.5]], [[0.1]]], B=[[[1.0]]], C=[[[1.0]], [[0.2]]],
                                 xi_dist=D.Discrete([[0.0], [1.0]], [0.5, 0.5]))
