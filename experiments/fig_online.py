@@ -6,7 +6,7 @@ same plant samples. Figure, from the latest `controllers` sweep on the plant: (l
 sqrt(E||q_k||^2) of both loops with 95% bands over paths, first seed; (right) the distribution over
 paths and seeds of the exact rate on the true plant of each online path's final gain, against the
 offline gains' rates and the optimum. Tables, one row per controller setting (initial gain, memory,
-period, window, warm-up): means over seeds of the k-window closed-loop rates, diverged fractions,
+period, window, warm-up, modeled covariance): means over seeds of the k-window closed-loop rates, diverged fractions,
 the online final gains' true rates, the offline gain's true rate, and the online loop's time over
 the offline closed loop's (run.json timings); `matches`: the median final true rate is within
 --tolerance of the offline gain's, the k-window rate of the online loop's paths that did not
@@ -24,7 +24,7 @@ from rdsexp import report
 from rdsexp.experiment.store import files
 
 SETTING = ("controller.initial", "controller.memory", "controller.period", "controller.window", "controller.warmup",
-           "controller.forgetting")
+           "controller.forgetting", "controller.covariance")
 
 LOOPS = {"closed_loop": ("offline (identification, then fixed F)", "black", "-"),
          "online": ("online (re-designed every period)", "tab:blue", "-")}
