@@ -146,12 +146,15 @@ def _gain_source(cfg, model: AffineRandomSystem, reported) -> tuple[str, np.ndar
 @dataclass(frozen=True)
 class FilterSettings:
     """conf/enkf: the EnKF on psi = [x; xi] (variant, inflation, relaxation, Q and R, in `enkf`), its
-    ensemble size M and its initial ensemble, mean psi0 (n+p,) and covariance P0 (n+p, n+p)."""
+    ensemble size M and its initial ensemble, mean psi0 (n+p,) and covariance P0 (n+p, n+p);
+    disturbance: None, or Q_d (m, m), the random-walk increment of the unknown input disturbance the
+    loops' EnKF estimates (EnKF.disturbance; `pipeline.loop_observer`; identification never does)."""
 
     enkf: EnKF
     ensemble_size: int
     psi0: np.ndarray
     P0: np.ndarray
+    disturbance: np.ndarray | None = None
 
     @classmethod
     def from_config(cls, cfg, model: AffineRandomSystem, plant: AffineRandomSystem,
@@ -187,6 +190,12 @@ class FilterSettings:
         if support not in XI_SUPPORT:
             raise ConfigError(f"enkf.xi_support: {support!r} is not allowed, expected one of {', '.join(XI_SUPPORT)}")
         bounds = xi_support(model, plant) if support == "project" else None
+        disturbance = None
+        if get(cfg, "enkf.disturbance") is not None:
+            disturbance = _covariance(cfg, "enkf.disturbance", model.m)
+            if not disturbance.any():
+                raise ConfigError(f"enkf.disturbance: {get(cfg, 'enkf.disturbance')!r} is not allowed, expected null "
+                                  f"(off) or a nonzero scale of I_m, m diagonal entries or an (m, m) matrix")
         enkf = EnKF(model, Q, R, variant=variant, inflation=inflation, relaxation=relaxation, xi_bounds=bounds)
         mean = get(cfg, "enkf.initial.mean")
         with key("enkf.initial.mean"):
@@ -201,7 +210,8 @@ class FilterSettings:
             # the members start at the prior guess that the identification feedback is designed on,
             # in the model's xi = T s + t: a filter starting at xi = 0 feeds a wrong x_{k|k-1} back
             psi0[model.n:] = truth[0] @ xi_guess + truth[1]
-        return cls(enkf=enkf, ensemble_size=M, psi0=psi0, P0=_covariance(cfg, "enkf.initial.cov", dim))
+        return cls(enkf=enkf, ensemble_size=M, psi0=psi0, P0=_covariance(cfg, "enkf.initial.cov", dim),
+                   disturbance=disturbance)
 
 
 @dataclass(frozen=True)

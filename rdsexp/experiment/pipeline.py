@@ -753,12 +753,17 @@ def rate_window(exp: Experiment, exact: pd.DataFrame, floor: float, closed: Loop
 
 
 def loop_observer(exp: Experiment, moments):
-    """The EnKF of the closed and open loops: the identification's, with its predicted xi drawn
-    i.i.d. from the design moments (EnKF.xi_prior) when closed_loop.observer_xi is `model`; the
-    paper's random walk (`random_walk`) or without moments."""
+    """The EnKF of the closed and open loops (and their noise floor): the identification's, with its
+    predicted xi drawn i.i.d. from the design moments (EnKF.xi_prior) when closed_loop.observer_xi is
+    `model`, the paper's random walk (`random_walk`) or without moments; and with enkf.disturbance, an
+    estimate of an unknown input disturbance in its state (EnKF.disturbance), which identification,
+    whose input the filter is told, does without."""
+    enkf = exp.filter.enkf
     if exp.loop.observer_xi == "model" and moments is not None:
-        return dataclasses.replace(exp.filter.enkf, xi_prior=moments)
-    return exp.filter.enkf
+        enkf = dataclasses.replace(enkf, xi_prior=moments)
+    if exp.filter.disturbance is not None:
+        enkf = dataclasses.replace(enkf, disturbance=exp.filter.disturbance)
+    return enkf
 
 
 def noise_floor(exp: Experiment, enkf, F: np.ndarray, seed, sim: dict) -> float:

@@ -1,7 +1,7 @@
 """Ensemble Kalman filter on the augmented state psi = [x; xi] (paper Sec. III-A, III-B).
 
 Simulation model (eqs. f-A-B, h-C-D): psi_k = [A(xi) x + B(xi) u; xi] + w_k, z_k = C(xi) x + D(xi) u + v_k,
-w ~ N(0, Q), v ~ N(0, R). Ensembles are arrays (..., M, n+p) with any leading batch axes
+w ~ N(0, Q), v ~ N(0, R). Ensembles are arrays (..., M, n+p) (n+p+m with `disturbance`) with any leading batch axes
 (paths); every step is a few batched matrix products, never a loop over members. Noise comes in
 as standard normal draws so that the caller owns the random streams (one per path).
 
@@ -67,6 +67,15 @@ with y_{k+1} estimates the coefficient of the step that produced y_{k+1} (the fi
 xi_k's posterior; the next prediction draws afresh). The ensemble's x spread then carries the
 multiplicative uncertainty of the random dynamics, and no xi can drift away where x, and with it
 xi, is unobservable. The draws are projected onto xi_bounds too.
+Unknown input disturbance (`disturbance`): a disturbance d_k added on the input u_k that the filter is
+not told (the paper's step d_k of Fig. wcontroller, external to the controller) is explained by the
+EnKF as a wrong xi and a wrong x, whose error the feedback u_k = F x_{k|k-1} then amplifies. With
+disturbance = Q_d (m, m), the ensemble carries an estimate of it: psi = [x; xi; d] (n+p+m), d a
+random walk d_{k+1} = d_k + w_d, w_d ~ N(0, Q_d), entering eqs. (f-A-B), (h-C-D) like the input:
+x_{k+1} = A(xi) x_k + B(xi) (u_k + d_k), z_k = C(xi) x_k + D(xi) (u_k + d_k) (the standard augmented
+state of unknown-input estimation). The d part starts at one step of its walk from 0, N(0, Q_d), and is
+updated with the rest of psi by the same gain. `dim` stays n + p (the paper's psi, the part reported
+as the filtered x and xi); `width` = n + p + m is the ensembles' last axis, and the d part is psi[..., dim:].
 
 Ensembles returned by `predict` and `update` are stored component-major: they are (..., M, n+p)
 views of (n+p, ..., M) arrays, so each component of all paths and members is one contiguous block
@@ -146,7 +155,9 @@ class EnKF:
     forecast anomalies (1: none), or "adaptive" / an AdaptiveInflation (estimated per path); enkf_n
     estimates its own and takes none (1 only); relaxation alpha in [0, 1] to the prior spread (0: none);
     xi_bounds: None or (low, high) (p,) each, the box the xi part of analysed members is projected onto
-    (+-inf: free); xi_prior: None (the random walk) or a MomentModel the predicted xi is drawn from i.i.d.
+    (+-inf: free); xi_prior: None (the random walk) or a MomentModel the predicted xi is drawn from i.i.d.;
+    disturbance: None (off) or Q_d, the covariance (m, m) (a scalar times I, or m diagonal entries; not 0)
+    of the random-walk increment of an unknown input disturbance estimated in psi = [x; xi; d].
     """
 
     model: AffineRandomSystem
@@ -157,6 +168,7 @@ class EnKF:
     relaxation: float = 0.0
     xi_bounds: tuple[np.ndarray, np.ndarray] | None = None
     xi_prior: MomentModel | None = None
+    disturbance: np.ndarray | None = None
 
     def __post_init__(self):
         if self.xi_prior is not None:
@@ -170,7 +182,16 @@ class EnKF:
             object.__setattr__(self, "xi_bounds", None if np.all(np.isinf(low) & np.isinf(high)) else (low, high))
         object.__setattr__(self, "Q", check_covariance("Q", self.Q, self.dim))
         object.__setattr__(self, "R", check_covariance("R", self.R, self.model.ny))
-        object.__setattr__(self, "_Q_sqrt", sqrtm_psd(self.Q))
+        Q_full = self.Q
+        if self.disturbance is not None:
+            Q_d = check_covariance("disturbance", self.disturbance, self.model.m)
+            if not Q_d.any():
+                raise ValueError("disturbance: 0 is not allowed (a disturbance estimate that never moves from 0); "
+                                 "expected a nonzero covariance, or None for no disturbance estimate")
+            object.__setattr__(self, "disturbance", Q_d)
+            Q_full = np.block([[self.Q, np.zeros((self.dim, self.model.m))],
+                               [np.zeros((self.model.m, self.dim)), Q_d]])      # w = [w_x; w_xi; w_d]
+        object.__setattr__(self, "_Q_sqrt", sqrtm_psd(Q_full))
         object.__setattr__(self, "_R_sqrt", sqrtm_psd(self.R))
         if self.variant not in VARIANTS:
             raise ValueError(f"variant: {self.variant!r} is not allowed, expected one of {', '.join(VARIANTS)}")
@@ -200,18 +221,29 @@ class EnKF:
 
     @property
     def dim(self) -> int:
-        """Dimension n + p of psi."""
+        """Dimension n + p of psi = [x; xi] (the paper's)."""
         return self.model.n + self.model.p
 
+    @property
+    def width(self) -> int:
+        """The ensembles' last axis: n + p, or n + p + m with the disturbance estimate [x; xi; d]."""
+        return self.dim + (self.model.m if self.disturbance is not None else 0)
+
     def split(self, psi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(x, xi) parts of psi (..., n+p), eqs. (psi-x-xi), (psi-x-xi-i)."""
-        return psi[..., :self.model.n], psi[..., self.model.n:]
+        """(x, xi) parts of psi (..., width), eqs. (psi-x-xi), (psi-x-xi-i)."""
+        return psi[..., :self.model.n], psi[..., self.model.n:self.dim]
+
+    def inputs(self, psi: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """The input each member's model sees: u (..., m) as (..., 1, m), or u + d^(i) (..., M, m) with
+        the disturbance estimate (psi (..., M, width))."""
+        u = np.asarray(u)[..., None, :]
+        return u if self.disturbance is None else u + psi[..., self.dim:]
 
     def predict(self, psi: np.ndarray, u: np.ndarray, e_w: np.ndarray) -> np.ndarray:
         """State prediction, eq. (state-pred2): psi_{k|k-1}^(i) = f(psi_{k-1|k-1}^(i), u_{k-1}) + w_k^(i).
 
-        psi: (..., M, n+p) filtered ensemble, u: (..., m) input applied at k-1 (same for all members),
-        e_w: (..., M, n+p) standard normal draws (w = Q^(1/2) e_w). Returns (..., M, n+p), component-major,
+        psi: (..., M, width) filtered ensemble, u: (..., m) input applied at k-1 (same for all members),
+        e_w: (..., M, width) standard normal draws (w = Q^(1/2) e_w). Returns (..., M, width), component-major,
         its anomalies scaled by `inflation`.
         """
         return self._predict(psi, u, e_w, out=component_major(e_w.shape))
@@ -220,7 +252,7 @@ class EnKF:
                psi_mean: np.ndarray | None = None, inflation: np.ndarray | None = None) -> Analysis:
         """Output prediction and filtering, eqs. (output-pred2), (filtering)-(kalman-v).
 
-        psi: (..., M, n+p) predicted ensemble psi_{k|k-1}, u: (..., m) input at k, y: (..., ny)
+        psi: (..., M, width) predicted ensemble psi_{k|k-1}, u: (..., m) input at k, y: (..., ny)
         measured output, e_v: (..., M, ny) standard normal draws (v = R^(1/2) e_v; the etkf and enkf_n
         variants draw none: pass None), psi_mean: the ensemble mean (eq. state-pred1) if already computed.
         inflation: with adaptive inflation, rho_{k-1} (...,) of the previous update (its
@@ -228,31 +260,33 @@ class EnKF:
         Where the innovation covariance V_k is singular, `ok` is False and the ensemble is returned
         unfiltered (K_k = 0). The filtered ensemble is component-major.
         """
-        work = component_major(psi.shape[:-1] + (self.dim + self.model.ny + 1,))
+        work = component_major(psi.shape[:-1] + (self.width + self.model.ny + 1,))
         return self._update(psi, u, y, e_v, psi_mean, out=component_major(psi.shape), work=work, inflation=inflation)
 
     # `simulate` calls the two steps below with buffers it reuses at every step: allocating the
     # large arrays afresh costs a page fault per 4 kB once the allocator has returned them to the OS.
 
     def _predict(self, psi: np.ndarray, u: np.ndarray, e_w: np.ndarray, out: np.ndarray) -> np.ndarray:
-        """`predict` into `out` (..., M, n+p), component-major, which must not overlap psi; returns out."""
-        n = self.model.n
+        """`predict` into `out` (..., M, width), component-major, which must not overlap psi; returns out."""
+        n, dim = self.model.n, self.dim
         x, xi = self.split(psi)
         np.matmul(self._Q_sqrt.T, e_w.swapaxes(-1, -2), out=out.swapaxes(-1, -2))    # w = Q^(1/2) e_w
         psi_next = components(out)
         if self.xi_prior is not None and self.model.p:        # Assumption 1 with the known moments:
             # xi_k drawn i.i.d. moves x_k to x_{k+1} and stays in the ensemble, so that the update with
             # y_{k+1} estimates the coefficient of the step that produced it
-            np.matmul(self._xi_prior_sqrt, components(e_w)[n:].reshape(self.model.p, -1),
-                      out=psi_next[n:].reshape(self.model.p, -1))
-            psi_next[n:] += self.xi_prior.mean.reshape((-1,) + (1,) * (psi_next.ndim - 1))
+            np.matmul(self._xi_prior_sqrt, components(e_w)[n:dim].reshape(self.model.p, -1),
+                      out=psi_next[n:dim].reshape(self.model.p, -1))     # a contiguous block: a view
+            psi_next[n:dim] += self.xi_prior.mean.reshape((-1,) + (1,) * (psi_next.ndim - 1))
             if self.xi_bounds is not None:       # a Gaussian draw of moments also leaves the support
-                self._clip_xi(psi_next[n:])
-            xi = out[..., n:]
+                self._clip_xi(psi_next[n:dim])
+            xi = out[..., n:dim]
         psi_next[:n] += components(affine_apply(self.model.A, xi, x))                 # eq. (f-A-B)
-        psi_next[:n] += components(affine_apply(self.model.B, xi, u[..., None, :]))
+        psi_next[:n] += components(affine_apply(self.model.B, xi, self.inputs(psi, u)))   # B(xi) (u + d)
         if self.xi_prior is None:
-            psi_next[n:] += components(xi)                                             # random walk
+            psi_next[n:dim] += components(xi)                                          # random walk
+        if self.disturbance is not None:
+            psi_next[dim:] += components(psi[..., dim:])                               # d: random walk
         if self._rho != 1:                          # rho (psi - mean) + mean; skipped at 1 (bit-identical)
             mean = components(ensemble_mean(out))[..., None]
             psi_next -= mean
@@ -263,10 +297,10 @@ class EnKF:
     def _update(self, psi: np.ndarray, u: np.ndarray, y: np.ndarray, e_v: np.ndarray,
                 psi_mean: np.ndarray | None, out: np.ndarray, work: np.ndarray,
                 inflation: np.ndarray | None = None) -> Analysis:
-        """`update` with the filtered ensemble written into `out` (..., M, n+p) and `work`
-        (..., M, n+p+ny+1) as scratch, both component-major; neither may overlap psi. With adaptive
+        """`update` with the filtered ensemble written into `out` (..., M, width) and `work`
+        (..., M, width+ny+1) as scratch, both component-major; neither may overlap psi. With adaptive
         inflation and inflation=None, rho_{k-1} is the one kept with `work` (module docstring)."""
-        d, ny, M = self.dim, self.model.ny, psi.shape[-2]
+        d, ny, M = self.width, self.model.ny, psi.shape[-2]
         x, xi = self.split(psi)
         # the forecast anomalies are scaled per path before the analysis: by the EnKF-N's lambda or
         # the adaptive rho_k, both computed from the outputs without perturbations
@@ -283,7 +317,7 @@ class EnKF:
         else:
             dz[...] = components(affine_apply(self.model.C, xi, x))                    # no perturbation (yet)
         if self.model.D.any():
-            dz += components(affine_apply(self.model.D, xi, u[..., None, :]))
+            dz += components(affine_apply(self.model.D, xi, self.inputs(psi, u)))     # D(xi) (u + d)
         psi_mean = ensemble_mean(psi) if psi_mean is None else psi_mean              # eq. (state-pred1)
         z_mean = ensemble_mean(np.moveaxis(dz, 0, -1))                                # eq. (output-pred1)
         dz -= components(z_mean)[..., None]
@@ -400,19 +434,20 @@ class EnKF:
         return np.clip(xi, self.xi_bounds[0].reshape(shape), self.xi_bounds[1].reshape(shape), out=xi)
 
     def _project(self, filtered: np.ndarray, mean: np.ndarray, std: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Clip the xi rows of `filtered` (n+p, ..., M) (components) onto xi_bounds in place; returns the
-        filtered mean and spread (..., n+p) with their xi part recomputed from the projected members."""
-        n = self.model.n
-        xi = self._clip_xi(filtered[n:])
+        """Clip the xi rows of `filtered` (width, ..., M) (components) onto xi_bounds in place; returns the
+        filtered mean and spread (..., width) with their xi part recomputed from the projected members."""
+        n, dim = self.model.n, self.dim
+        xi = self._clip_xi(filtered[n:dim])
         mean, std = mean.copy(), std.copy()
-        mean[..., n:] = np.moveaxis(xi.mean(axis=-1), 0, -1)
-        std[..., n:] = np.moveaxis(xi.std(axis=-1, ddof=1), 0, -1)
+        mean[..., n:dim] = np.moveaxis(xi.mean(axis=-1), 0, -1)
+        std[..., n:dim] = np.moveaxis(xi.std(axis=-1, ddof=1), 0, -1)
         return mean, std
 
 
 class Analysis(NamedTuple):
-    """Result of one EnKF update: filtered ensemble (..., M, n+p), ok (...,), and the ensemble
-    mean and spread (std over members, ddof 1) before (pred_*) and after (filt_*) filtering, (..., n+p).
+    """Result of one EnKF update: filtered ensemble (..., M, width), ok (...,), and the ensemble
+    mean and spread (std over members, ddof 1) before (pred_*) and after (filt_*) filtering, (..., width)
+    (width = n+p, or n+p+m with the disturbance estimate: EnKF.width).
     inflation: the factor (...,) this update scaled the forecast anomalies by (enkf_n: lambda;
     adaptive inflation: rho_k), None otherwise; pred_std is the spread after the scaling."""
 

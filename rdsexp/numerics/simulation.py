@@ -55,6 +55,8 @@ class Trajectories:
     s: the plant's coefficients (K+1, P, p_plant), s_k moving q_k to q_{k+1} (all steps drawn).
     gain_index (K+1, P): with a controller, how many gains path j had adopted before step k (0: the
     initial gain) -- the gain in use at k is that path's gain_index-th adopted one; None without.
+    d_filt_mean, d_filt_std: with the EnKF's disturbance estimate (EnKF.disturbance), the filtered
+    ensemble's mean and spread of the unknown input disturbance d, (K+1, P, m); None without.
     """
 
     q: np.ndarray
@@ -71,6 +73,8 @@ class Trajectories:
     xi_filt_cov: np.ndarray | None = None
     s: np.ndarray | None = None
     gain_index: np.ndarray | None = None
+    d_filt_mean: np.ndarray | None = None
+    d_filt_std: np.ndarray | None = None
 
     @property
     def status(self) -> str:
@@ -144,7 +148,8 @@ def simulate(plant: AffineRandomSystem, enkf: EnKF, *, F=None, d, q0, psi0, P0=N
 
     d: (K+1, m) external input added on u_k (horizon K = len(d) - 1); q0: (n,) plant initial state;
     psi0, P0: mean (n+p,) and covariance of the initial ensemble psi_{0|-1} (P0 = 0: every member
-    at psi0, as in the paper). first_path: index of the first of the P paths, so that a run split into
+    at psi0, as in the paper); with the EnKF's disturbance estimate, its d part starts N(0, Q_d), one step
+    of its random walk from 0. first_path: index of the first of the P paths, so that a run split into
     chunks of paths (first_path = 0, P1, P1 + P2, ...) gives exactly the paths of one batch.
     filter_sees_d: the EnKF is told the applied input u_k (True) or only F x_{k|k-1} (False).
     keep_members / keep_xi_cov: keep the filtered ensembles / the filtered xi's covariance per step.
@@ -166,22 +171,27 @@ def simulate(plant: AffineRandomSystem, enkf: EnKF, *, F=None, d, q0, psi0, P0=N
         raise ValueError(f"first_path: {first_path}, must be >= 0")
     if block < 1:
         raise ValueError(f"block: {block}, must be >= 1")
-    model, dim, ny = enkf.model, enkf.dim, enkf.model.ny
+    model, dim, ny, width = enkf.model, enkf.dim, enkf.model.ny, enkf.width
+    if width > dim:                                  # [x; xi; d]: d_{0|-1} ~ N(0, Q_d)
+        psi0 = np.concatenate([psi0, np.zeros(width - dim)])
+        P0 = np.block([[P0, np.zeros((dim, width - dim))], [np.zeros((width - dim, dim)), enkf.disturbance]])
 
     plant_rngs = path_generators(seed, PLANT, range(first_path, first_path + P))
     enkf_rngs = path_generators(seed, ENKF, range(first_path, first_path + P))
     s = np.stack([plant.xi_dist.sample(g, (K + 1,)) for g in plant_rngs], axis=1)    # (K+1, P, p_plant)
     A_s, B_s, C_s, D_s = plant.at(s)
     # ensembles psi_{k|k-1}, psi_{k|k} and the EnKF's scratch, reused at every step (see EnKF._predict)
-    psi, filtered, work = (component_major((P, M, c)) for c in (dim, dim, dim + ny + 1))
-    psi[...] = psi0 + np.stack([g.standard_normal((M, dim)) for g in enkf_rngs]) @ sqrtm_psd(P0)
+    psi, filtered, work = (component_major((P, M, c)) for c in (width, width, width + ny + 1))
+    psi[...] = psi0 + np.stack([g.standard_normal((M, width)) for g in enkf_rngs]) @ sqrtm_psd(P0)
 
     nan = lambda *shape: np.full((K + 1, P) + shape, np.nan)
     out = Trajectories(q=nan(plant.n), y=nan(ny), u=nan(model.m), psi_pred_mean=nan(dim),
                        psi_pred_std=nan(dim), psi_filt_mean=nan(dim), psi_filt_std=nan(dim),
                        failed_at=np.full(P, -1), failure=np.full(P, "", dtype=object), n=model.n,
                        members=nan(M, dim) if keep_members else None,
-                       xi_filt_cov=nan(model.p, model.p) if keep_xi_cov else None, s=s)
+                       xi_filt_cov=nan(model.p, model.p) if keep_xi_cov else None, s=s,
+                       d_filt_mean=nan(width - dim) if width > dim else None,
+                       d_filt_std=nan(width - dim) if width > dim else None)
     q = np.broadcast_to(q0, (P, plant.n)).copy()
     alive = np.ones(P, dtype=bool)
     if controller is not None:
@@ -194,7 +204,7 @@ def simulate(plant: AffineRandomSystem, enkf: EnKF, *, F=None, d, q0, psi0, P0=N
     # the GIL); each stream is still consumed in order, so results do not depend on the threading
     # (the etkf variant draws no output perturbations: nv = 0 and only e_w per member and step)
     nv = enkf.output_noise_dim
-    buffers = np.empty((2, P, min(block, K + 1), M, nv + dim))
+    buffers = np.empty((2, P, min(block, K + 1), M, nv + width))
 
     def draw(k0: int) -> np.ndarray:
         noise = buffers[(k0 // block) % 2]
@@ -239,15 +249,18 @@ def simulate(plant: AffineRandomSystem, enkf: EnKF, *, F=None, d, q0, psi0, P0=N
                 a = enkf._update(psi, u_filter, y, e_v, mean_pred, out=filtered, work=work)
             fail(~a.ok, k, "singular_innovation")
             keep = alive[:, None]
-            for name, value in (("q", q), ("y", y), ("u", u), ("psi_pred_mean", a.pred_mean),
-                                ("psi_pred_std", a.pred_std), ("psi_filt_mean", a.filt_mean),
-                                ("psi_filt_std", a.filt_std)):
+            for name, value in (("q", q), ("y", y), ("u", u), ("psi_pred_mean", a.pred_mean[:, :dim]),
+                                ("psi_pred_std", a.pred_std[:, :dim]), ("psi_filt_mean", a.filt_mean[:, :dim]),
+                                ("psi_filt_std", a.filt_std[:, :dim])):
                 getattr(out, name)[k] = np.where(keep, value, np.nan)
+            if width > dim:
+                out.d_filt_mean[k] = np.where(keep, a.filt_mean[:, dim:], np.nan)
+                out.d_filt_std[k] = np.where(keep, a.filt_std[:, dim:], np.nan)
             if keep_members:
-                out.members[k] = np.where(keep[:, :, None], a.psi, np.nan)
+                out.members[k] = np.where(keep[:, :, None], a.psi[..., :dim], np.nan)
             xi_cov = None
             if keep_xi_cov or (controller is not None and controller.needs_xi_cov):
-                dev = a.psi[..., model.n:] - a.filt_mean[:, None, model.n:]                    # (P, M, p)
+                dev = a.psi[..., model.n:dim] - a.filt_mean[:, None, model.n:dim]                # (P, M, p)
                 xi_cov = np.where(keep[:, :, None], np.einsum("jip,jiq->jpq", dev, dev) / (M - 1), np.nan)
             if keep_xi_cov:
                 out.xi_filt_cov[k] = xi_cov
@@ -259,7 +272,7 @@ def simulate(plant: AffineRandomSystem, enkf: EnKF, *, F=None, d, q0, psi0, P0=N
                 break
             if controller is not None:
                 out.gain_index[k] = adopted
-                change = controller.update(k, np.where(keep, a.filt_mean, np.nan), alive.copy(), xi_cov)
+                change = controller.update(k, np.where(keep, a.filt_mean[:, :dim], np.nan), alive.copy(), xi_cov)
                 if change is not None:                  # the new gains act from step k+1 on
                     idx, gains = change
                     F[idx] = gains
@@ -276,12 +289,13 @@ def bytes_per_path(plant: AffineRandomSystem, enkf: EnKF, *, ensemble_size: int,
     Plant coefficients and matrices per step, the result arrays (K+1 steps), the ensembles and
     their scratch, and the two noise buffers of `block` steps; members (K+1, M, n+p) if kept.
     """
-    M, K1, model, dim = int(ensemble_size), int(horizon) + 1, enkf.model, enkf.dim
+    M, K1, model, dim, width = int(ensemble_size), int(horizon) + 1, enkf.model, enkf.dim, enkf.width
     n, m, ny = model.n, model.m, model.ny
     per_step = plant.xi_dist.p if plant.xi_dist is not None else 0
-    per_step += n * n + n * m + ny * n + ny * m + n + ny + m + 4 * dim + (M * dim if keep_members else 0)
-    ensembles = M * (3 * dim + ny + 1)
-    noise = 2 * min(block, K1) * M * (enkf.output_noise_dim + dim)
+    per_step += n * n + n * m + ny * n + ny * m + n + ny + m + 4 * dim + 2 * (width - dim) \
+        + (M * dim if keep_members else 0)
+    ensembles = M * (3 * width + ny + 1)
+    noise = 2 * min(block, K1) * M * (enkf.output_noise_dim + width)
     return 8 * (K1 * per_step + ensembles + noise)
 
 

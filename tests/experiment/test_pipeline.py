@@ -3,9 +3,11 @@ import copy
 
 import numpy as np
 import pandas as pd
+import pytest
 from conftest import SMALL
 from hydra import compose, initialize_config_module
 
+from rdsexp.errors import ConfigError
 from rdsexp.experiment import pipeline
 from rdsexp.experiment.config import build
 
@@ -130,3 +132,28 @@ def test_xi_crps_scores_the_modeled_marginals_against_the_plant_file():
     exact = gamma * crps(1.0) + (1 - gamma) * crps(0.0)
     error = abs(crps(1.0) - crps(0.0)) * np.sqrt(gamma * (1 - gamma) / pipeline.CRPS_DRAWS)
     assert abs(s["xi_crps"] - exact) <= 4 * error
+
+
+@pytest.mark.parametrize("override, message", [
+    ("enkf.disturbance=0", "enkf.disturbance: 0 is not allowed, expected null (off) or a nonzero scale of I_m, "
+                           "m diagonal entries or an (m, m) matrix"),
+    ("enkf.disturbance=[1,2]", "enkf.disturbance: shape (2,) is not allowed, expected a scalar, 1 diagonal entries "
+                               "or (1, 1)"),
+])
+def test_bad_disturbance_scale_is_a_one_line_error(override, message):
+    with pytest.raises(ConfigError) as err:
+        experiment(override)
+    assert str(err.value) == message
+
+
+def test_disturbance_estimate_is_the_loops_not_identifications():
+    """enkf.disturbance: the loops' EnKF carries d (width n + p + m), identification's does not; the
+    tables keep the paper's columns (x and xi of n + p)."""
+    exp = experiment("enkf.disturbance=0.5", "closed_loop.filter_sees_disturbance=false")
+    assert exp.filter.enkf.disturbance is None and exp.filter.enkf.width == exp.filter.enkf.dim
+    observer = pipeline.loop_observer(exp, None)
+    np.testing.assert_array_equal(observer.disturbance, 0.5 * np.eye(exp.model.m))
+    assert observer.width == observer.dim + exp.model.m
+    columns = pipeline.run_experiment(exp).tables["trajectories"].columns
+    assert sum(c.startswith("x_filt_mean[") for c in columns) == exp.model.n
+    assert sum(c.startswith("xi_filt_mean[") for c in columns) == exp.model.p
