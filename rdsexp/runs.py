@@ -81,7 +81,7 @@ def _export_command(args) -> int:
     return 0
 
 
-COMMANDS = {"plot": ("a metric against swept keys: mean over seeds, 95% interval, failed fraction; PNG, PDF, "
+COMMANDS = {"plot": ("a metric against swept keys: mean over seeds, 95%% interval, failed fraction; PNG, PDF, "
                      "lineage", _add_plot_arguments, _plot_command),
             "export": ("stored runs to an MLflow tracking server (a sweep: a parent run and its jobs; once each)",
                        _add_export_arguments, _export_command)}

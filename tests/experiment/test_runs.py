@@ -294,3 +294,18 @@ def test_show_a_run_names_its_identity_first(tmp_path, capsys):
 def test_plot_needs_a_selection(root, capsys):
     assert runs.main(["plot", "--root", str(root), "--x", "q_scale", "--y", "lam"]) == 2
     assert capsys.readouterr().err.strip() == "rdsexp-runs: plot: name a SWEEP or give --where"
+
+
+def test_help_of_every_command_prints_and_exits_0(capsys):
+    """`rdsexp-runs --help` and each command's --help: argparse formats every help string (a bare % in
+    one ended `--help` with a TypeError)."""
+    with pytest.raises(SystemExit) as exit_:
+        runs.main(["--help"])
+    assert exit_.value.code == 0
+    text = capsys.readouterr().out
+    commands = ["list", "check", "show", "verify", "view", "diff", *runs.COMMANDS]
+    assert all(name in text for name in commands) and "95%" in text and "%%" not in text
+    for name in commands:
+        with pytest.raises(SystemExit) as exit_:
+            runs.main([name, "--help"])
+        assert exit_.value.code == 0 and capsys.readouterr().out.startswith("usage:"), name
