@@ -1,7 +1,8 @@
 """EnKF variants against ensemble size M: closed-loop rate, diverged fraction, xi RMSE and the model's CRPS.
 
 From the `filters` sweeps (conf/sweep/filters.yaml) of each plant (files filters_<plant>.*; the latest
-run of each point), per filter (variant, inflation rho, relaxation alpha) and M, over seeds: the empirical
+run of each point), per filter (variant, inflation rho, relaxation alpha, the unknown-disturbance estimate d
+of `enkf.disturbance`) and M, over seeds: the empirical
 closed-loop rate (mean with a 95% t-interval over the seeds whose loop kept every path; an open
 marker where some seed diverged), the fraction of closed-loop paths that diverged (mean over
 seeds), the RMSE of the filtered xi against the true xi, and the expected CRPS of the modeled
@@ -10,7 +11,7 @@ and the right spread). Tables: filters_<plant>_summary (every filter and M), fil
 (each variant at each M with its best knob, as DAPPER draws a frontier: the setting with the fewest
 diverged paths, then the lowest CRPS) and filters_<plant>_frontier with its sentence: the smallest M
 at which each filter's rate is within 0.01 of the stochastic EnKF at M = 300 (no inflation, no
-relaxation) with no path diverged in any seed.
+relaxation, no d) with no path diverged in any seed.
 
     python experiments/fig_filters.py [--root outputs] [--out outputs/report]
 """
@@ -23,7 +24,9 @@ from rdsexp.experiment.store import files
 NAME = "filters"
 SWEEP = "filters"
 TOLERANCE = 0.01
-KEYS = ("enkf.variant", "enkf.inflation", "enkf.relaxation", "enkf.ensemble_size", "seed")
+KEYS = ("enkf.variant", "enkf.inflation", "enkf.relaxation", "enkf.disturbance", "enkf.ensemble_size", "seed")
+FILTER = ["variant", "inflation", "relaxation", "disturbance"]      # a filter: its variant and knobs
+KNOBS = FILTER[1:]
 
 
 def points(runs: list[report.Run]) -> pd.DataFrame:
@@ -33,7 +36,8 @@ def points(runs: list[report.Run]) -> pd.DataFrame:
         m = r.table("metrics").set_index("experiment")
         loop = m.loc["closed_loop"] if "closed_loop" in m.index else None
         rows.append({"variant": r.get("enkf.variant"), "inflation": inflation(r.get("enkf.inflation")),
-                     "relaxation": float(r.get("enkf.relaxation")), "M": int(r.get("enkf.ensemble_size")),
+                     "relaxation": float(r.get("enkf.relaxation")),
+                     "disturbance": disturbance(r.get("enkf.disturbance")), "M": int(r.get("enkf.ensemble_size")),
                      "seed": r.get("seed"), "xi_crps": r.info.get("summary", {}).get("xi_crps", np.nan),
                      # no closed loop (no gain from the identified model) counts as diverged
                      **{c: (loop[c] if loop is not None else (1.0 if c == "failed_fraction" else np.nan))
@@ -46,18 +50,24 @@ def inflation(value) -> str:
     return value if isinstance(value, str) else f"{float(value):g}"
 
 
-def label(variant, rho: str, relaxation) -> str:
-    extra = [f"$\\rho$={rho}"] * (rho != "1") + [f"$\\alpha$={relaxation:g}"] * (relaxation != 0)
+def disturbance(value) -> str:
+    """enkf.disturbance as text: "off" (None), or its scale / entries."""
+    return "off" if value is None else (f"{float(value):g}" if isinstance(value, (int, float)) else str(value))
+
+
+def label(variant, rho: str, relaxation, d: str = "off") -> str:
+    extra = ([f"$\\rho$={rho}"] * (rho != "1") + [f"$\\alpha$={relaxation:g}"] * (relaxation != 0)
+             + [f"d={d}"] * (d != "off"))
     return " ".join([variant, *extra])
 
 
 def summary(frame: pd.DataFrame) -> pd.DataFrame:
     """Per (filter, M): rate mean and interval over seeds without divergence, diverged fractions, RMSE."""
     rows = []
-    for (v, rho, a, M), g in frame.groupby(["variant", "inflation", "relaxation", "M"]):
+    for (v, rho, a, d, M), g in frame.groupby([*FILTER, "M"]):
         ok = g["failed_fraction"] == 0
         mean, lo, hi, n = report.seed_interval(g.loc[ok, "rate"])
-        rows.append({"variant": v, "inflation": rho, "relaxation": a, "M": M, "seeds": len(g),
+        rows.append({"variant": v, "inflation": rho, "relaxation": a, "disturbance": d, "M": M, "seeds": len(g),
                      "seeds_diverged": int((~ok).sum()), "diverged_fraction": float(g["failed_fraction"].mean()),
                      "rate": mean, "rate_low": lo, "rate_high": hi,
                      "xi_rmse": float(g.loc[ok, "xi_rmse"].mean()) if ok.any() else np.nan,
@@ -68,13 +78,12 @@ def summary(frame: pd.DataFrame) -> pd.DataFrame:
 
 
 def best_tuned(stats: pd.DataFrame, ref: float) -> pd.DataFrame:
-    """Each variant at each M with its best knob (inflation, relaxation): the fewest diverged paths, then
+    """Each variant at each M with its best knobs (inflation, relaxation, d): the fewest diverged paths, then
     the lowest CRPS of the modeled xi (a variant without knobs, enkf_n, is its own best)."""
     order = stats.assign(crps_rank=stats["xi_crps"].fillna(np.inf)).sort_values(
         ["variant", "M", "diverged_fraction", "crps_rank"])
     best = order.groupby(["variant", "M"], as_index=False).first().drop(columns="crps_rank")
-    knobs = stats.groupby("variant").apply(lambda g: g[["inflation", "relaxation"]].drop_duplicates().shape[0],
-                                           include_groups=False)
+    knobs = stats.groupby("variant").apply(lambda g: g[KNOBS].drop_duplicates().shape[0], include_groups=False)
     best["knobs_tried"] = best["variant"].map(knobs)
     best["rate_minus_reference"] = best["rate"] - ref
     return best
@@ -83,18 +92,19 @@ def best_tuned(stats: pd.DataFrame, ref: float) -> pd.DataFrame:
 def frontier(stats: pd.DataFrame) -> tuple[pd.DataFrame, float, str]:
     """Smallest M per filter with |rate - reference| <= TOLERANCE and no divergence in any seed."""
     ref_rows = stats[(stats["variant"] == "stochastic") & (stats["inflation"] == "1") & (stats["relaxation"] == 0)
-                     & (stats["M"] == stats["M"].max())]
+                     & (stats["disturbance"] == "off") & (stats["M"] == stats["M"].max())]
     ref = float(ref_rows["rate"].iloc[0]) if len(ref_rows) else np.nan
     Mref = int(stats["M"].max())
     rows = []
-    for (v, rho, a), g in stats.groupby(["variant", "inflation", "relaxation"]):
+    for (v, rho, a, d), g in stats.groupby(FILTER):
         good = g[(g["seeds_diverged"] == 0) & (np.abs(g["rate"] - ref) <= TOLERANCE)].sort_values("M")
         best = good.iloc[0] if len(good) else None
-        rows.append({"variant": v, "inflation": rho, "relaxation": a, "measured_M": ", ".join(map(str, sorted(g["M"]))),
+        rows.append({"variant": v, "inflation": rho, "relaxation": a, "disturbance": d,
+                     "measured_M": ", ".join(map(str, sorted(g["M"]))),
                      "smallest_M": int(best["M"]) if best is not None else None,
                      "rate_at_smallest_M": float(best["rate"]) if best is not None else np.nan})
     table = pd.DataFrame(rows)
-    parts = [f"{label(r.variant, r.inflation, r.relaxation).replace('$', '').replace(chr(92), '')}: "
+    parts = [f"{label(r.variant, r.inflation, r.relaxation, r.disturbance).replace('$', '').replace(chr(92), '')}: "
              + (f"M = {int(r.smallest_M)}" if pd.notna(r.smallest_M) else f"none of M = {r.measured_M}")
              for r in table.itertuples()]
     sentence = (f"Smallest ensemble size M at which the closed-loop rate is within {TOLERANCE} of the stochastic "
@@ -121,11 +131,11 @@ MARKERS = [("o", "-"), ("s", "--"), ("^", ":"), ("D", "-."), ("v", "-"), ("x", "
 def draw(stats: pd.DataFrame, ref: float, plant: str):
     fig, axes = report.figure(report.PAGE_WIDTH, 4.6, 2, 2)
     axes = axes.ravel()
-    options = sorted({(r.inflation, r.relaxation) for r in stats.itertuples()})     # one marker per (rho, alpha)
-    for (v, rho, a), g in stats.groupby(["variant", "inflation", "relaxation"]):
+    options = sorted({tuple(r) for r in stats[KNOBS].itertuples(index=False)})     # a marker per (rho, alpha, d)
+    for (v, *knobs), g in stats.groupby(FILTER):
         g = g.sort_values("M")
-        marker, ls = MARKERS[options.index((rho, a)) % len(MARKERS)]
-        kw = dict(color=STYLE.get(v, "0.3"), ls=ls, marker=marker, ms=3, label=label(v, rho, a))
+        marker, ls = MARKERS[options.index(tuple(knobs)) % len(MARKERS)]
+        kw = dict(color=STYLE.get(v, "0.3"), ls=ls, marker=marker, ms=3, label=label(v, *knobs))
         clean = g["seeds_diverged"] == 0
         axes[0].errorbar(g["M"], g["rate"], yerr=[g["rate"] - g["rate_low"], g["rate_high"] - g["rate"]],
                          capsize=2, **kw)

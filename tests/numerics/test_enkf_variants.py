@@ -192,18 +192,22 @@ def test_frontier_is_the_smallest_M_within_tolerance_without_divergence():
     sys.path.insert(0, str(REPO / "experiments"))
     import fig_filters
     import pandas as pd
-    rows = [("stochastic", 1.0, 300, 0.850, 0), ("stochastic", 1.0, 100, 0.855, 0), ("stochastic", 1.0, 20, 0.851, 1),
-            ("etkf", 1.1, 10, 0.845, 0), ("etkf", 1.1, 300, 0.86, 0), ("etkf", 1.0, 20, 0.8615, 0),
-            ("etkf", "adaptive", 20, 0.852, 0)]
-    stats = pd.DataFrame([{"variant": v, "inflation": fig_filters.inflation(rho), "relaxation": 0.0, "M": M, "rate": r,
-                           "seeds_diverged": dv} for v, rho, M, r, dv in rows])
+    rows = [("stochastic", 1.0, None, 300, 0.850, 0), ("stochastic", 1.0, None, 100, 0.855, 0),
+            ("stochastic", 1.0, None, 20, 0.851, 1), ("etkf", 1.1, None, 10, 0.845, 0), ("etkf", 1.1, None, 300, 0.86, 0),
+            ("etkf", 1.0, None, 20, 0.8615, 0), ("etkf", "adaptive", None, 20, 0.852, 0),
+            ("stochastic", 1.0, 0.01, 300, 0.90, 0), ("etkf", 1.1, 0.01, 20, 0.852, 0), ("etkf", 1.1, 0.01, 15, 0.85, 1)]
+    stats = pd.DataFrame([{"variant": v, "inflation": fig_filters.inflation(rho), "relaxation": 0.0,
+                           "disturbance": fig_filters.disturbance(d), "M": M, "rate": r, "seeds_diverged": dv}
+                          for v, rho, d, M, r, dv in rows])
     table, ref, sentence = fig_filters.frontier(stats)
-    assert ref == 0.850
-    smallest = {(r.variant, r.inflation): r.smallest_M for r in table.itertuples()}
-    assert smallest[("stochastic", "1")] == 100 and smallest[("etkf", "1.1")] == 10
-    assert smallest[("etkf", "adaptive")] == 20             # adaptive inflation: a text among numbers
-    assert pd.isna(smallest[("etkf", "1")])                 # 0.0115 away
+    assert ref == 0.850                                      # the stochastic EnKF without the d estimate
+    smallest = {(r.variant, r.inflation, r.disturbance): r.smallest_M for r in table.itertuples()}
+    assert smallest[("stochastic", "1", "off")] == 100 and smallest[("etkf", "1.1", "off")] == 10
+    assert smallest[("etkf", "adaptive", "off")] == 20      # adaptive inflation: a text among numbers
+    assert pd.isna(smallest[("etkf", "1", "off")])          # 0.0115 away
+    assert smallest[("etkf", "1.1", "0.01")] == 20 and pd.isna(smallest[("stochastic", "1", "0.01")])
     assert "etkf: none of M = 20" in sentence and "etkf rho=1.1: M = 10" in sentence
+    assert "etkf rho=1.1 d=0.01: M = 20" in sentence
 
 
 def test_best_tuned_takes_the_fewest_diverged_paths_then_the_lowest_crps():
@@ -215,13 +219,17 @@ def test_best_tuned_takes_the_fewest_diverged_paths_then_the_lowest_crps():
     sys.path.insert(0, str(REPO / "experiments"))
     import fig_filters
     import pandas as pd
-    rows = [("etkf", 1.0, 20, 0.86, 0.0, 0.10), ("etkf", 1.1, 20, 0.85, 0.0, 0.08), ("etkf", "adaptive", 20, 0.84, 0.1, 0.01),
-            ("etkf", 1.0, 50, 0.85, 0.0, 0.05), ("etkf", 1.1, 50, 0.85, 0.0, float("nan")),
-            ("enkf_n", 1.0, 20, 0.85, 0.2, 0.30)]
-    stats = pd.DataFrame([{"variant": v, "inflation": fig_filters.inflation(rho), "relaxation": 0.0, "M": M, "rate": r,
-                           "diverged_fraction": dv, "xi_crps": c} for v, rho, M, r, dv, c in rows])
+    rows = [("etkf", 1.0, None, 20, 0.86, 0.0, 0.10), ("etkf", 1.1, None, 20, 0.85, 0.0, 0.08),
+            ("etkf", "adaptive", None, 20, 0.84, 0.1, 0.01), ("etkf", 1.0, None, 50, 0.85, 0.0, 0.05),
+            ("etkf", 1.1, None, 50, 0.85, 0.0, float("nan")), ("enkf_n", 1.0, None, 20, 0.85, 0.2, 0.30),
+            ("etkf", 1.1, 0.01, 50, 0.85, 0.0, 0.06), ("enkf_n", 1.0, 0.01, 20, 0.86, 0.0, 0.35)]
+    stats = pd.DataFrame([{"variant": v, "inflation": fig_filters.inflation(rho), "relaxation": 0.0,
+                           "disturbance": fig_filters.disturbance(d), "M": M, "rate": r, "diverged_fraction": dv,
+                           "xi_crps": c} for v, rho, d, M, r, dv, c in rows])
     best = fig_filters.best_tuned(stats, ref=0.85).set_index(["variant", "M"])
     assert best.loc[("etkf", 20), "inflation"] == "1.1"          # adaptive diverged, 1.1 scores better than 1
-    assert best.loc[("etkf", 50), "inflation"] == "1"            # an unscored setting ranks last
-    assert best.loc[("enkf_n", 20), "knobs_tried"] == 1 and best.loc[("etkf", 20), "knobs_tried"] == 3
+    assert tuple(best.loc[("etkf", 50), ["inflation", "disturbance"]]) == ("1", "off")   # unscored ranks last
+    assert best.loc[("enkf_n", 20), "disturbance"] == "0.01"     # the d estimate is a knob: no path lost
+                                                                 # beats a lower CRPS
+    assert best.loc[("enkf_n", 20), "knobs_tried"] == 2 and best.loc[("etkf", 20), "knobs_tried"] == 4
     assert abs(best.loc[("etkf", 20), "rate_minus_reference"]) < 1e-12
