@@ -125,16 +125,17 @@ def resolution(ref_rows: pd.DataFrame) -> str:
 
 
 STYLE = {"stochastic": "black", "etkf": "0.5"}
-MARKERS = [("o", "-"), ("s", "--"), ("^", ":"), ("D", "-."), ("v", "-"), ("x", "--")]
+MARKERS = ["o", "s", "^", "D", "v", "x"]        # one per (inflation, relaxation)
+LINES = {"off": "-"}                            # the d estimate off: solid; on: dashed
 
 
 def draw(stats: pd.DataFrame, ref: float, plant: str):
     fig, axes = report.figure(report.PAGE_WIDTH, 4.6, 2, 2)
     axes = axes.ravel()
-    options = sorted({tuple(r) for r in stats[KNOBS].itertuples(index=False)})     # a marker per (rho, alpha, d)
+    options = sorted({tuple(r) for r in stats[["inflation", "relaxation"]].itertuples(index=False)})
     for (v, *knobs), g in stats.groupby(FILTER):
         g = g.sort_values("M")
-        marker, ls = MARKERS[options.index(tuple(knobs)) % len(MARKERS)]
+        marker, ls = MARKERS[options.index(tuple(knobs[:2])) % len(MARKERS)], LINES.get(knobs[2], "--")
         kw = dict(color=STYLE.get(v, "0.3"), ls=ls, marker=marker, ms=3, label=label(v, *knobs))
         clean = g["seeds_diverged"] == 0
         axes[0].errorbar(g["M"], g["rate"], yerr=[g["rate"] - g["rate_low"], g["rate_high"] - g["rate"]],
