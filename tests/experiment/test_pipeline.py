@@ -4,7 +4,7 @@ import copy
 import numpy as np
 import pandas as pd
 import pytest
-from conftest import SMALL
+from conftest import SMALL, rdsexp
 from hydra import compose, initialize_config_module
 
 from rdsexp.errors import ConfigError
@@ -154,6 +154,28 @@ def test_disturbance_estimate_is_the_loops_not_identifications():
     observer = pipeline.loop_observer(exp, None)
     np.testing.assert_array_equal(observer.disturbance, 0.5 * np.eye(exp.model.m))
     assert observer.width == observer.dim + exp.model.m
-    columns = pipeline.run_experiment(exp).tables["trajectories"].columns
+    tables = pipeline.run_experiment(exp).tables
+    columns = tables["trajectories"].columns
     assert sum(c.startswith("x_filt_mean[") for c in columns) == exp.model.n
     assert sum(c.startswith("xi_filt_mean[") for c in columns) == exp.model.p
+    # the estimate of d is in the loops' rows, finite wherever the path is, and not in identification's table
+    d = [c for c in columns if c.startswith("d_filt_")]
+    assert sorted(d) == sorted(f"d_filt_{s}[{i}]" for s in ("mean", "std") for i in range(exp.model.m))
+    rows = tables["trajectories"]
+    alive = rows["q[0]"].notna()
+    assert set(rows["experiment"]) == {"closed_loop", "open_loop"} and rows.loc[alive, d].notna().all().all()
+    assert not any(c.startswith("d_filt_") for c in tables["identification"].columns)
+
+
+def test_disturbance_columns_in_a_stored_run_with_the_online_loop(tmp_path):
+    """One trajectories.parquet, one set of columns: with enkf.disturbance and the online controller (whose
+    EnKF is identification's, without d) the online rows carry d_filt columns as NaN, the offline loop's the
+    estimate; the columns are described in the table's schema metadata."""
+    rdsexp(*SMALL, "controller=online", "enkf.disturbance=0.5", "closed_loop.filter_sees_disturbance=false",
+           "tracking.recording=false", cwd=tmp_path)
+    (run,) = (tmp_path / "outputs" / "runs").iterdir()
+    rows = pd.read_parquet(run / "trajectories.parquet")
+    assert rows.attrs["rdsexp"]["columns"]["d_filt_mean[0]"]["unit"] == "input"
+    online, offline = rows[rows["experiment"] == "online"], rows[rows["experiment"] == "closed_loop"]
+    assert len(online) and online["d_filt_mean[0]"].isna().all()
+    assert offline.loc[offline["q[0]"].notna(), "d_filt_mean[0]"].notna().all()
