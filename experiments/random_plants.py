@@ -501,6 +501,8 @@ def _why(row: dict) -> str:
         parts.append(f"run {row['run_status']}")
     if not row["modeled"] and row["modeling_status"]:
         parts.append(f"modeling: {row['modeling_status']}")
+    elif row["modeled"] and not (row["verdict"] or row["closed_loop_status"]):     # no gain, so no loop
+        parts.append(f"no closed loop: the design on the identified model ended {row['synthesis_status']}")
     elif row["modeled"] and row["verdict"] != "stable":
         parts.append(f"closed loop {row['verdict'] or row['closed_loop_status']}: {row['verdict_reason'] or ''}")
     return "; ".join(p for p in parts if p)

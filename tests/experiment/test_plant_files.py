@@ -1,6 +1,7 @@
 """Any plant through the CLI: xi families, model from the plant, identification under feedback,
 designs that cannot be applied as statuses."""
 import json
+import sys
 
 import numpy as np
 import pandas as pd
@@ -277,3 +278,16 @@ def test_open_loop_identification_whose_estimate_diverges_is_run_again_under_fee
     assert f"in open loop the EnKF estimate diverged at k = {feedback['open_loop_diverged_at']}, identified again" \
         in proc.stdout
     assert s["modeling_status"] == "ok"
+
+
+def test_random_plants_says_why_a_modeled_plant_has_no_loop():
+    """experiments/random_plants.py: a plant modeled but given no gain (its identified model not mean-square
+    stabilizable) is said so, not as an empty verdict; a loop that is not stable gives its verdict's reason."""
+    sys.path.insert(0, str(REPO / "experiments"))
+    import random_plants
+    row = {"note": None, "run_dir": "run", "run_status": "complete", "modeled": True, "modeling_status": "ok",
+           "synthesis_status": "not_ms_stabilizable", "verdict": None, "closed_loop_status": None,
+           "verdict_reason": None}
+    assert random_plants._why(row) == "no closed loop: the design on the identified model ended not_ms_stabilizable"
+    row.update(verdict="unstable", closed_loop_status="ok", verdict_reason="the loop grows")
+    assert random_plants._why(row) == "closed loop unstable: the loop grows"
