@@ -1,15 +1,16 @@
 """Mean-square numerics against n: policy_iteration, ms_lqr, ms_rate, the exact LQ cost, proposed, and value iteration.
 
-Over 10 seeded random systems per n of experiments/benchmark_synthesis.py's kind (n = 2 ... 200, one
-thread, CPU seconds of this process), prints per n the median time and iterations of each design with
-its certificate: policy iteration's proven bracket lam - lam_lower, ms_lqr's Riccati residual
-(max |residual| / max |P|); the exact rate `ms_rate` of F = 0; the exact LQ cost (`exact_costs`) of
+Over 10 seeded random systems per n of experiments/benchmark_synthesis.py's kind (n = 2 ... 200, one thread,
+CPU seconds of this process), prints per n the median time and iterations of each design with its
+certificate: policy iteration's proven bracket lam - lam_lower, ms_lqr's Riccati residual (max |residual| /
+max |P|), and ms_lqr's two parts: its Riccati solve (its time less that of the exact rate of its gain, timed
+again on its own) and that rate; the exact rate `ms_rate` of F = 0; the exact LQ cost (`exact_costs`) of
 ms_lqr's gain; `proposed` (the LMI of Theorem 2, n <= 20 only); and a value-iteration baseline on the
 generalized Riccati equation, P <- Q + E[A^T P A] - E[A^T P B] (R + E[B^T P B])^-1 E[B^T P A] from P = Q
 until the relative change is below 1e-6 (the usual stopping rule), with its Riccati residual beside
-ms_lqr's, and the same iteration until 1e-13 (ms_lqr's tol) in a second row. Statuses are
-counted (systems that are not mean-square stabilizable have no LQ gain: ms_lqr then proves it by
-policy iteration, value iteration diverges).
+ms_lqr's, and the same iteration until 1e-13 (ms_lqr's tol) in a second row. Statuses are counted (systems
+that are not mean-square stabilizable have no LQ gain: ms_lqr then proves it by policy iteration, value
+iteration diverges).
 
     python experiments/benchmark_scale_designs.py [--sizes 2 4 10 20 50 100 200] [--systems 10]
     python experiments/benchmark_scale_designs.py --switch     # dense against matrix-free, n = 6 ... 20
@@ -32,6 +33,7 @@ from threadpoolctl import threadpool_limits
 
 import rdsexp as rx
 from rdsexp.numerics import analysis
+from rdsexp.numerics.synthesis.lq import _rate as lq_rate  # the exact rate ms_lqr reports, timed on its own
 from rdsexp.numerics.synthesis.lq import riccati_residual
 
 sys.path.insert(0, str(Path(__file__).parent))
@@ -84,6 +86,9 @@ def run(n: int, systems: int, lmi: bool = True) -> dict:
         lq, row["lq_s"] = cpu(rx.synthesize, system, dist, "ms_lqr")
         row["lq_status"], row["lq_it"] = lq.status, lq.info.get("iterations", np.nan)
         row["lq_res"] = lq.info.get("riccati_residual", np.nan)
+        if lq.F is not None:            # ms_lqr = its Riccati solve + the exact rate of the gain (timed again here)
+            Abar, Bbar = system.moment_factors(dist)
+            _, row["lq_rate_s"] = cpu(lq_rate, Abar + Bbar @ lq.F)
         _, row["rate_s"] = cpu(rx.ms_rate, system, dist, np.zeros((system.m, n)))
         if lq.F is not None:
             _, row["cost_s"] = cpu(analysis.exact_costs, system, dist, lq.F)
@@ -120,6 +125,11 @@ def table(n: int, rows: list) -> None:
               f"its {median(both('vi_it')):.0f}, residual {median(both('vi_res')):.1e} | time ratio VI / ms_lqr "
               f"{median([r['vi_s'] / r['lq_s'] for r in stab]):.2f}, residual ratio "
               f"{median([r['vi_res'] / max(r['lq_res'], 1e-300) for r in stab]):.1e}")
+        solve = [r["lq_s"] - r["lq_rate_s"] for r in stab]
+        print(f"  ms_lqr's parts: Riccati solve {median(solve):.4f} s, exact rate of its gain "
+              f"{median(both('lq_rate_s')):.4f} s | time ratio VI / Riccati solve "
+              f"{median([r['vi_s'] / s for r, s in zip(stab, solve)]):.2f}, VI to {VALUE_TOL_TIGHT:.0e} / Riccati "
+              f"solve {median([r['vi13_s'] / s for r, s in zip(stab, solve)]):.2f}")
         print(f"  value iteration to {VALUE_TOL_TIGHT:.0e}: {median(both('vi13_s')):.4f} s, its "
               f"{median(both('vi13_it')):.0f}, residual {median(both('vi13_res')):.1e} | time ratio / ms_lqr "
               f"{median([r['vi13_s'] / r['lq_s'] for r in stab]):.2f}", flush=True)
