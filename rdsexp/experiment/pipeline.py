@@ -357,7 +357,7 @@ def online_loop(exp: Experiment, seed, keep: bool, sim: dict, sink, sample: list
     make = partial(OnlineController, exp.model, exp.controller.online, F0, horizon=K)
     with bar, console_to_tqdm():
         for first, tr, controller in run_chunks(exp, settings, keep_members=keep, workers=exp.loop.workers,
-                                                progress=bar.update, controller=make):
+                                                progress=bar.update, controller=make, enkf=loop_observer(exp, None)):
             count = tr.q.shape[1]
             history = controller.gain_history()
             in_use = np.stack([history[j][tr.gain_index[:, j]] for j in range(count)])     # (P, K+1, m, n)
@@ -641,7 +641,7 @@ def trajectory_table(experiment: str, tr: Trajectories | None, first_path: int =
                      exp: Experiment | None = None, disturbance: int = 0) -> pd.DataFrame:
     """One row per (path, k), paths first_path.. in order: plant q, y, u and the EnKF's mean and
     spread of x and xi before and after filtering; with `disturbance` = m > 0 also its filtered mean and
-    spread of the unknown input disturbance d (NaN for a loop whose EnKF does not carry it: online)."""
+    spread of the unknown input disturbance d (NaN where the EnKF does not carry it)."""
     if tr is None:                       # no gain to simulate: an empty table with the usual columns
         n, p, ny, m = exp.model.n, exp.model.p, exp.model.ny, exp.model.m
         shape = lambda d: np.zeros((0, 0, d))
@@ -765,11 +765,11 @@ def rate_window(exp: Experiment, exact: pd.DataFrame, floor: float, closed: Loop
 
 
 def loop_observer(exp: Experiment, moments):
-    """The EnKF of the closed and open loops (and their noise floor): the identification's, with its
-    predicted xi drawn i.i.d. from the design moments (EnKF.xi_prior) when closed_loop.observer_xi is
-    `model`, the paper's random walk (`random_walk`) or without moments; and with enkf.disturbance, an
-    estimate of an unknown input disturbance in its state (EnKF.disturbance), which identification,
-    whose input the filter is told, does without."""
+    """The EnKF of the closed and open loops (and their noise floor) and, without moments, of the online
+    loop: the identification's, with its predicted xi drawn i.i.d. from the design moments
+    (EnKF.xi_prior) when closed_loop.observer_xi is `model`, the paper's random walk (`random_walk`) or
+    without moments; and with enkf.disturbance, an estimate of an unknown input disturbance in its state
+    (EnKF.disturbance), which identification, whose input the filter is told, does without."""
     enkf = exp.filter.enkf
     if exp.loop.observer_xi == "model" and moments is not None:
         enkf = dataclasses.replace(enkf, xi_prior=moments)

@@ -31,7 +31,7 @@ _TRAJECTORY = {
     "xi_filt_mean[i]": ("EnKF filtered mean xi_{k|k}, component i (the modeling data, eq. sample-mean)", "xi"),
     "xi_filt_std[i]": ("EnKF filtered spread of xi, component i", "xi"),
     "d_filt_mean[i]": ("EnKF filtered mean of the unknown input disturbance d added on u_k (enkf.disturbance; "
-                       "NaN in a loop whose EnKF does not carry it), component i", "input"),
+                       "NaN where the EnKF does not carry it), component i", "input"),
     "d_filt_std[i]": ("EnKF filtered spread of d, component i", "input"),
     "x_filt[i]": ("filtered ensemble member's x, component i", "state"),
     "xi_filt[i]": ("filtered ensemble member's xi, component i", "xi"),

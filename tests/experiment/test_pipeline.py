@@ -168,14 +168,17 @@ def test_disturbance_estimate_is_the_loops_not_identifications():
 
 
 def test_disturbance_columns_in_a_stored_run_with_the_online_loop(tmp_path):
-    """One trajectories.parquet, one set of columns: with enkf.disturbance and the online controller (whose
-    EnKF is identification's, without d) the online rows carry d_filt columns as NaN, the offline loop's the
-    estimate; the columns are described in the table's schema metadata."""
+    """One trajectories.parquet, one set of columns: with enkf.disturbance and the online controller, the
+    online loop's EnKF carries d too (its rows the estimate, as the offline loop's, finite where the path
+    is, and not the offline loop's numbers: its own gains); the columns are described in the table's
+    schema metadata."""
     rdsexp(*SMALL, "controller=online", "enkf.disturbance=0.5", "closed_loop.filter_sees_disturbance=false",
            "tracking.recording=false", cwd=tmp_path)
     (run,) = (tmp_path / "outputs" / "runs").iterdir()
     rows = pd.read_parquet(run / "trajectories.parquet")
     assert rows.attrs["rdsexp"]["columns"]["d_filt_mean[0]"]["unit"] == "input"
     online, offline = rows[rows["experiment"] == "online"], rows[rows["experiment"] == "closed_loop"]
-    assert len(online) and online["d_filt_mean[0]"].isna().all()
-    assert offline.loc[offline["q[0]"].notna(), "d_filt_mean[0]"].notna().all()
+    for loop in (online, offline):
+        assert len(loop) and loop.loc[loop["q[0]"].notna(), ["d_filt_mean[0]", "d_filt_std[0]"]].notna().all().all()
+    assert (online.loc[online["q[0]"].notna(), "d_filt_std[0]"] > 0).all()
+    assert not np.array_equal(online["d_filt_mean[0]"].to_numpy(), offline["d_filt_mean[0]"].to_numpy())
