@@ -48,6 +48,30 @@ def rdsexp(*args, cwd, module="rdsexp", check=True, timeout=600, process=False):
     return proc
 
 
+def rdsexp_each(calls) -> list:
+    """Independent rdsexp calls, each (args, kwargs) as rdsexp(*args, **kwargs) takes them, two at a time
+    (CI's two cores) in worker processes started once per test session (no interpreter start and imports
+    per call, unlike `process=True`); their CompletedProcesses in the order given. A failed call raises its
+    AssertionError here. Calls that share a store must be ones that may run at the same time (as two sweeps
+    of one store may). The workers are started fresh, not forked: a fork of this process would inherit
+    the solver's thread pool without its threads."""
+    global _workers
+    if _workers is None:
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor
+        _workers = ProcessPoolExecutor(2, mp_context=multiprocessing.get_context("spawn"))
+    done = [_workers.submit(rdsexp, *args, **kwargs) for args, kwargs in calls]
+    return [job.result() for job in done]
+
+
+_workers = None
+
+
+def pytest_sessionfinish(session):
+    if _workers is not None:
+        _workers.shutdown()
+
+
 def in_process(module: str, args: list[str], cwd) -> subprocess.CompletedProcess:
     """Run the console entry point of `module` (rdsexp or rdsexp.runs) in this process."""
     import io
