@@ -9,5 +9,5 @@ def readme_commands():
 
 def test_ci_runs_the_readme_test_command():
     main_command, test_command = readme_commands()
-    assert main_command.endswith("python -m rdsexp") and test_command.endswith("python -m pytest -q")
+    assert main_command.endswith("python -m rdsexp") and test_command.endswith("python -m pytest -q -n 2 --dist loadfile")
     assert test_command in (REPO / ".ci" / "run").read_text().splitlines()
