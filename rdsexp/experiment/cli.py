@@ -168,20 +168,31 @@ def run_hydra_main() -> None:
                 del os.environ["HYDRA_FULL_ERROR"]
             else:
                 os.environ["HYDRA_FULL_ERROR"] = full_error
-    except KeyboardInterrupt:
+    except (KeyboardInterrupt, Exception) as err:
         if full_error == "1":
             raise
-        signal.signal(signal.SIGINT, signal.SIG_IGN)      # a second Ctrl-C does not cut the line short
-        print(f"rdsexp: {interrupted_text()}", file=sys.stderr)
-        raise RunExit(130) from None
-    except Exception as err:
-        if full_error == "1":
-            raise
+        if interrupted_by(err):
+            signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl-C does not cut the line short
+            print(f"rdsexp: {interrupted_text()}", file=sys.stderr)
+            raise RunExit(130) from None
         line = config_error_text(err)
         if line is None:
             hydra_report(err)                             # exits 1: "reported by Hydra above", exit 2
         print(f"rdsexp: config error: {line}", file=sys.stderr)
         raise RunExit(2) from None
+
+
+def interrupted_by(err: BaseException) -> bool:
+    """err is a Ctrl-C, or an error raised while one was handled: Hydra's config reader, interrupted
+    between opening a file and binding it, fails in its own cleanup (UnboundLocalError) with the
+    KeyboardInterrupt as context."""
+    seen = []
+    while err is not None and err not in seen:
+        if isinstance(err, KeyboardInterrupt):
+            return True
+        seen.append(err)
+        err = err.__cause__ or err.__context__
+    return False
 
 
 def config_error_text(err: BaseException) -> str | None:

@@ -144,3 +144,24 @@ def test_ctrl_c_during_a_sweep_says_how_many_jobs_completed(tmp_path, launcher):
     assert 1 <= done < 4
     assert line == (f"rdsexp: interrupted: sweep outputs/sweeps/{sweep.name} stopped with {done} of 4 jobs "
                     "completed; run the same command again to resume: the completed jobs are reused")
+
+
+def test_ctrl_c_that_breaks_hydras_cleanup_is_still_one_line_and_exit_130(monkeypatch, capsys):
+    """A Ctrl-C inside Hydra's config reader can surface as an error of its cleanup (UnboundLocalError,
+    the KeyboardInterrupt as its context; seen when a sweep's next job loaded its config): still Ctrl-C."""
+    from rdsexp.errors import RunExit
+    from rdsexp.experiment import cli
+
+    def interrupted_in_cleanup():
+        try:
+            raise KeyboardInterrupt
+        finally:
+            raise UnboundLocalError("cannot access local variable 'f' where it is not associated with a value")
+    monkeypatch.setattr(cli, "hydra_main", interrupted_in_cleanup)
+    monkeypatch.delenv("HYDRA_FULL_ERROR", raising=False)
+    with pytest.raises(RunExit) as stop:
+        cli.run_hydra_main()
+    assert stop.value.code == 130
+    assert capsys.readouterr().err.strip().splitlines() == ["rdsexp: interrupted before the run started; nothing "
+                                                            "was recorded"]
+    assert cli.interrupted_by(ValueError("a config error")) is False
