@@ -187,7 +187,7 @@ def run_experiment(exp: Experiment, sink=None, cache=None) -> Outcome:
                         for first, tr in chunks:
                             if writer is not None:
                                 writer.add({"first": first, "trajectories": tr})
-                            rows = trajectory_table(name, tr, first, disturbance=disturbance_columns(exp))
+                            rows = trajectory_table(name, tr, first)
                             if exp.controller.kind == "online":     # the gain in use, as in the online rows
                                 rows = with_gains(rows, np.zeros((exp.model.m, exp.model.n)) if F is None else F)
                             parts.append(stream_chunk(exp, name, tr, first, rows, sink, sample, sample_members))
@@ -200,8 +200,7 @@ def run_experiment(exp: Experiment, sink=None, cache=None) -> Outcome:
                         writer.commit()
                 loops[name] = LoopSummary.concat(parts)
     if not loops:                              # no gain to simulate: the table's columns, no rows
-        sink.append("trajectories",
-                    trajectory_table("closed_loop", None, exp=exp, disturbance=disturbance_columns(exp)))
+        sink.append("trajectories", trajectory_table("closed_loop", None, exp=exp))
     floor = np.nan
     if "closed_loop" in loops and exp.loop.floor_paths > 0:
         with timed(timings, "noise_floor"):
@@ -361,8 +360,7 @@ def online_loop(exp: Experiment, seed, keep: bool, sim: dict, sink, sample: list
             count = tr.q.shape[1]
             history = controller.gain_history()
             in_use = np.stack([history[j][tr.gain_index[:, j]] for j in range(count)])     # (P, K+1, m, n)
-            rows = with_gains(trajectory_table("online", tr, first, disturbance=disturbance_columns(exp)),
-                              in_use.reshape(count * (K + 1), m, n))
+            rows = with_gains(trajectory_table("online", tr, first), in_use.reshape(count * (K + 1), m, n))
             parts.append(stream_chunk(exp, "online", tr, first, rows, sink, sample, sample_members))
             controllers.append((first, controller))
     return (LoopSummary.concat(parts), controllers), info
@@ -631,23 +629,18 @@ def _columns(name: str, values: np.ndarray) -> dict:
     return {f"{name}[{i}]": values[..., i].ravel() for i in range(values.shape[-1])}
 
 
-def disturbance_columns(exp: Experiment) -> int:
-    """m when the loops' EnKF estimates the unknown input disturbance (enkf.disturbance), else 0: the
-    d_filt columns every loop's rows of the trajectories table then carry (one table, one set of columns)."""
-    return exp.model.m if exp.filter.disturbance is not None else 0
-
-
 def trajectory_table(experiment: str, tr: Trajectories | None, first_path: int = 0,
-                     exp: Experiment | None = None, disturbance: int = 0) -> pd.DataFrame:
+                     exp: Experiment | None = None) -> pd.DataFrame:
     """One row per (path, k), paths first_path.. in order: plant q, y, u and the EnKF's mean and
-    spread of x and xi before and after filtering; with `disturbance` = m > 0 also its filtered mean and
-    spread of the unknown input disturbance d (NaN where the EnKF does not carry it)."""
+    spread of x and xi before and after filtering, and where the EnKF estimates the unknown input
+    disturbance d (enkf.disturbance: every loop's EnKF, `loop_observer`) its filtered mean and spread."""
     if tr is None:                       # no gain to simulate: an empty table with the usual columns
         n, p, ny, m = exp.model.n, exp.model.p, exp.model.ny, exp.model.m
         shape = lambda d: np.zeros((0, 0, d))
+        d = shape(m) if exp.filter.disturbance is not None else None
         tr = Trajectories(q=shape(n), y=shape(ny), u=shape(m), psi_pred_mean=shape(n + p),
                           psi_pred_std=shape(n + p), psi_filt_mean=shape(n + p), psi_filt_std=shape(n + p),
-                          failed_at=np.zeros(0, int), failure=np.zeros(0, object), n=n)
+                          failed_at=np.zeros(0, int), failure=np.zeros(0, object), n=n, d_filt_mean=d, d_filt_std=d)
     steps, P = tr.q.shape[:2]
     cols = {"experiment": np.full(steps * P, experiment), "k": np.tile(np.arange(steps), P),
             "path": np.repeat(first_path + np.arange(P), steps)}
@@ -656,9 +649,8 @@ def trajectory_table(experiment: str, tr: Trajectories | None, first_path: int =
         for stat in ("mean", "std"):
             psi = getattr(tr, f"psi_{stage}_{stat}")
             cols.update(_columns(f"x_{stage}_{stat}", tr.x(psi)) | _columns(f"xi_{stage}_{stat}", tr.xi(psi)))
-    for stat in ("mean", "std") if disturbance else ():
-        d = getattr(tr, f"d_filt_{stat}")
-        cols.update(_columns(f"d_filt_{stat}", np.full((steps, P, disturbance), np.nan) if d is None else d))
+    for stat in ("mean", "std") if tr.d_filt_mean is not None else ():
+        cols.update(_columns(f"d_filt_{stat}", getattr(tr, f"d_filt_{stat}")))
     return pd.DataFrame(cols)
 
 
