@@ -99,6 +99,17 @@ class DominantTerm:
         self.eigenbasis = bool(cond <= EIGENBASIS_COND)
         self.Vr, self.W, self.ww = Vr, W, np.outer(w, w)
 
+    def similar(self, d: np.ndarray, scale: float) -> DominantTerm:
+        """The dominant term of the factors D^-1 M_r D / scale, D = diag(d) (`_balanced`), without a new
+        eigendecomposition: M0 -> D^-1 M0 D / scale, its eigenvectors D^-1 V, eigenvalues w / scale."""
+        out = object.__new__(DominantTerm)
+        out.__dict__.update(self.__dict__)
+        out.M0 = self.M0 * d[None, :] / d[:, None] / scale
+        out.rho0, out.ww = self.rho0 / scale ** 2, self.ww / scale ** 2
+        out.Vr = self.Vr / d[:, None]
+        out.W = None if self.W is None else self.W * d[None, :]
+        return out
+
     def solve(self, C: np.ndarray, sigma: float) -> np.ndarray:
         """X (n, n) with sigma X - M0 X M0^T = C, sigma > rho0 (C symmetric: X symmetric)."""
         if not self.eigenbasis:
@@ -131,7 +142,7 @@ def _balanced(Acl: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def perron(Acl: np.ndarray, *, adjoint: bool = False, v0: np.ndarray | None = None,
-           tol: float = PERRON_TOL) -> tuple[float, np.ndarray]:
+           tol: float = PERRON_TOL, dominant: DominantTerm | None = None) -> tuple[float, np.ndarray]:
     """Spectral radius rho and a Perron eigenvector V (n, n) of T(X) = sum_r Acl_r X Acl_r^T.
 
     Acl: (nbar, n, n). adjoint=True uses T*(P) = sum_r Acl_r^T P Acl_r (same spectrum). T maps the
@@ -139,19 +150,20 @@ def perron(Acl: np.ndarray, *, adjoint: bool = False, v0: np.ndarray | None = No
     returned symmetrised with a nonnegative trace (PSD up to rounding).
 
     n <= DENSE_MAX_N: the eigenvalues of the n^2 x n^2 matrix. Beyond, matrix-free on the balanced
-    closed loop, started from v0 (default I): `_perron_davidson`, else ARPACK's Arnoldi iteration for
-    the eigenvalue of largest real part (every eigenvalue has modulus <= rho, so that is rho, also
-    where complex eigenvalues share its modulus). Accuracy: the returned pair has
-    ||T(V) - rho V||_F <= tol rho ||V||_F (tol = PERRON_TOL = 1e-13 by default), so rho is exact to tol
-    times its condition number (tests/numerics/test_matrix_free.py: the dense eigenvalues to 1e-10 on
-    random and degenerate systems; beyond, `collatz_wielandt` brackets).
+    closed loop, started from v0 (default I) and preconditioned by `dominant` (a caller's `DominantTerm`
+    of these factors, adjoint ones if adjoint, or of nearby ones; default built here):
+    `_perron_davidson`, else ARPACK's Arnoldi iteration for the eigenvalue of largest real part (every
+    eigenvalue has modulus <= rho, so that is rho, also where complex eigenvalues share its modulus). Accuracy:
+    the returned pair has ||T(V) - rho V||_F <= tol rho ||V||_F (tol = PERRON_TOL = 1e-13 by default), so rho is
+    exact to tol times its condition number (tests/numerics/test_matrix_free.py: the dense eigenvalues to 1e-10
+    on random and degenerate systems; beyond, `collatz_wielandt` brackets).
     """
     Acl = np.asarray(Acl, dtype=float)
     n = Acl.shape[1]
     if adjoint:
         Acl = Acl.transpose(0, 2, 1)
     if n > DENSE_MAX_N and np.all(np.isfinite(Acl)):
-        return _perron_matrix_free(Acl, v0, tol)
+        return _perron_matrix_free(Acl, v0, tol, dominant)
     L = np.einsum("rij,rkl->ikjl", Acl, Acl).reshape(n * n, n * n)
     w, V = np.linalg.eig(L)
     i = np.argmax(np.abs(w))
@@ -187,7 +199,8 @@ def _normalised(X: np.ndarray) -> np.ndarray:
     return X / (top * (np.sign(np.trace(X)) or 1.0))
 
 
-def _perron_matrix_free(Acl: np.ndarray, v0: np.ndarray | None, tol: float) -> tuple[float, np.ndarray]:
+def _perron_matrix_free(Acl: np.ndarray, v0: np.ndarray | None, tol: float,
+                        dominant: DominantTerm | None = None) -> tuple[float, np.ndarray]:
     """`perron` beyond DENSE_MAX_N on the balanced loop scaled to ||T|| ~ 1: Davidson, else ARPACK
     (Arnoldi for the eigenvalue of largest real part), else the power iteration (rho = 0)."""
     n = Acl.shape[1]
@@ -203,7 +216,7 @@ def _perron_matrix_free(Acl: np.ndarray, v0: np.ndarray | None, tol: float) -> t
     start = np.eye(n) if v0 is None else np.asarray(v0, dtype=float) / np.outer(d, d)
     if not np.all(np.isfinite(start)) or not np.any(start):
         start = np.eye(n)
-    dom = DominantTerm(T.M)
+    dom = DominantTerm(T.M) if dominant is None else dominant.similar(d, unit)
     rho, X, done = _perron_davidson(T, dom, (start + start.T) / 2, tol=tol)
     if not done:                                 # each attempt starts from the last one's best Ritz vector
         rho, X, done = _perron_davidson(T, dom, X, anchored=False, tol=tol)

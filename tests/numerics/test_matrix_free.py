@@ -95,6 +95,15 @@ def test_moment_map_and_dominant_term():
         sigma = 1.3 * max(dom.rho0, 0.1)
         Y = dom.solve(C, sigma)
         assert np.abs(sigma * Y - M0 @ Y @ M0.T - C).max() <= 1e-12 * np.abs(Y).max()
+        # the term of the similar factors D^-1 M_r D / s without a new eigendecomposition
+        d, scale = rng.uniform(0.2, 5, 13), 1.7
+        sim = dom.similar(d, scale)
+        M0s = M0 * d[None, :] / d[:, None] / scale
+        np.testing.assert_allclose(sim.M0, M0s, rtol=1e-14)
+        assert sim.rho0 == pytest.approx(np.abs(np.linalg.eigvals(M0s)).max() ** 2, rel=1e-12)
+        Y = sim.solve(C, sigma / scale ** 2)
+        assert np.abs(sigma / scale ** 2 * Y - M0s @ Y @ M0s.T - C).max() <= 1e-11 * np.abs(Y).max()
+        assert np.abs(dom.M0).max() == np.abs(M0).max()                  # the original untouched
 
 
 @pytest.mark.parametrize("kind", KINDS)
@@ -118,6 +127,9 @@ def test_ms_rate_equals_the_dense_eigenvalues(kind):
                 M = Acl.transpose(0, 2, 1) if adjoint else Acl
                 assert np.abs(T_of(M, X) - r * X).max() <= 1e-10 * r * np.abs(X).max()
                 assert np.linalg.eigvalsh(X).min() >= -1e-8 * np.abs(X).max()
+            # a caller's preconditioner (ms_lqr's: the adjoint factors at a gain 1% away) changes only the path
+            near = DominantTerm((Acl + 0.01 * rng.normal(size=Acl.shape) * np.abs(Acl).max()).transpose(0, 2, 1))
+            assert perron(Acl, adjoint=True, dominant=near)[0] == pytest.approx(rho, rel=1e-10)
         if kind == "uncontrollable":
             assert rx.ms_rate(system, dist, gains[-1]) >= 1.05 * (1 - 1e-12)
 

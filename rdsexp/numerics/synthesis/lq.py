@@ -22,12 +22,13 @@ D - E[Acl_k^T D Acl_k] = Res(P_k) only to the relative accuracy min(1e-2, |Res(P
 Newton's quadratic convergence at a fraction of the GMRES steps.
 
 The returned gain is the one of the last P; its rate is exact (`_rate`: `analysis.ms_rate`, or the same
-Perron root from the dense eigenvalues on symmetric matrices for SYM_RATE_MIN_N <= n <= DENSE_MAX_N) and
-info["riccati_residual"] is the residual at that P. Measured (experiments/benchmark_scale_designs.py,
-README; median CPU s, one thread): 0.0018 s at n = 10, 0.012 at 20, 0.023 at 50, 0.047 at 100, 0.42 at
-200, residuals <= 1e-13; value iteration at its usual stopping rule (relative change 1e-6) takes 0.26 to
-0.6 of that up to n = 100 (1.15 times it at n = 200) with residuals 2e7 times larger. The exact rate of
-the result costs about as much as the Riccati solve (0.6 of 1.8 ms at n = 10).
+Perron root from the dense eigenvalues on symmetric matrices for SYM_RATE_MIN_N <= n <= DENSE_MAX_N; beyond,
+preconditioned by the solve's last dominant term) and info["riccati_residual"] is the residual at that P.
+Measured (experiments/benchmark_scale_designs.py, README; median CPU s, one thread, stabilizable systems):
+0.0020 s at n = 10, 0.012-0.016 at 20, 0.024-0.025 at 50, 0.042-0.046 at 100, 0.41-0.46 at 200, residuals
+<= 1e-13; value iteration at its usual stopping rule (relative change 1e-6) takes 0.23 to 0.56 of that up to
+n = 100 (1.2 times it at n = 200) with residuals 2e7 times larger. The exact rate of the result costs about
+as much as the Riccati solve (0.7 of 2.0 ms at n = 10, 7-9 of 12-16 ms at n = 20, 16-18 of 42-46 ms at 100).
 """
 from __future__ import annotations
 
@@ -187,7 +188,7 @@ def _sym_index(n: int):
 
 
 def _preconditioned_anderson(Abar, Bbar, Q, R, P, residual, F, tol):
-    """(P, Q, R, status `optimal`, iterations) of the fixed-point iteration P <- P + (I - T0)^-1 residual(P)
+    """(P, Q, R, status `optimal`, iterations, T0) of the fixed-point iteration P <- P + (I - T0)^-1 residual(P)
     with Anderson acceleration (memory ANDERSON_MEMORY), or None when it does not converge.
 
     T0 is the dominant Kronecker term (`analysis.DominantTerm`) of T*(X) = E[Acl^T X Acl] at the start's
@@ -216,7 +217,7 @@ def _preconditioned_anderson(Abar, Bbar, Q, R, P, residual, F, tol):
             Gm = np.array(Gs)
             Fm = Gm - np.array(Xs)
             dF, dG = np.diff(Fm, axis=0), np.diff(Gm, axis=0)
-            gamma = np.linalg.lstsq(dF.T, Fm[-1], rcond=None)[0]
+            gamma = _least_squares(dF, Fm[-1])
             P_new = (Gm[-1] - gamma @ dG).reshape(n, n)
             P_new = (P_new + P_new.T) / 2
         residual_new, F_new = _checked_residual(Abar, Bbar, P_new, Q, R)
@@ -228,12 +229,22 @@ def _preconditioned_anderson(Abar, Bbar, Q, R, P, residual, F, tol):
         P, residual, F = P_new, residual_new, F_new
         size = np.abs(residual).max()
         if size <= tol * np.abs(P).max():
-            return P, Q, R, "optimal", iterations
+            return P, Q, R, "optimal", iterations, dominant
         if size < best / 2:
             best, improved = size, iterations
         elif iterations - improved >= ANDERSON_STALL:      # rounding (tol too small) or no convergence
             return None
     return None
+
+
+def _least_squares(D: np.ndarray, f: np.ndarray) -> np.ndarray:
+    """gamma (k,) minimising ||f - D^T gamma|| for D (k, N), k <= ANDERSON_MEMORY << N: from the k x k Gram
+    matrix (k N work, an SVD of the N x k matrix costs 5-10 times more at N = n^2), its directions of
+    singular value below 1e-7 of the largest dropped as lstsq's cut-off does (Anderson's columns can be
+    nearly dependent; a wrong mixing is caught by the safeguard)."""
+    s, U = np.linalg.eigh(D @ D.T)
+    keep = s > 1e-14 * s[-1]
+    return U[:, keep] @ ((U[:, keep].T @ (D @ f)) / s[keep])
 
 
 def _checked_residual(Abar, Bbar, P, Q, R):
@@ -252,10 +263,12 @@ def _no_stabilizing_start(system, dist, start) -> SynthesisResult:
                            info={"rate_optimal": start.lam, "rate_optimal_lower": start.lam_lower})
 
 
-def _result(system, dist, Abar, Bbar, P, Q, R, status, iterations) -> SynthesisResult:
-    """The gain of the last P, its exact rate (`solver_failed` if >= 1) and the Riccati residual at P."""
+def _result(system, dist, Abar, Bbar, P, Q, R, status, iterations, dominant=None) -> SynthesisResult:
+    """The gain of the last P, its exact rate (`solver_failed` if >= 1) and the Riccati residual at P.
+    dominant: the solve's last preconditioner (`DominantTerm` of the adjoint factors at a nearby gain),
+    reused by the rate's eigen-solver."""
     residual, F = riccati_residual(Abar, Bbar, P, Q, R)
-    lam = _rate(Abar + Bbar @ F)
+    lam = _rate(Abar + Bbar @ F, dominant)
     if lam >= 1:                                          # the gain of the last P must itself be stabilizing
         status = "solver_failed"
     return SynthesisResult("ms_lqr", F, lam, status, len(Abar),
@@ -263,15 +276,19 @@ def _result(system, dist, Abar, Bbar, P, Q, R, status, iterations) -> SynthesisR
                                  "riccati_residual": float(np.abs(residual).max() / np.abs(P).max())})
 
 
-def _rate(Acl: np.ndarray) -> float:
+def _rate(Acl: np.ndarray, dominant: DominantTerm | None = None) -> float:
     """The exact mean-square rate of the loop Acl = Abar + Bbar F: `analysis.ms_rate` (on the moment factors
     at hand, bit for bit), except for SYM_RATE_MIN_N <= n <= DENSE_MAX_N the largest eigenvalue modulus of
     T* on symmetric matrices (`_sym_operator`): the same Perron root from the dense eigenvalues of an N x N
-    matrix, N = n (n + 1) / 2, instead of n^2 x n^2 (a sixth of the work at n = 10)."""
+    matrix, N = n (n + 1) / 2, instead of n^2 x n^2 (a sixth of the work at n = 10). Beyond DENSE_MAX_N
+    given `dominant` (the Riccati solve's preconditioner, built on the adjoint factors at a nearby gain),
+    `perron` of T* with it: the same Perron root, the eigendecomposition of the preconditioner not redone."""
     n = Acl.shape[1]
     if not np.all(np.isfinite(Acl)):
         return float("inf")
     if n > DENSE_MAX_N:
+        if dominant is not None:
+            return float(np.sqrt(perron(Acl, adjoint=True, dominant=dominant)[0]))
         return float(np.sqrt(perron(Acl)[0]))
     if n < SYM_RATE_MIN_N:
         L = np.einsum("rij,rkl->ikjl", Acl, Acl).reshape(n * n, n * n)
@@ -328,7 +345,7 @@ def _ms_lqr_matrix_free(system, dist, Abar, Bbar, Q, R, tol, max_iter) -> Synthe
         if np.abs(D).max() <= tol * np.abs(P).max():
             status = "optimal"
             break
-    return _result(system, dist, Abar, Bbar, P, Q, R, status, iterations)
+    return _result(system, dist, Abar, Bbar, P, Q, R, status, iterations, dominant)
 
 
 def _check(options: dict, system: AffineRandomSystem) -> None:

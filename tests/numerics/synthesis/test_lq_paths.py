@@ -207,3 +207,16 @@ def test_ms_lqr_statuses_on_the_new_paths():
         assert loose.status == "optimal" and loose.info["riccati_residual"] <= 1e-6
         exact = rx.synthesize(system, dist, "ms_lqr")
         np.testing.assert_allclose(loose.F, exact.F, rtol=0, atol=1e-4 * np.abs(exact.F).max())
+
+
+def test_anderson_least_squares_equals_lstsq():
+    """The Gram-matrix least squares of the accelerated iteration: numpy's lstsq's minimiser on full-rank
+    columns; on dependent columns (a repeated direction) the same residual and the minimum-norm gamma."""
+    rng = np.random.default_rng(5)
+    for k, N in ((1, 30), (3, 400), (5, 2500)):
+        D, f = rng.normal(size=(k, N)) * rng.uniform(0.1, 10, (k, 1)), rng.normal(size=N)
+        np.testing.assert_allclose(lq._least_squares(D, f), np.linalg.lstsq(D.T, f, rcond=None)[0], rtol=1e-9)
+    D = np.vstack([D[:3], 2 * D[1]])
+    gamma, ref = lq._least_squares(D, f), np.linalg.lstsq(D.T, f, rcond=None)[0]
+    assert np.linalg.norm(f - D.T @ gamma) == pytest.approx(np.linalg.norm(f - D.T @ ref), rel=1e-12)
+    np.testing.assert_allclose(gamma, ref, rtol=1e-7, atol=1e-9 * np.abs(ref).max())
