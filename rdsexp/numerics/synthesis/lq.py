@@ -239,9 +239,9 @@ def _preconditioned_anderson(Abar, Bbar, Q, R, P, residual, F, tol):
 
 def _least_squares(D: np.ndarray, f: np.ndarray) -> np.ndarray:
     """gamma (k,) minimising ||f - D^T gamma|| for D (k, N), k <= ANDERSON_MEMORY << N: from the k x k Gram
-    matrix (k N work, an SVD of the N x k matrix costs 5-10 times more at N = n^2), its directions of
-    singular value below 1e-7 of the largest dropped as lstsq's cut-off does (Anderson's columns can be
-    nearly dependent; a wrong mixing is caught by the safeguard)."""
+    matrix (k N work, an SVD of the N x k matrix costs 5-10 times more at N = n^2). The Gram matrix squares
+    the singular values, so directions of singular value below 1e-7 of the largest are dropped as rounding
+    (Anderson's columns can be nearly dependent; a poor mixing is caught by the safeguard)."""
     s, U = np.linalg.eigh(D @ D.T)
     keep = s > 1e-14 * s[-1]
     return U[:, keep] @ ((U[:, keep].T @ (D @ f)) / s[keep])
