@@ -2,11 +2,11 @@
 
 Over 10 seeded random systems per n of experiments/benchmark_synthesis.py's kind (n = 2 ... 200, one thread,
 CPU seconds of this process), prints per n the median time and iterations of each design with its
-certificate: policy iteration's proven bracket lam - lam_lower, ms_lqr's Riccati residual (max |residual| / max
-|P|), and ms_lqr's two parts: its Riccati solve (its time less that of the exact rate of its gain, timed again
-on its own, after building the preconditioner it reuses from the solve) and that rate; the exact rate `ms_rate`
-of F = 0; the exact LQ cost (`exact_costs`) of ms_lqr's gain; `proposed` (the LMI of Theorem 2, n <= 20 only);
-and a value-iteration baseline on the generalized Riccati equation,
+certificate: policy iteration's proven bracket lam - lam_lower, ms_lqr's Riccati residual
+(max |residual| / max |P|), and ms_lqr's two parts: its Riccati solve (its time less that of the exact rate of
+its gain, timed again on its own, after building the preconditioner it reuses from the solve) and that rate;
+the exact rate `ms_rate` of F = 0; the exact LQ cost (`exact_costs`) of ms_lqr's gain; `proposed` (the LMI
+of Theorem 2, n <= 20 only); and a value-iteration baseline on the generalized Riccati equation,
 P <- Q + E[A^T P A] - E[A^T P B] (R + E[B^T P B])^-1 E[B^T P A] from P = Q until the relative change is below
 1e-6 (the usual stopping rule), with its Riccati residual beside ms_lqr's, and the same iteration until 1e-13
 (ms_lqr's tol) in a second row. Statuses are counted (systems that are not mean-square stabilizable have no LQ
