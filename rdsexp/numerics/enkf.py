@@ -387,9 +387,9 @@ class EnKF:
                 weakref.finalize(work, _CARRIED.pop, id(work), None)
         start = min(max(1.0, settings.low), settings.high)
         previous = np.broadcast_to(start if previous is None else previous, finite.shape)
-        spread = np.sum(Y * Y, axis=(-2, -1)) / (M - 1)                               # tr(V_z)
+        spread = path_sum(Y * Y, 2) / (M - 1)                                          # tr(V_z)
         with np.errstate(divide="ignore", invalid="ignore"):
-            estimate = (np.sum(delta * delta, axis=-1) - np.trace(self.R)) / spread    # Delta^o_k (Miyoshi 2011)
+            estimate = (path_sum(delta * delta, 1) - np.trace(self.R)) / spread        # Delta^o_k (Miyoshi 2011)
         a = settings.smoothing
         smoothed = a * previous ** 2 + (1 - a) * estimate
         keep = ~(finite & (spread > 0) & np.isfinite(smoothed))
@@ -471,8 +471,8 @@ def enkf_n_zeta(mu: np.ndarray, b2: np.ndarray, N: int, grid: int = 32, iteratio
     not always convex (two minima when the innovation is far outside the forecast spread), so it is
     evaluated on a log grid of `grid` points there, and the two lowest local minima of the grid are
     refined: Newton steps on g(t) within the neighbouring grid points, bisecting whenever a step leaves
-    that bracket (at most `iterations`, all paths at once, until every step is below 1e-14 in t); the
-    lower of the two is zeta_a."""
+    that bracket (at most `iterations`, all paths at once, each candidate until its own step is below
+    1e-14 in t, then left as it is); the lower of the two is zeta_a."""
     eps = 1.0 + 1.0 / N
     top = N / eps
     mu, b2 = mu[..., None, :], b2[..., None, :]                                     # (..., 1, ny)
@@ -492,6 +492,9 @@ def enkf_n_zeta(mu: np.ndarray, b2: np.ndarray, N: int, grid: int = 32, iteratio
     left = np.take_along_axis(ts, np.maximum(j - 1, 0), axis=-1)
     right = np.take_along_axis(ts, np.minimum(j + 1, grid - 1), axis=-1)
     t = np.take_along_axis(ts, j, axis=-1)
+    # each candidate stops at its own convergence and is frozen there: a path's zeta never depends on
+    # how many steps the other paths of its batch needed (the same bytes for any batch or chunk)
+    active = np.ones(t.shape, dtype=bool)
     for _ in range(iterations):
         z = np.exp(t)
         q = z[..., None] + mu
@@ -503,12 +506,20 @@ def enkf_n_zeta(mu: np.ndarray, b2: np.ndarray, N: int, grid: int = 32, iteratio
         with np.errstate(divide="ignore", invalid="ignore"):
             step = t - g / slope
         step = np.where((slope > 0) & (step >= left) & (step <= right), step, 0.5 * (left + right))
-        done = np.all(np.abs(step - t) <= 1e-14 * np.maximum(1.0, np.abs(t)))
-        t = step
-        if done:
+        converged = np.abs(step - t) <= 1e-14 * np.maximum(1.0, np.abs(t))
+        t = np.where(active, step, t)
+        active &= ~converged
+        if not active.any():
             break
     best = np.argmin(cost(t), axis=-1)[..., None]
     return np.exp(np.take_along_axis(t, best, axis=-1)[..., 0])
+
+
+def path_sum(a: np.ndarray, axes: int) -> np.ndarray:
+    """Sum of a (..., *last `axes` axes*) over its last `axes` axes -> (...), in one order for every
+    batch: numpy's order follows the memory layout (a batch of one path is contiguous and summed
+    pairwise, a strided batch row by row), so the summands are first laid out contiguously per path."""
+    return np.ascontiguousarray(a).reshape(a.shape[:a.ndim - axes] + (-1,)).sum(axis=-1)
 
 
 def components(a: np.ndarray) -> np.ndarray:
