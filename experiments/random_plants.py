@@ -6,7 +6,7 @@ closed-loop Monte Carlo), then reads every run's record from the store and print
 
 - the draw: n, m, ny, p, the family of xi, the exact open-loop mean-square rate (F = 0) on the true
   plant and the optimal rate (the `proposed` design on the family's exact moments, true plant);
-- the run: completed (run status `complete`), modeled (modeling_status `ok`), the selected gain's
+- the run: completed (run status `complete`), modeled (modeling_status `ok` or `unsettled`), the selected gain's
   exact rate on the true plant (rate_plant), the closed loop's verdict (stable / unstable /
   undetermined / failed; "-" where the record has none), its empirical rate and interval [low, high],
   and the fraction of failed paths; y_rate: the exact rate of the same gain fed by the best linear
@@ -462,7 +462,7 @@ def results_table(plants: list[Plant], outcomes: dict[str, Outcome]) -> pd.DataF
         rows.append({"plant": p.name, "n": p.n, "m": p.m, "ny": p.ny, "p": p.p, "family": p.family,
                      "open_loop_rate": p.open_loop_rate, "mean_rho": p.mean_rho,
                      "optimal_rate": p.optimal_rate, "completed": rec["run_status"] == "complete",
-                     "modeled": rec["modeling_status"] == "ok",
+                     "modeled": rec["modeling_status"] in ("ok", "unsettled"),
                      **rec, "wall_seconds": round(o.seconds, 1), "returncode": o.returncode,
                      "run_dir": str(o.run_dir) if o.run_dir else None, "log": str(o.log), "note": o.note,
                      "y_rate": through_outputs(p, o.run_dir)})

@@ -34,7 +34,7 @@ from ..numerics.online import OnlineController, rates
 from ..numerics.simulation import Trajectories, simulate
 from ..numerics.synthesis import SynthesisResult, synthesize
 from ..numerics.systems import MomentModel
-from ..numerics.verdict import FAILURES, loop_verdict, place_window, window_start
+from ..numerics.verdict import FAILURES, Floor, judge_loop, place_window, rate_interval, window_start
 from .config import Experiment
 from .montecarlo import LoopSummary, chunk_starts, run_chunks
 
@@ -201,7 +201,7 @@ def run_experiment(exp: Experiment, sink=None, cache=None) -> Outcome:
                 loops[name] = LoopSummary.concat(parts)
     if not loops:                              # no gain to simulate: the table's columns, no rows
         sink.append("trajectories", trajectory_table("closed_loop", None, exp=exp))
-    floor = np.nan
+    floor = None
     if "closed_loop" in loops and exp.loop.floor_paths > 0:
         with timed(timings, "noise_floor"):
             floor = noise_floor(exp, observer, chosen.F, root("noise_floor"), sim)
@@ -225,8 +225,9 @@ def run_experiment(exp: Experiment, sink=None, cache=None) -> Outcome:
             "exact": exact,
         }
         summary.update(rate_window=list(window.k), rate_window_source=window.source if window.placed else "none",
-                       noise_floor=floor, loop={"estimate": exp.loop.estimate, "observer_xi": exp.loop.observer_xi,
-                                                "filter_sees_disturbance": exp.loop.filter_sees_disturbance})
+                       noise_floor=np.nan if floor is None else floor.rms,
+                       loop={"estimate": exp.loop.estimate, "observer_xi": exp.loop.observer_xi,
+                             "filter_sees_disturbance": exp.loop.filter_sees_disturbance})
         if isinstance(sink, MemorySink):
             tables |= sink.tables()
     if online is not None:
@@ -274,7 +275,9 @@ def identify_and_model(exp: Experiment, timings: dict, summary: dict, seed, sim:
         if exp.identification.xi_model == "iterated" and exp.model.p:     # (nothing to iterate without xi)
             ident, dist, failure, summary["identification_passes"] = iterate_identification(
                 exp, lambda enkf: identify(F_id, enkf), ident, dist, failure, sim["psi0"])
-        summary["modeling_status"] = failure or "ok"
+        passes = summary.get("identification_passes") or {}
+        unsettled = dist is not None and passes.get("passes") and not passes.get("converged")
+        summary["modeling_status"] = failure or ("unsettled" if unsettled else "ok")
         if dist is not None:
             summary["modeling_covariance"] = exp.identification.covariance
     return ident, dist, failure
@@ -578,6 +581,7 @@ def iterate_identification(exp: Experiment, identify, ident, dist, failure: str,
         change = max(np.abs(new.mean - prior.mean).max(),
                      np.abs(np.sqrt(np.diag(new.cov)) - np.sqrt(np.diag(prior.cov))).max()) / scale
         prior = new
+        info["last_change"], info["tolerance"] = float(change), PASS_TOL
         if change < PASS_TOL:
             info["converged"] = True
             break
@@ -740,7 +744,7 @@ class RateWindow:
     placed: bool = True
 
 
-def rate_window(exp: Experiment, exact: pd.DataFrame, floor: float, closed: LoopSummary | None) -> RateWindow:
+def rate_window(exp: Experiment, exact: pd.DataFrame, floor: Floor | None, closed: LoopSummary | None) -> RateWindow:
     """closed_loop.rate_window as configured, or (auto) placed on the exact RMS curve of the ideal
     closed loop (of the open loop without a gain) from the end of the disturbance, above the noise
     floor, where the closed loop's own RMS is above it too (numerics/verdict.py)."""
@@ -750,7 +754,7 @@ def rate_window(exp: Experiment, exact: pd.DataFrame, floor: float, closed: Loop
     curve = exact.loc[exact["experiment"] == loop, "rms"].to_numpy()
     start = window_start(exp.loop.disturbance, exp.model.n)
     empirical = rms_band(closed.sq)[0] if closed is not None else None    # over the paths still finite
-    placed = place_window(curve, start, floor, empirical)
+    placed = place_window(curve, start, np.nan if floor is None else floor.rms, empirical)
     K = exp.loop.horizon
     return RateWindow(placed, "auto") if placed is not None else \
         RateWindow((min(start, K - 1), K), "auto", placed=False)
@@ -770,24 +774,23 @@ def loop_observer(exp: Experiment, moments):
     return enkf
 
 
-def noise_floor(exp: Experiment, enkf, F: np.ndarray, seed, sim: dict) -> float:
-    """The closed loop's noise floor sqrt(E||q_k||^2): the loop with gain F and the EnKF observer
-    started at rest (q_0 = 0) without disturbance, closed_loop.floor_paths paths, the mean over paths
-    and over the second half of the horizon (numerics/verdict.py). inf when a path of it failed (the
-    loop at rest does not settle at any level)."""
+def noise_floor(exp: Experiment, enkf, F: np.ndarray, seed, sim: dict) -> Floor:
+    """The closed loop's noise floor: the loop with gain F and the EnKF observer started at rest (q_0 =
+    0) without disturbance, closed_loop.floor_paths paths; its mean square over the second half of the
+    horizon, whether it grows there, and which paths failed (`verdict.Floor`)."""
     K = exp.loop.horizon
     tr = simulate(exp.plant, enkf, F=F, d=np.zeros((K + 1, exp.model.m)),
                   paths=min(exp.loop.floor_paths, exp.loop.paths), seed=seed, filter_sees_d=True,
                   **dict(sim, q0=np.zeros(exp.plant.n)))
-    if np.any(tr.failed_at >= 0):
-        return float("inf")
-    return float(np.sqrt(np.mean(np.sum(tr.q[K // 2:] ** 2, axis=-1))))
+    return Floor.of(np.sum(tr.q ** 2, axis=-1), tr.failed_at)
 
 
-def metrics_table(exp: Experiment, loops: dict[str, LoopSummary], window: RateWindow, floor: float,
+def metrics_table(exp: Experiment, loops: dict[str, LoopSummary], window: RateWindow, floor: Floor | None,
                   exact: pd.DataFrame) -> pd.DataFrame:
-    """Per loop: empirical rate over the rate window with its 95% interval, the ideal loop's exact
-    rate over the same window, the noise floor, the verdict and its reason, failures, estimation quality.
+    """Per loop: empirical rate over the rate window with its 95% interval (`verdict.rate_interval`), the
+    ideal loop's exact rate over the same window, the noise floor, the verdict, its reason and the rate it
+    was decided on (`judge_loop`: over k_from..k_end, k_end before k_to where the loop reached its floor,
+    the floor's mean square subtracted), failures, estimation quality.
 
     x_error_rms: RMS of the predicted x_{k|k-1} against q_k (k >= 0); x_rmse, xi_rmse: RMS of the
     filtered x_{k|k}, xi_{k|k} against q_k and the true xi (k >= 1; the true xi at k is T s_{k-1} + t
@@ -798,18 +801,23 @@ def metrics_table(exp: Experiment, loops: dict[str, LoopSummary], window: RateWi
     k_from, k_to = window.k
     rows = []
     for name, loop in loops.items():
-        interval = empirical_rate_sq(loop.sq[k_from], loop.sq[k_to], k_to - k_from)
-        loop_floor = 0.0 if name == "open_loop" else floor
+        loop_floor = None if name == "open_loop" else floor
         ideal = exact.loc[exact["experiment"] == name, "rms"].to_numpy()
+        verdict = judge_loop(loop.sq, failed_at=loop.failed_at, failure=loop.failure,
+                             window=window.k if window.placed else None, exact_rms=ideal if ideal.size else None,
+                             floor=loop_floor, open_loop=name == "open_loop")
+        # the rate over the window as the paper measures it (no floor subtracted); the verdict's own rate is
+        # over k_from..k_end with the floor's mean square subtracted
+        interval = rate_interval(loop.sq[k_from], loop.sq[k_to], k_to - k_from)
         with np.errstate(all="ignore"):
             exact_rate = (ideal[k_to] / ideal[k_from]) ** (1 / (k_to - k_from)) if ideal.size else np.nan
             end_rms = float(np.sqrt(np.mean(loop.sq[k_to])))
-        verdict = loop_verdict(interval, failed_at=loop.failed_at, failure=loop.failure,
-                               window=window.k if window.placed else None, end_rms=end_rms, floor_rms=loop_floor)
         x_rmse, xi_rmse = loop.rms_of("x_err"), loop.rms_of("xi_err")
         rows.append({"experiment": name, "verdict": verdict.word, "verdict_reason": verdict.reason,
                      "status": loop.status, "rate": interval[0], "rate_low": interval[1], "rate_high": interval[2],
-                     "k_from": k_from, "k_to": k_to, "exact_rate": exact_rate, "floor_rms": loop_floor,
+                     "k_from": k_from, "k_to": k_to, "verdict_rate": verdict.rate, "verdict_rate_low": verdict.low,
+                     "verdict_rate_high": verdict.high, "k_end": verdict.k_end, "exact_rate": exact_rate,
+                     "floor_rms": 0.0 if loop_floor is None else loop_floor.rms,
                      "rms_k_to": end_rms, "paths": loop.sq.shape[1],
                      "failed_fraction": float(np.mean(loop.failed_at >= 0)),
                      "x_error_rms": loop.rms_of("x_pred_err"),
@@ -826,7 +834,7 @@ def _ratio(a: float, b: float) -> float:
 
 ESTIMATION = ("x_rmse", "x_spread_error", "xi_rmse", "xi_spread_error")
 METRIC_COLUMNS = ("experiment", "verdict", "verdict_reason", "status", "rate", "rate_low", "rate_high", "k_from",
-                  "k_to", "exact_rate", "floor_rms", "rms_k_to", "paths", "failed_fraction", "x_error_rms",
+                  "k_to", "verdict_rate", "verdict_rate_low", "verdict_rate_high", "k_end", "exact_rate", "floor_rms", "rms_k_to", "paths", "failed_fraction", "x_error_rms",
                   "q_rms_final", *ESTIMATION)
 
 

@@ -78,15 +78,26 @@ COLUMNS: dict[str, dict[str, tuple[str, str | None]]] = {
     },
     "metrics": {
         "experiment": _TRAJECTORY["experiment"],
-        "verdict": ("stable (the rate's 95% interval below 1), unstable (above 1), undetermined (it contains 1, "
-                    "or the window is at the noise floor, or no window above it), failed (some path diverged)", None),
+        "verdict": ("stable (the rate's 95% interval below 1, and the ideal loop's exact rate over the same steps "
+                    "below 1), unstable (the interval above 1; the loop at rest grows; in the open loop, a plant state "
+                    "diverged), undetermined (the interval contains 1, the exact rate contradicts a decay, the loop is "
+                    "at its floor from the window's start, or no window above it), failed (some path diverged, or the "
+                    "loop at rest did)", None),
         "verdict_reason": ("the verdict in words, with the evidence it was decided on", None),
         "status": ("ok, partially_failed or failed (every path): whether paths diverged", None),
         "rate": ("empirical rate (E|q_k_to|^2 / E|q_k_from|^2)^(1/(2 (k_to - k_from)))", "1/step"),
-        "rate_low": ("lower end of the rate's 95% interval", "1/step"),
+        "rate_low": ("lower end of the rate's 95% interval (hull of a studentised and a lognormal bootstrap over "
+                     "paths)", "1/step"),
         "rate_high": ("upper end of the rate's 95% interval", "1/step"),
         "k_from": ("first step of the rate window (config, or auto: after the disturbance)", "step"),
         "k_to": ("last step of the rate window (auto: the ideal loop still 10 floors up)", "step"),
+        "verdict_rate": ("the rate the verdict was decided on: ((E|q_k_end|^2 - f) / (E|q_k_from|^2 - f))^(1/(2 "
+                         "(k_end - k_from))), f the noise floor's mean square (0 for the open loop); NaN when no rate "
+                         "decided", "1/step"),
+        "verdict_rate_low": ("lower end of verdict_rate's 95% interval", "1/step"),
+        "verdict_rate_high": ("upper end of verdict_rate's 95% interval", "1/step"),
+        "k_end": ("last step of verdict_rate: k_to, or the step before the loop is at rest (its mean square "
+                  "within the noise floor's); -1 without a rate", "step"),
         "exact_rate": ("the ideal loop's (state feedback, true plant) exact rate over the same window", "1/step"),
         "floor_rms": ("noise floor sqrt(E|q|^2) of the closed loop at rest (0 for the open loop, "
                       "inf if the loop at rest diverged)", "state"),

@@ -46,11 +46,13 @@ def summary_text(info: dict, run_dir: Path) -> str:
         line = (f"  identification iterated: from {passes['first']}, {passes['passes']} run(s) drawing xi i.i.d. "
                 f"from the previous run's moments, ")
         line += "converged" if passes["converged"] else "stopped before the moments settled"
+        if passes.get("last_change") is not None:
+            line += f" (last change {passes['last_change']:.3g}, tolerance {passes['tolerance']:g})"
         if passes.get("failed"):
             line += f"; a further run failed ({passes['failed']}), its previous moments kept"
         lines.append(line)
-    if s.get("modeling_status") == "ok":
-        lines.append(f"  modeling ok: xi mean {vec(s.get('xi_mean', []))}{beside('xi_mean')}, "
+    if s.get("modeling_status") in ("ok", "unsettled"):       # unsettled: moments, not a fixed point of the passes
+        lines.append(f"  modeling {s['modeling_status']}: xi mean {vec(s.get('xi_mean', []))}{beside('xi_mean')}, "
                      f"nbar {s.get('nbar')}{beside('nbar')}")
         if "xi_std" in s:
             line = f"    modeled xi std {vec(s['xi_std'])}"

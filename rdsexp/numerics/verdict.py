@@ -1,7 +1,7 @@
 """A loop's verdict from its Monte Carlo: stable, unstable, undetermined or failed.
 
 The empirical rate of a loop, (E||q_{k_to}||^2 / E||q_{k_from}||^2)^(1/(2 (k_to - k_from))) with its
-95% interval (`analysis.empirical_rate_sq`), says whether the loop decays only where the decay is
+95% interval (`rate_interval`), says whether the loop decays only where the decay is
 measurable:
 - after the disturbance d_k has ended (the paper's window k = 60..80 starts 10 steps after its
   d_k ends at k = 50);
@@ -9,24 +9,43 @@ measurable:
   EnKF's own noise (its Q, R and finite ensemble) back into the plant, so E||q_k||^2 stops decaying
   at a floor. Over a window at the floor the paths do not decay whatever the gain: a rate near 1
   there says nothing about the loop. The floor is measured, not guessed: E||q_k||^2 of the same
-  loop started at rest (q_0 = 0, no disturbance), averaged over the second half of its horizon.
+  loop started at rest (q_0 = 0, no disturbance), averaged over the second half of its horizon
+(`Floor`). The floor's mean square is subtracted from the loop's before the rate is taken (the
+EnKF's noise adds to the transient), with the floor's own uncertainty, so a loop that decays from
+far above the floor to it has a rate; the window is cut where the loop reaches the floor ("at rest
+from k = ..."). A run at rest that grows, or whose paths diverge, is no floor: the loop grows.
+
+The interval must hold when the mean square is carried by a few paths (multiplicative noise makes
+||q_k||^2 a product of random factors, nearly lognormal with a spread that grows with k; a sample
+of P paths then misses the paths that carry the mean, and the sample mean is low). It is the hull
+of two bootstrap intervals over paths of the same log ratio: the studentised bootstrap of the
+sample means (valid where the central limit theorem holds) and a percentile bootstrap of the
+lognormal means exp(mean log + var log / 2) (valid for products of many random factors, where the
+sample mean is not). `experiments/coverage.py` measures its coverage against exact rates.
 
 `place_window` derives the window from the exact curve sqrt(E||x_k||^2) of the ideal loop (state
 feedback on the true plant, `analysis.second_moments`): from the end of the disturbance to the last
-step at which that curve is still ABOVE_FLOOR times the floor. `loop_verdict` then reads the
-evidence in a fixed order: failed paths, no measurable window, a window ending at the floor, the
-interval against 1.
+step at which that curve is still ABOVE_FLOOR times the floor. `judge_loop` then reads the
+evidence in a fixed order: failed paths (in the open loop, whose observer does not act on the plant,
+a diverged plant state is growth), a run at rest that diverged or grows, no measurable window, the
+window cut where the loop is at rest, the interval against 1, and last the exact rate of the ideal
+loop over the same steps: a loop is never called stable where that exact rate is >= 1.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.special import ndtri
 
 VERDICTS = ("stable", "unstable", "undetermined", "failed")
 ABOVE_FLOOR = 10.0    # a placed window ends where the ideal loop's RMS is still 10 floors (one decade) up
 AT_FLOOR = 3.0        # a window whose empirical RMS at k_to is below 3 floors (the floor then makes
                       # more than 1/9 of E||q||^2) measures the floor, not the loop
+LEVEL = 0.95          # of every rate interval
+RESAMPLES = 999       # bootstrap resamples of the paths
+BOOTSTRAP_SEED = 7    # one fixed stream: an interval is a function of its paths alone (the same bytes for any
+                      # chunk size, worker count or rerun)
 # a path's failure reason (Trajectories.failure) in words
 FAILURES = {"diverged": "the plant state diverged", "filter_diverged": "the EnKF estimate diverged",
             "singular_innovation": "the EnKF innovation covariance was singular"}
@@ -62,44 +81,199 @@ def place_window(exact_rms: np.ndarray, start: int, floor_rms: float, empirical_
 
 @dataclass(frozen=True)
 class Verdict:
-    """word: one of VERDICTS; reason: what it means, in words, from the evidence beside it."""
+    """word: one of VERDICTS; reason: what it means, in words, from the evidence beside it; rate, low,
+    high: the rate and its interval the word was decided on, over [k_from, k_end] (k_end < the window's
+    k_to when the loop reached its floor earlier; NaN without a rate)."""
 
     word: str
     reason: str
+    rate: float = float("nan")
+    low: float = float("nan")
+    high: float = float("nan")
+    k_end: int = -1
 
 
-def loop_verdict(interval: tuple[float, float, float], *, failed_at: np.ndarray, failure: np.ndarray,
-                 window: tuple[int, int] | None, end_rms: float, floor_rms: float) -> Verdict:
-    """The verdict of one loop.
+@dataclass(frozen=True)
+class Floor:
+    """The loop started at rest (q_0 = 0, no disturbance): samples (P_f,), each path's mean of ||q_k||^2
+    over the second half of the horizon; growth (rate, low, high) from the mean over its third quarter
+    to the mean over its last quarter, per path; failed: the fraction of its paths that failed."""
 
-    interval: (rate, low, high) over the window; failed_at (P,) the step each path failed at (-1:
-    never) and failure (P,) why; window: the rate window (None: no window above the floor could be
-    placed); end_rms: sqrt(E||q_{k_to}||^2) of the loop; floor_rms: the loop's noise floor (NaN: not
-    measured, 0: none, as for the open loop, whose observer does not act on the plant; inf: the loop
-    at rest diverged)."""
+    samples: np.ndarray
+    growth: tuple[float, float, float]
+    failed: float
+
+    @classmethod
+    def of(cls, sq: np.ndarray, failed_at: np.ndarray) -> Floor:
+        """From ||q_k||^2 (K+1, P_f) of the run at rest and the step each path failed at (-1: never)."""
+        K = sq.shape[0] - 1
+        ok = failed_at < 0
+        half, quarter = sq[K // 2:, ok], sq[(3 * K) // 4:, ok]
+        third = sq[K // 2:(3 * K) // 4, ok]
+        growth = rate_interval(third.mean(axis=0), quarter.mean(axis=0), max((3 * K) // 4 - K // 2, 1)) \
+            if ok.sum() > 1 and third.size else (float("nan"),) * 3
+        return cls(samples=half.mean(axis=0), growth=growth, failed=float(np.mean(~ok)))
+
+    @property
+    def rms(self) -> float:
+        """sqrt of the floor's mean square (inf when a path of the run at rest failed)."""
+        return float("inf") if self.failed > 0 else float(np.sqrt(np.mean(self.samples)))
+
+
+def rate_interval(b: np.ndarray, a: np.ndarray, span: int, floor: np.ndarray | None = None,
+                  level: float = LEVEL) -> tuple[float, float, float]:
+    """(rate, low, high): rate = ((mean a - f) / (mean b - f))^(1/(2 span)) from per-path ||q_{k_from}||^2
+    = b (P,) and ||q_{k_to}||^2 = a (P,), f the mean of `floor` (P_f,) (0 without), and its `level`
+    interval: the hull of the studentised bootstrap of the log ratio and the percentile bootstrap of its
+    lognormal counterpart (module docstring), paths (and floor paths) resampled together, RESAMPLES
+    times from one fixed stream. NaN when a value is not finite, a transient is not positive, or P < 2.
+    A resample whose transient at k_to (k_from) is not positive has log ratio -inf (+inf): the bound
+    it decides is open (low 0, high inf) rather than guessed."""
+    a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
+    f = np.zeros(1) if floor is None else np.asarray(floor, dtype=float)
+    P = a.size
+    if P < 2 or not (np.all(np.isfinite(a)) and np.all(np.isfinite(b)) and np.all(np.isfinite(f))):
+        return (float("nan"),) * 3
+    point = _log_ratio(a[None], b[None], f[None])[0]
+    if not np.isfinite(point):
+        return (float("nan"),) * 3
+    rng = np.random.default_rng(BOOTSTRAP_SEED)
+    t, lognormal = [], []
+    se = _log_ratio_se(a[None], b[None], f[None])[0]
+    for start in range(0, RESAMPLES, max(1, 2_000_000 // max(P, 1))):      # blocks of resamples: bounded memory
+        count = min(RESAMPLES - start, max(1, 2_000_000 // max(P, 1)))
+        i = rng.integers(P, size=(count, P))
+        j = rng.integers(f.size, size=(count, f.size)) if floor is not None else np.zeros((count, 1), int)
+        ai, bi, fi = a[i], b[i], f[j]
+        with np.errstate(all="ignore"):
+            shift = _log_ratio(ai, bi, fi) - point
+            t.append(np.where(shift == 0, 0.0, shift / _log_ratio_se(ai, bi, fi)))   # 0 / 0: no spread at all
+            if np.all(a > 0) and np.all(b > 0):
+                lognormal.append(_log_ratio(ai, bi, fi, lognormal=True))
+    t = np.nan_to_num(np.concatenate(t), nan=np.inf, posinf=np.inf, neginf=-np.inf)
+    tail = (1 - level) / 2
+    quantile = lambda v, q: np.quantile(v, q, method="inverted_cdf")       # no interpolation between infinities
+    with np.errstate(all="ignore"):
+        low, high = point - quantile(t, 1 - tail) * se, point - quantile(t, tail) * se
+    if lognormal:
+        lognormal = np.nan_to_num(np.concatenate(lognormal), nan=-np.inf, posinf=np.inf, neginf=-np.inf)
+        low, high = min(low, quantile(lognormal, tail)), max(high, quantile(lognormal, 1 - tail))
+    with np.errstate(all="ignore"):
+        return tuple(float(np.exp(v / (2.0 * span))) for v in (point, low, high))
+
+
+def _log_ratio(a, b, f, lognormal: bool = False) -> np.ndarray:
+    """log((m(a) - f) / (m(b) - f)) per row of a, b (R, P) and f (R, P_f) (its mean): m the sample mean, or
+    the lognormal mean exp(mean log + var log / 2); NaN where a transient is not positive."""
+    if lognormal:
+        m = lambda v: np.exp(np.log(v).mean(axis=1) + np.log(v).var(axis=1, ddof=1) / 2)
+    else:
+        m = lambda v: v.mean(axis=1)
+    fm = f.mean(axis=1)
+    top, bottom = m(a) - fm, m(b) - fm
+    with np.errstate(all="ignore"):
+        return np.log(np.clip(top, 0, None)) - np.log(np.clip(bottom, 0, None))   # +-inf, NaN if neither > 0
+
+
+def _log_ratio_se(a, b, f) -> np.ndarray:
+    """Delta-method standard error of `_log_ratio` per row (the loop's paths and the floor's independent)."""
+    fm = f.mean(axis=1)
+    top, bottom = a.mean(axis=1) - fm, b.mean(axis=1) - fm
+    with np.errstate(all="ignore"):
+        g = a / top[:, None] - b / bottom[:, None]              # influence of a path on the log ratio
+        var = g.var(axis=1, ddof=1) / a.shape[1]
+        if f.shape[1] > 1:                                      # d/df of the log ratio: 1/bottom - 1/top
+            var = var + (1 / bottom - 1 / top) ** 2 * f.var(axis=1, ddof=1) / f.shape[1]
+        return np.sqrt(var)
+
+
+def at_rest_from(sq: np.ndarray, k_from: int, k_to: int, floor: Floor | None) -> int | None:
+    """The first step in (k_from, k_to] at which the loop's mean square E||q_k||^2 (sq (K+1, P)) is no
+    longer resolved above the floor's (its one-sided 97.5% lower bound, from the paths' and the floor
+    paths' standard errors, not above the floor's mean square); None when it stays above until k_to."""
+    if floor is None:
+        return None
+    f, P = np.mean(floor.samples), sq.shape[1]
+    se_f2 = np.var(floor.samples, ddof=1) / floor.samples.size if floor.samples.size > 1 else 0.0
+    z = ndtri(0.5 + LEVEL / 2)
+    for k in range(k_from + 1, k_to + 1):
+        m, se2 = sq[k].mean(), sq[k].var(ddof=1) / P
+        if not m - z * np.sqrt(se2 + se_f2) > f:
+            return k
+    return None
+
+
+def paths_needed(rate: float, low: float, high: float, paths: int) -> int | None:
+    """Paths at which an interval [low, high] around `rate` that contains 1 would shrink (as 1 / sqrt(P))
+    to exclude it, if the rate stayed; None when the rate is 1 or not finite."""
+    if not (np.isfinite(rate) and np.isfinite(low) and np.isfinite(high)) or rate == 1:
+        return None
+    distance = abs(np.log(rate))
+    half = (np.log(high) - np.log(low)) / 2
+    return int(np.ceil(paths * (half / distance) ** 2))
+
+
+def judge_loop(sq: np.ndarray, *, failed_at: np.ndarray, failure: np.ndarray, window: tuple[int, int] | None,
+               exact_rms: np.ndarray | None, floor: Floor | None, open_loop: bool = False) -> Verdict:
+    """The verdict of one loop, from its paths' ||q_k||^2 sq (K+1, P) (NaN after a path failed).
+
+    failed_at (P,) the step each path failed at (-1: never), failure (P,) why; window: the rate
+    window (None: no window above the floor could be placed); exact_rms (K+1,): sqrt(E||x_k||^2) of the
+    ideal loop (state feedback on the true plant; None: unknown); floor: the loop at rest (None: no floor,
+    as for the open loop, whose observer does not act on the plant, or not measured); open_loop: a
+    diverged plant state is then the plant's growth."""
     bad = failed_at >= 0
     if bad.any():
         reasons = {r: int(np.sum(failure[bad] == r)) for r in dict.fromkeys(failure[bad])}
         words = ", ".join(f"{FAILURES.get(r, r)} on {c}" for r, c in reasons.items())
-        return Verdict("failed", f"{100 * bad.mean():.0f}% of paths failed (first at k = {failed_at[bad].min()}, "
-                                 f"median k = {np.median(failed_at[bad]):g}): {words}")
-    if np.isinf(floor_rms):
-        return Verdict("undetermined", "the same loop started at rest (no disturbance) diverged: it has no noise "
-                                       "floor, and these paths' decay is not evidence that it is stable")
+        when = f"first at k = {failed_at[bad].min()}, median k = {np.median(failed_at[bad]):g}"
+        if open_loop and set(reasons) == {"diverged"}:
+            return Verdict("unstable", f"the uncontrolled plant grows: its state diverged on {100 * bad.mean():.0f}% "
+                                       f"of paths ({when})")
+        return Verdict("failed", f"{100 * bad.mean():.0f}% of paths failed ({when}): {words}")
+    if floor is not None and floor.failed > 0:
+        return Verdict("failed", f"the same loop started at rest (no disturbance) diverged on "
+                                 f"{100 * floor.failed:.0f}% of its paths: it has no noise floor, the EnKF's noise "
+                                 f"alone drives it away")
+    if floor is not None and floor.growth[1] > 1:
+        g = floor.growth
+        return Verdict("unstable", f"the same loop started at rest (no disturbance) grows: its mean square's rate "
+                                   f"over the second half of its horizon is {g[0]:.4f} [{g[1]:.4f}, {g[2]:.4f}] > 1, "
+                                   f"so it has no noise floor and the loop grows", *g)
     if window is None:
+        floor_rms = "not measured" if floor is None else f"{floor.rms:.3g}"
         return Verdict("undetermined", f"no window to measure a decay: after the disturbance, the ideal loop "
                                        f"({ABOVE_FLOOR:g} floors) and this loop ({2 * AT_FLOOR:g} floors) are not both "
-                                       f"above the noise floor ({floor_rms:.3g}) for a step before the horizon")
-    rate, low, high = interval
-    if np.isfinite(floor_rms) and floor_rms > 0 and not end_rms > AT_FLOOR * floor_rms:
-        return Verdict("undetermined", f"the window ends at the noise floor: RMS {end_rms:.3g} at k = {window[1]} "
-                                       f"is within {AT_FLOOR:g} times the floor {floor_rms:.3g} (the loop at rest), "
-                                       f"so its rate there measures the EnKF's noise, not the loop")
-    if not (np.isfinite(low) and np.isfinite(high)):
-        return Verdict("undetermined", "no rate: the state is 0 or not finite in the window")
+                                       f"above the noise floor ({floor_rms}) for a step before the horizon")
+    k_from, k_to = window
+    rest = at_rest_from(sq, k_from, k_to, floor)
+    k_end = k_to if rest is None else rest - 1
+    if k_end <= k_from:
+        return Verdict("undetermined", f"the loop is at its noise floor ({floor.rms:.3g}) from k = {k_from + 1}: "
+                                       f"no decay above it to measure", k_end=k_from)
+    samples = None if floor is None else floor.samples
+    rate, low, high = rate_interval(sq[k_from], sq[k_end], k_end - k_from, samples)
+    shown = f"{rate:.4f} [{low:.4f}, {high:.4f}]"
+    at_rest = "" if rest is None else f", at rest from k = {rest} (its mean square within the floor's)"
+    over = f"k = {k_from}..{k_end}{at_rest}" + ("" if floor is None else ", the floor's mean square subtracted")
+    if not np.isfinite(rate):
+        return Verdict("undetermined", "no rate: the state is 0 or not finite in the window", k_end=k_end)
+    exact = np.nan                         # the ideal loop over the verdict's steps and over the whole window
+    if exact_rms is not None:
+        with np.errstate(all="ignore"):
+            exact = max((exact_rms[k] / exact_rms[k_from]) ** (1 / (k - k_from)) for k in (k_end, k_to))
     if high < 1:
-        return Verdict("stable", f"the loop decays: the rate's 95% interval [{low:.4f}, {high:.4f}] lies below 1")
+        if exact >= 1:
+            steps = f"k = {k_from}..{k_to}" if k_end == k_to else f"k = {k_from}..{k_end} or {k_from}..{k_to}"
+            return Verdict("undetermined", f"these paths decay ({shown}, {over}) but the ideal loop's exact rate over "
+                                           f"{steps} is {exact:.4f} >= 1: its mean square is carried by paths this "
+                                           f"sample does not have", rate, low, high, k_end)
+        return Verdict("stable", f"the loop decays: the rate's 95% interval [{low:.4f}, {high:.4f}] lies below 1 "
+                                 f"({over})", rate, low, high, k_end)
     if low > 1:
-        return Verdict("unstable", f"the loop grows: the rate's 95% interval [{low:.4f}, {high:.4f}] lies above 1")
-    return Verdict("undetermined", f"the rate's 95% interval [{low:.4f}, {high:.4f}] contains 1: these paths "
-                                   f"show neither decay nor growth at 95%")
+        return Verdict("unstable", f"the loop grows: the rate's 95% interval [{low:.4f}, {high:.4f}] lies above 1 "
+                                   f"({over})", rate, low, high, k_end)
+    need = paths_needed(rate, low, high, sq.shape[1])
+    hint = f"; about {need} paths would separate this rate from 1" if need else ""
+    return Verdict("undetermined", f"the rate's 95% interval [{low:.4f}, {high:.4f}] contains 1 ({over}): these "
+                                   f"paths show neither decay nor growth at 95%{hint}", rate, low, high, k_end)

@@ -1,9 +1,11 @@
-"""Loop verdicts and the automatic rate window on constructed cases (numerics/verdict.py)."""
+"""Loop verdicts, rate intervals and the automatic rate window on constructed cases with known truth
+(numerics/verdict.py)."""
 import numpy as np
 import pytest
+from scipy.stats import binom
 
-from rdsexp.numerics.analysis import empirical_rate_sq
-from rdsexp.numerics.verdict import ABOVE_FLOOR, AT_FLOOR, VERDICTS, loop_verdict, place_window, window_start
+from rdsexp.numerics.verdict import (ABOVE_FLOOR, AT_FLOOR, LEVEL, VERDICTS, Floor, judge_loop, paths_needed,
+                                     place_window, rate_interval, window_start)
 
 OK = dict(failed_at=np.full(400, -1), failure=np.full(400, "", dtype=object))
 
@@ -17,31 +19,102 @@ def paths(rate: float, K: int = 40, P: int = 400, floor: float = 0.0, seed: int 
     return scale * rate ** (2 * k) + floor ** 2 * rng.exponential(1.0, (K + 1, P))
 
 
-def verdict_of(sq, window, floor):
-    k_from, k_to = window
-    interval = empirical_rate_sq(sq[k_from], sq[k_to], k_to - k_from)
-    return loop_verdict(interval, **OK, window=window, end_rms=float(np.sqrt(sq[k_to].mean())), floor_rms=floor)
+def at_rest(floor: float, K: int = 40, P: int = 200, growth: float = 1.0, seed: int = 1) -> Floor:
+    """The run at rest of a loop whose floor has mean square floor^2 (growing by `growth` per step in RMS)."""
+    sq = floor ** 2 * np.random.default_rng(seed).exponential(1.0, (K + 1, P)) * growth ** (2 * np.arange(K + 1))[:, None]
+    return Floor.of(sq, np.full(P, -1))
+
+
+def judge(sq, window, floor=None, exact=None, **kw):
+    P = sq.shape[1]
+    settings = dict(failed_at=np.full(P, -1), failure=np.full(P, "", dtype=object)) | kw
+    return judge_loop(sq, window=window, exact_rms=exact, floor=floor, **settings)
 
 
 @pytest.mark.parametrize("rate, word", [(0.8, "stable"), (1.1, "unstable"), (1.0, "undetermined")])
 def test_interval_decides_above_the_floor(rate, word):
-    v = verdict_of(paths(rate), (5, 15), 0.0)
+    v = judge(paths(rate), (5, 15))
     assert v.word == word, v.reason
     assert ("below 1" in v.reason) == (word == "stable") and ("above 1" in v.reason) == (word == "unstable")
+    assert v.k_end == 15 and v.low <= v.rate <= v.high
 
 
-def test_a_window_at_the_noise_floor_is_undetermined():
-    # a fast loop (rate 0.3) reaches the floor 1e-3 within ~6 steps: over k = 20..30 the paths sit at
-    # the floor and their rate is ~1, which says nothing about the loop
+def scalar_paths(a_draws: np.ndarray, K: int) -> np.ndarray:
+    """||x_k||^2 (K+1, P) of x_{k+1} = a_k x_k, x_0 = 1, from the draws a (K, P)."""
+    return np.r_[np.ones((1, a_draws.shape[1])), np.cumprod(a_draws ** 2, axis=0)]
+
+
+@pytest.mark.parametrize("law, P", [("student", 30), ("student", 200), ("bernoulli", 30), ("uniform", 100)])
+def test_interval_covers_the_exact_rate_of_a_heavy_tailed_scalar_system(law, P):
+    """x_{k+1} = a_k x_k: exact mean-square rate sqrt(E a^2) over any window. a = 0.9 + 0.3 t_5 (heavy
+    tails: t with 5 degrees of freedom, E a^2 = 0.81 + 0.09 * 5/3), a lossy actuator (1.25 w.p. 0.7, else
+    0.3), a uniform on [0, 1.9]. Over 200 seeds the 95% interval must cover as often as a binomial(200,
+    0.95) allows at its 0.1% quantile (the Monte Carlo error of the coverage itself)."""
+    K, k_from, k_to, seeds = 30, 10, 30, 200
+    draw = {"student": lambda g, s: 0.9 + 0.3 * g.standard_t(5, s),
+            "bernoulli": lambda g, s: np.where(g.random(s) < 0.7, 1.25, 0.3),
+            "uniform": lambda g, s: g.uniform(0.0, 1.9, s)}[law]
+    exact = {"student": np.sqrt(0.81 + 0.09 * 5 / 3), "bernoulli": np.sqrt(1.25 ** 2 * 0.7 + 0.3 ** 2 * 0.3),
+             "uniform": np.sqrt(1.9 ** 2 / 3)}[law]
+    covered = 0
+    for seed in range(seeds):
+        sq = scalar_paths(draw(np.random.default_rng(seed), (K, P)), K)
+        _, low, high = rate_interval(sq[k_from], sq[k_to], k_to - k_from)
+        covered += low <= exact <= high
+    assert covered >= binom.ppf(0.001, seeds, LEVEL), f"{covered} of {seeds}"
+
+
+def test_interval_is_deterministic_and_needs_two_paths():
+    sq = paths(0.9, P=50)
+    assert rate_interval(sq[5], sq[15], 10) == rate_interval(sq[5].copy(), sq[15].copy(), 10)
+    assert all(np.isnan(rate_interval(sq[5, :1], sq[15, :1], 10)))
+    bad = sq[15].copy()
+    bad[3] = np.inf
+    assert all(np.isnan(rate_interval(sq[5], bad, 10)))
+
+
+def test_a_loop_that_decays_to_its_floor_is_stable_at_rest():
+    """A fast loop (rate 0.3) reaches the floor 1e-3 within ~6 steps: over k = 0..30 the window is cut
+    where the loop is at rest and the decay before it decides; a window that starts at the floor has
+    nothing to measure."""
     sq = paths(0.3, floor=1e-3)
-    v = verdict_of(sq, (20, 30), 1e-3)
-    assert v.word == "undetermined" and "noise floor" in v.reason
-    # the same paths over a window above the floor: stable
-    assert verdict_of(sq, (0, 3), 1e-3).word == "stable"
-    # the floor check is a comparison with AT_FLOOR floors at k_to
-    end = float(np.sqrt(sq[30].mean()))
-    assert "noise floor" not in verdict_of(sq, (20, 30), end / (AT_FLOOR * 1.01)).reason
-    assert "noise floor" in verdict_of(sq, (20, 30), end / (AT_FLOOR * 0.99)).reason
+    v = judge(sq, (0, 30), at_rest(1e-3))
+    assert v.word == "stable" and "at rest from k = " in v.reason, v.reason
+    assert 0 < v.k_end < 30 and v.high < 1
+    v = judge(sq, (20, 30), at_rest(1e-3))
+    assert v.word == "undetermined" and "noise floor" in v.reason and v.k_end == 20
+
+
+def test_floor_is_subtracted_with_its_uncertainty():
+    """Paths decaying at 0.9 onto a floor: the rate over the window with the floor's mean square
+    subtracted is near 0.9, while the plain ratio is pulled towards 1."""
+    sq = paths(0.9, K=40, P=2000, floor=0.05)
+    floor = at_rest(0.05, P=2000)
+    v = judge(sq, (0, 25), floor)
+    plain = rate_interval(sq[0], sq[v.k_end], v.k_end)[0]
+    assert v.word == "stable" and abs(v.rate - 0.9) < abs(plain - 0.9) and v.low < 0.9 < v.high
+
+
+def test_a_floor_that_grows_or_diverges_is_no_floor():
+    sq = paths(0.8)
+    grows = judge(sq, (5, 15), at_rest(0.01, growth=1.05))
+    assert grows.word == "unstable" and "at rest" in grows.reason and grows.low > 1
+    steady = at_rest(0.01)
+    assert steady.growth[1] <= 1 <= steady.growth[2]
+    diverged = Floor(samples=np.ones(10), growth=(1.0, 0.9, 1.1), failed=0.2)
+    v = judge(sq, (5, 15), diverged)
+    assert v.word == "failed" and "diverged on 20% of its paths" in v.reason and diverged.rms == np.inf
+
+
+def test_never_stable_beside_an_exact_rate_at_or_above_1():
+    """Paths that decay while the ideal loop's exact curve grows over the same steps: undetermined."""
+    sq = paths(0.8)
+    K = sq.shape[0] - 1
+    growing = 1.02 ** np.arange(K + 1)
+    v = judge(sq, (5, 15), exact=growing)
+    assert v.word == "undetermined" and "exact rate" in v.reason and "1.0200 >= 1" in v.reason
+    assert judge(sq, (5, 15), exact=0.9 ** np.arange(K + 1)).word == "stable"
+    assert judge(paths(1.1), (5, 15), exact=growing).word == "unstable"
 
 
 def test_failed_paths_give_failed_with_fraction_time_and_cause():
@@ -49,21 +122,39 @@ def test_failed_paths_give_failed_with_fraction_time_and_cause():
     failed_at[[2, 5, 7]] = [30, 12, 40]
     failure = np.full(10, "", dtype=object)
     failure[[2, 5, 7]] = ["diverged", "filter_diverged", "filter_diverged"]
-    v = loop_verdict((0.5, 0.4, 0.6), failed_at=failed_at, failure=failure, window=(5, 10), end_rms=1.0,
-                     floor_rms=0.0)
+    v = judge(paths(0.5, P=10), (5, 10), failed_at=failed_at, failure=failure)
     assert v.word == "failed"
     assert v.reason == ("30% of paths failed (first at k = 12, median k = 30): the plant state diverged on 1, "
                         "the EnKF estimate diverged on 2")
 
 
+def test_open_loop_paths_whose_plant_diverged_are_growth():
+    failed_at = np.full(10, -1)
+    failed_at[[1, 4]] = [60, 70]
+    failure = np.full(10, "", dtype=object)
+    failure[[1, 4]] = "diverged"
+    v = judge(paths(1.1, P=10), (5, 10), failed_at=failed_at, failure=failure, open_loop=True)
+    assert v.word == "unstable" and "diverged on 20% of paths" in v.reason
+    failure[4] = "filter_diverged"          # the EnKF's failure is not the plant's growth
+    assert judge(paths(1.1, P=10), (5, 10), failed_at=failed_at, failure=failure, open_loop=True).word == "failed"
+
+
 def test_no_window_is_undetermined():
-    v = loop_verdict((0.5, 0.4, 0.6), **OK, window=None, end_rms=1.0, floor_rms=0.1)
+    v = judge(paths(0.5), None, at_rest(0.1))
     assert v.word == "undetermined" and "no window" in v.reason
-    # the loop at rest diverged (floor inf): whatever these paths did, undetermined, and no window placed
-    v = loop_verdict((0.5, 0.4, 0.6), **OK, window=(5, 10), end_rms=1.0, floor_rms=float("inf"))
-    assert v.word == "undetermined" and "at rest (no disturbance) diverged" in v.reason
     assert place_window(np.ones(20), 3, float("inf")) is None
     assert {"stable", "unstable", "undetermined", "failed"} == set(VERDICTS)
+
+
+def test_undetermined_says_how_many_paths_would_decide():
+    sq = paths(0.998, P=100, seed=3) * np.random.default_rng(4).lognormal(0, 0.3, (41, 100))
+    v = judge(sq, (5, 15))
+    assert v.word == "undetermined" and "paths would separate" in v.reason
+    need = paths_needed(v.rate, v.low, v.high, 100)
+    assert need > 100
+    # the interval shrinks as 1/sqrt(P): at the paths it names, its half-width equals the distance to 1
+    half = (np.log(v.high) - np.log(v.low)) / 2
+    assert abs(half * np.sqrt(100 / need) - abs(np.log(v.rate))) < 1e-2 * half
 
 
 def test_window_placed_after_the_disturbance_above_the_floor():
