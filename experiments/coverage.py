@@ -1,0 +1,156 @@
+"""Calibration of rdsexp's rate intervals and verdicts against exact truths (simulation-based calibration).
+
+The open loop is the one loop whose truth is exact: its observer does not act on the plant, so its
+paths are the plant's own (x_{k+1} = A(xi_k) x_k + B(xi_k) d_k) and the exact rate over the rate
+window, (E||x_k_to||^2 / E||x_k_from||^2)^(1/(2 (k_to - k_from))) from the exact second moments
+(`analysis.second_moments`), is what its Monte Carlo estimates. Per plant and path count, over
+--seeds seeds, the open loop's paths are simulated (`simulation.simulate_state_feedback`, F = 0: the
+same plant samples the EnKF loop would see) and judged by the verdict rdsexp gives a run
+(`verdict.judge_loop`, no floor, the exact curve beside it); printed:
+
+- coverage: the fraction of decisive intervals (the verdict stable or unstable) that hold the exact
+  rate, with its binomial standard error;
+- wrong: the fraction of decisive verdicts on the wrong side of 1 (truth: the exact rate);
+- undetermined: the fraction of verdicts that are neither (failed counts here too);
+- decisive: how many verdicts were decisive.
+
+Plants: the library's (`paper`, `dropout`, `cart_pole`, `two_carts`, `multiplicative`), `unst3` (3
+states, a Bernoulli actuator dropout and a uniform parameter on A[0, 0], exact open-loop rate 1.064;
+written below) and --random random plants of `experiments/random_plants.py`'s draw (half of them
+mean-square unstable in open loop). The window is the library plant's configured one, else from the
+end of the disturbance to the horizon, as `closed_loop.rate_window=auto` starts it.
+
+    python experiments/coverage.py [--seeds 50] [--paths 30 100 300] [--random 10] [--plants a,b]
+
+--closed N adds, for the library plants and `unst3`, N seeded runs of the whole experiment per path
+count (identification, design, EnKF closed loop with its floor) and counts the closed loops called
+`stable` beside an ideal-loop exact rate >= 1 (rdsexp never says so) and the verdicts' spread.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from rdsexp.numerics.analysis import second_moments
+from rdsexp.numerics.simulation import simulate_state_feedback
+from rdsexp.numerics.verdict import judge_loop, window_start
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import random_plants  # noqa: E402  (the random plants' draw)
+
+LIBRARY = ("paper", "dropout", "cart_pole", "two_carts", "multiplicative")
+UNST3 = {"name": "unst3",
+         "A": [[[1.05, 0.2, 0.0], [0.0, 0.95, 0.1], [0.0, 0.0, 0.9]], [[0, 0, 0]] * 3,
+               [[0.3, 0, 0], [0, 0, 0], [0, 0, 0]]],
+         "B": [[[0], [0], [0]], [[0], [0], [1]], [[0], [0], [0]]],
+         "C": [[[1, 0, 0]]],
+         "xi": {"family": "independent", "components": [{"family": "bernoulli", "prob": 0.8},
+                                                         {"family": "uniform", "low": -1.0, "high": 1.0}]}}
+
+
+def experiment(plant: str, config_dir: Path | None, overrides=()):
+    """The validated Experiment of `plant` with the default configuration (a --config-dir plant
+    file is identified with its own structure, `model=plant`)."""
+    from hydra import compose, initialize_config_dir, initialize_config_module
+
+    from rdsexp.experiment.config import build
+    extra = [f"plant={plant}"] + ([] if plant in LIBRARY else ["model=plant"]) + list(overrides)
+    if config_dir is None:
+        with initialize_config_module(config_module="rdsexp.conf", version_base="1.3"):
+            return build(compose("config", overrides=extra))
+    import rdsexp.conf
+    with initialize_config_dir(config_dir=str(Path(rdsexp.conf.__file__).parent), version_base="1.3"):
+        cfg = compose("config", overrides=[f"hydra.searchpath=[file://{config_dir}]", *extra])
+    return build(cfg)
+
+
+def open_loop_calibration(exp, paths: int, seeds: int) -> dict:
+    """Coverage, wrong and undetermined fractions of the open loop's verdict over `seeds` seeds."""
+    d, plant = exp.loop.disturbance, exp.plant
+    K = d.shape[0] - 1
+    window = exp.loop.rate_window or (window_start(d, exp.model.n), K)
+    F0 = np.zeros((plant.m, plant.n))
+    with np.errstate(all="ignore"):
+        _, second = second_moments(plant, None, F0, exp.q0, d)
+    exact_rms = np.sqrt(np.trace(second, axis1=1, axis2=2))
+    truth = (exact_rms[window[1]] / exact_rms[window[0]]) ** (1 / (window[1] - window[0]))
+    decisive = covered = wrong = 0
+    for seed in range(seeds):
+        with np.errstate(all="ignore"):
+            x = simulate_state_feedback(plant, F0, d=d, x0=exp.q0, paths=paths, seed=seed)
+        sq = np.sum(x ** 2, axis=-1)
+        grown = ~np.all(np.isfinite(sq) & (sq < 1e12), axis=0)         # the pipeline's divergence bound 1e6 on |q|
+        failed_at = np.where(grown, np.argmax(~(np.isfinite(sq) & (sq < 1e12)), axis=0), -1)
+        sq = np.where(np.arange(K + 1)[:, None] >= np.where(grown, failed_at, K + 1), np.nan, sq)
+        v = judge_loop(sq, failed_at=failed_at, failure=np.where(grown, "diverged", "").astype(object),
+                       window=window, exact_rms=exact_rms, floor=None, open_loop=True)
+        if v.word in ("stable", "unstable"):
+            decisive += 1
+            wrong += (v.word == "stable") != (truth < 1)
+            if np.isfinite(v.low):                 # an interval beside the word (a diverged loop has none)
+                covered += v.low <= truth <= v.high
+            else:
+                covered += 1 if v.word == "unstable" and truth >= 1 else 0
+    return {"truth": truth, "window": window, "decisive": decisive, "coverage": covered / decisive if decisive else np.nan,
+            "wrong": wrong / decisive if decisive else np.nan, "undetermined": 1 - decisive / seeds}
+
+
+def closed_loop_contradictions(plant: str, config_dir: Path | None, paths: int, runs: int) -> dict:
+    """Whole runs: how often the closed loop is called stable beside an ideal-loop exact rate >= 1."""
+    from rdsexp.experiment.pipeline import run_experiment
+    words, contradictions = {}, 0
+    for seed in range(runs):
+        exp = experiment(plant, config_dir, [f"seed={seed}", f"closed_loop.paths={paths}", "tracking=summary"])
+        metrics = run_experiment(exp).tables["metrics"].set_index("experiment")
+        if "closed_loop" not in metrics.index:
+            words["no loop"] = words.get("no loop", 0) + 1
+            continue
+        row = metrics.loc["closed_loop"]
+        words[row["verdict"]] = words.get(row["verdict"], 0) + 1
+        contradictions += row["verdict"] == "stable" and row["exact_rate"] >= 1
+    return {"verdicts": words, "stable_beside_exact_above_1": contradictions}
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--seeds", type=int, default=50)
+    parser.add_argument("--paths", type=int, nargs="+", default=[30, 100, 300])
+    parser.add_argument("--random", type=int, default=10, help="random plants (random_plants.py's draw, seed 0)")
+    parser.add_argument("--plants", default=",".join(LIBRARY + ("unst3",)))
+    parser.add_argument("--closed", type=int, default=0, help="whole runs per plant and path count (0: none)")
+    args = parser.parse_args(argv)
+    with tempfile.TemporaryDirectory() as tmp:
+        config_dir = Path(tmp)
+        (config_dir / "plant").mkdir()
+        (config_dir / "plant" / "unst3.yaml").write_text(yaml.safe_dump(UNST3))
+        names = [p for p in args.plants.split(",") if p]
+        if args.random:
+            for plant in random_plants.draw_plants(args.random, 0):
+                random_plants.write_plant(plant, config_dir, "# coverage.py")
+                names.append(plant.name)
+        print(f"{'plant':16s} {'paths':>5s} {'window':>9s} {'exact':>7s} {'decisive':>8s} {'coverage':>14s} "
+              f"{'wrong':>6s} {'undet.':>6s}")
+        start = time.time()
+        for name in names:
+            exp = experiment(name, config_dir)
+            for paths in args.paths:
+                r = open_loop_calibration(exp, paths, args.seeds)
+                se = np.sqrt(r["coverage"] * (1 - r["coverage"]) / r["decisive"]) if r["decisive"] else np.nan
+                print(f"{name:16s} {paths:5d} {str(r['window']):>9s} {r['truth']:7.4f} {r['decisive']:8d} "
+                      f"{r['coverage']:7.2f} +-{se:4.2f} {r['wrong']:6.2f} {r['undetermined']:6.2f}", flush=True)
+        if args.closed:
+            for name in [n for n in names if n in LIBRARY + ("unst3",)]:
+                for paths in args.paths:
+                    r = closed_loop_contradictions(name, config_dir, paths, args.closed)
+                    print(f"closed loop {name:16s} {paths:5d}: {r}", flush=True)
+        print(f"{time.time() - start:.0f} s")
+
+
+if __name__ == "__main__":
+    main()
