@@ -97,8 +97,9 @@ def open_loop_calibration(exp, paths: int, seeds: int) -> dict:
                 covered += v.low <= truth <= v.high
             else:
                 covered += 1 if v.word == "unstable" and truth >= 1 else 0
-    return {"truth": truth, "window": window, "decisive": decisive, "coverage": covered / decisive if decisive else np.nan,
-            "wrong": wrong / decisive if decisive else np.nan, "undetermined": 1 - decisive / seeds}
+    share = (lambda count: count / decisive) if decisive else (lambda count: np.nan)
+    return {"truth": truth, "window": window, "decisive": decisive, "coverage": share(covered), "wrong": share(wrong),
+            "undetermined": 1 - decisive / seeds}
 
 
 def closed_loop_contradictions(plant: str, config_dir: Path | None, paths: int, runs: int) -> dict:

@@ -834,8 +834,8 @@ def _ratio(a: float, b: float) -> float:
 
 ESTIMATION = ("x_rmse", "x_spread_error", "xi_rmse", "xi_spread_error")
 METRIC_COLUMNS = ("experiment", "verdict", "verdict_reason", "status", "rate", "rate_low", "rate_high", "k_from",
-                  "k_to", "verdict_rate", "verdict_rate_low", "verdict_rate_high", "k_end", "exact_rate", "floor_rms", "rms_k_to", "paths", "failed_fraction", "x_error_rms",
-                  "q_rms_final", *ESTIMATION)
+                  "k_to", "verdict_rate", "verdict_rate_low", "verdict_rate_high", "k_end", "exact_rate", "floor_rms",
+                  "rms_k_to", "paths", "failed_fraction", "x_error_rms", "q_rms_final", *ESTIMATION)
 
 
 def exact_table(exp: Experiment, chosen: SynthesisResult | None) -> pd.DataFrame:

@@ -105,7 +105,8 @@ def test_iterated_identification_models_from_its_last_pass_and_stops_at_a_fixed_
     assert failure == ""
     _, same, _, info = pipeline.iterate_identification(exp, lambda enkf: first, first, dist, "",
                                                        exp.simulation()["psi0"])
-    assert info == {"first": "random_walk", "passes": 1, "converged": True}
+    assert info == {"first": "random_walk", "passes": 1, "converged": True, "last_change": 0.0,
+                    "tolerance": pipeline.PASS_TOL}
     np.testing.assert_array_equal(same.mean, dist.mean)
     failing = copy.copy(first)
     failing.failed_at = np.array([7])

@@ -4,8 +4,18 @@ import numpy as np
 import pytest
 from scipy.stats import binom
 
-from rdsexp.numerics.verdict import (ABOVE_FLOOR, AT_FLOOR, LEVEL, VERDICTS, Floor, judge_loop, paths_needed,
-                                     place_window, rate_interval, window_start)
+from rdsexp.numerics.verdict import (
+    ABOVE_FLOOR,
+    AT_FLOOR,
+    LEVEL,
+    VERDICTS,
+    Floor,
+    judge_loop,
+    paths_needed,
+    place_window,
+    rate_interval,
+    window_start,
+)
 
 OK = dict(failed_at=np.full(400, -1), failure=np.full(400, "", dtype=object))
 
