@@ -229,6 +229,8 @@ class IdentificationSettings:
     covariance: str = "sample"
     xi_model: str = "random_walk"
     passes: int = 0
+    resamples: int = 0          # moving-block bootstrap of the modeling window (0: no uncertainty)
+    block: int = 5
 
     @classmethod
     def from_config(cls, cfg, plant: AffineRandomSystem) -> IdentificationSettings:
@@ -249,8 +251,10 @@ class IdentificationSettings:
             raise ConfigError(f"identification.xi_model: {xi_model!r} is not allowed, expected one of "
                               f"{', '.join(XI_MODELS)}")
         passes = _number(get(cfg, "identification.passes"), "identification.passes", integer=True, low=1)
+        resamples = _number(get(cfg, "identification.resamples"), "identification.resamples", integer=True, low=0)
+        block = _number(get(cfg, "identification.block"), "identification.block", integer=True, low=1)
         return cls(input=u_id, K0=K0, K1=K1, feedback=feedback, gain=F_id, xi_guess=xi_guess, covariance=covariance,
-                   xi_model=xi_model, passes=passes)
+                   xi_model=xi_model, passes=passes, resamples=resamples, block=block)
 
 
 @dataclass(frozen=True)

@@ -29,8 +29,8 @@ from ..numerics import observer_loop
 from ..numerics.analysis import empirical_rate_sq, exact_costs, ms_rate, rms_band, second_moments
 from ..numerics.distributions import expected_crps
 from ..numerics.enkf import truth_map
-from ..numerics.modeling import model_distribution, nominal_gain
-from ..numerics.online import OnlineController, rates
+from ..numerics.modeling import model_distribution, moment_draws, nominal_gain
+from ..numerics.online import OnlineController, moment_factors, rates
 from ..numerics.simulation import Trajectories, simulate
 from ..numerics.synthesis import SynthesisResult, synthesize
 from ..numerics.systems import MomentModel
@@ -132,6 +132,7 @@ def run_experiment(exp: Experiment, sink=None, cache=None) -> Outcome:
             cache.save("identification", key, {"ident": ident, "dist": dist, "failure": failure,
                                                "summary": {k: summary[k] for k in IDENTIFICATION_SUMMARY
                                                            if k in summary}})
+    draws = moment_uncertainty(exp, ident, summary) if dist is not None else None
     with timed(timings, "synthesis"):
         # the loop's method and the comparison designs (gain.designs) on the identified moments (the
         # selected one with its configured options) and, when the config gives them, on the moments a
@@ -164,6 +165,12 @@ def run_experiment(exp: Experiment, sink=None, cache=None) -> Outcome:
                                         "because": chosen.info.get("reason", chosen.status)}
             selected = (selected[0], fallback)
             chosen = designs[selected][1]
+        if selected[0] == "identified" and draws is not None and chosen is not None and chosen.F is not None:
+            kept = safer_gain(exp, ident, dist, chosen, draws, summary)
+            if kept is not None:                # the identification's own gain: the loop keeps it
+                selected = ("identified", kept.method)
+                designs[selected] = (dist, kept)
+                chosen = kept
         observer = loop_observer(exp, designs.get(selected, (None, None))[0])
 
     # closed and open loop in chunks of paths: rows go to the sink chunk by chunk, the metrics keep a
@@ -235,6 +242,8 @@ def run_experiment(exp: Experiment, sink=None, cache=None) -> Outcome:
     summary.update(_summary(exp, dist, chosen, tables))
     if "gain_fallback" in summary:                      # the method whose gain the loop uses
         summary["gain_method"] = summary["gain_fallback"]["method"]
+    if (summary.get("gain_choice") or {}).get("kept") == "identification":
+        summary["gain_method"] = KEPT_GAIN
     timings["synthesis_by_method"] = {f"{source}/{method}": round(res.seconds, 4)
                                       for (source, method), (_, res) in designs.items()}
     recorded = pd.concat([tables["identification"], *sample], ignore_index=True)
@@ -540,6 +549,8 @@ def _design_key(model, moments, method: str, options: dict) -> str:
     return h.hexdigest()
 
 
+UNCERTAINTY_STREAM = 3   # SeedSequence([seed, 3]): the modeling window's bootstrap (stages use spawn keys 0-2)
+KEPT_GAIN = "identification_gain"     # the method name of the identification's gain when the loop keeps it
 CRPS_SEED, CRPS_DRAWS = 20240, 20_000   # the plant's xi drawn for the summary's xi_crps (Monte Carlo error < 1%)
 PASS_TOL = 1e-3        # iterated identification: stop when the moments move less than this (relative)
 
@@ -586,6 +597,61 @@ def iterate_identification(exp: Experiment, identify, ident, dist, failure: str,
             info["converged"] = True
             break
     return ident, dist, failure, info
+
+
+def moment_uncertainty(exp: Experiment, ident: Trajectories, summary: dict) -> tuple[np.ndarray, np.ndarray] | None:
+    """The modeled moments' uncertainty: identification.resamples moving-block bootstrap draws (means (B, p),
+    covariances (B, p, p)) of the modeling window of the run the moments come from (`modeling.moment_draws`),
+    seeded by the run's seed; their spread (std over draws of each xi mean and std) goes into the summary.
+    None without resamples."""
+    settings = exp.identification
+    if not settings.resamples or not exp.model.p:
+        return None
+    total = settings.covariance == "total"
+    mean, cov = moment_draws(ident.xi(ident.psi_filt_mean)[:, 0], settings.K0, settings.K1,
+                             ident.xi_filt_cov[:, 0] if total else None, resamples=settings.resamples,
+                             block=settings.block, seed=[exp.seed, UNCERTAINTY_STREAM])
+    std = np.sqrt(np.clip(np.diagonal(cov, axis1=1, axis2=2), 0, None))
+    summary["modeling_uncertainty"] = {"resamples": settings.resamples, "block": settings.block,
+                                       "xi_mean_sd": mean.std(axis=0, ddof=1).tolist(),
+                                       "xi_std_sd": std.std(axis=0, ddof=1).tolist()}
+    return mean, cov
+
+
+def safer_gain(exp: Experiment, ident: Trajectories, dist: MomentModel, chosen: SynthesisResult,
+               draws: tuple[np.ndarray, np.ndarray], summary: dict) -> SynthesisResult | None:
+    """When the identification ran under a feedback gain F_id: the exact rates of the designed gain and of
+    F_id at every draw of the modeled moments (`moment_uncertainty`), at their worst over the draws. The
+    designed gain is the optimum at the point estimate only; where it is worse at its worst than the gain the
+    plant was run with, the loop keeps F_id (a SynthesisResult with status `kept`; None: the designed gain
+    stays). The comparison and the choice go into summary["gain_choice"]."""
+    F_id = identification_gain(exp, summary.get("identification_feedback") or {})
+    if F_id is None:
+        return None
+    Abar, Bbar = moment_factors(exp.model, *draws)
+    with np.errstate(all="ignore"):
+        designed = rates(Abar, Bbar, np.broadcast_to(chosen.F, (len(Abar),) + chosen.F.shape))
+        held = rates(Abar, Bbar, np.broadcast_to(F_id, (len(Abar),) + F_id.shape))
+    worst_designed, worst_held = float(np.max(designed)), float(np.max(held))
+    keep = worst_held < worst_designed
+    summary["gain_choice"] = {"kept": "identification" if keep else "designed", "draws": int(len(Abar)),
+                              "designed_worst": worst_designed, "identification_worst": worst_held,
+                              "designed_median": float(np.median(designed)),
+                              "identification_median": float(np.median(held))}
+    if not keep:
+        return None
+    return SynthesisResult(KEPT_GAIN, F_id, safe_rate(exp.model, dist, F_id), "kept",
+                           nbar=int(exp.model.Gbar(dist).shape[0]))
+
+
+def identification_gain(exp: Experiment, info: dict) -> np.ndarray | None:
+    """The gain the identification run used (None: open loop), from what `identify_and_model` decided."""
+    if exp.identification.feedback == "given" or info.get("used") == "given":
+        return exp.identification.gain
+    if info.get("used") != "nominal":
+        return None
+    F, _ = identification_feedback(exp, force_nominal="open_loop_diverged_at" in info)
+    return F
 
 
 def identification_feedback(exp: Experiment, force_nominal: bool = False) -> tuple[np.ndarray | None, dict]:

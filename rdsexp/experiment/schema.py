@@ -97,7 +97,7 @@ COLUMNS: dict[str, dict[str, tuple[str, str | None]]] = {
         "verdict_rate_low": ("lower end of verdict_rate's 95% interval", "1/step"),
         "verdict_rate_high": ("upper end of verdict_rate's 95% interval", "1/step"),
         "k_end": ("last step of verdict_rate: k_to, or the step before the loop is at rest (its mean square "
-                  "within the noise floor's); -1 without a rate", "step"),
+                  "below 2 noise floors'); -1 without a rate", "step"),
         "exact_rate": ("the ideal loop's (state feedback, true plant) exact rate over the same window", "1/step"),
         "floor_rms": ("noise floor sqrt(E|q|^2) of the closed loop at rest (0 for the open loop, "
                       "inf if the loop at rest diverged)", "state"),

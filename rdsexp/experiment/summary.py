@@ -70,6 +70,16 @@ def summary_text(info: dict, run_dir: Path) -> str:
         f = s["gain_fallback"]
         lines.append(f"  gain {f['instead_of']}: not_applicable ({f['because']}); the loop uses gain.fallback "
                      f"{f['method']}")
+    if s.get("gain_choice"):           # the designed gain against the identification's, over the moments' draws
+        c = s["gain_choice"]
+        lines.append(f"  gain choice: {'kept the identification gain' if c['kept'] == 'identification' else 'designed'}"
+                     f"; worst exact rate over {c['draws']} draws of the modeled moments: designed "
+                     f"{c['designed_worst']:.4f}, identification's {c['identification_worst']:.4f} (medians "
+                     f"{c['designed_median']:.4f}, {c['identification_median']:.4f})")
+    if s.get("modeling_uncertainty"):
+        u = s["modeling_uncertainty"]
+        lines.append(f"    modeled moments' spread over {u['resamples']} block-bootstrap draws of the window: xi mean "
+                     f"sd {np.round(u['xi_mean_sd'], 4).tolist()}, xi std sd {np.round(u['xi_std_sd'], 4).tolist()}")
     if s.get("synthesis_status") is not None:
         lines.append(f"  gain {s.get('gain_method')}: {s.get('synthesis_status')}, lambda {fmt(s.get('lam'))}"
                      f"{beside('lam')}, exact rate on the true plant {fmt(s.get('rate_plant'))}")

@@ -94,6 +94,31 @@ def model_distribution(xi_filt_mean: np.ndarray, K0: int, K1: int,
     return MomentModel(mean=model.mean, cov=model.cov + window_samples(xi_filt_cov, K0, K1).mean(axis=0))
 
 
+def block_bootstrap_steps(T: int, resamples: int, block: int, seed) -> np.ndarray:
+    """(resamples, T) indices into a window of T estimates: each row a moving-block bootstrap resample,
+    ceil(T / L) blocks of L = min(block, T) consecutive indices with uniform starts, cut to T (xi_{k|k}
+    are correlated in k, so single steps would understate the spread). From default_rng(seed)."""
+    L = min(block, T)
+    starts = np.random.default_rng(seed).integers(0, T - L + 1, size=(resamples, -(-T // L)))
+    return (starts[..., None] + np.arange(L)).reshape(resamples, -1)[:, :T]
+
+
+def moment_draws(xi_filt_mean: np.ndarray, K0: int, K1: int, xi_filt_cov: np.ndarray | None = None, *,
+                 resamples: int, block: int, seed=0) -> tuple[np.ndarray, np.ndarray]:
+    """The modeled moments' uncertainty: `model_distribution` of `resamples` moving-block bootstrap
+    resamples of the window K0..K0+K1 (`block_bootstrap_steps`), as means (B, p) and covariances
+    (B, p, p) (1/N, plus the resampled mean filtered covariance with xi_filt_cov (K+1, p, p))."""
+    xi = window_samples(xi_filt_mean, K0, K1)                            # (T, p)
+    steps = block_bootstrap_steps(xi.shape[0], resamples, block, seed)
+    draws = xi[steps]                                                    # (B, T, p)
+    mean = draws.mean(axis=1)
+    dev = draws - mean[:, None]
+    cov = np.einsum("btp,btq->bpq", dev, dev) / xi.shape[0]
+    if xi_filt_cov is not None:
+        cov += window_samples(xi_filt_cov, K0, K1)[steps].mean(axis=1)
+    return mean, cov
+
+
 def nominal_gain(model, xi_guess) -> SynthesisResult:
     """A stabilizing gain for the model at the nominal guess xi = xi_guess (p,) (prior knowledge).
 

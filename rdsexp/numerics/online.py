@@ -28,7 +28,7 @@ import numpy as np
 
 from ..errors import one_line
 from .analysis import DENSE_MAX_N, perron
-from .modeling import COVARIANCES
+from .modeling import COVARIANCES, block_bootstrap_steps
 from .synthesis import METHODS, check_options, synthesize
 from .systems import AffineRandomSystem, MomentModel
 
@@ -318,12 +318,9 @@ class OnlineController:
         return idx[adopt], F_new[adopt]
 
     def resample_steps(self, k: int, T: int) -> np.ndarray:
-        """(B, T) indices into a window of T estimates: each row is a moving-block bootstrap resample,
-        ceil(T / L) blocks of L = min(block, T) consecutive indices with uniform starts, cut to T. Drawn from
-        a generator seeded by (k, T), the same for every path, so the controller stays deterministic."""
-        B, L = self.settings.resamples, min(self.settings.block, T)
-        starts = np.random.default_rng([k, T]).integers(0, T - L + 1, size=(B, -(-T // L)))
-        return (starts[..., None] + np.arange(L)).reshape(B, -1)[:, :T]
+        """(B, T) moving-block bootstrap indices into a window of T estimates (`modeling.block_bootstrap_steps`),
+        from a generator seeded by (k, T), the same for every path, so the controller stays deterministic."""
+        return block_bootstrap_steps(T, self.settings.resamples, self.settings.block, [k, T])
 
     def _worst_rates(self, k: int, samples: np.ndarray, w: np.ndarray, covs: np.ndarray | None, F_new: np.ndarray,
                      F_cur: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

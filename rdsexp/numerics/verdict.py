@@ -20,8 +20,9 @@ The interval must hold when the mean square is carried by a few paths (multiplic
 of P paths then misses the paths that carry the mean, and the sample mean is low). It is the hull
 of two bootstrap intervals over paths of the same log ratio: the studentised bootstrap of the
 sample means (valid where the central limit theorem holds) and a percentile bootstrap of the
-lognormal means exp(mean log + var log / 2) (valid for products of many random factors, where the
-sample mean is not). `experiments/coverage.py` measures its coverage against exact rates.
+lognormal means exp(mu + sigma^2 / 2) (valid for products of many random factors, where the
+sample mean is not; mu and sigma from the median and the upper half of log ||q||^2, so that states
+near 0 do not widen it). `experiments/coverage.py` measures its coverage against exact rates.
 
 `place_window` derives the window from the exact curve sqrt(E||x_k||^2) of the ideal loop (state
 feedback on the true plant, `analysis.second_moments`): from the end of the disturbance to the last
@@ -36,14 +37,14 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.special import ndtri
 
 VERDICTS = ("stable", "unstable", "undetermined", "failed")
 ABOVE_FLOOR = 10.0    # a placed window ends where the ideal loop's RMS is still 10 floors (one decade) up
-AT_FLOOR = 3.0        # a window whose empirical RMS at k_to is below 3 floors (the floor then makes
-                      # more than 1/9 of E||q||^2) measures the floor, not the loop
+AT_REST = 2.0         # a loop whose mean square is below 2 floors' (its transient below the floor) is at rest
+AT_FLOOR = 3.0        # an automatic window ends where the loop's own RMS comes within 2 AT_FLOOR floors
 LEVEL = 0.95          # of every rate interval
 RESAMPLES = 999       # bootstrap resamples of the paths
+UPPER_SIGMA = 0.8413447460685429    # the standard normal's cdf at 1: its quantile of log v is mu + sigma
 BOOTSTRAP_SEED = 7    # one fixed stream: an interval is a function of its paths alone (the same bytes for any
                       # chunk size, worker count or rerun)
 # a path's failure reason (Trajectories.failure) in words
@@ -164,9 +165,14 @@ def rate_interval(b: np.ndarray, a: np.ndarray, span: int, floor: np.ndarray | N
 
 def _log_ratio(a, b, f, lognormal: bool = False) -> np.ndarray:
     """log((m(a) - f) / (m(b) - f)) per row of a, b (R, P) and f (R, P_f) (its mean): m the sample mean, or
-    the lognormal mean exp(mean log + var log / 2); NaN where a transient is not positive."""
+    the lognormal mean exp(mu + sigma^2 / 2) with mu the median of log v and sigma the spread of its upper
+    half (84th percentile - median): the right tail carries the mean, while a left tail of states near 0
+    would inflate the variance of log v without changing the mean. +-inf where one transient is not
+    positive, NaN where neither is."""
     if lognormal:
-        m = lambda v: np.exp(np.log(v).mean(axis=1) + np.log(v).var(axis=1, ddof=1) / 2)
+        def m(v):
+            mu, upper = np.quantile(np.log(v), [0.5, UPPER_SIGMA], axis=1)
+            return np.exp(mu + (upper - mu) ** 2 / 2)
     else:
         m = lambda v: v.mean(axis=1)
     fm = f.mean(axis=1)
@@ -188,29 +194,26 @@ def _log_ratio_se(a, b, f) -> np.ndarray:
 
 
 def at_rest_from(sq: np.ndarray, k_from: int, k_to: int, floor: Floor | None) -> int | None:
-    """The first step in (k_from, k_to] at which the loop's mean square E||q_k||^2 (sq (K+1, P)) is no
-    longer resolved above the floor's (its one-sided 97.5% lower bound, from the paths' and the floor
-    paths' standard errors, not above the floor's mean square); None when it stays above until k_to."""
+    """The first step in (k_from, k_to] at which the loop's mean square E||q_k||^2 (sq (K+1, P)) is below
+    AT_REST times the floor's (its transient, the mean square less the floor's, below the floor itself);
+    None when it stays above until k_to. A point estimate on purpose: the transient's uncertainty is the
+    rate interval's (a resample whose transient is not positive opens its bound), and a significance
+    test here would cut the window early wherever a few paths carry the mean square."""
     if floor is None:
         return None
-    f, P = np.mean(floor.samples), sq.shape[1]
-    se_f2 = np.var(floor.samples, ddof=1) / floor.samples.size if floor.samples.size > 1 else 0.0
-    z = ndtri(0.5 + LEVEL / 2)
-    for k in range(k_from + 1, k_to + 1):
-        m, se2 = sq[k].mean(), sq[k].var(ddof=1) / P
-        if not m - z * np.sqrt(se2 + se_f2) > f:
-            return k
-    return None
+    below = sq[k_from + 1:k_to + 1].mean(axis=1) < AT_REST * np.mean(floor.samples)
+    return k_from + 1 + int(np.argmax(below)) if below.any() else None
 
 
 def paths_needed(rate: float, low: float, high: float, paths: int) -> int | None:
-    """Paths at which an interval [low, high] around `rate` that contains 1 would shrink (as 1 / sqrt(P))
-    to exclude it, if the rate stayed; None when the rate is 1 or not finite."""
+    """Paths at which an interval [low, high] around `rate` that contains 1 would shrink (as 1 / sqrt(P),
+    about the rate) to exclude it, if the rate stayed: the side of the interval towards 1 decides (the
+    interval need not be symmetric); None when the rate is 1 or not finite."""
     if not (np.isfinite(rate) and np.isfinite(low) and np.isfinite(high)) or rate == 1:
         return None
     distance = abs(np.log(rate))
-    half = (np.log(high) - np.log(low)) / 2
-    return int(np.ceil(paths * (half / distance) ** 2))
+    reach = np.log(high) - np.log(rate) if rate < 1 else np.log(rate) - np.log(low)     # towards 1: >= distance
+    return int(np.ceil(paths * (reach / distance) ** 2))
 
 
 def judge_loop(sq: np.ndarray, *, failed_at: np.ndarray, failure: np.ndarray, window: tuple[int, int] | None,
@@ -254,7 +257,7 @@ def judge_loop(sq: np.ndarray, *, failed_at: np.ndarray, failure: np.ndarray, wi
     samples = None if floor is None else floor.samples
     rate, low, high = rate_interval(sq[k_from], sq[k_end], k_end - k_from, samples)
     shown = f"{rate:.4f} [{low:.4f}, {high:.4f}]"
-    at_rest = "" if rest is None else f", at rest from k = {rest} (its mean square within the floor's)"
+    at_rest = "" if rest is None else f", at rest from k = {rest} (its mean square within {AT_REST:g} floors')"
     over = f"k = {k_from}..{k_end}{at_rest}" + ("" if floor is None else ", the floor's mean square subtracted")
     if not np.isfinite(rate):
         return Verdict("undetermined", "no rate: the state is 0 or not finite in the window", k_end=k_end)

@@ -162,9 +162,11 @@ def test_undetermined_says_how_many_paths_would_decide():
     assert v.word == "undetermined" and "paths would separate" in v.reason
     need = paths_needed(v.rate, v.low, v.high, 100)
     assert need > 100
-    # the interval shrinks as 1/sqrt(P): at the paths it names, its half-width equals the distance to 1
-    half = (np.log(v.high) - np.log(v.low)) / 2
-    assert abs(half * np.sqrt(100 / need) - abs(np.log(v.rate))) < 1e-2 * half
+    # the interval shrinks as 1/sqrt(P): at the paths it names, its side towards 1 reaches 1
+    reach = np.log(v.high / v.rate) if v.rate < 1 else np.log(v.rate / v.low)
+    assert abs(reach * np.sqrt(100 / need) - abs(np.log(v.rate))) < 1e-2 * reach
+    # an asymmetric interval: the side towards 1 decides, never fewer paths than there are
+    assert paths_needed(0.95, 0.5, 1.01, 100) > 100 and paths_needed(1.05, 0.99, 2.0, 100) > 100
 
 
 def test_window_placed_after_the_disturbance_above_the_floor():
