@@ -874,7 +874,8 @@ def metrics_table(exp: Experiment, loops: dict[str, LoopSummary], window: RateWi
                              floor=loop_floor, open_loop=name == "open_loop")
         # the rate over the window as the paper measures it (no floor subtracted); the verdict's own rate is
         # over k_from..k_end with the floor's mean square subtracted
-        interval = rate_interval(loop.sq[k_from], loop.sq[k_to], k_to - k_from)
+        interval = verdict.window_rate if np.isfinite(verdict.window_rate[0]) else \
+            rate_interval(loop.sq[k_from], loop.sq[k_to], k_to - k_from)
         with np.errstate(all="ignore"):
             exact_rate = (ideal[k_to] / ideal[k_from]) ** (1 / (k_to - k_from)) if ideal.size else np.nan
             end_rms = float(np.sqrt(np.mean(loop.sq[k_to])))

@@ -10,10 +10,11 @@ measurable:
   at a floor. Over a window at the floor the paths do not decay whatever the gain: a rate near 1
   there says nothing about the loop. The floor is measured, not guessed: E||q_k||^2 of the same
   loop started at rest (q_0 = 0, no disturbance), averaged over the second half of its horizon
-(`Floor`). The floor's mean square is subtracted from the loop's before the rate is taken (the
-EnKF's noise adds to the transient), with the floor's own uncertainty, so a loop that decays from
-far above the floor to it has a rate; the window is cut where the loop reaches the floor ("at rest
-from k = ..."). A run at rest that grows, or whose paths diverge, is no floor: the loop grows.
+(`Floor`). The floor only pulls the plain rate towards 1; where that keeps its interval from
+deciding, the floor's mean square is subtracted from the loop's (the EnKF's noise adds to the
+transient), with the floor's own uncertainty, so a loop that decays from far above the floor to it
+has a rate; the window is then cut where the loop reaches the floor ("at rest from k = ..."). A run
+at rest that grows, or whose paths diverge, is no floor: the loop grows.
 
 The interval must hold when the mean square is carried by a few paths (multiplicative noise makes
 ||q_k||^2 a product of random factors, nearly lognormal with a spread that grows with k; a sample
@@ -29,8 +30,9 @@ feedback on the true plant, `analysis.second_moments`): from the end of the dist
 step at which that curve is still ABOVE_FLOOR times the floor. `judge_loop` then reads the
 evidence in a fixed order: failed paths (in the open loop, whose observer does not act on the plant,
 a diverged plant state is growth), a run at rest that diverged or grows, no measurable window, the
-window cut where the loop is at rest, the interval against 1, and last the exact rate of the ideal
-loop over the same steps: a loop is never called stable where that exact rate is >= 1.
+plain interval over the window against 1 and, where it does not decide, the one with the floor
+subtracted over the window cut where the loop is at rest; last the exact rate of the ideal loop over
+the same steps: a loop is never called stable where that exact rate is >= 1.
 """
 from __future__ import annotations
 
@@ -84,7 +86,8 @@ def place_window(exact_rms: np.ndarray, start: int, floor_rms: float, empirical_
 class Verdict:
     """word: one of VERDICTS; reason: what it means, in words, from the evidence beside it; rate, low,
     high: the rate and its interval the word was decided on, over [k_from, k_end] (k_end < the window's
-    k_to when the loop reached its floor earlier; NaN without a rate)."""
+    k_to when the loop reached its floor earlier; NaN without a rate); window_rate: the plain rate
+    (rate_interval without the floor) over the whole window, computed on the way."""
 
     word: str
     reason: str
@@ -92,6 +95,7 @@ class Verdict:
     low: float = float("nan")
     high: float = float("nan")
     k_end: int = -1
+    window_rate: tuple[float, float, float] = (float("nan"),) * 3     # plain, over the whole window (NaN: none)
 
 
 @dataclass(frozen=True)
@@ -205,6 +209,11 @@ def at_rest_from(sq: np.ndarray, k_from: int, k_to: int, floor: Floor | None) ->
     return k_from + 1 + int(np.argmax(below)) if below.any() else None
 
 
+def _decisive(interval: tuple[float, float, float]) -> bool:
+    """An interval (rate, low, high) that lies below or above 1."""
+    return interval[2] < 1 or interval[1] > 1
+
+
 def paths_needed(rate: float, low: float, high: float, paths: int) -> int | None:
     """Paths at which an interval [low, high] around `rate` that contains 1 would shrink (as 1 / sqrt(P),
     about the rate) to exclude it, if the rate stayed: the side of the interval towards 1 decides (the
@@ -249,18 +258,26 @@ def judge_loop(sq: np.ndarray, *, failed_at: np.ndarray, failure: np.ndarray, wi
                                        f"({ABOVE_FLOOR:g} floors) and this loop ({2 * AT_FLOOR:g} floors) are not both "
                                        f"above the noise floor ({floor_rms}) for a step before the horizon")
     k_from, k_to = window
-    rest = at_rest_from(sq, k_from, k_to, floor)
-    k_end = k_to if rest is None else rest - 1
-    if k_end <= k_from:
-        return Verdict("undetermined", f"the loop is at its noise floor ({floor.rms:.3g}) from k = {k_from + 1}: "
-                                       f"no decay above it to measure", k_end=k_from)
-    samples = None if floor is None else floor.samples
-    rate, low, high = rate_interval(sq[k_from], sq[k_end], k_end - k_from, samples)
+    # the plain rate over the window first: the floor adds relatively more to the smaller of the two mean
+    # squares, so it only pulls the rate towards 1, and an interval that clears 1 without subtracting it is
+    # evidence as it stands. Where it does not, the floor's mean square is subtracted and the window cut
+    # where the loop is at rest (a loop that decayed onto its floor has decayed).
+    plain = rate_interval(sq[k_from], sq[k_to], k_to - k_from)
+    evidence = [(k_to, plain, f"k = {k_from}..{k_to}")]
+    if floor is not None and not _decisive(plain):
+        rest = at_rest_from(sq, k_from, k_to, floor)
+        k_end = k_to if rest is None else rest - 1
+        if k_end <= k_from:
+            return Verdict("undetermined", f"the loop is at its noise floor ({floor.rms:.3g}) from k = {k_from + 1}: "
+                                           f"no decay above it to measure", k_end=k_from, window_rate=plain)
+        at_rest = "" if rest is None else f", at rest from k = {rest} (its mean square within {AT_REST:g} floors')"
+        evidence.append((k_end, rate_interval(sq[k_from], sq[k_end], k_end - k_from, floor.samples),
+                         f"k = {k_from}..{k_end}{at_rest}, the floor's mean square subtracted"))
+    k_end, (rate, low, high), over = next((e for e in evidence if _decisive(e[1])), evidence[-1])
     shown = f"{rate:.4f} [{low:.4f}, {high:.4f}]"
-    at_rest = "" if rest is None else f", at rest from k = {rest} (its mean square within {AT_REST:g} floors')"
-    over = f"k = {k_from}..{k_end}{at_rest}" + ("" if floor is None else ", the floor's mean square subtracted")
     if not np.isfinite(rate):
-        return Verdict("undetermined", "no rate: the state is 0 or not finite in the window", k_end=k_end)
+        return Verdict("undetermined", "no rate: the state is 0 or not finite in the window", k_end=k_end,
+                       window_rate=plain)
     exact = np.nan                         # the ideal loop over the verdict's steps and over the whole window
     if exact_rms is not None:
         with np.errstate(all="ignore"):
@@ -270,13 +287,14 @@ def judge_loop(sq: np.ndarray, *, failed_at: np.ndarray, failure: np.ndarray, wi
             steps = f"k = {k_from}..{k_to}" if k_end == k_to else f"k = {k_from}..{k_end} or {k_from}..{k_to}"
             return Verdict("undetermined", f"these paths decay ({shown}, {over}) but the ideal loop's exact rate over "
                                            f"{steps} is {exact:.4f} >= 1: its mean square is carried by paths this "
-                                           f"sample does not have", rate, low, high, k_end)
+                                           f"sample does not have", rate, low, high, k_end, plain)
         return Verdict("stable", f"the loop decays: the rate's 95% interval [{low:.4f}, {high:.4f}] lies below 1 "
-                                 f"({over})", rate, low, high, k_end)
+                                 f"({over})", rate, low, high, k_end, plain)
     if low > 1:
         return Verdict("unstable", f"the loop grows: the rate's 95% interval [{low:.4f}, {high:.4f}] lies above 1 "
-                                   f"({over})", rate, low, high, k_end)
+                                   f"({over})", rate, low, high, k_end, plain)
     need = paths_needed(rate, low, high, sq.shape[1])
     hint = f"; about {need} paths would separate this rate from 1" if need else ""
     return Verdict("undetermined", f"the rate's 95% interval [{low:.4f}, {high:.4f}] contains 1 ({over}): these "
-                                   f"paths show neither decay nor growth at 95%{hint}", rate, low, high, k_end)
+                                   f"paths show neither decay nor growth at 95%{hint}", rate, low, high, k_end,
+                   plain)

@@ -183,3 +183,51 @@ def test_disturbance_columns_in_a_stored_run_with_the_online_loop(tmp_path):
         assert len(loop) and loop.loc[loop["q[0]"].notna(), ["d_filt_mean[0]", "d_filt_std[0]"]].notna().all().all()
     assert (online.loc[online["q[0]"].notna(), "d_filt_std[0]"] > 0).all()
     assert not np.array_equal(online["d_filt_mean[0]"].to_numpy(), offline["d_filt_mean[0]"].to_numpy())
+
+
+UNST3 = {"name": "unst3",
+         "A": [[[1.05, 0.2, 0.0], [0.0, 0.95, 0.1], [0.0, 0.0, 0.9]], [[0, 0, 0]] * 3,
+               [[0.3, 0, 0], [0, 0, 0], [0, 0, 0]]],
+         "B": [[[0], [0], [0]], [[0], [0], [1]], [[0], [0], [0]]],
+         "C": [[[1, 0, 0]]],
+         "xi": {"family": "independent", "components": [{"family": "bernoulli", "prob": 0.8},
+                                                         {"family": "uniform", "low": -1.0, "high": 1.0}]}}
+
+
+def test_the_loop_keeps_the_identification_gain_where_the_designed_one_is_worse(tmp_path):
+    """An open-loop unstable plant identified under its nominal gain F_id: a designed gain that is worse than
+    F_id at its worst over the moments' bootstrap draws is replaced by F_id (status `kept`, its exact rate on
+    the identified moments); the worst rates are those of an independent ms_rate at every draw; a designed
+    gain no worse than F_id stays."""
+    import yaml
+
+    from rdsexp.numerics.analysis import ms_rate
+    from rdsexp.numerics.synthesis import SynthesisResult
+    from rdsexp.numerics.systems import MomentModel
+    (tmp_path / "plant").mkdir()
+    (tmp_path / "plant" / "unst3.yaml").write_text(yaml.safe_dump(UNST3))
+    with initialize_config_module(config_module="rdsexp.conf", version_base="1.3"):
+        exp = build(compose("config", overrides=[f"hydra.searchpath=[file://{tmp_path}]", "plant=unst3", "model=plant",
+                                                 *SMALL, "identification.resamples=20", "tracking=off"]))
+    summary = {}
+    ident, dist, _ = pipeline.identify_and_model(exp, {}, summary, np.random.SeedSequence(0, spawn_key=(0,)),
+                                                 exp.simulation(), False)
+    draws = pipeline.moment_uncertainty(exp, ident, summary)
+    assert draws[0].shape == (20, 2) and len(summary["modeling_uncertainty"]["xi_mean_sd"]) == 2
+    F_id = pipeline.identification_gain(exp, summary["identification_feedback"])
+    assert summary["identification_feedback"]["used"] == "nominal" and F_id is not None
+    worst = lambda F: max(ms_rate(exp.model, MomentModel(mean=m, cov=c), F) for m, c in zip(*draws))
+    zero = np.zeros((1, 3))                                        # no feedback: the plant grows
+    designed = SynthesisResult("ms_lqr", zero, ms_rate(exp.model, dist, zero), "optimal", nbar=3)
+    kept = pipeline.safer_gain(exp, ident, dist, designed, draws, summary)
+    choice = summary["gain_choice"]
+    assert kept is not None and kept.status == "kept" and kept.method == pipeline.KEPT_GAIN
+    np.testing.assert_array_equal(kept.F, F_id)
+    assert kept.lam == pytest.approx(ms_rate(exp.model, dist, F_id), rel=1e-12)
+    assert choice["kept"] == "identification" and choice["draws"] == 20
+    assert choice["designed_worst"] == pytest.approx(worst(zero), rel=1e-9) and choice["designed_worst"] > 1
+    assert choice["identification_worst"] == pytest.approx(worst(F_id), rel=1e-9)
+    assert choice["identification_worst"] < choice["designed_worst"]
+    same = SynthesisResult("ms_lqr", F_id.copy(), ms_rate(exp.model, dist, F_id), "optimal", nbar=3)
+    assert pipeline.safer_gain(exp, ident, dist, same, draws, summary) is None      # a tie keeps the design
+    assert summary["gain_choice"]["kept"] == "designed"

@@ -7,9 +7,11 @@ from scipy.stats import binom
 from rdsexp.numerics.verdict import (
     ABOVE_FLOOR,
     AT_FLOOR,
+    AT_REST,
     LEVEL,
     VERDICTS,
     Floor,
+    at_rest_from,
     judge_loop,
     paths_needed,
     place_window,
@@ -83,26 +85,31 @@ def test_interval_is_deterministic_and_needs_two_paths():
     assert all(np.isnan(rate_interval(sq[5], bad, 10)))
 
 
-def test_a_loop_that_decays_to_its_floor_is_stable_at_rest():
-    """A fast loop (rate 0.3) reaches the floor 1e-3 within ~6 steps: over k = 0..30 the window is cut
-    where the loop is at rest and the decay before it decides; a window that starts at the floor has
-    nothing to measure."""
+def test_a_loop_that_decays_to_its_floor_is_stable():
+    """A fast loop (rate 0.3) reaches the floor 1e-3 within ~6 steps: over k = 0..30 it has decayed (the floor
+    only pulls the plain rate towards 1, so its interval below 1 decides), where the previous rule called
+    a window ending within 3 floors undetermined; a window that starts at the floor has nothing to measure."""
     sq = paths(0.3, floor=1e-3)
     v = judge(sq, (0, 30), at_rest(1e-3))
-    assert v.word == "stable" and "at rest from k = " in v.reason, v.reason
-    assert 0 < v.k_end < 30 and v.high < 1
+    assert v.word == "stable" and v.k_end == 30 and v.high < 1, v.reason
+    assert v.window_rate == rate_interval(sq[0], sq[30], 30)
     v = judge(sq, (20, 30), at_rest(1e-3))
     assert v.word == "undetermined" and "noise floor" in v.reason and v.k_end == 20
 
 
 def test_floor_is_subtracted_with_its_uncertainty():
-    """Paths decaying at 0.9 onto a floor: the rate over the window with the floor's mean square
-    subtracted is near 0.9, while the plain ratio is pulled towards 1."""
+    """Paths decaying at 0.9 onto a floor: the rate with the floor's mean square subtracted is near 0.9, while
+    the plain ratio is pulled towards 1; the window is cut where the loop is at rest (mean square below
+    AT_REST floors')."""
     sq = paths(0.9, K=40, P=2000, floor=0.05)
     floor = at_rest(0.05, P=2000)
-    v = judge(sq, (0, 25), floor)
-    plain = rate_interval(sq[0], sq[v.k_end], v.k_end)[0]
-    assert v.word == "stable" and abs(v.rate - 0.9) < abs(plain - 0.9) and v.low < 0.9 < v.high
+    subtracted = rate_interval(sq[0], sq[25], 25, floor.samples)
+    plain = rate_interval(sq[0], sq[25], 25)
+    assert abs(subtracted[0] - 0.9) < abs(plain[0] - 0.9) and subtracted[1] < 0.9 < subtracted[2]
+    rest = at_rest_from(sq, 0, 40, floor)
+    f = np.mean(floor.samples)
+    assert sq[rest].mean() < AT_REST * f <= sq[rest - 1].mean() and np.all(sq[1:rest].mean(axis=1) >= AT_REST * f)
+    assert at_rest_from(sq, 0, 5, floor) is None and at_rest_from(sq, 0, 40, None) is None
 
 
 def test_a_floor_that_grows_or_diverges_is_no_floor():
