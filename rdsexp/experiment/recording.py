@@ -404,6 +404,14 @@ def report_markdown(tables: dict[str, pd.DataFrame], summary: dict) -> str:
              + (f", xi mean {np.round(s['xi_mean'], 4).tolist()}, nbar {s.get('nbar')}" if "xi_mean" in s else ""),
              f"- gain {s.get('gain_method')}: **{s.get('synthesis_status', 'n/a')}**, lambda {_fmt(s.get('lam'))}, "
              f"exact rate on the true plant {_fmt(s.get('rate_plant'))}"]
+    if "modeling_uncertainty" in s:               # the moments' spread over the window's bootstrap draws
+        u = s["modeling_uncertainty"]
+        lines.insert(3, f"- modeled moments' spread over {u['resamples']} block-bootstrap draws: xi mean sd "
+                        f"{np.round(u['xi_mean_sd'], 4).tolist()}, xi std sd {np.round(u['xi_std_sd'], 4).tolist()}")
+    if "gain_choice" in s:
+        c = s["gain_choice"]
+        lines.append(f"- gain choice: **{c['kept']}**; worst exact rate over {c['draws']} draws of the moments: "
+                     f"designed {_fmt(c['designed_worst'])}, identification's {_fmt(c['identification_worst'])}")
     for loop in ("closed_loop", "open_loop", "online"):
         if f"{loop}_rate" in s:
             r = s[f"{loop}_rate"]

@@ -231,3 +231,8 @@ def test_the_loop_keeps_the_identification_gain_where_the_designed_one_is_worse(
     same = SynthesisResult("ms_lqr", F_id.copy(), ms_rate(exp.model, dist, F_id), "optimal", nbar=3)
     assert pipeline.safer_gain(exp, ident, dist, same, draws, summary) is None      # a tie keeps the design
     assert summary["gain_choice"]["kept"] == "designed"
+    from rdsexp.experiment.recording import report_markdown
+    tables = {"gains": pd.DataFrame(columns=["distribution", "method", "status", "lam", "rate_plant", "selected"]),
+              "metrics": pd.DataFrame(columns=list(pipeline.METRIC_COLUMNS))}
+    report = report_markdown(tables, summary)          # the recording's summary document says both
+    assert "spread over 20 block-bootstrap draws" in report and "gain choice: **designed**" in report
