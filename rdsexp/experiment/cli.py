@@ -76,8 +76,9 @@ def record_failure(err: Exception, cfg: DictConfig, run_dir: Path, job: int | No
     if job is None and f.status in ("config_error", "write_error"):
         if f.status == "config_error":                   # nothing that could pass for a result
             shutil.rmtree(run_dir, ignore_errors=True)
-            with contextlib.suppress(OSError):           # and no empty runs/ that Hydra made for it
+            with contextlib.suppress(OSError):           # and no empty runs/ (nor store) that Hydra made for it
                 run_dir.parent.rmdir()
+                run_dir.parent.parent.rmdir()
         else:
             RunWriter(run_dir).fail(f.status, f.message, fallback=_fallback(cfg))
         print(f.line, file=sys.stderr)
@@ -210,6 +211,10 @@ def config_error_text(err: BaseException) -> str | None:
     for err in chain:
         if isinstance(err, yaml.MarkedYAMLError) and err.problem_mark is not None:
             return yaml_error_text(err)
+        missing = re.match(r"In '[^']*': Could not find '([^'/]+)/([^']+)'\s+Available options in '[^']+':\s+(.*?)"
+                           r"\s*Config search path", str(err), re.S)
+        if missing:                     # a misspelled option of a group (plant=lossy, +sweep=seed)
+            return missing_option_text(*missing.groups())
         cause = err.__cause__
         shadowed = re.match(r"Could not override '([^']+)'\. No match in the defaults list\.", str(err))
         if isinstance(err, ConfigCompositionException) and shadowed and shadowed.group(1) in (*TOP_LEVEL, "store"):
@@ -225,6 +230,17 @@ def config_error_text(err: BaseException) -> str | None:
             if name and added and cause.parent_node is not None:
                 return unknown_key_text(name.group(1), added.group(1), cause.parent_node._get_root())
     return None
+
+
+def missing_option_text(group: str, option: str, listed: str) -> str:
+    """`group=option` names no file of the group (Hydra lists the options it found, --config-dir ones
+    included): one line with the closest options and all of them."""
+    import difflib
+    options = listed.split()
+    close = difflib.get_close_matches(option, options, n=2, cutoff=0.5)
+    parts = [f"{group}={option}: no such {group}"] + ([f"did you mean {' or '.join(close)}?"] if close else []) \
+        + [f"options: {', '.join(options)}"]
+    return "; ".join(parts)
 
 
 def unknown_key_text(name: str, added: str, cfg) -> str:

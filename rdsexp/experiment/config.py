@@ -9,6 +9,8 @@ import math
 from contextlib import contextmanager
 from dataclasses import dataclass
 
+from pathlib import Path
+
 import numpy as np
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
@@ -428,8 +430,44 @@ class Experiment:
         return dict(q0=self.q0, psi0=f.psi0, P0=f.P0, ensemble_size=f.ensemble_size, estimate=self.loop.estimate)
 
 
+# every key a plant file may hold (conf/plant/*.yaml; README "Your own system"); any other is a typo
+PLANT_KEYS = ("name", "A", "B", "C", "D", "xi", "q0", "poles", "reference", "model", "designs", "rate_window",
+              "identification_feedback", "identification_covariance", "identification_xi", "initial_xi",
+              "filter_sees_disturbance", "observer_xi", "loop_estimate")
+
+
+def check_plant_keys(cfg) -> None:
+    """A plant file's unknown top-level key is a one-line ConfigError naming the file, the key and the closest
+    valid key (a misspelled C would otherwise fall back to the identity)."""
+    import difflib
+    plant = plain(OmegaConf.select(cfg, "plant"))
+    for name in plant if isinstance(plant, dict) else ():
+        if name not in PLANT_KEYS:
+            guess = difflib.get_close_matches(name, PLANT_KEYS, n=1, cutoff=0.5) or \
+                [k for k in PLANT_KEYS if k.lower() == name.lower()[:len(k)]][:1]
+            hint = f"did you mean {guess[0]}?" if guess else "valid keys: " + ", ".join(PLANT_KEYS)
+            raise ConfigError(f"{plant_source()}: unknown key {name}; {hint}")
+
+
+def plant_source() -> str:
+    """The plant file this run composed (DIR/plant/NAME.yaml), as far as Hydra tells; else plant NAME."""
+    try:
+        from hydra.core.hydra_config import HydraConfig
+        runtime = HydraConfig.get().runtime
+    except (ValueError, ImportError):
+        return "the plant file"
+    choice = runtime.choices.get("plant")
+    for source in runtime.config_sources:
+        if source.schema == "file":
+            path = Path(source.path) / "plant" / f"{choice}.yaml"
+            if path.is_file():
+                return str(path)
+    return f"plant/{choice}.yaml"
+
+
 def build(cfg) -> Experiment:
     """Validate the composed job config `cfg` (without the hydra node) and build the Experiment."""
+    check_plant_keys(cfg)
     seed = _number(get(cfg, "seed"), "seed", integer=True, low=0)
     xi = get(cfg, "plant.xi")
     with key("plant.xi"):

@@ -240,12 +240,12 @@ def judge_loop(sq: np.ndarray, *, failed_at: np.ndarray, failure: np.ndarray, wi
         words = ", ".join(f"{FAILURES.get(r, r)} on {c}" for r, c in reasons.items())
         when = f"first at k = {failed_at[bad].min()}, median k = {np.median(failed_at[bad]):g}"
         if open_loop and set(reasons) == {"diverged"}:
-            return Verdict("unstable", f"the uncontrolled plant grows: its state diverged on {100 * bad.mean():.0f}% "
+            return Verdict("unstable", f"the uncontrolled plant grows: its state diverged on {100 * bad.mean():.3g}% "
                                        f"of paths ({when})")
-        return Verdict("failed", f"{100 * bad.mean():.0f}% of paths failed ({when}): {words}")
+        return Verdict("failed", f"{100 * bad.mean():.3g}% of paths failed ({when}): {words}")
     if floor is not None and floor.failed > 0:
         return Verdict("failed", f"the same loop started at rest (no disturbance) diverged on "
-                                 f"{100 * floor.failed:.0f}% of its paths: it has no noise floor, the EnKF's noise "
+                                 f"{100 * floor.failed:.3g}% of its paths: it has no noise floor, the EnKF's noise "
                                  f"alone drives it away")
     if floor is not None and floor.growth[1] > 1:
         g = floor.growth
@@ -273,7 +273,8 @@ def judge_loop(sq: np.ndarray, *, failed_at: np.ndarray, failure: np.ndarray, wi
         at_rest = "" if rest is None else f", at rest from k = {rest} (its mean square within {AT_REST:g} floors')"
         evidence.append((k_end, rate_interval(sq[k_from], sq[k_end], k_end - k_from, floor.samples),
                          f"k = {k_from}..{k_end}{at_rest}, the floor's mean square subtracted"))
-    k_end, (rate, low, high), over = next((e for e in evidence if _decisive(e[1])), evidence[-1])
+    # the evidence that decides; where none does, the plain interval (the subtracted one is the wider)
+    k_end, (rate, low, high), over = next((e for e in evidence if _decisive(e[1])), evidence[0])
     shown = f"{rate:.4f} [{low:.4f}, {high:.4f}]"
     if not np.isfinite(rate):
         return Verdict("undetermined", "no rate: the state is 0 or not finite in the window", k_end=k_end,

@@ -165,3 +165,36 @@ def test_ctrl_c_that_breaks_hydras_cleanup_is_still_one_line_and_exit_130(monkey
     assert capsys.readouterr().err.strip().splitlines() == ["rdsexp: interrupted before the run started; nothing "
                                                             "was recorded"]
     assert cli.interrupted_by(ValueError("a config error")) is False
+
+
+@pytest.mark.parametrize("args, message", [
+    (["plant=loss"], "plant=loss: no such plant; did you mean lossy?; options: cart_pole, dropout, lossy, "
+                     "multiplicative, paper, two_carts"),
+    (["gain=proposd"], "gain=proposd: no such gain; did you mean proposed?; options: lqr_mean, ms_lqr, nominal_lmi, "
+                       "pole_placement, policy_iteration, proposed, robust_box"),
+    (["+sweep=seed"], "sweep=seed: no such sweep; did you mean seeds?; options: "),
+    (["-m", "plant=paper,zzz"], "plant=zzz: no such plant; options: cart_pole, dropout, lossy,"),
+], ids=["plant", "gain", "sweep", "sweep_job"])
+def test_a_misspelled_group_option_is_one_line_with_the_closest_options(tmp_path, args, message):
+    """Hydra's 16-line report becomes one line: the closest options, then all of them (--config-dir ones too)."""
+    (tmp_path / "conf" / "plant").mkdir(parents=True)
+    (tmp_path / "conf" / "plant" / "lossy.yaml").write_text("name: lossy\nA: [[[0.9]]]\nB: [[[1.0]]]\n")
+    proc = rdsexp("--config-dir", "conf", *args, *TINY, cwd=tmp_path, check=False)
+    assert proc.returncode == 2
+    assert one_line(proc).startswith(f"rdsexp: config error: {message}")
+    assert not (tmp_path / "outputs").exists()
+
+
+def test_an_unknown_key_in_a_plant_file_is_one_line_naming_file_key_and_closest(tmp_path):
+    """`Cc:` for `C:` would run with C = I (one output per state): a config error, exit 2, no run directory."""
+    (tmp_path / "conf" / "plant").mkdir(parents=True)
+    plant = tmp_path / "conf" / "plant" / "lossy.yaml"
+    plant.write_text("name: lossy\nA: [[[0.9, 0.1], [0.0, 0.8]]]\nB: [[[0.0], [1.0]]]\nCc: [[[1, 0]]]\n")
+    proc = rdsexp("--config-dir", "conf", "plant=lossy", *TINY, cwd=tmp_path, check=False)
+    assert proc.returncode == 2
+    assert one_line(proc) == f"rdsexp: config error: {plant}: unknown key Cc; did you mean C?"
+    assert not (tmp_path / "outputs").exists()
+    plant.write_text("name: lossy\nA: [[[0.9, 0.1], [0.0, 0.8]]]\nB: [[[0.0], [1.0]]]\nxii: {mean: [0], cov: [[1]]}\n")
+    proc = rdsexp("--config-dir", "conf", "-m", "plant=lossy", "seed=1,2", *TINY, cwd=tmp_path, check=False)
+    assert proc.returncode == 2 and "unknown key xii; did you mean xi?" in one_line(proc)
+    assert not (tmp_path / "outputs").exists()
