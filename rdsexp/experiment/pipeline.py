@@ -166,7 +166,7 @@ def run_experiment(exp: Experiment, sink=None, cache=None) -> Outcome:
             selected = (selected[0], fallback)
             chosen = designs[selected][1]
         if selected[0] == "identified" and draws is not None and chosen is not None and chosen.F is not None:
-            kept = safer_gain(exp, ident, dist, chosen, draws, summary)
+            kept = safer_gain(exp, dist, chosen, draws, summary)
             if kept is not None:                # the identification's own gain: the loop keeps it
                 selected = ("identified", kept.method)
                 designs[selected] = (dist, kept)
@@ -618,16 +618,18 @@ def moment_uncertainty(exp: Experiment, ident: Trajectories, summary: dict) -> t
     return mean, cov
 
 
-def safer_gain(exp: Experiment, ident: Trajectories, dist: MomentModel, chosen: SynthesisResult,
-               draws: tuple[np.ndarray, np.ndarray], summary: dict) -> SynthesisResult | None:
-    """When the identification ran under a feedback gain F_id: the exact rates of the designed gain and of
-    F_id at every draw of the modeled moments (`moment_uncertainty`), at their worst over the draws. The
+def safer_gain(exp: Experiment, dist: MomentModel, chosen: SynthesisResult, draws: tuple[np.ndarray, np.ndarray],
+               summary: dict) -> SynthesisResult | None:
+    """When the identification ran under a feedback gain F_id (summary["identification_feedback"]["F"]): the
+    exact rates of the designed gain and of F_id at every draw of the modeled moments (`moment_uncertainty`),
+    at their worst over the draws. The
     designed gain is the optimum at the point estimate only; where it is worse at its worst than the gain the
     plant was run with, the loop keeps F_id (a SynthesisResult with status `kept`; None: the designed gain
     stays). The comparison and the choice go into summary["gain_choice"]."""
-    F_id = identification_gain(exp, summary.get("identification_feedback") or {})
+    F_id = (summary.get("identification_feedback") or {}).get("F")
     if F_id is None:
         return None
+    F_id = np.asarray(F_id, dtype=float)
     Abar, Bbar = moment_factors(exp.model, *draws)
     with np.errstate(all="ignore"):
         designed = rates(Abar, Bbar, np.broadcast_to(chosen.F, (len(Abar),) + chosen.F.shape))
@@ -644,16 +646,6 @@ def safer_gain(exp: Experiment, ident: Trajectories, dist: MomentModel, chosen: 
                            nbar=int(exp.model.Gbar(dist).shape[0]))
 
 
-def identification_gain(exp: Experiment, info: dict) -> np.ndarray | None:
-    """The gain the identification run used (None: open loop), from what `identify_and_model` decided."""
-    if exp.identification.feedback == "given" or info.get("used") == "given":
-        return exp.identification.gain
-    if info.get("used") != "nominal":
-        return None
-    F, _ = identification_feedback(exp, force_nominal="open_loop_diverged_at" in info)
-    return F
-
-
 def identification_feedback(exp: Experiment, force_nominal: bool = False) -> tuple[np.ndarray | None, dict]:
     """The gain of the identification run (None: open loop) and what was decided, for the summary.
 
@@ -666,7 +658,7 @@ def identification_feedback(exp: Experiment, force_nominal: bool = False) -> tup
     if mode == "none":
         return None, info
     if mode == "given":
-        return exp.identification.gain, info | {"used": "given"}
+        return exp.identification.gain, info | {"used": "given", "F": exp.identification.gain.tolist()}
     guess = MomentModel.deterministic(exp.identification.xi_guess)
     with np.errstate(all="ignore"):
         info["open_loop_rate_at_guess"] = safe_rate(exp.plant, guess, np.zeros((exp.plant.m, exp.plant.n)))
@@ -679,6 +671,7 @@ def identification_feedback(exp: Experiment, force_nominal: bool = False) -> tup
         return None, info
     with np.errstate(all="ignore"):
         info["rate_plant"] = safe_rate(exp.plant, None, res.F)
+    info["F"] = res.F.tolist()                   # the gain the plant is identified under (`safer_gain`)
     return res.F, info
 
 

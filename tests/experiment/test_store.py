@@ -457,3 +457,14 @@ def test_scalar_config_resolves_selects_as_omegaconf_does(tmp_path, text, fast):
     assert stored._resolve_selects(stored.scalars_only(yaml.load(text, Loader=stored._yaml_loader()))) is fast
     got = stored.scalar_config(tmp_path)
     assert got == expected and repr(got) == repr(expected)
+
+
+def test_run_metrics_flattens_lists_inside_summary_dicts():
+    """A summary number is a scalar column: lists one level down (the moments' spread) by component."""
+    from rdsexp.experiment.store.table import run_metrics
+    row = run_metrics({"summary": {"modeling_uncertainty": {"resamples": 200, "xi_mean_sd": [0.1, 0.2]},
+                                   "closed_loop_rate": [0.9, 0.8, 1.0], "xi_mean": [0.5]}, "seconds": 1.0})
+    assert row == {"metrics.modeling_uncertainty_resamples": 200, "metrics.modeling_uncertainty_xi_mean_sd[0]": 0.1,
+                   "metrics.modeling_uncertainty_xi_mean_sd[1]": 0.2, "metrics.closed_loop_rate": 0.9,
+                   "metrics.closed_loop_rate_low": 0.8, "metrics.closed_loop_rate_high": 1.0,
+                   "metrics.xi_mean[0]": 0.5, "metrics.seconds": 1.0}

@@ -75,8 +75,9 @@ def run_metrics(info: dict) -> dict:
             continue
         if name.endswith("_rate") and isinstance(value, list) and len(value) == 3:
             out[name], out[f"{name}_low"], out[f"{name}_high"] = value
-        elif isinstance(value, dict):
-            out |= {f"{name}_{k}": v for k, v in value.items()}
+        elif isinstance(value, dict):             # one level down, its lists by component (xi_mean_sd[i])
+            for k, v in value.items():
+                out |= {f"{name}_{k}[{i}]": x for i, x in enumerate(v)} if isinstance(v, list) else {f"{name}_{k}": v}
         elif isinstance(value, list):
             out |= {f"{name}[{i}]": v for i, v in enumerate(value)}
         else:
