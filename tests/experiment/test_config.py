@@ -38,7 +38,7 @@ def test_keys_rdsexp_reads_may_be_added(override):
 @pytest.mark.parametrize("override, stderr", [
     ("+enkf.ensemble_sze=50", "did you mean enkf.ensemble_size?"),     # rdsexp's check
     ("+enkf.ensemble_size=50", "An item is already at 'enkf.ensemble_size'"),   # Hydra's own errors
-    ("enkf=nosuch", "Could not find 'enkf/nosuch'"),
+    ("enkf=nosuch", "enkf=nosuch: no such enkf; options: etkf, paper"),
     ("enkf.ensemble_size=[", "no viable alternative"),
     ("closed_loop.observer_xi=walk", "closed_loop.observer_xi: 'walk' is not allowed, expected one of random_walk, model"),
     ("enkf.xi_support=clip", "enkf.xi_support: 'clip' is not allowed, expected one of project, free"),
@@ -46,6 +46,8 @@ def test_keys_rdsexp_reads_may_be_added(override):
     ("closed_loop.floor_paths=-1", "closed_loop.floor_paths: -1 is not allowed"),
     ("identification.xi_model=foo", "identification.xi_model: 'foo' is not allowed, expected one of random_walk, iterated"),
     ("identification.passes=0", "identification.passes: 0 is not allowed, expected an integer >= 1"),
+    ("identification.resamples=-1", "identification.resamples: -1 is not allowed, expected an integer >= 0"),
+    ("identification.block=0", "identification.block: 0 is not allowed, expected an integer >= 1"),
     ("identification.covariance=full", "identification.covariance: 'full' is not allowed, expected one of sample, total"),
 ])
 def test_config_errors_exit_2_whatever_raised_them(tmp_path, override, stderr):
