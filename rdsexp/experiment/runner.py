@@ -154,6 +154,8 @@ def execute(cfg: DictConfig, run_dir: Path) -> dict:
     timings, writer, store = {}, RunWriter(run_dir), store_of(cfg)
     with timed(timings, "provenance"):
         info, diff = run_info(run_dir, job_config(cfg), exp.seed)
+        info["plant_hash"] = provenance.plant_hash({name: getattr(exp.plant, name) for name in "ABCD"},
+                                                   OmegaConf.to_container(cfg.plant.xi, resolve=True))
         info["params"] = flat_params(OmegaConf.to_container(cfg, resolve=True))   # what `rdsexp-runs list` shows
         previous = reusable_run(cfg, store, info)
         if previous is not None:

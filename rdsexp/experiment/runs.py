@@ -22,12 +22,12 @@ import pandas as pd
 
 from ..errors import DamagedRecord, warnings_as_lines
 from . import schema
-from .store import RunStore, layout, provenance, read_run, read_table, run_damage
+from .store import Run, RunStore, layout, provenance, read_run, read_table, run_damage
 from .store.table import KEY_METRICS, as_text, changed_params, one_row_per_run, sweep_results
 
 DEFAULT_ROOT = Path(layout.DEFAULT_ROOT)
 __all__ = ["DEFAULT_ROOT", "changed", "check", "compare_tables", "diff", "load", "main", "search", "verify"]
-IDENTITY_SHOWN = ["id", "sweep", "plant", "seed", "overrides", "status"]     # `list`'s default columns, then
+IDENTITY_SHOWN = ["id", "sweep", "plant", "plant_hash", "seed", "overrides", "status"]   # `list`'s columns, then
 SHOWN = KEY_METRICS[:4]                                                        # its key metrics
 
 
@@ -138,14 +138,44 @@ def diff(a: str, b: str, root=DEFAULT_ROOT) -> pd.DataFrame:
     one, two = (search(locate(x, root).parent).pipe(lambda t, x=x: t[t["dir"] == str(locate(x, root))])
                 for x in (a, b))
     keys = [c for c in [*one.columns, *two.columns] if c.startswith(("params.", "metrics."))]
-    rows = _diff_rows(one.iloc[0], two.iloc[0], [*sorted(keys, key=lambda c: not c.startswith("params.")),
-                                                 "code"], skip=("metrics.seconds",))
+    rows = _diff_rows(one.iloc[0], two.iloc[0], ["plant_hash", *sorted(keys, key=lambda c: not c.startswith(
+        "params.")), "code"], skip=("metrics.seconds",))
+    rows += config_entries(*(Run(locate(x, root)) for x in (a, b)), shown={r["key"] for r in rows})
     tables = {x: read_run(locate(x, root)).get("tables") or {} for x in (a, b)}
     for name in sorted(set(tables[a]) | set(tables[b])):
         ha, hb = ((tables[x].get(name) or {}).get("sha256") for x in (a, b))
         if ha != hb:
             rows.append({"what": "table", "key": name, "a": (ha or "missing")[:12], "b": (hb or "missing")[:12]})
     return pd.DataFrame(rows, columns=["what", "key", "a", "b"])
+
+
+CONFIG_ROWS = 20     # entries of list-valued config `diff` lists one by one, then how many more differ
+
+
+def config_entries(a: Run, b: Run, shown: set) -> list[dict]:
+    """Rows (config, key, a, b) of the composed configs' entries that differ inside lists (matrices, a xi law's
+    components: `plant.xi.components[0].prob`, `plant.A[2][0][0]`), which the runs table keeps only as
+    scalars: the first CONFIG_ROWS, then one row counting the rest. Keys already in `shown` are skipped."""
+    from omegaconf import OmegaConf
+    try:
+        one, two = (OmegaConf.to_container(run.config, resolve=False) for run in (a, b))
+    except (OSError, ValueError):
+        return []
+    found = []
+
+    def walk(x, y, key: str, in_list: bool) -> None:
+        if isinstance(x, dict) and isinstance(y, dict):
+            for k in dict.fromkeys([*x, *y]):
+                walk(x.get(k), y.get(k), f"{key}.{k}" if key else str(k), in_list)
+        elif isinstance(x, list) and isinstance(y, list) and len(x) == len(y):
+            for i, (u, v) in enumerate(zip(x, y)):
+                walk(u, v, f"{key}[{i}]", True)
+        elif x != y and in_list and key not in shown:
+            found.append({"what": "config", "key": key, "a": x, "b": y})
+    walk(one, two, "", False)
+    more = [{"what": "config", "key": f"... {len(found) - CONFIG_ROWS} more entries", "a": "", "b": ""}] \
+        if len(found) > CONFIG_ROWS else []
+    return found[:CONFIG_ROWS] + more
 
 
 def _same(x, y) -> bool:
@@ -361,7 +391,8 @@ def _command(args) -> int:
         who = identity(run_dir, info)                   # the catalog's identity of the run, first
         job = f" job {who['job']}" if who["job"] is not None else ""
         reused = f", reused from {who['reused_from']}" if who["reused_from"] else ""
-        print(f"run {who['id']}: plant {who['plant']} (model {who['model']}), sweep {who['sweep'] or '-'}{job}, "
+        plant = who["plant"] if not who["plant_hash"] else f"{who['plant']}@{who['plant_hash'][:6]}"
+        print(f"run {who['id']}: plant {plant} (model {who['model']}), sweep {who['sweep'] or '-'}{job}, "
               f"seed {who['seed']}, overrides {who['overrides'] or '(none)'}{reused}")
         print(OmegaConf.to_yaml({k: v for k, v in info.items() if k not in ("environment", "traceback", "params")}))
         for problem in run_damage(run_dir, info) if info.get("status") == "complete" else []:

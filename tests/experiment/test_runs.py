@@ -309,3 +309,47 @@ def test_help_of_every_command_prints_and_exits_0(capsys):
         with pytest.raises(SystemExit) as exit_:
             runs.main([name, "--help"])
         assert exit_.value.code == 0 and capsys.readouterr().out.startswith("usage:"), name
+
+
+LOSSY3 = """name: lossy3
+A:
+  - [[1.005, 0.10017], [0.10017, 1.005]]
+  - [[0, 0], [0, 0]]
+B:
+  - [[0], [0]]
+  - [[0.005], [0.10017]]
+C:
+  - [[1, 0]]
+xi: {family: independent, components: [{family: bernoulli, prob: PROB}]}
+"""
+
+
+def test_the_plant_content_is_part_of_a_runs_identity(tmp_path):
+    """A plant file changed between two runs (one Bernoulli probability): run.json's plant_hash differs, the
+    catalog and `show` carry it, `diff` names the hash and the changed entry inside the xi law's list; the
+    hash is of the content (1 and 1.0, another file name and key order give the same one)."""
+    from rdsexp.experiment.store import provenance
+    conf = tmp_path / "conf" / "plant"
+    conf.mkdir(parents=True)
+    tiny = ["closed_loop.paths=2", "enkf.ensemble_size=10", "closed_loop.horizon=20", "tracking.recording=false",
+            "closed_loop.open_loop=false", "identification.resamples=5"]
+    dirs = []
+    for prob in ("0.85", "0.9"):
+        (conf / "lossy3.yaml").write_text(LOSSY3.replace("PROB", prob))
+        rdsexp("--config-dir", "conf", "plant=lossy3", *tiny, cwd=tmp_path)
+        dirs.append(max((tmp_path / "outputs" / "runs").iterdir(), key=lambda p: p.stat().st_mtime_ns))
+    infos = [json.loads((d / "run.json").read_text()) for d in dirs]
+    hashes = [i["plant_hash"] for i in infos]
+    assert len(hashes[0]) == 64 and hashes[0] != hashes[1]
+    table = runs.search(tmp_path / "outputs")
+    assert sorted(table["plant_hash"]) == sorted(h[:12] for h in hashes)
+    rows = runs.diff(str(dirs[0]), str(dirs[1]), root=tmp_path / "outputs")
+    assert {"what": "plant_hash", "key": "plant_hash", "a": hashes[0][:12], "b": hashes[1][:12]} in \
+        rows.to_dict("records")
+    config = rows[rows["what"] == "config"]
+    assert list(config["key"]) == ["plant.xi.components[0].prob"] and list(config["a"]) == [0.85]
+    shown = rdsexp("show", str(dirs[1]), cwd=tmp_path, module="rdsexp.runs").stdout.splitlines()[0]
+    assert f"plant lossy3@{hashes[1][:6]} " in shown
+    one = provenance.plant_hash({"A": np.ones((1, 2, 2))}, {"family": "bernoulli", "prob": 1})
+    assert one == provenance.plant_hash({"A": [[[1, 1], [1, 1.0]]]}, {"prob": 1.0, "family": "bernoulli"})
+    assert one != provenance.plant_hash({"A": np.ones((1, 2, 2))}, {"family": "bernoulli", "prob": 0.999})

@@ -29,6 +29,23 @@ def config_hash(job_config: dict) -> str:
     return hashlib.sha256(json.dumps(job_config, sort_keys=True, default=str).encode()).hexdigest()
 
 
+def plant_hash(matrices: dict, xi_spec) -> str:
+    """sha256 of the canonical resolved plant: its basis matrices {A, B, C, D: arrays (p+1, rows, cols)} as
+    built (C and D filled in where the file leaves them out) and its xi law as the file states it, every number
+    as a float (1 and 1.0 are one plant), in canonical JSON: two files that describe one system share it, any
+    change of a matrix entry or of the law gives another."""
+    def canonical(node):
+        if isinstance(node, dict):
+            return {str(k): canonical(v) for k, v in node.items()}
+        if isinstance(node, (list, tuple)):
+            return [canonical(v) for v in node]
+        if hasattr(node, "tolist"):
+            return canonical(node.tolist())
+        return float(node) if isinstance(node, (int, float)) and not isinstance(node, bool) else node
+    content = {"matrices": canonical(matrices), "xi": canonical(xi_spec)}
+    return hashlib.sha256(json.dumps(content, sort_keys=True).encode()).hexdigest()
+
+
 def _git(*args: str) -> str | None:
     try:
         out = subprocess.run(["git", "-C", str(REPO), *args], capture_output=True, text=True, timeout=10)

@@ -20,7 +20,7 @@ from . import files
 from .layout import MULTIRUN, SUMMARY, SUMMARY_CSV, SUMMARY_LOCK
 from .run import MATRIX, read_runs, scalar_config, scalars_only
 
-IDENTITY = ["id", "sweep", "sweep_id", "job", "seed", "status", "plant", "model", "method", "overrides",
+IDENTITY = ["id", "sweep", "sweep_id", "job", "seed", "status", "plant", "plant_hash", "model", "method", "overrides",
             "reused_from", "created", "code", "config_hash", "dir"]
 # summary entries that are settings or nested records rather than numbers of the run
 NOT_METRICS = ("plant", "model", "gain_method", "rate_window", "reference", "designs", "identification_feedback")
@@ -29,14 +29,16 @@ NOT_METRICS = ("plant", "model", "gain_method", "rate_window", "reference", "des
 def identity(run_dir: Path, info: dict) -> dict:
     """The identity columns of a run (IDENTITY) from its run.json: sweep is the `+sweep=NAME` config,
     else the command-line overrides of the `-m` run (`sweep_name`); plant is the plant file's `name:`,
-    else its file name (the runner records it so)."""
+    else its file name (the runner records it so), plant_hash the first 12 hex digits of run.json's
+    `plant_hash` (the plant's content: two files of one name that differ have different hashes)."""
     sweep, s, seed = info.get("sweep") or {}, info.get("summary") or {}, info.get("seed")
     job = sweep.get("job")
     return {"id": info.get("id"), "sweep": sweep.get("name") or sweep_name(sweep.get("dir")),
             "sweep_id": Path(sweep["dir"]).name if sweep.get("dir") else None,
             "job": job if isinstance(job, int) else None,
             "seed": seed.get("root") if isinstance(seed, dict) else seed, "status": info.get("status"),
-            "plant": s.get("plant"), "model": s.get("model"), "method": s.get("gain_method"),
+            "plant": s.get("plant"), "plant_hash": (info.get("plant_hash") or "")[:12] or None,
+            "model": s.get("model"), "method": s.get("gain_method"),
             "overrides": " ".join(o for o in info.get("overrides", []) if not o.startswith("+sweep=")),
             "reused_from": info.get("reused_from"), "created": info.get("created"),
             "code": (info.get("code") or {}).get("version"), "config_hash": info.get("config_hash"),
