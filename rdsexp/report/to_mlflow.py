@@ -15,7 +15,8 @@ experiment (default "rdsexp"), written with `MlflowClient` (explicit run ids, no
                not have, is left out) at step 0, and the RMS curves sqrt(E||q_k||^2) at step k:
                rms/<loop> over the paths of the trajectories table, rms/<loop>_exact of the ideal
                loop (exact table); names as MLflow allows them: xi_mean[0] is xi_mean.0
-    tags       rdsexp.run_id, rdsexp.code, rdsexp.config_hash, rdsexp.status, rdsexp.plant, rdsexp.sweep,
+    tags       rdsexp.run_id, rdsexp.code, rdsexp.config_hash, rdsexp.plant_hash, rdsexp.status, rdsexp.plant,
+               rdsexp.sweep,
                rdsexp.seed, ... (the identity columns), summary.<name> for the summary's words
                (verdicts, statuses), rdsexp.recording: the path of recording.rrd (a link, not a copy,
                also in the run's note)
@@ -35,6 +36,7 @@ import math
 import numbers
 import os
 import re
+import tempfile
 import urllib.error
 import urllib.request
 from contextlib import contextmanager
@@ -230,11 +232,30 @@ def _one(client, experiment_id: str, row: pd.Series, report: Report, existing: d
     for source, artifact in _artifacts(run_dir, info, tables):
         if artifact not in have_files:
             client.log_artifact(mlflow_id, str(source))
+    plant = _plant_file(run_dir)
+    if plant is not None and PLANT_FILE not in have_files:       # the system itself, beside its hash
+        with tempfile.TemporaryDirectory() as tmp:
+            (Path(tmp) / PLANT_FILE).write_text(plant)
+            client.log_artifact(mlflow_id, str(Path(tmp) / PLANT_FILE))
     end = _millis(info.get("finished")) or (start + int(1000 * (info.get("seconds") or 0)) if start else None)
     client.set_terminated(mlflow_id, STATUS.get(info.get("status"), "FAILED"), end_time=end)
     client.set_tag(mlflow_id, DONE, "complete")
     (report.exported if there is None else report.completed).append(run_id)
     report.runs[run_id] = mlflow_id
+
+
+PLANT_FILE = "plant.yaml"
+
+
+def _plant_file(run_dir: Path) -> str | None:
+    """The plant node of the run's composed config as YAML (the plant file as the run read it); None without one."""
+    import yaml
+    try:
+        config = yaml.safe_load((run_dir / layout.HYDRA_CONFIG).read_text()) or {}
+    except (OSError, yaml.YAMLError):
+        return None
+    plant = config.get("plant") if isinstance(config, dict) else None
+    return yaml.safe_dump(plant, sort_keys=False, default_flow_style=None) if isinstance(plant, dict) else None
 
 
 def _params(params: dict) -> tuple[dict[str, str], list[str]]:
@@ -296,7 +317,8 @@ def _tags(row: pd.Series, info: dict, run_dir: Path, parent: str | None, name: s
     code = info.get("code") or {}
     summary = info.get("summary") or {}
     tags = {RUN_KEY: row["id"], "rdsexp.kind": "run", "rdsexp.code": code.get("version"),
-            "rdsexp.config_hash": info.get("config_hash"), "rdsexp.status": info.get("status"),
+            "rdsexp.config_hash": info.get("config_hash"), "rdsexp.plant_hash": info.get("plant_hash"),
+            "rdsexp.status": info.get("status"),
             "rdsexp.plant": row.get("plant"), "rdsexp.model": row.get("model"), "rdsexp.method": row.get("method"),
             "rdsexp.sweep": row.get("sweep"), SWEEP_KEY: row.get("sweep_id"), "rdsexp.job": row.get("job"),
             "rdsexp.seed": row.get("seed"), "rdsexp.overrides": row.get("overrides") or None,

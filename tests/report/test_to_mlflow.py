@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
+import yaml
 from conftest import SMALL, rdsexp
 
 mlflow = pytest.importorskip("mlflow")
@@ -137,7 +138,10 @@ def test_each_run_with_its_params_metrics_curves_tags_and_artifacts(exported, tm
     assert run.info.status == "FINISHED" and run.info.start_time == to_mlflow._millis(info["created"])
     # artifacts: run.json, the composed config and every stored table, byte for byte
     names = {f.path for f in client.list_artifacts(run.info.run_id)}
-    assert names == {"run.json", "config.yaml", *(m["file"] for m in info["tables"].values())}
+    assert names == {"run.json", "config.yaml", "plant.yaml", *(m["file"] for m in info["tables"].values())}
+    assert tags["rdsexp.plant_hash"] == info["plant_hash"]                 # the plant's content, and the plant
+    plant = yaml.safe_load(Path(client.download_artifacts(run.info.run_id, "plant.yaml", str(tmp_path))).read_text())
+    assert plant == yaml.safe_load((run_dir / ".hydra" / "config.yaml").read_text())["plant"]
     assert {"trajectories.parquet", "exact.parquet", "metrics.parquet"} <= names
     for name in ("run.json", "metrics.parquet"):
         local = client.download_artifacts(run.info.run_id, name, str(tmp_path))
