@@ -153,12 +153,31 @@ def _spec(table: pd.DataFrame, x, y: str, hue: str | None) -> Spec:
         lacking = [c for c in [*keys, *([hcol] if hcol else [])] if left_out[c].isna().any()]
         warnings.warn(f"{len(left_out)} run(s) without a value of {' or '.join(lacking)} left out of {y}: {ids}",
                       RecordWarning, stacklevel=3)
+    _check_pooling(rows, [*keys, *([hcol] if hcol else [])])
     order, numeric = {}, {}
     for col in [*keys, *([hcol] if hcol else [])]:
         numeric[col] = all(_is_number(v) for v in rows[col])
         unique = list(dict.fromkeys(rows[col].tolist()))
         order[col] = sorted(unique) if numeric[col] else unique
     return Spec(keys, ycol, hcol, rows, left_out, values[placed], order, numeric)
+
+
+# what must be one value within a line's point or a heatmap's cell: runs of other plants (their content) or
+# other path counts are other experiments, not seeds of one
+NOT_POOLED = {"plant_hash": "plants", "params.closed_loop.paths": "path counts"}
+
+
+def _check_pooling(rows: pd.DataFrame, group: list[str]) -> None:
+    """ValueError (one line) when a point of `group` would pool runs of different plants or path counts."""
+    for col, what in NOT_POOLED.items():
+        if col not in rows.columns or col in group:
+            continue
+        for point, members in rows.groupby(group, dropna=False, sort=False):
+            values = sorted(set(map(str, members[col])))
+            if len(values) > 1:
+                at = ", ".join(f"{g}={v}" for g, v in zip(group, point if isinstance(point, tuple) else (point,)))
+                raise ValueError(f"{what} differ within the point {at}: {col} is {', '.join(values)}; select one "
+                                 f"with where, or split them with hue={col}")
 
 
 def _resolve(table: pd.DataFrame, name, role: str) -> str:

@@ -232,3 +232,20 @@ def test_a_run_json_that_is_missing_or_names_another_run_stops_the_figure(sweep,
     with pytest.raises(DamagedRecord, match="run.json: missing"):
         sweep_plot.plot(sweep, "ensemble_size", "closed_loop_rate", out=tmp_path / "fig")
     assert not (tmp_path / "fig").exists()
+
+
+@pytest.mark.parametrize("column, value, what", [("plant_hash", "66772176229f", "plants"),
+                                                 ("params.closed_loop.paths", 50, "path counts")])
+def test_a_point_that_would_pool_other_plants_or_path_counts_is_refused(sweep, tmp_path, column, value, what):
+    """Two plant files of one name that differ, or a 50-path run among 30-path ones, under one point or cell:
+    one line naming the point and the values, nothing drawn; split by hue (lines) or selected, it draws."""
+    sweep[column] = sweep.get(column, pd.Series(["d238f1965554" if column == "plant_hash" else 30] * len(sweep)))
+    sweep.loc[sweep["params.enkf.ensemble_size"] == 40, column] = \
+        np.where(sweep.loc[sweep["params.enkf.ensemble_size"] == 40, "params.seed"] == 2, value, sweep[column].iloc[0])
+    for x in ("ensemble_size", ["ensemble_size", "q_scale"]):
+        with pytest.raises(ValueError, match=f"^{what} differ within the point params.enkf.ensemble_size=40") as err:
+            sweep_plot.plot(sweep, x=x, y="closed_loop_rate", out=tmp_path / "fig")
+        assert "\n" not in str(err.value) and "hue=" in str(err.value)
+    assert not (tmp_path / "fig").exists()
+    sweep_plot.plot(sweep, x="ensemble_size", y="closed_loop_rate", hue=column, out=tmp_path / "split")
+    sweep_plot.plot(sweep[sweep[column] != value], x="ensemble_size", y="closed_loop_rate", out=tmp_path / "one")
