@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import shlex
 from pathlib import Path
 
 import numpy as np
@@ -89,7 +90,7 @@ def run_info(run_dir: Path, job_config: dict, seed: int) -> tuple[dict, str]:
     return {
         "id": run_dir.name if not multirun else f"{Path(hc.sweep.dir).name}/{run_dir.name}",
         "status": "incomplete", "created": provenance.now(),
-        "command": " ".join(["python -m rdsexp", *(hc.overrides.task if hc else [])]),
+        "command": " ".join(["python -m rdsexp", *config_dirs(hc), *(hc.overrides.task if hc else [])]),
         "overrides": list(hc.overrides.task) if hc else [],
         "sweep": {"dir": str(Path(hc.sweep.dir).resolve()), "job": int(hc.job.num),
                   "name": hc.runtime.choices.get("sweep")} if multirun else None,
@@ -101,6 +102,15 @@ def run_info(run_dir: Path, job_config: dict, seed: int) -> tuple[dict, str]:
         "environment": provenance.environment(),
         "process": provenance.process_info(),     # tells a run whose process died from a running one
     }, code["diff"]
+
+
+def config_dirs(hc) -> list[str]:
+    """`--config-dir DIR` of the command line (Hydra's command-line config source), as absolute paths, so that
+    run.json's command can be pasted back from anywhere."""
+    if hc is None:
+        return []
+    return [f"--config-dir {shlex.quote(str(Path(source.path).resolve()))}" for source in hc.runtime.config_sources
+            if source.provider == "command-line" and source.schema == "file"]
 
 
 # config keys that do not change what a run computes
@@ -189,9 +199,9 @@ def stage_cache(cfg: DictConfig, store: RunStore, info: dict):
 
 
 def reusable_run(cfg: DictConfig, store: RunStore, info: dict) -> Path | None:
-    """In a sweep with `reuse: true`, an intact complete run of the same config hash and code version
-    in the run store (config key `store`, found through its index; never anything outside it), so
-    that a relaunched sweep skips the jobs a killed one completed."""
-    if not cfg.get("reuse") or info["sweep"] is None:
+    """With `reuse: true`, an intact complete run of the same config hash and code version in the run
+    store (config key `store`, found through its index; never anything outside it): a relaunched sweep
+    skips the jobs a killed one completed, and the same command run twice records a copy of the first."""
+    if not cfg.get("reuse"):
         return None
     return store.find_reusable(info["config_hash"], info["code"]["version"])

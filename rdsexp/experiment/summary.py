@@ -22,7 +22,9 @@ def summary_text(info: dict, run_dir: Path) -> str:
     beside = lambda name: f" ({ref.get('source', 'paper')} {ref[name]})" if name in ref else ""
     unstable = lambda rate: rate is not None and not rate < 1          # NaN too: not shown to be stable
     k_from, k_to = s.get("rate_window") or (None, None)
-    lines = [f"rdsexp run {info.get('id')}: {info.get('status')}"]
+    lines = [f"rdsexp run {info.get('id')}: {info.get('status')}" + (
+        f" (reused run {info['reused_from']}: the same config and code version, nothing computed)"
+        if info.get("reused_from") else "")]
     if s.get("plant"):                    # a run that failed before its summary has none
         lines.append(f"  plant {s['plant']}, model {s.get('model')}")
     if info.get("error"):

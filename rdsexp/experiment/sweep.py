@@ -214,11 +214,14 @@ class SweepSummary(Callback):
             print(f"rdsexp: {err}", file=sys.stderr)
             raise RunExit(1) from None
         print(f"sweep summary: {path}")
-        try:                              # the sweep's own recording: metrics against the swept params
-            from .recording import write_sweep_recording
-            print(f"sweep recording: {write_sweep_recording(path.parent) or 'none (Rerun disabled: RERUN=off)'}")
-        except Exception as err:          # noqa: BLE001 -- a view, never the end of a sweep
-            print(f"rdsexp: no sweep recording ({type(err).__name__}: {err})", file=sys.stderr)
+        if not read_runs(path.parent)[0]:   # tracking=off: the jobs recorded nothing to draw
+            print("sweep recording: none (no job recorded a run: tracking.level=off)")
+        else:                              # the sweep's own recording: metrics against the swept params
+            try:
+                from .recording import write_sweep_recording
+                print(f"sweep recording: {write_sweep_recording(path.parent) or 'none (Rerun disabled: RERUN=off)'}")
+            except Exception as err:      # noqa: BLE001 -- a view, never the end of a sweep
+                print(f"rdsexp: no sweep recording ({type(err).__name__}: {err})", file=sys.stderr)
         table = runs_table(read_runs(path.parent)[0], params=True)
         if len(table):                    # what was swept against what came out, as `rdsexp-runs show SWEEP`
             print(as_text(sweep_results(table), max_rows=RESULT_ROWS))

@@ -220,3 +220,26 @@ def test_the_feedback_estimate_is_checked_before_any_work(overrides, message):
 def test_auto_estimate_is_the_prediction_when_the_output_depends_on_the_input():
     exp = build(compose("config", overrides=["plant=dropout", "plant.D=[[[0.1]]]"]))
     assert exp.loop.estimate == "predicted"
+
+
+def test_the_same_command_twice_reuses_the_stored_run(tmp_path):
+    """A single run, like a sweep's job, is reused when the store holds one of the same config and code
+    version: the second records a copy naming it, says so on its first line, and computes nothing."""
+    args = ["closed_loop.paths=2", "enkf.ensemble_size=10", "closed_loop.horizon=20", "tracking.recording=false"]
+    first = rdsexp(*args, cwd=tmp_path)
+    second = rdsexp(*args, cwd=tmp_path)
+    one, two = sorted((tmp_path / "outputs" / "runs").iterdir())
+    info = json.loads((two / "run.json").read_text())
+    assert info["reused_from"] == one.name and "reused" not in first.stdout.splitlines()[0]
+    assert second.stdout.splitlines()[0].endswith(f"(reused run {one.name}: the same config and code version, "
+                                                  f"nothing computed)")
+    assert info["tables"] == json.loads((one / "run.json").read_text())["tables"]
+    rdsexp(*args, "reuse=false", cwd=tmp_path)                  # reuse=false computes again
+    assert len(list((tmp_path / "outputs" / "runs").iterdir())) == 3
+
+
+def test_a_sweep_that_records_nothing_says_so_in_one_line(tmp_path):
+    proc = rdsexp("-m", "seed=1,2", "tracking=off", "closed_loop.paths=2", "enkf.ensemble_size=10",
+                  "closed_loop.horizon=20", "hydra/launcher=basic", cwd=tmp_path)
+    assert "sweep recording: none (no job recorded a run: tracking.level=off)" in proc.stdout
+    assert "ZeroDivisionError" not in proc.stderr and "no sweep recording" not in proc.stderr

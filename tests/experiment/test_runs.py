@@ -348,6 +348,8 @@ def test_the_plant_content_is_part_of_a_runs_identity(tmp_path):
         rows.to_dict("records")
     config = rows[rows["what"] == "config"]
     assert list(config["key"]) == ["plant.xi.components[0].prob"] and list(config["a"]) == [0.85]
+    # the command pastes back from anywhere: with the absolute --config-dir
+    assert infos[1]["command"].startswith(f"python -m rdsexp --config-dir {(tmp_path / 'conf').resolve()} plant=lossy3")
     shown = rdsexp("show", str(dirs[1]), cwd=tmp_path, module="rdsexp.runs").stdout.splitlines()[0]
     assert f"plant lossy3@{hashes[1][:6]} " in shown
     one = provenance.plant_hash({"A": np.ones((1, 2, 2))}, {"family": "bernoulli", "prob": 1})
