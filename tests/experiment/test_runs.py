@@ -72,8 +72,8 @@ def test_bad_where_is_one_line(root):
 def test_list_changed_sort_columns_csv(root, tmp_path):
     out = rdsexp("list", str(root), "--changed", "--sort=-closed_loop_rate", "--where", "seed == 0",
                  cwd=tmp_path, module="rdsexp.runs").stdout.splitlines()
-    assert out[0].split() == ["id", "sweep", "plant", "seed", "overrides", "status", "enkf.q_scale", "lam",
-                              "closed_loop_rate"]
+    assert out[0].split() == ["id", "sweep", "plant", "plant_hash", "seed", "overrides", "status", "enkf.q_scale",
+                              "lam", "closed_loop_rate"]
     assert [line.split()[0] for line in out[1:]] == ["A/2", "A/1", "A/0"]
     csv = rdsexp("list", str(root), "--columns", "enkf.q_scale,seed,lam", "--csv", cwd=tmp_path,
                  module="rdsexp.runs").stdout

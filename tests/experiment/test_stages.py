@@ -116,7 +116,7 @@ def test_verify_computes_everything(cached, monkeypatch):
 
 def single(cwd: Path, *args) -> dict:
     before = set((cwd / "outputs" / "runs").glob("*")) if (cwd / "outputs" / "runs").exists() else set()
-    rdsexp(*SMALL, "tracking.recording=false", *args, cwd=cwd)
+    rdsexp(*SMALL, "tracking.recording=false", "reuse=false", *args, cwd=cwd)     # the stages, not the run, reused
     (new,) = set((cwd / "outputs" / "runs").glob("*")) - before
     return json.loads((new / "run.json").read_text())
 
@@ -171,7 +171,7 @@ def test_two_writers_of_one_key_leave_one_entry(tmp_path):
 def test_a_reused_stage_is_said_in_the_summary_and_the_log_not_on_the_terminal(tmp_path):
     # the open loop is loaded under its progress bar, where console logging goes through tqdm: the
     # console handler's level (warnings) still holds there
-    args = (*SMALL, "tracking.recording=false")
+    args = (*SMALL, "tracking.recording=false", "reuse=false")       # the stages, not the whole run, reused
     rdsexp(*args, cwd=tmp_path)
     proc = rdsexp(*args, cwd=tmp_path)
     assert "reused from the stage cache" in proc.stdout and "open loop" in proc.stdout
