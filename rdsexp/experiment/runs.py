@@ -357,8 +357,9 @@ def _command(args) -> int:
             table = table.sort_values(key, ascending=not args.sort.startswith("-"), kind="stable")
         if args.columns == "all":
             cols = list(table.columns)
-        elif args.columns:
+        elif args.columns:                    # with --changed, the params that vary follow the columns asked for
             cols = [column(table, c.strip()) for c in args.columns.split(",") if c.strip()]
+            cols = list(dict.fromkeys([*cols, *(changed(table) if args.changed else [])]))
         else:
             cols = [*IDENTITY_SHOWN, *(changed(table) if args.changed else ["params.gain.method"]),
                     *(c for c in SHOWN if c in table.columns)]

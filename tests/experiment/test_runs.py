@@ -79,6 +79,9 @@ def test_list_changed_sort_columns_csv(root, tmp_path):
                  module="rdsexp.runs").stdout
     table = pd.read_csv(pd.io.common.StringIO(csv))
     assert list(table.columns) == ["params.enkf.q_scale", "seed", "metrics.lam"] and len(table) == 6
+    both = rdsexp("list", str(root), "--columns", "lam", "--changed", "--csv", cwd=tmp_path, module="rdsexp.runs")
+    assert list(pd.read_csv(pd.io.common.StringIO(both.stdout)).columns) == ["metrics.lam", *runs.changed(
+        runs.search(root))]                                       # --columns and --changed, both honoured
     bad = rdsexp("list", str(root), "--sort", "nosuch", cwd=tmp_path, module="rdsexp.runs", check=False)
     assert bad.returncode == 2 and bad.stderr.strip() == "rdsexp-runs: 'nosuch' names no column"
 
