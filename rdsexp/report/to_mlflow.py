@@ -75,17 +75,19 @@ class Report:
     skipped: dict[str, str] = field(default_factory=dict)
     runs: dict[str, str] = field(default_factory=dict)
     parents: dict[str, str] = field(default_factory=dict)
+    copies: list[str] = field(default_factory=list)      # reused copies, each tagged on its original's run
 
     @property
     def url(self) -> str | None:
         """The experiment's page in the MLflow UI (an http(s) tracking URI only)."""
         if not self.uri.startswith(("http://", "https://")):
             return None
-        return f"{self.uri.rstrip('/')}/#/experiments/{self.experiment_id}"
+        return f"{self.uri.rstrip('/')}/#/experiments/{self.experiment_id}/runs"       # the runs table
 
     def lines(self) -> list[str]:
         counts = f"exported {len(self.exported)}, already there {len(self.already)}"
         counts += f", completed {len(self.completed)}" if self.completed else ""
+        counts += f", copies {len(self.copies)} (on their originals' runs)" if self.copies else ""
         counts += f", left out {len(self.skipped)}" if self.skipped else ""
         where = f"experiment {self.experiment!r} (id {self.experiment_id}) at {self.uri}"
         return [*(f"left out {run}: {reason}" for run, reason in self.skipped.items()), f"{counts}: {where}",
@@ -119,6 +121,10 @@ def _export(table: pd.DataFrame, client, uri: str, experiment: str, tables: bool
     experiment_id = found.experiment_id if found is not None else client.create_experiment(experiment)
     report = Report(experiment, experiment_id, uri)
     rows = [row for _, row in table.iterrows()]
+    # a reused copy (a relaunched sweep's job, a command run twice) is no computation of its own: it is its
+    # original's MLflow run, which names it in a tag, and adds no run (nor a parent for a sweep of copies)
+    copies = [r for r in rows if isinstance(r.get("reused_from"), str)]
+    rows = [r for r in rows if not isinstance(r.get("reused_from"), str)]
     for sweep_id in dict.fromkeys(r["sweep_id"] for r in rows if isinstance(r["sweep_id"], str)):
         jobs = [r for r in rows if r["sweep_id"] == sweep_id]
         existing, swept = _existing(client, experiment_id, SWEEP_KEY, sweep_id), _swept(jobs)
@@ -130,7 +136,36 @@ def _export(table: pd.DataFrame, client, uri: str, experiment: str, tables: bool
     for row in (r for r in rows if not isinstance(r["sweep_id"], str)):
         _one(client, experiment_id, row, report, _existing(client, experiment_id, RUN_KEY, row["id"]), None,
              str(row["id"]), tables)
+    for copy in copies:
+        _copy(client, experiment_id, copy, report, tables)
     return report
+
+
+def _copy(client, experiment_id: str, copy: pd.Series, report: Report, tables: bool) -> None:
+    """A reused copy: its original's MLflow run (exported first, as a top-level run, when it is not there),
+    tagged rdsexp.copy.<copy id> = the copy's directory; report.runs maps the copy to that run."""
+    original = str(copy["reused_from"])
+    there = _existing(client, experiment_id, RUN_KEY, original).get(original)
+    if there is None or there.data.tags.get(DONE) != "complete":
+        copy_dir = Path(copy["dir"]).resolve()
+        root = copy_dir.parents[2] if "/" in str(copy["id"]) else copy_dir.parents[1]   # sweeps/<id>/<job>, runs/<id>
+        try:
+            original_dir = locate(original, root)
+        except LookupError:
+            report.skipped[str(copy["id"])] = f"a copy of {original}, which is not in the store"
+            return
+        row = search(original_dir.parent, copies=True).pipe(lambda t: t[t["dir"] == str(original_dir)])
+        if not len(row):
+            report.skipped[str(copy["id"])] = f"a copy of {original}, which the store does not list"
+            return
+        _one(client, experiment_id, row.iloc[0], report, {} if there is None else {original: there}, None,
+             original, tables)
+        there = _existing(client, experiment_id, RUN_KEY, original).get(original)
+        if there is None:
+            return
+    client.set_tag(there.info.run_id, mlflow_key(f"rdsexp.copy.{copy['id']}"), str(Path(copy["dir"]).resolve()))
+    report.runs[str(copy["id"])] = there.info.run_id
+    report.copies.append(str(copy["id"]))
 
 
 @contextmanager
@@ -385,9 +420,18 @@ def _parent(client, experiment_id: str, sweep_id: str, jobs: list[pd.Series], sw
     have = {f.path for f in client.list_artifacts(run_id)} if there is not None else set()
     if (sweep_dir / layout.MULTIRUN).is_file() and layout.MULTIRUN not in have:
         client.log_artifact(run_id, str(sweep_dir / layout.MULTIRUN))
-    client.set_terminated(run_id, "FINISHED")
+    finished = [_finished(Path(j["dir"])) for j in jobs]
+    client.set_terminated(run_id, "FINISHED", end_time=max((f for f in finished if f), default=None))   # its jobs' end
     client.set_tag(run_id, DONE, "complete")
     return run_id
+
+
+def _finished(run_dir: Path) -> int | None:
+    """When a run ended (run.json's `finished`, ms), None when it has no readable record of it."""
+    try:
+        return _millis(read_run(run_dir).get("finished"))
+    except (DamagedRecord, OSError):
+        return None
 
 
 def _swept(jobs: list[pd.Series]) -> list[str]:

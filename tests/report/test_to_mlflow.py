@@ -158,6 +158,9 @@ def test_the_sweep_is_a_parent_run_and_a_single_run_is_top_level(exported):
     assert parent.info.run_name == "enkf.ensemble_size=20,40" and parent.data.tags["rdsexp.swept"] == "enkf.ensemble_size"
     assert "mlflow.parentRunId" not in parent.data.tags
     assert [f.path for f in client.list_artifacts(parent.info.run_id)] == ["multirun.yaml"]
+    jobs = table.loc[table["sweep_id"] == sweep_id, "dir"]            # the sweep's own times, not the export's
+    assert parent.info.end_time == max(to_mlflow._millis(json.loads((Path(d) / "run.json").read_text())["finished"])
+                                       for d in jobs)
     children = {r.data.tags["rdsexp.run_id"] for r in found.values()
                 if r.data.tags.get("mlflow.parentRunId") == parent.info.run_id}
     assert children == set(table.loc[table["sweep_id"] == sweep_id, "id"])
@@ -177,7 +180,7 @@ def test_a_second_export_adds_nothing(exported, store, capsys):
     assert runs.main(["export", "--mlflow", report.uri, "--where", "status == 'complete'", "--root", str(store)]) == 0
     out = capsys.readouterr().out.splitlines()
     assert out == [f"exported 0, already there 3: experiment 'rdsexp' (id {report.experiment_id}) at {report.uri}",
-                   f"{report.uri}/#/experiments/{report.experiment_id}"]
+                   f"{report.uri}/#/experiments/{report.experiment_id}/runs"]      # the runs table
     after = mlflow_runs(client, report.experiment_id)
     assert after.keys() == before.keys()
     assert all((a.data.params, a.data.metrics, a.data.tags) == (b.data.params, b.data.metrics, b.data.tags)
@@ -251,3 +254,28 @@ def test_mlflow_keys():
     long = to_mlflow.mlflow_key("k" * 300)
     assert len(long) == 250 and long != to_mlflow.mlflow_key("k" * 301)
     assert to_mlflow.mlflow_key("x", {"x": 1}) == "x~2"
+
+
+def test_reused_copies_add_no_mlflow_run_and_no_second_parent(uri, store):
+    """The sweep command relaunched (every job a reused copy, a new sweep directory) and the single run's
+    command run again: exported, they add no MLflow run and no parent; each copy is tagged on its
+    original's run (one MLflow run per computation)."""
+    client = mlflow.MlflowClient(uri)
+    report = to_mlflow.export(runs.search(store), uri, "copies")
+    before = mlflow_runs(client, report.experiment_id)
+    assert len(before) == 4
+    rdsexp("-m", "enkf.ensemble_size=20,40", *SWEEP_SMALL, "tracking.recording=false", cwd=store.parent)
+    rdsexp(*SMALL, cwd=store.parent)
+    copies = runs.search(store, "reused_from == reused_from", copies=True)
+    assert len(copies) == 3
+    sweep = Path(copies["dir"].dropna().iloc[0]).parent if copies["sweep_id"].notna().any() else None
+    again = to_mlflow.export(str(sweep), uri, "copies", root=store)        # the relaunched sweep alone
+    whole = to_mlflow.export(runs.search(store, copies=True), uri, "copies")
+    after = mlflow_runs(client, report.experiment_id)
+    assert after.keys() == before.keys() and not again.exported and not whole.exported
+    assert not again.parents and sorted(whole.copies) == sorted(copies["id"])
+    for copy in copies.itertuples():
+        original = after[report.runs[copy.reused_from]]
+        assert whole.runs[copy.id] == original.info.run_id
+        assert original.data.tags[to_mlflow.mlflow_key(f"rdsexp.copy.{copy.id}")] == str(Path(copy.dir).resolve())
+    assert "copies 3 (on their originals' runs)" in whole.lines()[0]
