@@ -86,7 +86,7 @@ COLUMNS: dict[str, dict[str, tuple[str, str | None]]] = {
         "verdict_reason": ("the verdict in words, with the evidence it was decided on", None),
         "status": ("ok, partially_failed or failed (every path): whether paths diverged", None),
         "rate": ("empirical rate (E|q_k_to|^2 / E|q_k_from|^2)^(1/(2 (k_to - k_from)))", "1/step"),
-        "rate_low": ("lower end of the rate's 95% interval (hull of a studentised and a lognormal bootstrap over "
+        "rate_low": ("lower end of the rate's 95% interval (hull of a BCa and a lognormal bootstrap over "
                      "paths)", "1/step"),
         "rate_high": ("upper end of the rate's 95% interval", "1/step"),
         "k_from": ("first step of the rate window (config, or auto: after the disturbance)", "step"),

@@ -19,8 +19,10 @@ at rest that grows, or whose paths diverge, is no floor: the loop grows.
 The interval must hold when the mean square is carried by a few paths (multiplicative noise makes
 ||q_k||^2 a product of random factors, nearly lognormal with a spread that grows with k; a sample
 of P paths then misses the paths that carry the mean, and the sample mean is low). It is the hull
-of two bootstrap intervals over paths of the same log ratio: the studentised bootstrap of the
-sample means (valid where the central limit theorem holds) and a percentile bootstrap of the
+of two bootstrap intervals over paths of the same log ratio: the bias-corrected and accelerated
+(BCa) bootstrap of the sample means (valid where the central limit theorem holds; unlike a
+studentised bootstrap, its ends do not explode when one path carries most of the mean square and
+the resamples that miss it have almost no spread) and a percentile bootstrap of the
 lognormal means exp(mu + sigma^2 / 2) (valid for products of many random factors, where the
 sample mean is not; mu and sigma from the median and the upper half of log ||q||^2, so that states
 near 0 do not widen it). `experiments/coverage.py` measures its coverage against exact rates.
@@ -39,6 +41,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.special import ndtr, ndtri
 
 VERDICTS = ("stable", "unstable", "undetermined", "failed")
 ABOVE_FLOOR = 10.0    # a placed window ends where the ideal loop's RMS is still 10 floors (one decade) up
@@ -129,7 +132,7 @@ def rate_interval(b: np.ndarray, a: np.ndarray, span: int, floor: np.ndarray | N
                   level: float = LEVEL) -> tuple[float, float, float]:
     """(rate, low, high): rate = ((mean a - f) / (mean b - f))^(1/(2 span)) from per-path ||q_{k_from}||^2
     = b (P,) and ||q_{k_to}||^2 = a (P,), f the mean of `floor` (P_f,) (0 without), and its `level`
-    interval: the hull of the studentised bootstrap of the log ratio and the percentile bootstrap of its
+    interval: the hull of the BCa bootstrap of the log ratio and the percentile bootstrap of its
     lognormal counterpart (module docstring), paths (and floor paths) resampled together, RESAMPLES
     times from one fixed stream. NaN when a value is not finite, a transient is not positive, or P < 2.
     A resample whose transient at k_to (k_from) is not positive has log ratio -inf (+inf): the bound
@@ -143,28 +146,58 @@ def rate_interval(b: np.ndarray, a: np.ndarray, span: int, floor: np.ndarray | N
     if not np.isfinite(point):
         return (float("nan"),) * 3
     rng = np.random.default_rng(BOOTSTRAP_SEED)
-    t, lognormal = [], []
-    se = _log_ratio_se(a[None], b[None], f[None])[0]
-    for start in range(0, RESAMPLES, max(1, 2_000_000 // max(P, 1))):      # blocks of resamples: bounded memory
-        count = min(RESAMPLES - start, max(1, 2_000_000 // max(P, 1)))
+    means, lognormal = [], []
+    block = max(1, 2_000_000 // max(P, 1))                  # blocks of resamples: bounded memory
+    for start in range(0, RESAMPLES, block):
+        count = min(RESAMPLES - start, block)
         i = rng.integers(P, size=(count, P))
         j = rng.integers(f.size, size=(count, f.size)) if floor is not None else np.zeros((count, 1), int)
         ai, bi, fi = a[i], b[i], f[j]
-        with np.errstate(all="ignore"):
-            shift = _log_ratio(ai, bi, fi) - point
-            t.append(np.where(shift == 0, 0.0, shift / _log_ratio_se(ai, bi, fi)))   # 0 / 0: no spread at all
-            if np.all(a > 0) and np.all(b > 0):
-                lognormal.append(_log_ratio(ai, bi, fi, lognormal=True))
-    t = np.nan_to_num(np.concatenate(t), nan=np.inf, posinf=np.inf, neginf=-np.inf)
+        means.append(_log_ratio(ai, bi, fi))
+        if np.all(a > 0) and np.all(b > 0):
+            lognormal.append(_log_ratio(ai, bi, fi, lognormal=True))
     tail = (1 - level) / 2
     quantile = lambda v, q: np.quantile(v, q, method="inverted_cdf")       # no interpolation between infinities
-    with np.errstate(all="ignore"):
-        low, high = point - quantile(t, 1 - tail) * se, point - quantile(t, tail) * se
+    means = np.nan_to_num(np.concatenate(means), nan=np.inf, posinf=np.inf, neginf=-np.inf)
+    low, high = quantile(means, _bca_levels(means, point, _jackknife(a, b, f, floor is not None), tail))
     if lognormal:
         lognormal = np.nan_to_num(np.concatenate(lognormal), nan=-np.inf, posinf=np.inf, neginf=-np.inf)
         low, high = min(low, quantile(lognormal, tail)), max(high, quantile(lognormal, 1 - tail))
     with np.errstate(all="ignore"):
         return tuple(float(np.exp(v / (2.0 * span))) for v in (point, low, high))
+
+
+def _bca_levels(replicates: np.ndarray, point: float, jackknife: np.ndarray, tail: float) -> np.ndarray:
+    """The bias-corrected and accelerated percentile levels (Efron 1987) of a `2 tail` interval, from the
+    bootstrap replicates (R,) of a statistic, its value `point` and its jackknife values (J,): the bias
+    z0 from the replicates' share below the point (ties count half), the acceleration from the jackknife's
+    skewness. A skewed statistic (a ratio of means carried by a few paths) moves both ends the way of its
+    skew, where a studentised bootstrap's would explode with the resamples that miss those paths."""
+    below = (np.sum(replicates < point) + 0.5 * np.sum(replicates == point)) / replicates.size
+    z0 = ndtri(np.clip(below, 0.5 / replicates.size, 1 - 0.5 / replicates.size))
+    d = jackknife.mean() - jackknife
+    spread = np.sum(d ** 2)
+    accel = np.sum(d ** 3) / (6 * spread ** 1.5) if spread > 0 else 0.0
+    z = ndtri(np.array([tail, 1 - tail]))
+    with np.errstate(all="ignore"):
+        levels = ndtr(z0 + (z0 + z) / (1 - accel * (z0 + z)))
+    return np.nan_to_num(levels, nan=0.5)
+
+
+def _jackknife(a, b, f, with_floor: bool) -> np.ndarray:
+    """Leave-one-out log ratios (P + P_f,) of `_log_ratio`: one loop path left out, then (with_floor) one
+    floor path; leaves whose transient is not positive are dropped (they carry no finite influence)."""
+    P, Pf = a.size, f.size
+    fm = np.full(P, f.mean())
+    tops, bottoms = [(a.sum() - a) / (P - 1) - fm], [(b.sum() - b) / (P - 1) - fm]
+    if with_floor and Pf > 1:
+        fl = (f.sum() - f) / (Pf - 1)
+        tops.append(a.mean() - fl)
+        bottoms.append(b.mean() - fl)
+    top, bottom = np.concatenate(tops), np.concatenate(bottoms)
+    with np.errstate(all="ignore"):
+        values = np.log(top) - np.log(bottom)
+    return values[np.isfinite(values)]
 
 
 def _log_ratio(a, b, f, lognormal: bool = False) -> np.ndarray:
@@ -183,18 +216,6 @@ def _log_ratio(a, b, f, lognormal: bool = False) -> np.ndarray:
     top, bottom = m(a) - fm, m(b) - fm
     with np.errstate(all="ignore"):
         return np.log(np.clip(top, 0, None)) - np.log(np.clip(bottom, 0, None))   # +-inf, NaN if neither > 0
-
-
-def _log_ratio_se(a, b, f) -> np.ndarray:
-    """Delta-method standard error of `_log_ratio` per row (the loop's paths and the floor's independent)."""
-    fm = f.mean(axis=1)
-    top, bottom = a.mean(axis=1) - fm, b.mean(axis=1) - fm
-    with np.errstate(all="ignore"):
-        g = a / top[:, None] - b / bottom[:, None]              # influence of a path on the log ratio
-        var = g.var(axis=1, ddof=1) / a.shape[1]
-        if f.shape[1] > 1:                                      # d/df of the log ratio: 1/bottom - 1/top
-            var = var + (1 / bottom - 1 / top) ** 2 * f.var(axis=1, ddof=1) / f.shape[1]
-        return np.sqrt(var)
 
 
 def at_rest_from(sq: np.ndarray, k_from: int, k_to: int, floor: Floor | None) -> int | None:
