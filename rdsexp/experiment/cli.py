@@ -51,6 +51,14 @@ def hydra_main(cfg: DictConfig) -> dict | float:
     RUNNING.update(run_dir=run_dir, sweep_dir=Path(hc.sweep.dir) if multirun else None)
     try:
         info = execute(cfg, run_dir)
+    except KeyboardInterrupt:             # run.json "interrupted", no temporary file, the sweep's summary agrees
+        ignore_sigint()                   # a second Ctrl-C does not cut the record short
+        from .store import settle_interrupted
+        settle_interrupted(run_dir, wait=0)
+        if multirun:
+            with contextlib.suppress(WriteError):
+                write_sweep_summary(Path(hc.sweep.dir))
+        raise
     except Exception as err:              # noqa: BLE001 -- every failure becomes a recorded status
         info = record_failure(err, cfg, run_dir, job=hc.job.num if multirun else None)
     if multirun:
@@ -114,7 +122,7 @@ def main() -> None:
     quiet_resource_tracker()
     # Ctrl-C stops a run or sweep even when the launching process ignored SIGINT (a child inherits
     # an ignored SIGINT): Python's default handler raises KeyboardInterrupt, which ends the run
-    # with run.json still "incomplete" and every finished file complete
+    # with run.json "interrupted" (`hydra_main`) and every finished file complete
     signal.signal(signal.SIGINT, signal.default_int_handler)
     RUNNING.clear()
     for arg in sys.argv[1:]:
@@ -173,7 +181,7 @@ def run_hydra_main() -> None:
         if full_error == "1":
             raise
         if interrupted_by(err):
-            signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl-C does not cut the line short
+            ignore_sigint()                               # a second Ctrl-C does not cut the line short
             print(f"rdsexp: {interrupted_text()}", file=sys.stderr)
             raise RunExit(130) from None
         line = config_error_text(err)
@@ -181,6 +189,12 @@ def run_hydra_main() -> None:
             hydra_report(err)                             # exits 1: "reported by Hydra above", exit 2
         print(f"rdsexp: config error: {line}", file=sys.stderr)
         raise RunExit(2) from None
+
+
+def ignore_sigint() -> None:
+    """Ignore further Ctrl-Cs (where this thread may set signal handlers)."""
+    with contextlib.suppress(ValueError):                # not the main thread
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 def interrupted_by(err: BaseException) -> bool:
@@ -281,10 +295,12 @@ def hydra_report(err: Exception) -> None:
 
 
 def interrupted_text() -> str:
-    """What a Ctrl-C left behind: the run's run.json "incomplete", or the sweep's completed jobs
-    (reused when the same command runs again)."""
+    """What a Ctrl-C left behind, once settled (`store.settle_interrupted`: runs still "incomplete" whose
+    process ended are "interrupted", the sweep's summary agrees with its jobs): the run, or the sweep's
+    completed jobs (reused when the same command runs again)."""
     from omegaconf import OmegaConf
 
+    from .store import settle_interrupted
     from .sweep import _SWEEP_BARS, sweep_points
     bar = _SWEEP_BARS.pop(os.getpid(), None)
     if bar is not None:
@@ -298,12 +314,14 @@ def interrupted_text() -> str:
         sweep_dir = bar.sweep_dir                    # the workers' jobs, counted from their run.json
     elif RUNNING["sweep_dir"] is None:
         run_dir = RUNNING["run_dir"]
-        if _status(run_dir) != "incomplete":
+        if _status(run_dir) != "interrupted":
             return "interrupted: the run stopped before it recorded anything; run the same command again to start it"
-        return (f'interrupted: run {_shown(run_dir)} stopped, its run.json stays "incomplete"; run the same '
+        return (f'interrupted: run {_shown(run_dir)} stopped, its run.json says "interrupted"; run the same '
                 "command again to start it over")
     else:
         sweep_dir = RUNNING["sweep_dir"]
+    with contextlib.suppress(OSError, WriteError):   # the count below reads what is there
+        settle_interrupted(sweep_dir)
     done = sum(_status(job) == "complete" for job in sweep_dir.iterdir() if job.is_dir())
     try:
         config = OmegaConf.load(sweep_dir / layout.MULTIRUN)

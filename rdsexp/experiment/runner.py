@@ -7,6 +7,7 @@ A library function: it returns run.json's content or raises (see `failures`); th
 from __future__ import annotations
 
 import dataclasses
+import json
 import logging
 import shlex
 from pathlib import Path
@@ -93,7 +94,8 @@ def run_info(run_dir: Path, job_config: dict, seed: int) -> tuple[dict, str]:
         "command": " ".join(["python -m rdsexp", *config_dirs(hc), *(hc.overrides.task if hc else [])]),
         "overrides": list(hc.overrides.task) if hc else [],
         "sweep": {"dir": str(Path(hc.sweep.dir).resolve()), "job": int(hc.job.num),
-                  "name": hc.runtime.choices.get("sweep")} if multirun else None,
+                  "name": hc.runtime.choices.get("sweep"), "resumes": resumes(Path(hc.sweep.dir))}
+        if multirun else None,
         "config_hash": provenance.config_hash(job_config),
         "code": {k: v for k, v in code.items() if k != "diff"}
         | {"diff_file": layout.DIFF if code["dirty"] else None},
@@ -102,6 +104,14 @@ def run_info(run_dir: Path, job_config: dict, seed: int) -> tuple[dict, str]:
         "environment": provenance.environment(),
         "process": provenance.process_info(),     # tells a run whose process died from a running one
     }, code["diff"]
+
+
+def resumes(sweep_dir: Path) -> str | None:
+    """The id of the interrupted sweep that the sweep in sweep_dir resumes (`sweep.resumed_sweep`), or None."""
+    try:
+        return json.loads((sweep_dir / layout.RESUMES).read_text())["resumes"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
 
 
 def config_dirs(hc) -> list[str]:

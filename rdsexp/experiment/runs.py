@@ -33,7 +33,8 @@ SHOWN = KEY_METRICS[:4]                                                        #
 
 def search(root=DEFAULT_ROOT, where: str | None = None, copies: bool = False) -> pd.DataFrame:
     """One row per run under root (oldest first), like MLflow's search_runs: the run's identity (id,
-    sweep (`+sweep=NAME`, or the overrides of a `-m` run), sweep_id (its directory), job, seed, status,
+    sweep (`+sweep=NAME`, or the overrides of a `-m` run), sweep_id (its directory), resumes (the
+    interrupted sweep it resumes), job, seed, status,
     plant (its `name:`, else its file name), model, method, overrides, reused_from, created, code
     (version), config_hash, dir), `metrics.<name>` (key numbers of run.json's summary) and
     `params.<dotted.key>` (every resolved scalar config value); see `rdsexp.experiment.store.table`.

@@ -9,6 +9,7 @@ import threading
 from pathlib import Path
 
 import pandas as pd
+import yaml
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
@@ -17,7 +18,7 @@ from ..errors import ConfigError, RunExit, WriteError
 from .config import build, check_overrides
 from .store import write_sweep_summary
 from .store.files import atomic_write_bytes
-from .store.layout import RUN_JSON, SUMMARY_CSV
+from .store.layout import MULTIRUN, RESUMES, RUN_JSON, SUMMARY_CSV
 from .store.run import read_runs
 from .store.table import as_text, runs_table, sweep_results
 
@@ -195,6 +196,10 @@ class SweepSummary(Callback):
         if enumerable(config):            # every job composed and validated: the basic sweeper need not again
             skip_hydra_validation()
         writable_or_exit(Path(config.hydra.sweep.dir))
+        resumes = resumed_sweep(config)
+        if resumes is not None:           # read by every job's run.json (`runner.run_info`): the link
+            atomic_write_bytes(Path(config.hydra.sweep.dir) / RESUMES, json.dumps({"resumes": resumes}).encode())
+            print(f"resuming sweep {resumes} (interrupted): its completed jobs are reused")
         total = len(points) if enumerable(config) else OmegaConf.select(config, "hydra.sweeper.n_trials")
         _SWEEP_BARS[os.getpid()] = SweepProgress(total, Path(config.hydra.sweep.dir))
 
@@ -256,6 +261,26 @@ def stage_cache_note(infos: list[dict]) -> str:
             hits[1] += 1
     words = [f"{stage} {hit} of {total}" for stage, (hit, total) in counts.items()]
     return f"stage cache (jobs that computed: {len(computed)}): reused " + ", ".join(words)
+
+
+def resumed_sweep(config: DictConfig) -> str | None:
+    """The id of the sweep this one resumes: the latest earlier sweep of the same store launched with the
+    same command line (multirun.yaml's hydra.overrides.task), if it did not complete (a job not
+    "complete", or fewer jobs than its points); None otherwise (a first launch, or a rerun of a complete
+    sweep)."""
+    sweep_dir = Path(config.hydra.sweep.dir)
+    task = [str(o) for o in config.hydra.overrides.task]
+    for other in sorted((d for d in sweep_dir.parent.iterdir() if d.is_dir() and d != sweep_dir), reverse=True):
+        try:
+            old = OmegaConf.load(other / MULTIRUN)
+        except (OSError, ValueError, yaml.YAMLError):
+            continue
+        if [str(o) for o in (OmegaConf.select(old, "hydra.overrides.task") or [])] != task:
+            continue
+        statuses = [info.get("status") for _, info in read_runs(other, warn_damaged=False)[0]]
+        total = len(sweep_points(old)) if enumerable(old) else len(statuses)
+        return other.name if len(statuses) < total or any(st != "complete" for st in statuses) else None
+    return None
 
 
 def writable_or_exit(directory: Path) -> None:

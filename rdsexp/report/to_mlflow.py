@@ -55,7 +55,7 @@ from ..numerics.analysis import rms_band
 DEFAULT_EXPERIMENT = "rdsexp"
 MAX_KEY, MAX_PARAM, MAX_TAG = 250, 6000, 8000      # MLflow's limits (mlflow.utils.validation)
 RUN_KEY, SWEEP_KEY, DONE = "rdsexp.run_id", "rdsexp.sweep_id", "rdsexp.export"
-STATUS = {"complete": "FINISHED"}                  # any other final status: FAILED
+STATUS = {"complete": "FINISHED", "interrupted": "KILLED"}     # any other final status: FAILED
 TRUNCATED = "...[truncated]"
 # logged first: the metric MLflow's compare view (parallel coordinates) draws until another is chosen
 FIRST = ("closed_loop_rate", "lam", "rate_plant", "closed_loop_failed_fraction")

@@ -122,28 +122,51 @@ def interrupt_when(proc, started, timeout=60.0) -> str:
     return lines[0]
 
 
+def store_passes_check(tmp_path) -> None:
+    """`rdsexp-runs check` finds nothing damaged or inconsistent in tmp_path/outputs, and no temporary file
+    is left there."""
+    proc = rdsexp("check", "outputs", cwd=tmp_path, module="rdsexp.runs", check=False)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert not list((tmp_path / "outputs").rglob("*.tmp"))
+
+
 def test_ctrl_c_during_a_run_is_one_line_and_exit_130(tmp_path):
     proc = start(tmp_path, "closed_loop.paths=400", "tracking.recording=false")   # some 15 s, stopped after 3
     line = interrupt_when(proc, lambda: any(status(p) == "incomplete" for p in tmp_path.glob("outputs/runs/*/run.json")))
     (run_json,) = tmp_path.glob("outputs/runs/*/run.json")
-    assert status(run_json) == "incomplete"
-    assert line == (f'rdsexp: interrupted: run outputs/runs/{run_json.parent.name} stopped, its run.json stays '
-                    '"incomplete"; run the same command again to start it over')
+    assert status(run_json) == "interrupted"
+    assert json.loads(run_json.read_text())["error"] == "interrupted by Ctrl-C (SIGINT) before it completed"
+    assert line == (f'rdsexp: interrupted: run outputs/runs/{run_json.parent.name} stopped, its run.json says '
+                    '"interrupted"; run the same command again to start it over')
+    store_passes_check(tmp_path)
 
 
 @pytest.mark.parametrize("launcher", [[], ["hydra/launcher=parallel"]], ids=["basic", "parallel"])
-def test_ctrl_c_during_a_sweep_says_how_many_jobs_completed(tmp_path, launcher):
-    # parallel: the shipped sweeps' default; its workers' queues leave semaphores that Python's resource
-    # tracker removes, without a word on stderr
-    proc = start(tmp_path, "+sweep=seeds", "seed=range(0,4)", *SMALL, "tracking.recording=false",
-                 "model.reported=null", *launcher)
+def test_ctrl_c_during_a_sweep_leaves_a_store_that_passes_check_and_resumes(tmp_path, launcher):
+    # parallel: the shipped sweeps' default (joblib); its workers' queues leave semaphores that Python's
+    # resource tracker removes, without a word on stderr. The jobs still running get status "interrupted",
+    # the summary agrees with the jobs, and the same command resumes: a sweep linked to the interrupted
+    # one that holds every job (the completed ones as copies)
+    args = ("+sweep=seeds", "seed=range(0,4)", *SMALL, "tracking.recording=false", "model.reported=null", *launcher)
+    proc = start(tmp_path, *args)
     line = interrupt_when(proc, lambda: any(status(p) == "complete"
                                             for p in tmp_path.glob("outputs/sweeps/*/*/run.json")))
     (sweep,) = (tmp_path / "outputs" / "sweeps").iterdir()
-    done = sum(status(p) == "complete" for p in sweep.glob("*/run.json"))
-    assert 1 <= done < 4
+    statuses = [status(p) for p in sweep.glob("*/run.json")]
+    done = statuses.count("complete")
+    assert 1 <= done < 4 and set(statuses) <= {"complete", "interrupted"}
     assert line == (f"rdsexp: interrupted: sweep outputs/sweeps/{sweep.name} stopped with {done} of 4 jobs "
                     "completed; run the same command again to resume: the completed jobs are reused")
+    store_passes_check(tmp_path)
+    resumed = rdsexp(*args, cwd=tmp_path)
+    assert f"resuming sweep {sweep.name} (interrupted)" in resumed.stdout
+    (new,) = set((tmp_path / "outputs" / "sweeps").iterdir()) - {sweep}
+    from rdsexp.runs import search
+    jobs = search(tmp_path / "outputs", f"sweep_id == '{new.name}'")
+    assert sorted(jobs["seed"]) == [0, 1, 2, 3] and set(jobs["status"]) == {"complete"}
+    assert set(jobs["resumes"]) == {sweep.name}
+    assert jobs["reused_from"].notna().sum() == done           # the completed jobs were not computed again
+    store_passes_check(tmp_path)
 
 
 def test_ctrl_c_that_breaks_hydras_cleanup_is_still_one_line_and_exit_130(monkeypatch, capsys):

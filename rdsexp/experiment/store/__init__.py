@@ -24,7 +24,7 @@ from . import layout
 from .layout import DEFAULT_ROOT, INDEX, QUARANTINE
 
 _NAMES = {"RunStore": "runstore", "Run": "run", "RunWriter": "writer", "Finding": "check", "check": "check",
-          "quarantine": "check", "find_reusable": "index", "index_add": "index", "index_key": "index",
+          "quarantine": "check", "settle_interrupted": "check", "find_reusable": "index", "index_add": "index", "index_key": "index",
           "rebuild_index": "index", "read_run": "run", "read_runs": "run", "read_table": "run",
           "run_damage": "run", "intact_runs": "run", "runs_table": "table", "write_sweep_summary": "table",
           "StageCache": "stages"}

@@ -5,6 +5,7 @@ import json
 import os
 import shutil
 import socket
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -13,6 +14,7 @@ import pandas as pd
 from ...errors import DamagedRecord, one_line
 from . import provenance
 from .index import _version, index_key, rebuild_index
+from .files import TMP_SUFFIX
 from .layout import INDEX, MULTIRUN, QUARANTINE, SUMMARY
 from .run import read_run, read_runs, run_damage
 from .table import write_sweep_summary
@@ -51,6 +53,53 @@ def process_alive(process) -> bool | None:
 def _tmp_pid(name: str) -> int | None:
     parts = name.split(".")
     return int(parts[-2]) if len(parts) >= 4 and parts[-1] == "tmp" and parts[-2].isdigit() else None
+
+
+INTERRUPTED = "interrupted by Ctrl-C (SIGINT) before it completed"
+
+
+def settle_interrupted(directory: Path, wait: float = 10.0) -> list[Path]:
+    """After a Ctrl-C: every run under `directory` (a run or a sweep) whose run.json still says
+    "incomplete" gets status "interrupted" once its process has ended (a sweep's workers are waited for
+    up to `wait` seconds; a run whose process still runs after that is left as it is), the temporary
+    files (`files.tmp_name`, never a complete record) of this process and of ended ones are removed, and a sweep's summary is rebuilt so
+    that it agrees with its jobs. Returns the runs marked."""
+    from .writer import RunWriter
+    directory = Path(directory)
+    deadline = time.monotonic() + wait
+    pending = [d for d, info in read_runs(directory, warn_damaged=False)[0] if info.get("status") == "incomplete"]
+    marked = []
+    while pending:
+        states = {d: _state(d) for d in pending}
+        for run_dir in [d for d, state in states.items() if state == "ended"]:
+            RunWriter(run_dir).fail("interrupted", INTERRUPTED)
+            marked.append(run_dir)
+        pending = [d for d, state in states.items() if state == "running"]
+        if not pending or time.monotonic() > deadline:
+            break
+        time.sleep(0.1)
+    for tmp in directory.rglob(f"*{TMP_SUFFIX}"):
+        pid = _tmp_pid(tmp.name)
+        if pid == os.getpid() or (pid is not None and not process_alive({"pid": pid, "host": socket.gethostname()})):
+            tmp.unlink(missing_ok=True)
+    if directory.is_dir() and ((directory / SUMMARY).exists() or (directory / MULTIRUN).exists()):
+        write_sweep_summary(directory)
+    return marked
+
+
+def _state(run_dir: Path) -> str:
+    """"ended": run.json says "incomplete" and the process writing it has ended (this process counts as
+    ended: it is handling the Ctrl-C); "running": its process may still write it; "done": run.json is
+    no longer "incomplete" (or unreadable): not this function's to change."""
+    try:
+        info = read_run(run_dir)
+    except DamagedRecord:
+        return "done"
+    if info.get("status") != "incomplete":
+        return "done"
+    process = info.get("process") or {}
+    mine = process.get("pid") == os.getpid() and process.get("host") == socket.gethostname()
+    return "ended" if mine or process_alive(process) is False else "running"
 
 
 def check(root: Path) -> list[Finding]:

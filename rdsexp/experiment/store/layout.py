@@ -2,7 +2,8 @@
 
     <store>/                      DEFAULT_ROOT unless the config key `store` says otherwise
         runs/<stamp>_<uid>/       one run (RUN_DIR)
-        sweeps/<stamp>_<uid>/     one sweep: multirun.yaml, summary.parquet (+ .csv), summary.rrd
+        sweeps/<stamp>_<uid>/     one sweep: multirun.yaml, summary.parquet (+ .csv), summary.rrd,
+                                  resumes.json when it resumes an interrupted sweep
             <job>/                one job, a run directory like any other
         index/                    the reuse index, one small JSON file per config hash and code version
         stages/<stage>/<key>/     the stage cache: one stage's result by the sha256 of what it is computed
@@ -31,6 +32,7 @@ LOG = "rdsexp.log"
 DIFF = "uncommitted.diff"
 
 MULTIRUN = "multirun.yaml"           # written by Hydra into every sweep directory
+RESUMES = "resumes.json"             # in a sweep that resumes an interrupted one: {"resumes": its id}
 SUMMARY = "summary.parquet"
 SUMMARY_CSV = "summary.csv"
 SUMMARY_RECORDING = "summary.rrd"

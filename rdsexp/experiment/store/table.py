@@ -20,7 +20,7 @@ from . import files
 from .layout import MULTIRUN, SUMMARY, SUMMARY_CSV, SUMMARY_LOCK
 from .run import MATRIX, read_runs, scalar_config, scalars_only
 
-IDENTITY = ["id", "sweep", "sweep_id", "job", "seed", "status", "plant", "plant_hash", "model", "method", "overrides",
+IDENTITY = ["id", "sweep", "sweep_id", "resumes", "job", "seed", "status", "plant", "plant_hash", "model", "method", "overrides",
             "reused_from", "created", "code", "config_hash", "dir"]
 # summary entries that are settings or nested records rather than numbers of the run
 NOT_METRICS = ("plant", "model", "gain_method", "rate_window", "reference", "designs", "identification_feedback")
@@ -34,7 +34,7 @@ def identity(run_dir: Path, info: dict) -> dict:
     sweep, s, seed = info.get("sweep") or {}, info.get("summary") or {}, info.get("seed")
     job = sweep.get("job")
     return {"id": info.get("id"), "sweep": sweep.get("name") or sweep_name(sweep.get("dir")),
-            "sweep_id": Path(sweep["dir"]).name if sweep.get("dir") else None,
+            "sweep_id": Path(sweep["dir"]).name if sweep.get("dir") else None, "resumes": sweep.get("resumes"),
             "job": job if isinstance(job, int) else None,
             "seed": seed.get("root") if isinstance(seed, dict) else seed, "status": info.get("status"),
             "plant": s.get("plant"), "plant_hash": (info.get("plant_hash") or "")[:12] or None,
