@@ -13,7 +13,7 @@ folder name is in `layout`; the command line, sweeps, recordings and the report 
     table       the runs table (catalog, search, sweep summaries)
     index       the reuse index
     stages      the stage cache (identification, designs, open loop by the hash of their inputs)
-    check       checking a store, quarantine
+    check       checking a store, quarantine, settling the runs a Ctrl-C stopped
     runstore    `RunStore`, the one entry to all of the above
 
 Names are imported on first use (`layout` alone needs no pandas: the command line starts fast).
@@ -24,7 +24,8 @@ from . import layout
 from .layout import DEFAULT_ROOT, INDEX, QUARANTINE
 
 _NAMES = {"RunStore": "runstore", "Run": "run", "RunWriter": "writer", "Finding": "check", "check": "check",
-          "quarantine": "check", "settle_interrupted": "check", "find_reusable": "index", "index_add": "index", "index_key": "index",
+          "quarantine": "check", "settle_interrupted": "check", "find_reusable": "index", "index_add": "index",
+          "index_key": "index",
           "rebuild_index": "index", "read_run": "run", "read_runs": "run", "read_table": "run",
           "run_damage": "run", "intact_runs": "run", "runs_table": "table", "write_sweep_summary": "table",
           "StageCache": "stages"}

@@ -1,4 +1,5 @@
-"""Checking a store and quarantining what is damaged (nothing is ever deleted)."""
+"""Checking a store and quarantining what is damaged (no record is ever deleted), and settling the runs a
+Ctrl-C stopped."""
 from __future__ import annotations
 
 import json
@@ -13,8 +14,8 @@ import pandas as pd
 
 from ...errors import DamagedRecord, one_line
 from . import provenance
-from .index import _version, index_key, rebuild_index
 from .files import TMP_SUFFIX
+from .index import _version, index_key, rebuild_index
 from .layout import INDEX, MULTIRUN, QUARANTINE, SUMMARY
 from .run import read_run, read_runs, run_damage
 from .table import write_sweep_summary
