@@ -63,8 +63,8 @@ def settle_interrupted(directory: Path, wait: float = 10.0) -> list[Path]:
     """After a Ctrl-C: every run under `directory` (a run or a sweep) whose run.json still says
     "incomplete" gets status "interrupted" once its process has ended (a sweep's workers are waited for
     up to `wait` seconds; a run whose process still runs after that is left as it is), the temporary
-    files (`files.tmp_name`, never a complete record) of this process and of ended ones are removed, and a sweep's summary is rebuilt so
-    that it agrees with its jobs. Returns the runs marked."""
+    files (`files.tmp_name`, never a complete record) of this process and of ended ones are removed,
+    and a sweep's summary is rebuilt so that it agrees with its jobs. Returns the runs marked."""
     from .writer import RunWriter
     directory = Path(directory)
     deadline = time.monotonic() + wait

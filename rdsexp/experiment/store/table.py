@@ -20,8 +20,8 @@ from . import files
 from .layout import MULTIRUN, SUMMARY, SUMMARY_CSV, SUMMARY_LOCK
 from .run import MATRIX, read_runs, scalar_config, scalars_only
 
-IDENTITY = ["id", "sweep", "sweep_id", "resumes", "job", "seed", "status", "plant", "plant_hash", "model", "method", "overrides",
-            "reused_from", "created", "code", "config_hash", "dir"]
+IDENTITY = ["id", "sweep", "sweep_id", "resumes", "job", "seed", "status", "plant", "plant_hash", "model", "method",
+            "overrides", "reused_from", "created", "code", "config_hash", "dir"]
 # summary entries that are settings or nested records rather than numbers of the run
 NOT_METRICS = ("plant", "model", "gain_method", "rate_window", "reference", "designs", "identification_feedback")
 
