@@ -17,6 +17,7 @@ import json
 import logging
 import os
 import re
+import shlex
 import shutil
 import signal
 import sys
@@ -139,6 +140,7 @@ def main() -> None:
         if text is not None:
             print(text)
             return
+    sys.argv = [sys.argv[0], *completion_config_dirs(sys.argv[1:], os.environ.get("COMP_LINE", "")), *sys.argv[1:]]
     # `rdsexp enkf.ensemble_size=50,100 -m b=2`: argparse takes the overrides as one run of arguments and
     # would refuse the ones after -m; -m takes no value, so it goes first
     multirun = [arg for arg in sys.argv[1:] if arg in ("-m", "--multirun")]
@@ -159,6 +161,26 @@ def main() -> None:
 # Hydra turns an exception of a callback into a warning and goes on: the sweep's validation
 # (SweepSummary.on_multirun_start) must end the sweep before its directory exists
 SWEEP_VALIDATION = r"Callback SweepSummary\.on_multirun_start raised"
+
+
+def completion_config_dirs(argv: list[str], line: str) -> list[str]:
+    """For shell completion (`-sc query=...`, the line being completed in COMP_LINE): the `--config-dir DIR`
+    (or `-cd DIR`, `--config-dir=DIR`) of that line as arguments of this process, so that the options
+    completed include the plant files and sweeps of DIR; [] otherwise."""
+    if not any(a in ("-sc", "--shell-completion") or a.startswith("--shell-completion=") for a in argv) \
+            or any(a in ("-cd", "--config-dir") or a.startswith("--config-dir=") for a in argv):
+        return []
+    try:
+        words = shlex.split(line)
+    except ValueError:                                   # an open quote in the line being typed
+        words = line.split()
+    found = []
+    for i, word in enumerate(words):
+        if word in ("-cd", "--config-dir") and i + 1 < len(words):
+            found += ["--config-dir", os.path.expanduser(words[i + 1])]
+        elif word.startswith("--config-dir="):
+            found += ["--config-dir", os.path.expanduser(word.split("=", 1)[1])]
+    return found
 
 
 def run_hydra_main() -> None:

@@ -23,7 +23,7 @@ import pandas as pd
 from ..errors import DamagedRecord, warnings_as_lines
 from . import schema
 from .store import Run, RunStore, layout, provenance, read_run, read_table, run_damage
-from .store.table import KEY_METRICS, as_text, changed_params, one_row_per_run, sweep_results
+from .store.table import KEY_METRICS, MISSING, as_text, changed_params, one_row_per_run, sweep_results
 
 DEFAULT_ROOT = Path(layout.DEFAULT_ROOT)
 __all__ = ["DEFAULT_ROOT", "changed", "check", "compare_tables", "diff", "load", "main", "search", "verify"]
@@ -153,30 +153,56 @@ def diff(a: str, b: str, root=DEFAULT_ROOT) -> pd.DataFrame:
 CONFIG_ROWS = 20     # entries of list-valued config `diff` lists one by one, then how many more differ
 
 
-def config_entries(a: Run, b: Run, shown: set) -> list[dict]:
-    """Rows (config, key, a, b) of the composed configs' entries that differ inside lists (matrices, a xi law's
-    components: `plant.xi.components[0].prob`, `plant.A[2][0][0]`), which the runs table keeps only as
-    scalars: the first CONFIG_ROWS, then one row counting the rest. Keys already in `shown` are skipped."""
+def list_entries(run: Run) -> dict:
+    """{key: value} of the run's composed config entries inside lists (matrices, a xi law's components:
+    `plant.xi.components[0].prob`, `plant.A[2][0][0]`), which the runs table keeps only as scalars;
+    {} when the config cannot be read."""
     from omegaconf import OmegaConf
     try:
-        one, two = (OmegaConf.to_container(run.config, resolve=False) for run in (a, b))
+        config = OmegaConf.to_container(run.config, resolve=False)
     except (OSError, ValueError):
-        return []
-    found = []
+        return {}
+    found = {}
 
-    def walk(x, y, key: str, in_list: bool) -> None:
-        if isinstance(x, dict) and isinstance(y, dict):
-            for k in dict.fromkeys([*x, *y]):
-                walk(x.get(k), y.get(k), f"{key}.{k}" if key else str(k), in_list)
-        elif isinstance(x, list) and isinstance(y, list) and len(x) == len(y):
-            for i, (u, v) in enumerate(zip(x, y)):
-                walk(u, v, f"{key}[{i}]", True)
-        elif x != y and in_list and key not in shown:
-            found.append({"what": "config", "key": key, "a": x, "b": y})
-    walk(one, two, "", False)
+    def walk(x, key: str, in_list: bool) -> None:
+        if isinstance(x, dict):
+            for k, v in x.items():
+                walk(v, f"{key}.{k}" if key else str(k), in_list)
+        elif isinstance(x, list):
+            for i, v in enumerate(x):
+                walk(v, f"{key}[{i}]", True)
+        elif in_list:
+            found[key] = x
+    walk(config, "", False)
+    return found
+
+
+def config_entries(a: Run, b: Run, shown: set) -> list[dict]:
+    """Rows (config, key, a, b) of the config entries inside lists (`list_entries`) that differ between two
+    runs (None where one run has no such entry): the first CONFIG_ROWS, then one row counting the rest.
+    Keys already in `shown` are skipped."""
+    one, two = list_entries(a), list_entries(b)
+    found = [{"what": "config", "key": key, "a": one.get(key), "b": two.get(key)}
+             for key in dict.fromkeys([*one, *two]) if key not in shown and one.get(key) != two.get(key)]
     more = [{"what": "config", "key": f"... {len(found) - CONFIG_ROWS} more entries", "a": "", "b": ""}] \
         if len(found) > CONFIG_ROWS else []
     return found[:CONFIG_ROWS] + more
+
+
+def changed_entries(table: pd.DataFrame) -> pd.DataFrame:
+    """Columns `config.<key>` (rows as `table`'s, by its `dir`) of the config entries inside lists
+    (`list_entries`) whose value is not the same in every row: what `list --changed` adds to the params
+    that vary, so that two plant files of one name show the entry that tells them apart. At most
+    CONFIG_ROWS columns (the first in config order)."""
+    entries = []
+    for directory in table["dir"]:
+        try:
+            entries.append(list_entries(Run(Path(directory))))
+        except DamagedRecord:
+            entries.append({})
+    keys = [k for k in dict.fromkeys(k for e in entries for k in e)
+            if len({repr(e.get(k)) for e in entries}) > 1][:CONFIG_ROWS]
+    return pd.DataFrame({f"config.{k}": [e.get(k) for e in entries] for k in keys}, index=table.index)
 
 
 def _same(x, y) -> bool:
@@ -327,7 +353,9 @@ def _parser():
     p_list.add_argument("--where", help='filter, e.g. "enkf.q_scale >= 1 and status == \'complete\'"')
     p_list.add_argument("--sort", help="column to sort by (--sort=-NAME: descending)")
     p_list.add_argument("--columns", help="comma-separated columns (params./metrics. prefix optional; all: every one)")
-    p_list.add_argument("--changed", action="store_true", help="also the params that vary between the runs")
+    p_list.add_argument("--changed", action="store_true",
+                        help="also the params, and the config entries inside lists (plant matrices, xi components), "
+                             "that vary between the runs")
     p_list.add_argument("--csv", action="store_true", help="CSV with full column names")
     p_list.add_argument("--all", action="store_true",
                         help="also the sweep jobs that reused a listed run (each computation is listed once without)")
@@ -358,12 +386,19 @@ def _command(args) -> int:
             table = table.sort_values(key, ascending=not args.sort.startswith("-"), kind="stable")
         if args.columns == "all":
             cols = list(table.columns)
-        elif args.columns:                    # with --changed, the params that vary follow the columns asked for
+        varying = []                          # with --changed: the params, then the list entries, that vary
+        if args.changed:
+            entries = changed_entries(table)
+            table, varying = pd.concat([table, entries], axis=1), [*changed(table), *entries.columns]
+        elif not args.columns:
+            varying = ["params.gain.method"]
+        if args.columns == "all":
+            cols = list(table.columns)
+        elif args.columns:                    # with --changed, what varies follows the columns asked for
             cols = [column(table, c.strip()) for c in args.columns.split(",") if c.strip()]
-            cols = list(dict.fromkeys([*cols, *(changed(table) if args.changed else [])]))
+            cols = list(dict.fromkeys([*cols, *varying]))
         else:
-            cols = [*IDENTITY_SHOWN, *(changed(table) if args.changed else ["params.gain.method"]),
-                    *(c for c in SHOWN if c in table.columns)]
+            cols = [*IDENTITY_SHOWN, *varying, *(c for c in SHOWN if c in table.columns)]
             cols = [c for c in dict.fromkeys(cols) if c in table.columns]
         _print(table[cols], args.csv)
         return 0
@@ -394,7 +429,7 @@ def _command(args) -> int:
         job = f" job {who['job']}" if who["job"] is not None else ""
         reused = f", reused from {who['reused_from']}" if who["reused_from"] else ""
         plant = who["plant"] if not who["plant_hash"] else f"{who['plant']}@{who['plant_hash'][:6]}"
-        print(f"run {who['id']}: plant {plant} (model {who['model']}), sweep {who['sweep'] or '-'}{job}, "
+        print(f"run {who['id']}: plant {plant} (model {who['model']}), sweep {who['sweep'] or MISSING}{job}, "
               f"seed {who['seed']}, overrides {who['overrides'] or '(none)'}{reused}")
         print(OmegaConf.to_yaml({k: v for k, v in info.items() if k not in ("environment", "traceback", "params")}))
         for problem in run_damage(run_dir, info) if info.get("status") == "complete" else []:

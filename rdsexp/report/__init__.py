@@ -109,20 +109,40 @@ def check_versions(runs: list[Run], allow_mixed: bool = False) -> str:
     return versions[0] if len(versions) == 1 else "mixed:" + ",".join(versions)
 
 
+def check_pooling(runs: list[Run], keys=()) -> None:
+    """LineageError (one line) when runs that a figure or table pools as seeds of one experiment are not:
+    runs of one plant name whose plant contents (plant_hash) differ, or whose path counts
+    (closed_loop.paths) differ, unless `keys` (what the figure varies) include closed_loop.paths."""
+    by_plant: dict[str, list[Run]] = {}
+    for r in runs:
+        by_plant.setdefault(str((r.info.get("summary") or {}).get("plant")), []).append(r)
+    for plant, members in by_plant.items():
+        hashes = sorted({(r.info.get("plant_hash") or "")[:12] for r in members} - {""})
+        if len(hashes) > 1:
+            raise LineageError(f"runs of plant {plant} with {len(hashes)} different contents (plant_hash "
+                               f"{', '.join(hashes)}) would be pooled: keep one plant file per name in the store")
+        paths = sorted({r.get("closed_loop.paths") for r in members}, key=str)
+        if len(paths) > 1 and "closed_loop.paths" not in keys:
+            raise LineageError(f"runs of plant {plant} with different path counts (closed_loop.paths "
+                               f"{', '.join(map(str, paths))}) would be pooled: run the sweep again at one count")
+
+
 def sweep_runs(root: Path, sweep: str, allow_mixed: bool = False) -> list[Run]:
-    """The runs of the latest stored `sweep` under root, of one code version (unless allowed);
-    LineageError when there are none."""
+    """The runs of the latest stored `sweep` under root, of one code version (unless allowed) and one
+    plant content and path count per plant (`check_pooling`); LineageError when there are none."""
     runs = load_runs(root, sweep)
     check_versions(runs, allow_mixed)
     if not runs:
         raise LineageError(f"no stored runs of sweep {sweep!r} under {root}")
+    check_pooling(runs, swept_keys(sweep) or ())
     return runs
 
 
 def latest_per_plant(runs: list[Run], sweep: str, keys: tuple[str, ...]) -> dict[str, list[Run]]:
     """plant name -> the runs of every stored `sweep` on that plant, the latest run of each point
     (the config values at `keys`): a study may be run as several sweeps (one per plant or variant),
-    and a later sweep replaces the earlier runs of the points it repeats."""
+    and a later sweep replaces the earlier runs of the points it repeats. LineageError where one plant's
+    runs differ in content or path count (`check_pooling`)."""
     latest = {}
     for r in sorted((r for r in runs if (r.info.get("sweep") or {}).get("name") == sweep),
                     key=lambda r: r.info["created"]):
@@ -130,6 +150,8 @@ def latest_per_plant(runs: list[Run], sweep: str, keys: tuple[str, ...]) -> dict
     out: dict[str, list[Run]] = {}
     for point, r in latest.items():
         out.setdefault(point[0], []).append(r)
+    for members in out.values():
+        check_pooling(members, keys)
     return out
 
 

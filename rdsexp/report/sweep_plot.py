@@ -44,6 +44,7 @@ from .. import report
 from ..errors import LineageError, RecordWarning
 from ..experiment.runs import column
 from ..experiment.store import files, layout, read_run
+from ..experiment.store.table import MISSING
 
 SCRIPT = "rdsexp.report.sweep_plot"
 FAILED_PATHS = "metrics.closed_loop_failed_fraction"
@@ -275,7 +276,7 @@ def _title(spec: Spec) -> str:
     for name, sweep_id in zip(rows.get("sweep", pd.Series([None] * len(rows))).tolist(),
                               rows.get("sweep_id", pd.Series([None] * len(rows))).tolist()):
         label = name if isinstance(name, str) and name else sweep_id if isinstance(sweep_id, str) and sweep_id else None
-        sweeps.append(label or "no sweep")
+        sweeps.append(label or MISSING)
     sweeps = list(dict.fromkeys(sweeps))
 
     def listed(names: list[str]) -> str:

@@ -208,6 +208,19 @@ def test_a_misspelled_group_option_is_one_line_with_the_closest_options(tmp_path
     assert not (tmp_path / "outputs").exists()
 
 
+@pytest.mark.parametrize("spelling", ["--config-dir {}", "-cd {}", "--config-dir={}"])
+def test_shell_completion_offers_the_plants_of_the_config_dir_on_the_line(tmp_path, monkeypatch, spelling):
+    """`rdsexp --config-dir DIR plant=<TAB>` completes DIR's plant files too (the shell passes the line in
+    COMP_LINE, not as arguments)."""
+    (tmp_path / "conf" / "plant").mkdir(parents=True)
+    (tmp_path / "conf" / "plant" / "lossy.yaml").write_text("name: lossy\nA: [[[0.9]]]\nB: [[[1.0]]]\n")
+    monkeypatch.setenv("COMP_LINE", f"rdsexp {spelling.format(tmp_path / 'conf')} plant=")
+    offered = rdsexp("-sc", "query=bash", cwd=tmp_path).stdout.split()
+    assert "plant=lossy" in offered and "plant=paper" in offered
+    monkeypatch.setenv("COMP_LINE", "rdsexp plant=")
+    assert "plant=lossy" not in rdsexp("-sc", "query=bash", cwd=tmp_path).stdout.split()
+
+
 def test_an_unknown_key_in_a_plant_file_is_one_line_naming_file_key_and_closest(tmp_path):
     """`Cc:` for `C:` would run with C = I (one output per state): a config error, exit 2, no run directory."""
     (tmp_path / "conf" / "plant").mkdir(parents=True)

@@ -1,7 +1,9 @@
 """rdsexp.runs: search, list, diff, show and load over stored run directories."""
+import io
 import json
 import subprocess
 import sys
+from types import SimpleNamespace
 
 import numpy as np
 import pandas as pd
@@ -355,6 +357,18 @@ def test_the_plant_content_is_part_of_a_runs_identity(tmp_path):
     assert infos[1]["command"].startswith(f"python -m rdsexp --config-dir {(tmp_path / 'conf').resolve()} plant=lossy3")
     shown = rdsexp("show", str(dirs[1]), cwd=tmp_path, module="rdsexp.runs").stdout.splitlines()[0]
     assert f"plant lossy3@{hashes[1][:6]} " in shown
+    # `list --changed` compares inside lists too: the entry that tells the two plant files apart
+    proc = rdsexp("list", "outputs", "--where", "plant == 'lossy3'", "--changed", "--csv", cwd=tmp_path,
+                  module="rdsexp.runs")
+    changed = pd.read_csv(io.StringIO(proc.stdout))
+    assert sorted(changed["config.plant.xi.components[0].prob"]) == [0.85, 0.9]
+    assert not [c for c in changed.columns if c.startswith("config.") and "prob" not in c]
+    # no sweep has one spelling: "-" in `show`, in `list` and in a plot's title
+    assert ", sweep -, seed" in shown
+    listed = rdsexp("list", "outputs", "--columns", "sweep", cwd=tmp_path, module="rdsexp.runs").stdout.split()
+    assert listed[listed.index("sweep") + 1:listed.index("sweep") + 3] == ["-", "-"]
+    from rdsexp.report.sweep_plot import _title
+    assert _title(SimpleNamespace(rows=table)).endswith("sweep -")
     one = provenance.plant_hash({"A": np.ones((1, 2, 2))}, {"family": "bernoulli", "prob": 1})
     assert one == provenance.plant_hash({"A": [[[1, 1], [1, 1.0]]]}, {"prob": 1.0, "family": "bernoulli"})
     assert one != provenance.plant_hash({"A": np.ones((1, 2, 2))}, {"family": "bernoulli", "prob": 0.999})

@@ -350,3 +350,24 @@ def test_stage_totals_count_each_computation_once():
              {"timings": {"synthesis": 2.0, "closed_loop": 1.0}, "seconds": 3.5, "reused_from": "x"}]
     totals = paper.stage_totals([Run(Path(f"/nowhere/{i}"), info) for i, info in enumerate(infos)])
     assert totals.to_dict() == {"closed_loop": 4.0, "synthesis": 2.5, "total": 7.5}
+
+
+def test_a_report_refuses_to_pool_plant_contents_or_path_counts(tmp_path):
+    """Runs of one plant name pooled as seeds must be one experiment: one plant content (plant_hash) and one
+    path count, unless the figure varies the path count."""
+    from rdsexp.errors import LineageError
+    from rdsexp.experiment.store import Run
+
+    def run(job, plant_hash, paths):
+        d = tmp_path / f"r{job}"
+        (d / ".hydra").mkdir(parents=True)
+        (d / ".hydra" / "config.yaml").write_text(f"closed_loop:\n  paths: {paths}\nseed: {job}\n")
+        return Run(d, {"id": d.name, "summary": {"plant": "paper"}, "plant_hash": plant_hash})
+    same = [run(0, "a" * 64, 40), run(1, "a" * 64, 40)]
+    report.check_pooling(same)
+    with pytest.raises(LineageError, match="plant paper with 2 different contents"):
+        report.check_pooling([*same, run(2, "b" * 64, 40)])
+    mixed = [*same, run(3, "a" * 64, 100)]
+    with pytest.raises(LineageError, match=r"different path counts \(closed_loop.paths 100, 40\)"):
+        report.check_pooling(mixed)
+    report.check_pooling(mixed, keys=("closed_loop.paths", "seed"))

@@ -22,6 +22,7 @@ from .run import MATRIX, read_runs, scalar_config, scalars_only
 
 IDENTITY = ["id", "sweep", "sweep_id", "resumes", "job", "seed", "status", "plant", "plant_hash", "model", "method",
             "overrides", "reused_from", "created", "code", "config_hash", "dir"]
+MISSING = "-"       # how every view shows a missing value, e.g. the sweep of a run that is no sweep's job (None)
 # summary entries that are settings or nested records rather than numbers of the run
 NOT_METRICS = ("plant", "model", "gain_method", "rate_window", "reference", "designs", "identification_feedback")
 
@@ -29,7 +30,8 @@ NOT_METRICS = ("plant", "model", "gain_method", "rate_window", "reference", "des
 def identity(run_dir: Path, info: dict) -> dict:
     """The identity columns of a run (IDENTITY) from its run.json: sweep is the `+sweep=NAME` config,
     else the command-line overrides of the `-m` run (`sweep_name`); plant is the plant file's `name:`,
-    else its file name (the runner records it so), plant_hash the first 12 hex digits of run.json's
+    else its file name (the runner records it so; from the config where a run ended before its summary),
+    plant_hash the first 12 hex digits of run.json's
     `plant_hash` (the plant's content: two files of one name that differ have different hashes)."""
     sweep, s, seed = info.get("sweep") or {}, info.get("summary") or {}, info.get("seed")
     job = sweep.get("job")
@@ -37,7 +39,8 @@ def identity(run_dir: Path, info: dict) -> dict:
             "sweep_id": Path(sweep["dir"]).name if sweep.get("dir") else None, "resumes": sweep.get("resumes"),
             "job": job if isinstance(job, int) else None,
             "seed": seed.get("root") if isinstance(seed, dict) else seed, "status": info.get("status"),
-            "plant": s.get("plant"), "plant_hash": (info.get("plant_hash") or "")[:12] or None,
+            "plant": s.get("plant") or (info.get("params") or {}).get("plant.name"),
+            "plant_hash": (info.get("plant_hash") or "")[:12] or None,
             "model": s.get("model"), "method": s.get("gain_method"),
             "overrides": " ".join(o for o in info.get("overrides", []) if not o.startswith("+sweep=")),
             "reused_from": info.get("reused_from"), "created": info.get("created"),
@@ -133,7 +136,9 @@ def as_text(table: pd.DataFrame, max_rows: int | None = None) -> str:
     missing; at most max_rows rows, with a last line saying how many were left out."""
     short = {c: c.split(".", 1)[1] if c.startswith(("params.", "metrics.")) else c for c in table.columns}
     shown = table if max_rows is None else table.head(max_rows)
-    text = shown.rename(columns=short).to_string(index=False, float_format=lambda v: f"{v:.4g}", na_rep="-")
+    # None in a column of objects (the sweep of a run that is no sweep's job) prints as "None" otherwise
+    shown = shown.apply(lambda col: col.where(col.notna(), MISSING) if col.dtype == object else col)
+    text = shown.rename(columns=short).to_string(index=False, float_format=lambda v: f"{v:.4g}", na_rep=MISSING)
     return text + (f"\n... {len(table) - len(shown)} more rows" if len(shown) < len(table) else "")
 
 
