@@ -4,10 +4,12 @@ Errors are for what must stop before or outside the computation (a bad configura
 cannot be written or read); a numerical outcome (divergence, an infeasible LMI, a method that does
 not apply) is a status in a result, never an exception (docs/design.md). Every message is one line
 that names the thing (config key, file) and the reason, so that the command line can print it as
-it is. The command line maps each type to its exit code (`rdsexp.experiment.failures`).
+it is. The command line maps each type to its exit code (`rdsexp.experiment.failures`); the exit
+codes themselves are `Exit`, in one place.
 """
 from __future__ import annotations
 
+import enum
 import sys
 import warnings
 from contextlib import contextmanager
@@ -78,6 +80,30 @@ class StageError(RuntimeError):
         self.stage, self.cause = stage, cause
 
 
+class Exit(enum.IntEnum):
+    """The exit codes of `rdsexp`, each with what it means (`rdsexp --help` lists them from here)."""
+
+    OK = 0
+    FAILED = 1
+    CONFIG = 2
+    INTERRUPTED = 130
+
+    @property
+    def meaning(self) -> str:
+        return {Exit.OK: "the run, or every job of the sweep, completed",
+                Exit.FAILED: "a run or a job did not complete (its status and error are in its run.json), or the "
+                             "store cannot be written",
+                Exit.CONFIG: "a configuration error: nothing ran and nothing was recorded",
+                Exit.INTERRUPTED: "Ctrl-C: the runs it stopped are recorded as interrupted; the same command "
+                                  "resumes a sweep"}[self]
+
+
+def exit_codes_text() -> str:
+    """The exit codes and their meanings, a line each (for `rdsexp --help`)."""
+    return "\n".join(f"{int(code):3d}  {code.meaning}" for code in Exit)
+
+
 class RunExit(SystemExit):
-    """The command line ends with this exit code after the run or sweep has started (1), or before
-    it with a configuration error (2); any other exit of Hydra's is a configuration error."""
+    """The command line ends with this `Exit` code: after the run or sweep has started (FAILED), before
+    it with a configuration error (CONFIG; any other exit of Hydra's is one too), or at a Ctrl-C
+    (INTERRUPTED)."""

@@ -153,6 +153,9 @@ def test_fast_help_is_hydras_help(tmp_path, capsys):
     hydra_page = subprocess.run([SCRIPTS / "rdsexp", *argv, "hydra.searchpath=[]"], capture_output=True, text=True,
                                 check=True).stdout
     assert hydra_page == fast + "\n"
+    from rdsexp.errors import Exit
+    assert [int(line.split()[0]) for line in fast.split("== Exit codes ==\n")[1].strip().splitlines()] == \
+        [0, 1, 2, 130] == [int(code) for code in Exit]
 
 
 def test_bash_completion_of_gain_lists_the_methods(tmp_path):

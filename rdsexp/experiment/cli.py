@@ -27,14 +27,16 @@ from pathlib import Path
 import hydra
 from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
-from ..errors import ConfigError, RunExit, WriteError, warnings_as_lines
+from ..errors import ConfigError, Exit, RunExit, WriteError, exit_codes_text, warnings_as_lines
 from .store import layout
 
 log = logging.getLogger("rdsexp")
 CONF_PACKAGE = "pkg://rdsexp.conf"        # conf/ of the repository, shipped as the package rdsexp.conf
 layout.register_resolvers()               # hydra.run.dir and hydra.sweep.dir (conf/config.yaml)
+if not OmegaConf.has_resolver("rdsexp_exit_codes"):      # the exit codes in `rdsexp --help` (conf/hydra/help)
+    OmegaConf.register_new_resolver("rdsexp_exit_codes", exit_codes_text)
 RUNNING: dict[str, Path | None] = {}      # the run (and sweep) directory of the job started last, for Ctrl-C
 
 
@@ -70,7 +72,7 @@ def hydra_main(cfg: DictConfig) -> dict | float:
     else:
         print(summary_text(info, run_dir))
         if info.get("status") != "complete":
-            raise RunExit(1)
+            raise RunExit(Exit.FAILED)
     if cfg.get("objective"):
         return objective_value(info, cfg.objective, float(cfg.get("objective_penalty", 1.0)))
     return info
@@ -134,7 +136,7 @@ def main() -> None:
             print(f"rdsexp: config error: enkf.Q: {value} is not allowed, expected the scales enkf.Q.x=, "
                   f"enkf.Q.xi= or a matrix as enkf.Q.matrix={value} (a scalar, n+p diagonal entries or "
                   f"a full (n+p)x(n+p) matrix)", file=sys.stderr)
-            sys.exit(2)
+            sys.exit(Exit.CONFIG)
     if {"--help", "-h"} & set(sys.argv[1:]):
         text = help_text(sys.argv[1:])
         if text is not None:
@@ -154,7 +156,7 @@ def main() -> None:
         # add) and exits 1: a config error, exit 2
         if exit_.code == 1:
             print("rdsexp: config error (reported by Hydra above)", file=sys.stderr)
-            sys.exit(2)
+            sys.exit(Exit.CONFIG)
         raise
 
 
@@ -205,12 +207,12 @@ def run_hydra_main() -> None:
         if interrupted_by(err):
             ignore_sigint()                               # a second Ctrl-C does not cut the line short
             print(f"rdsexp: {interrupted_text()}", file=sys.stderr)
-            raise RunExit(130) from None
+            raise RunExit(Exit.INTERRUPTED) from None
         line = config_error_text(err)
         if line is None:
             hydra_report(err)                             # exits 1: "reported by Hydra above", exit 2
         print(f"rdsexp: config error: {line}", file=sys.stderr)
-        raise RunExit(2) from None
+        raise RunExit(Exit.CONFIG) from None
 
 
 def ignore_sigint() -> None:
@@ -393,4 +395,5 @@ def help_text(argv: list[str]) -> str | None:
         help_cfg = yaml.safe_load((Path(conf) / "hydra" / "help" / "rdsexp.yaml").read_text())
     listing = "".join(f"{group}: {', '.join(sorted(options))}\n" for group, options in sorted(groups.items()))
     return help_cfg["template"].replace("${hydra.help.header}", help_cfg["header"]).replace(
-        "${hydra.help.footer}", help_cfg["footer"]).replace("$APP_CONFIG_GROUPS", listing)
+        "${hydra.help.footer}", help_cfg["footer"]).replace("$APP_CONFIG_GROUPS", listing).replace(
+        "${rdsexp_exit_codes:}", exit_codes_text())

@@ -15,7 +15,7 @@ from __future__ import annotations
 import traceback
 from dataclasses import dataclass
 
-from ..errors import ConfigError, StageError, WriteError, one_line
+from ..errors import ConfigError, Exit, StageError, WriteError, one_line
 
 
 @dataclass(frozen=True)
@@ -37,10 +37,10 @@ class Failure:
 def failure(err: Exception) -> Failure:
     """The Failure of an exception that ended a run (see the module's table)."""
     if isinstance(err, ConfigError):
-        return Failure("config_error", 2, str(err))
+        return Failure("config_error", Exit.CONFIG, str(err))
     if isinstance(err, WriteError):
-        return Failure("write_error", 1, str(err))
+        return Failure("write_error", Exit.FAILED, str(err))
     trace = "".join(traceback.format_exception(err))
     if isinstance(err, StageError):
-        return Failure("error", 1, str(err), trace)
-    return Failure("error", 1, f"stage run: {one_line(err)}", trace)
+        return Failure("error", Exit.FAILED, str(err), trace)
+    return Failure("error", Exit.FAILED, f"stage run: {one_line(err)}", trace)

@@ -14,7 +14,7 @@ from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
-from ..errors import ConfigError, RunExit, WriteError
+from ..errors import ConfigError, Exit, RunExit, WriteError
 from .config import build, check_overrides
 from .store import write_sweep_summary
 from .store.files import atomic_write_bytes
@@ -149,7 +149,7 @@ def validate_sweep(points: list[list[str]]) -> None:
             build(cfg)
     except ConfigError as err:
         print(f"rdsexp: config error in sweep job {' '.join(overrides)}: {err}", file=sys.stderr)
-        raise RunExit(2) from None
+        raise RunExit(Exit.CONFIG) from None
 
 
 _VALIDATED: set[int] = set()      # processes whose running sweep's jobs validate_sweep composed and checked
@@ -217,7 +217,7 @@ class SweepSummary(Callback):
             path = write_sweep_summary(Path(config.hydra.sweep.dir))
         except WriteError as err:
             print(f"rdsexp: {err}", file=sys.stderr)
-            raise RunExit(1) from None
+            raise RunExit(Exit.FAILED) from None
         print(f"sweep summary: {path}")
         if not read_runs(path.parent)[0]:   # tracking=off: the jobs recorded nothing to draw
             print("sweep recording: none (no job recorded a run: tracking.level=off)")
@@ -241,7 +241,7 @@ class SweepSummary(Callback):
             counts = ", ".join(f"{n} {s}" for s, n in failed.items())
             print(f"rdsexp: sweep {path.parent}: {failed.sum()} of {len(status)} jobs did not complete ({counts}); "
                   f"see {path.with_name(SUMMARY_CSV)}", file=sys.stderr)
-            raise RunExit(1)
+            raise RunExit(Exit.FAILED)
 
 
 def stage_cache_note(infos: list[dict]) -> str:
@@ -294,4 +294,4 @@ def writable_or_exit(directory: Path) -> None:
         reason = err.strerror if isinstance(err, OSError) and err.strerror else str(err)
         print(f"rdsexp: cannot write {directory}: {reason}" if isinstance(err, OSError) else f"rdsexp: {err}",
               file=sys.stderr)
-        raise RunExit(1) from None
+        raise RunExit(Exit.FAILED) from None
