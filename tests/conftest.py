@@ -128,3 +128,9 @@ def linear_gaussian(seed, n=3, ny=2):
     R = L @ L.T + 0.1 * np.eye(ny)
     system = rx.AffineRandomSystem(A=[rng.normal(size=(n, n))], B=[np.zeros((n, 1))], C=[C])
     return system, C, R, rng
+
+
+def undocumented(summary: dict) -> list[str]:
+    """The keys of a run's summary that the data dictionary (`schema.SUMMARY`) does not describe."""
+    from rdsexp.experiment.schema import summary_entry
+    return [key for key in summary if summary_entry(key) is None]

@@ -1,4 +1,4 @@
-"""The run tables' data dictionary: what every column means and its unit.
+"""The run tables' data dictionary: what every column means and its unit, and every key of run.json's summary.
 
 Each table a run writes carries it in its parquet schema metadata (pandas `DataFrame.attrs`,
 restored by `pd.read_parquet`; stored under the key ``PANDAS_ATTRS`` for other readers) as
@@ -148,6 +148,68 @@ COLUMNS: dict[str, dict[str, tuple[str, str | None]]] = {
         "rms": ("exact sqrt(E|q_k|^2) on the true plant distribution", "state"),
     },
 }
+# run.json's `summary`: every key a run can write, what it holds and its unit. {loop} stands for closed_loop,
+# open_loop and online (the loops of the metrics table). A key a stage adds goes here too (a test runs
+# several configurations and checks every key they write against this dictionary).
+SUMMARY: dict[str, tuple[str, str | None]] = {
+    "plant": ("the plant's name (its file's `name:`, else the file name)", None),
+    "model": ("the model's name (the structure identified: A_i, B_i, C, D, and xi's prior)", None),
+    "gain_method": ("the synthesis method whose gain the loop uses (after gain.fallback, or identification_gain "
+                    "when the loop kept the identification's gain)", None),
+    "identification_feedback": ("the identification run's loop: open or under a feedback gain F (the rule that "
+                                "chose it, F, its exact rates)", None),
+    "identification_passes": ("the iterated identification: passes, the last change of the moments, the "
+                              "tolerance, converged or not", None),
+    "modeling_status": ("ok (the moments settled), unsettled (the iterated identification did not settle within "
+                        "its tolerance), or why no model was made", None),
+    "modeling_covariance": ("how the modeled covariance was formed (identification.covariance)", None),
+    "modeling_uncertainty": ("the modeled moments' spread over block-bootstrap draws of the modeling window: "
+                             "resamples, block, sd of xi's mean and std per component", "xi"),
+    "nbar": ("size of the LMI's basis Gbar (eq. Gbar)", None),
+    "xi_mean": ("modeled mean of xi (the modeling window's sample mean of the EnKF's xi)", "xi"),
+    "xi_std": ("modeled standard deviation of xi, per component", "xi"),
+    "plant_xi_mean": ("the plant file's xi law's mean, mapped into the model's xi", "xi"),
+    "plant_xi_std": ("the plant file's xi law's standard deviation, mapped into the model's xi", "xi"),
+    "xi_mean_error": ("RMS over components of xi_mean - plant_xi_mean", "xi"),
+    "xi_std_error": ("RMS over components of xi_std - plant_xi_std", "xi"),
+    "xi_crps": ("CRPS of the modeled marginals against the plant's xi, mean over components", "xi"),
+    "synthesis_status": ("the loop's design status (data dictionary of gains: design statuses)", None),
+    "lam": ("the loop's design's decay rate lambda on its moments", "1/step"),
+    "rate_plant": ("the exact mean-square rate of the loop's gain on the true plant (state feedback)", "1/step"),
+    "designs": ("status of every design on the identified moments, by method", None),
+    "gain_fallback": ("the method the loop used instead of the one asked for, which and why", None),
+    "gain_choice": ("the designed gain against the identification's gain over the moments' draws: worst and median "
+                    "exact rates of each, and which the loop kept", "1/step"),
+    "rate_window": ("[k_from, k_to] of the rate window", "step"),
+    "rate_window_source": ("where the window came from: config, auto, or none", None),
+    "noise_floor": ("RMS of the loop started at rest (the EnKF's noise floor; NaN: not measured, inf: diverged)",
+                    "state"),
+    "loop": ("the closed loop's feedback: the estimate fed back, whether the observer carries xi, whether the EnKF "
+             "is told the disturbance", None),
+    "{loop}_status": ("ok, partially_failed or failed (every path): whether paths diverged", None),
+    "{loop}_verdict": ("stable, unstable, undetermined or failed (metrics table's verdict)", None),
+    "{loop}_verdict_reason": ("the verdict in words, with its evidence", None),
+    "{loop}_exact_rate": ("exact rate of the ideal loop over the same window", "1/step"),
+    "{loop}_estimation": ("the estimate fed back, the RMS of its error, the loop's RMS at k_to", "state"),
+    "{loop}_rate": ("[rate, low, high]: the plain empirical rate over the window with its 95% interval", "1/step"),
+    "{loop}_failed": ("failed paths: fraction, first and median step, reasons (only where a path failed)", None),
+    "closed_loop_through_y": ("where the loop is not found stable although its gain stabilizes the true plant: the "
+                              "exact rate of the loop through y with the best linear observer found", "1/step"),
+    "online_initial": ("the online controller's initial gain and where it came from", None),
+    "online": ("the online controller's key numbers (adoptions, final gains' exact rates, ...)", None),
+    "reference": ("the paper's reported numbers for this experiment, where it is the paper's", None),
+}
+LOOPS = ("closed_loop", "open_loop", "online")
+
+
+def summary_entry(key: str) -> tuple[str, str | None] | None:
+    """(description, unit) of a summary key (a {loop}_... key for any loop of LOOPS), None if undocumented."""
+    if key in SUMMARY:
+        return SUMMARY[key]
+    loop = next((name for name in LOOPS if key.startswith(f"{name}_")), None)
+    return None if loop is None else SUMMARY.get("{loop}_" + key.removeprefix(f"{loop}_"))
+
+
 # a value column: QUANTITY[i] (a vector component) or QUANTITY[i,j] (a matrix entry)
 VALUE_COLUMN = re.compile(r"^(?P<quantity>.+?)\[(?:(?P<row>\d+),)?(?P<index>\d+)\]$")
 
@@ -195,6 +257,12 @@ def markdown() -> str:
                       "with xi at its mean):", "", "| status | meaning |", "|---|---|"]
             lines += [f"| `{status}` | {meaning} |" for status, meaning in STATUSES.items()]
             lines.append("")
+    lines += ["## run.json summary", "",
+              "The `summary` of run.json (key numbers of a run; `rdsexp-runs list` flattens them into `metrics.*`",
+              "columns). `{loop}` is closed_loop, open_loop or online.", "",
+              "| key | description | unit |", "|---|---|---|"]
+    lines += [f"| `{k}` | {d} | {u or ''} |" for k, (d, u) in SUMMARY.items()]
+    lines.append("")
     return "\n".join(lines)
 
 

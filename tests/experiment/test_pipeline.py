@@ -4,7 +4,7 @@ import copy
 import numpy as np
 import pandas as pd
 import pytest
-from conftest import SMALL, rdsexp
+from conftest import SMALL, rdsexp, undocumented
 from hydra import compose, initialize_config_module
 
 from rdsexp.errors import ConfigError
@@ -63,8 +63,19 @@ def test_lmi_designs_above_the_size_limit_are_not_applicable_and_the_loop_falls_
                                             "n = 6 > gain.lmi_max_n = 5: an SDP of this size runs for hours; "
                                             "policy_iteration and ms_lqr need none"}
     assert out.summary["gain_method"] == "policy_iteration" and "closed_loop_status" in out.summary
+    assert undocumented(out.summary) == []
     bare = pipeline.run_experiment(experiment("gain.lmi_max_n=5", "gain.fallback=null"))
     assert bare.summary["synthesis_status"] == "not_applicable" and "closed_loop_status" not in bare.summary
+
+
+@pytest.mark.parametrize("extra, key", [([], "reference"), (["controller=online"], "online_rate"),
+                                        (["plant=cart_pole", "model=plant"], "gain_choice")],
+                         ids=["paper", "online", "user_plant"])
+def test_every_summary_key_is_in_the_data_dictionary(extra, key):
+    """A summary number a stage adds is documented (schema.SUMMARY, docs/data_dictionary.md): the paper's run,
+    the online controller (online_*), a user plant (identification passes, the gain choice)."""
+    summary = pipeline.run_experiment(experiment(*extra)).summary
+    assert key in summary and undocumented(summary) == []
 
 
 def test_modeled_covariance_is_total_for_a_user_plant_and_the_papers_for_the_paper():

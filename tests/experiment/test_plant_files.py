@@ -7,7 +7,7 @@ import numpy as np
 import pandas as pd
 import pytest
 import yaml
-from conftest import REPO, rdsexp
+from conftest import REPO, rdsexp, undocumented
 
 from rdsexp.experiment.recording import read_series
 from rdsexp.numerics import distributions as D
@@ -158,6 +158,7 @@ def test_not_stabilizable_and_diverged_paths_are_stated(tmp_path):
     assert s["synthesis_status"] == "not_ms_stabilizable" and abs(s["rate_plant"] - 1.5) < 1e-9
     assert "no stabilizing gain: not_ms_stabilizable, the best rate found on the model is 1.5000" in proc.stdout
     assert s["closed_loop_failed"] == {"fraction": 1.0, "first_k": 35, "median_k": 35.0, "reasons": {"diverged": 4}}
+    assert undocumented(s) == []
     assert "100% of paths failed (first at k = 35, median k = 35): the plant state diverged on 4" in proc.stdout
     # the auto window starts where the disturbance ends (k = 10); no path reaches its end
     assert "closed loop rate k=10..60: n/a (not every path reached the window), ideal loop 1.4982: failed" in proc.stdout
@@ -258,6 +259,7 @@ def test_a_loop_the_outputs_cannot_carry_is_explained_by_its_exact_rate(tmp_path
     s = json.loads((run / "run.json").read_text())["summary"]
     assert s["rate_plant"] == pytest.approx(np.sqrt(0.26), rel=1e-12) and s["closed_loop_verdict"] != "stable"
     assert s["closed_loop_verdict"] == "failed" and s["closed_loop_through_y"]["rate"] == pytest.approx(2.0, rel=1e-9)
+    assert undocumented(s) == []
     assert "the gap is the outputs': with the best linear observer of y found" in proc.stdout
 
 
