@@ -71,6 +71,26 @@ EXPERIMENT = ["store", "schema", "config", "montecarlo", "pipeline", "summary", 
               "runs", "sweep", "cli"]
 
 
+# run.json's readers: only the store reads run.json; every other module reads runs through RunStore and Run
+# (whose `record` is the typed RunRecord, parsed at the store's boundary with the fixes for older records)
+STORE_READERS = {"read_run", "read_runs", "read_table", "run_damage", "intact_runs", "RUN_JSON"}
+
+
+@pytest.mark.parametrize("path", sorted(MODULES.values()), ids=lambda p: str(p.relative_to(PACKAGE)))
+def test_only_the_store_reads_run_json(path):
+    if (PACKAGE / "experiment" / "store") in path.parents:
+        return
+    tree = ast.parse(path.read_text())
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom) and "store" in (node.module or "").split("."):
+            used = {alias.name for alias in node.names} & STORE_READERS
+            assert not used, f"{path.name} imports {used} from the store: use RunStore / Run"
+        if isinstance(node, ast.Attribute):
+            assert node.attr not in STORE_READERS, f"{path.name} uses {node.attr}: use RunStore / Run"
+        if isinstance(node, ast.Constant) and node.value == "run.json" and path.name != "__init__.py":
+            pytest.fail(f"{path.name} names run.json: use RunStore / Run")
+
+
 def test_experiment_order_names_every_module():
     found = {p.relative_to(PACKAGE / "experiment").with_suffix("").parts[0]
              for p in (PACKAGE / "experiment").rglob("*.py") if p.name != "__init__.py" or p.parent.name == "store"}

@@ -13,7 +13,6 @@ HYDRA_FULL_ERROR=1 shows the complete traceback instead.
 from __future__ import annotations
 
 import contextlib
-import json
 import logging
 import os
 import re
@@ -359,10 +358,8 @@ def interrupted_text() -> str:
 
 def _status(run_dir: Path) -> str | None:
     """run.json's status in run_dir, None without a readable run.json."""
-    try:
-        return json.loads((run_dir / layout.RUN_JSON).read_text()).get("status")
-    except (OSError, ValueError, AttributeError):
-        return None
+    from .store import status_of
+    return status_of(run_dir)
 
 
 def _shown(path) -> str:

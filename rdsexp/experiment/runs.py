@@ -22,7 +22,7 @@ import pandas as pd
 
 from ..errors import DamagedRecord, warnings_as_lines
 from . import schema
-from .store import Run, RunStore, layout, provenance, read_run, read_table, run_damage
+from .store import Run, RunStore, layout, provenance
 from .store.table import KEY_METRICS, MISSING, as_text, changed_params, one_row_per_run, sweep_results
 
 DEFAULT_ROOT = Path(layout.DEFAULT_ROOT)
@@ -95,11 +95,12 @@ def load(run, table: str, long: bool = False, root=DEFAULT_ROOT) -> pd.DataFrame
     (quantity "x_filt_mean", index i of the column "x_filt_mean[i]"; the gain in use "F[i,j]": quantity
     "F<i>", index j)."""
     run_dir = Path(run["dir"]) if isinstance(run, pd.Series) else locate(str(run), Path(root))
-    info = read_run(run_dir)
+    stored = Run(run_dir)
+    info = stored.info
     tables = info.get("tables") or {}
     if table not in tables:
         raise ValueError(f"table {table!r}: run {info.get('id')} has {', '.join(tables) or 'no tables'}")
-    frame = read_table(run_dir, info, table)         # checked against run.json's hash
+    frame = stored.table(table, described=True)      # checked against run.json's hash
     frame.insert(0, "run", info.get("id"))
     if not long:
         return frame
@@ -142,7 +143,7 @@ def diff(a: str, b: str, root=DEFAULT_ROOT) -> pd.DataFrame:
     rows = _diff_rows(one.iloc[0], two.iloc[0], ["plant_hash", *sorted(keys, key=lambda c: not c.startswith(
         "params.")), "code"], skip=("metrics.seconds",))
     rows += config_entries(*(Run(locate(x, root)) for x in (a, b)), shown={r["key"] for r in rows})
-    tables = {x: read_run(locate(x, root)).get("tables") or {} for x in (a, b)}
+    tables = {x: Run(locate(x, root)).info.get("tables") or {} for x in (a, b)}
     for name in sorted(set(tables[a]) | set(tables[b])):
         ha, hb = ((tables[x].get(name) or {}).get("sha256") for x in (a, b))
         if ha != hb:
@@ -277,8 +278,8 @@ def verify(run_dir: Path) -> tuple[bool, list[str]]:
     as such and fails verify."""
     from .config import build
     from .pipeline import run_experiment
-    info = read_run(run_dir)
-    damaged = run_damage(run_dir, info)
+    run = Run(run_dir)
+    info, damaged = run.info, run.damage()
     lines = [f"damaged: {run_dir / problem}" for problem in damaged]
     if not (run_dir / layout.HYDRA_CONFIG).is_file():
         return False, [*lines, f"verify: cannot re-run without {layout.HYDRA_CONFIG} (damaged)"]
@@ -292,7 +293,7 @@ def verify(run_dir: Path) -> tuple[bool, list[str]]:
     for name in (info.get("tables") or {}):
         fresh = outcome.tables.get(name)
         try:        # a modified table is reported damaged above; its differences are shown too
-            stored = read_table(run_dir, info, name, check_hash=False)
+            stored = run.table(name, check_hash=False)
         except DamagedRecord as err:
             lines.append(f"{name:15s} DAMAGED: {err.path.name}: {err.reason}")
             ok = False
@@ -417,7 +418,7 @@ def _command(args) -> int:
         return 0
     run_dir = locate(args.run, root)
     try:
-        info = read_run(run_dir)
+        run = Run(run_dir)
     except DamagedRecord as err:
         print(f"rdsexp.runs: damaged: {err}", file=sys.stderr)
         return 1
@@ -425,6 +426,7 @@ def _command(args) -> int:
         from omegaconf import OmegaConf
 
         from .store.table import identity
+        info = run.info
         who = identity(run_dir, info)                   # the catalog's identity of the run, first
         job = f" job {who['job']}" if who["job"] is not None else ""
         reused = f", reused from {who['reused_from']}" if who["reused_from"] else ""
@@ -432,11 +434,11 @@ def _command(args) -> int:
         print(f"run {who['id']}: plant {plant} (model {who['model']}), sweep {who['sweep'] or MISSING}{job}, "
               f"seed {who['seed']}, overrides {who['overrides'] or '(none)'}{reused}")
         print(OmegaConf.to_yaml({k: v for k, v in info.items() if k not in ("environment", "traceback", "params")}))
-        for problem in run_damage(run_dir, info) if info.get("status") == "complete" else []:
+        for problem in run.damage() if info.get("status") == "complete" else []:
             print(f"damaged: {run_dir / problem}")
         if "metrics" in (info.get("tables") or {}):
             try:
-                print(read_table(run_dir, info, "metrics").to_string(index=False))
+                print(run.table("metrics").to_string(index=False))
             except DamagedRecord:
                 pass                                  # named above
         return 0

@@ -16,11 +16,10 @@ from tqdm import tqdm
 
 from ..errors import ConfigError, Exit, RunExit, WriteError
 from .config import build, check_overrides
-from .store import write_sweep_summary
+from .store import RunStore, status_of, write_sweep_summary
 from .store.files import atomic_write_bytes
-from .store.layout import MULTIRUN, RESUMES, RUN_JSON, SUMMARY_CSV
-from .store.run import read_runs
-from .store.table import as_text, runs_table, sweep_results
+from .store.layout import MULTIRUN, RESUMES, SUMMARY_CSV
+from .store.table import as_text, sweep_results
 
 
 class SweepProgress:
@@ -60,10 +59,7 @@ class SweepProgress:
         except OSError:                   # the sweep directory is not made yet
             return
         for job in jobs:
-            try:
-                status = json.loads((job / RUN_JSON).read_text()).get("status")
-            except (OSError, ValueError, AttributeError):   # not started, or being written
-                continue
+            status = status_of(job)                  # None: not started, or being written
             if status not in (None, "incomplete"):
                 self.finished(job.name)
 
@@ -219,7 +215,8 @@ class SweepSummary(Callback):
             print(f"rdsexp: {err}", file=sys.stderr)
             raise RunExit(Exit.FAILED) from None
         print(f"sweep summary: {path}")
-        if not read_runs(path.parent)[0]:   # tracking=off: the jobs recorded nothing to draw
+        jobs = RunStore(path.parent).runs()
+        if not jobs:                       # tracking=off: the jobs recorded nothing to draw
             print("sweep recording: none (no job recorded a run: tracking.level=off)")
         else:                              # the sweep's own recording: metrics against the swept params
             try:
@@ -227,12 +224,12 @@ class SweepSummary(Callback):
                 print(f"sweep recording: {write_sweep_recording(path.parent) or 'none (Rerun disabled: RERUN=off)'}")
             except Exception as err:      # noqa: BLE001 -- a view, never the end of a sweep
                 print(f"rdsexp: no sweep recording ({type(err).__name__}: {err})", file=sys.stderr)
-        table = runs_table(read_runs(path.parent)[0], params=True)
+        table = RunStore(path.parent).table(params=True)
         if len(table):                    # what was swept against what came out, as `rdsexp-runs show SWEEP`
             print(as_text(sweep_results(table), max_rows=RESULT_ROWS))
             print(f"reused {int(table['reused_from'].notna().sum())} of {len(table)} jobs (same config hash and "
                   f"code version as a stored run)")
-            note = stage_cache_note([info for _, info in read_runs(path.parent)[0]])
+            note = stage_cache_note([job.info for job in jobs])
             if note:
                 print(note)
         status = table["status"] if "status" in table else pd.Series([], dtype=object)
@@ -277,7 +274,7 @@ def resumed_sweep(config: DictConfig) -> str | None:
             continue
         if [str(o) for o in (OmegaConf.select(old, "hydra.overrides.task") or [])] != task:
             continue
-        statuses = [info.get("status") for _, info in read_runs(other, warn_damaged=False)[0]]
+        statuses = [job.record.status for job in RunStore(other).runs(warn=False)]
         total = len(sweep_points(old)) if enumerable(old) else len(statuses)
         return other.name if len(statuses) < total or any(st != "complete" for st in statuses) else None
     return None

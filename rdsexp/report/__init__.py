@@ -19,7 +19,7 @@ from omegaconf import OmegaConf  # noqa: E402
 
 from ..errors import DamagedRecord, LineageError, warnings_as_lines  # noqa: E402
 from ..experiment.store import Run, RunStore, files, layout, provenance  # noqa: E402
-from ..experiment.store.run import run_damage, warn  # noqa: E402
+from ..experiment.store.run import warn  # noqa: E402
 from ..numerics.analysis import rms_band  # noqa: E402
 
 COLUMN_WIDTH, PAGE_WIDTH = 3.5, 7.16        # IEEE column and page widths, inches
@@ -89,7 +89,7 @@ def load_runs(root: Path, sweep: str | None = None) -> list[Run]:
         runs = [r for r in runs if (r.info.get("sweep") or {}).get("name") == sweep and of_shipped_sweep(r, sweep)]
     intact = []                     # the files of the selected runs only (each file hashed once per process)
     for r in runs:
-        problems = run_damage(r.dir, r.info)
+        problems = r.damage()
         if problems:
             warn(DamagedRecord(r.dir, "; ".join(problems)))
         else:

@@ -43,7 +43,7 @@ from matplotlib.transforms import ScaledTranslation, blended_transform_factory
 from .. import report
 from ..errors import LineageError, RecordWarning
 from ..experiment.runs import column
-from ..experiment.store import files, layout, read_run
+from ..experiment.store import Run, files, layout
 from ..experiment.store.table import MISSING
 
 SCRIPT = "rdsexp.report.sweep_plot"
@@ -243,8 +243,8 @@ def _check_scales(spec: Spec, points: pd.DataFrame, logx: bool, logy: bool) -> N
 def _lineage_entry(run_id, run_dir) -> dict:
     """A run drawn: id, dir, sha256 of its run.json, the metrics table's sha256 as run.json records
     it (and its code version, for the lineage's code_version)."""
-    path = Path(run_dir) / layout.RUN_JSON
-    info = read_run(Path(run_dir))           # DamagedRecord (one line) if it cannot be read
+    run = Run(Path(run_dir))                 # DamagedRecord (one line) if its run.json cannot be read
+    path, info = run.record_file, run.info
     if info["id"] != run_id:
         raise LineageError(f"{path}: names run {info['id']!r}, the runs table {run_id!r} (search the store again)")
     digest = hashlib.sha256(path.read_bytes()).hexdigest()

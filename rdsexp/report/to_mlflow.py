@@ -48,7 +48,7 @@ import pandas as pd
 
 from ..errors import DamagedRecord
 from ..experiment.runs import DEFAULT_ROOT, locate, locate_sweep, query, search
-from ..experiment.store import layout, read_run, run_damage
+from ..experiment.store import Run, layout
 from ..experiment.store.table import changed_params, run_metrics, run_params
 from ..numerics.analysis import rms_band
 
@@ -230,14 +230,15 @@ def _one(client, experiment_id: str, row: pd.Series, report: Report, existing: d
         report.runs[run_id] = there.info.run_id
         return
     try:
-        info = read_run(run_dir)
+        run = Run(run_dir)
     except DamagedRecord as err:
         report.skipped[run_id] = f"damaged ({err})"
         return
+    info = run.info
     if info.get("status") == "incomplete":
         report.skipped[run_id] = "incomplete (still running, or its process died)"
         return
-    damage = run_damage(run_dir, info) if info.get("status") == "complete" else []
+    damage = run.damage() if info.get("status") == "complete" else []
     if damage:
         report.skipped[run_id] = "damaged: " + "; ".join(damage)
         return
@@ -381,7 +382,8 @@ def _note(row: pd.Series, info: dict, run_dir: Path, recording: str | None) -> s
 
 def _artifacts(run_dir: Path, info: dict, tables: bool) -> list[tuple[Path, str]]:
     """(file, its name among the run's artifacts): run.json, config.yaml and the stored tables."""
-    files = [(run_dir / layout.RUN_JSON, layout.RUN_JSON), (run_dir / layout.HYDRA_CONFIG, "config.yaml")]
+    record = Run(run_dir, info).record_file
+    files = [(record, record.name), (run_dir / layout.HYDRA_CONFIG, "config.yaml")]
     if tables:
         files += [(run_dir / meta["file"], Path(meta["file"]).name) for meta in (info.get("tables") or {}).values()
                   if isinstance(meta, dict) and isinstance(meta.get("file"), str)]
@@ -429,7 +431,7 @@ def _parent(client, experiment_id: str, sweep_id: str, jobs: list[pd.Series], sw
 def _finished(run_dir: Path) -> int | None:
     """When a run ended (run.json's `finished`, ms), None when it has no readable record of it."""
     try:
-        return _millis(read_run(run_dir).get("finished"))
+        return _millis(Run(run_dir).info.get("finished"))
     except (DamagedRecord, OSError):
         return None
 

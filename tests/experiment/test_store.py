@@ -17,6 +17,7 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 import pytest
 from conftest import REPO, SERIAL, SMALL, rdsexp
@@ -468,3 +469,28 @@ def test_run_metrics_flattens_lists_inside_summary_dicts():
                    "metrics.modeling_uncertainty_xi_mean_sd[1]": 0.2, "metrics.closed_loop_rate": 0.9,
                    "metrics.closed_loop_rate_low": 0.8, "metrics.closed_loop_rate_high": 1.0,
                    "metrics.xi_mean[0]": 0.5, "metrics.seconds": 1.0}
+
+
+def test_run_record_types_run_json_and_makes_older_records_current(tmp_path):
+    """RunRecord.parse: the typed view of run.json; an older record (seed as an int, a sweep without a name or
+    `resumes`, no plant_hash) reads as a current one, and the catalog's identity comes from it."""
+    from rdsexp.experiment.store import RunRecord
+    from rdsexp.experiment.store.table import identity
+    sweep = tmp_path / "S"
+    sweep.mkdir()
+    (sweep / "multirun.yaml").write_text("hydra:\n  overrides:\n    task: [\"seed=0,1\", closed_loop.paths=4]\n")
+    old = {"id": "S/1", "status": "complete", "seed": 1, "sweep": {"dir": str(sweep), "job": 1},
+           "overrides": ["seed=1", "closed_loop.paths=4"], "code": {"version": "abc"},
+           "summary": {"plant": "paper", "closed_loop_verdict": "stable", "closed_loop_rate": [0.85, 0.8, None],
+                       "closed_loop_failed": {"fraction": 0.25}}}
+    record = RunRecord.parse(old)
+    assert (record.seed, record.sweep.job, record.sweep.id, record.sweep.resumes) == (1, 1, "S", None)
+    assert record.sweep.name == "seed=0,1" and record.plant_hash is None and record.code_version == "abc"
+    assert record.summary.verdict() == "stable" and record.summary.plant == "paper"
+    assert record.summary.rate()[:2] == (0.85, 0.8) and np.isnan(record.summary.rate()[2])
+    assert record.summary.failed_fraction() == 0.25 and np.isnan(record.summary.rate("open_loop")[0])
+    assert dict(record.summary) == old["summary"] and record.raw is old
+    current = dict(old, seed={"root": 1}, sweep={"dir": str(sweep), "job": 1, "name": "seed=0,1", "resumes": None})
+    assert RunRecord.parse(current).seed == 1 and RunRecord.parse(current).sweep == record.sweep
+    row = identity(sweep / "1", old)
+    assert (row["sweep"], row["sweep_id"], row["job"], row["seed"], row["plant"]) == ("seed=0,1", "S", 1, 1, "paper")

@@ -87,7 +87,7 @@ def test_sweep_progress_counts_jobs_finished_in_other_processes_once(tmp_path):
     from rdsexp.experiment.sweep import SweepProgress
     for job, status in (("0", "complete"), ("1", "incomplete"), ("2", "failed")):
         (tmp_path / job).mkdir()
-        (tmp_path / job / "run.json").write_text(json.dumps({"status": status}))
+        (tmp_path / job / "run.json").write_text(json.dumps({"id": job, "status": status}))
     (tmp_path / "3").mkdir()                 # a job that has not written its run.json yet
     progress = SweepProgress(4, tmp_path, poll=0.02, file=io.StringIO(), disable=False)
     progress.finished("0")
@@ -96,7 +96,7 @@ def test_sweep_progress_counts_jobs_finished_in_other_processes_once(tmp_path):
         time.sleep(0.02)
     time.sleep(0.1)
     assert progress.bar.n == 2 and progress.done == {"0", "2"}
-    (tmp_path / "1" / "run.json").write_text(json.dumps({"status": "complete"}))
+    (tmp_path / "1" / "run.json").write_text(json.dumps({"id": "1", "status": "complete"}))
     while progress.bar.n < 3 and time.time() < deadline:
         time.sleep(0.02)
     progress.close()

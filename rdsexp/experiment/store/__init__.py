@@ -8,6 +8,7 @@ folder name is in `layout`; the command line, sweeps, recordings and the report 
     layout      every name: runs/, sweeps/, index/, quarantine/, run.json, tables, recording
     files       atomic writes, read-only stored files, content hashes, streamed parquet tables
     provenance  code version, environment, process and time of a run
+    record      run.json as typed values (`RunRecord`, `RunSummary`), older records made current
     run         reading run.json and a run's files safely; the `Run` handle
     writer      writing one run directory (`RunWriter`)
     table       the runs table (catalog, search, sweep summaries)
@@ -28,7 +29,8 @@ _NAMES = {"RunStore": "runstore", "Run": "run", "RunWriter": "writer", "Finding"
           "index_key": "index",
           "rebuild_index": "index", "read_run": "run", "read_runs": "run", "read_table": "run",
           "run_damage": "run", "intact_runs": "run", "runs_table": "table", "write_sweep_summary": "table",
-          "StageCache": "stages"}
+          "StageCache": "stages", "RunRecord": "record", "RunSummary": "record", "SweepRef": "record",
+          "status_of": "run"}
 
 
 def __getattr__(name: str):

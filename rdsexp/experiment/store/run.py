@@ -23,6 +23,7 @@ import pandas as pd
 from ...errors import DamagedRecord, RecordWarning, one_line
 from . import files
 from .layout import HYDRA_CONFIG, INDEX, QUARANTINE, RUN_JSON, STAGES, table_file
+from .record import RunRecord
 
 REQUIRED = ("id", "status")          # what every run.json of every rdsexp version has
 # fields readers use, with the type they expect (older records may lack them, not change their type)
@@ -59,6 +60,15 @@ def read_run(run_dir: Path) -> dict:
         if key in info and not isinstance(info[key], kind):
             raise DamagedRecord(path, f"not an rdsexp run record ({key} is a {type(info[key]).__name__})")
     return info
+
+
+def status_of(run_dir: Path) -> str | None:
+    """run.json's status in run_dir (a run being written, a job of a sweep being watched); None when there
+    is no readable run.json."""
+    try:
+        return read_run(run_dir)["status"]
+    except DamagedRecord:
+        return None
 
 
 def _entries(info: dict) -> list:
@@ -325,9 +335,19 @@ class Run:
             _FULL_CONFIGS[key] = cfg
         return _FULL_CONFIGS[key]
 
+    @cached_property
+    def record(self) -> RunRecord:
+        """run.json, typed (`record.RunRecord`: older records made current)."""
+        return RunRecord.parse(self.info)
+
     @property
     def id(self) -> str:
         return self.info["id"]
+
+    @property
+    def record_file(self) -> Path:
+        """The run's run.json (an artifact, a lineage's hash)."""
+        return self.dir / RUN_JSON
 
     @property
     def code(self) -> str | None:
@@ -353,9 +373,11 @@ class Run:
         k_from, k_to = self.info["summary"]["rate_window"]
         return int(k_from), int(k_to)
 
-    def table(self, name: str, columns: list[str] | None = None, check_hash: bool = True) -> pd.DataFrame:
+    def table(self, name: str, columns: list[str] | None = None, check_hash: bool = True,
+              described: bool = False) -> pd.DataFrame:
         """A stored table (optionally some columns). The first read of each table reads it whole and
-        checks it against run.json's hash; DamagedRecord if it is missing, unreadable or modified."""
+        checks it against run.json's hash; DamagedRecord if it is missing, unreadable or modified.
+        described: with its schema metadata in attrs (the data dictionary's descriptions)."""
         if name in self.used:
             table = pd.read_parquet(self.dir / self.info["tables"][name]["file"], columns=columns)
         else:
@@ -365,7 +387,8 @@ class Run:
             table = table if columns is None else table[columns]
         # the schema metadata stays in the file: in attrs, pandas deep-copies it into every derived frame
         # (seconds of every report call)
-        table.attrs = {}
+        if not described:
+            table.attrs = {}
         return table
 
     def damage(self) -> list[str]:

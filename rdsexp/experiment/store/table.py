@@ -7,17 +7,16 @@ composed config).
 from __future__ import annotations
 
 import fcntl
-import functools
 import json
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
-import yaml
 
 from ...errors import WriteError
 from . import files
-from .layout import MULTIRUN, SUMMARY, SUMMARY_CSV, SUMMARY_LOCK
+from .layout import SUMMARY, SUMMARY_CSV, SUMMARY_LOCK
+from .record import RunRecord
 from .run import MATRIX, read_runs, scalar_config, scalars_only
 
 IDENTITY = ["id", "sweep", "sweep_id", "resumes", "job", "seed", "status", "plant", "plant_hash", "model", "method",
@@ -28,46 +27,20 @@ NOT_METRICS = ("plant", "model", "gain_method", "rate_window", "reference", "des
 
 
 def identity(run_dir: Path, info: dict) -> dict:
-    """The identity columns of a run (IDENTITY) from its run.json: sweep is the `+sweep=NAME` config,
-    else the command-line overrides of the `-m` run (`sweep_name`); plant is the plant file's `name:`,
-    else its file name (the runner records it so; from the config where a run ended before its summary),
-    plant_hash the first 12 hex digits of run.json's
-    `plant_hash` (the plant's content: two files of one name that differ have different hashes)."""
-    sweep, s, seed = info.get("sweep") or {}, info.get("summary") or {}, info.get("seed")
-    job = sweep.get("job")
-    return {"id": info.get("id"), "sweep": sweep.get("name") or sweep_name(sweep.get("dir")),
-            "sweep_id": Path(sweep["dir"]).name if sweep.get("dir") else None, "resumes": sweep.get("resumes"),
-            "job": job if isinstance(job, int) else None,
-            "seed": seed.get("root") if isinstance(seed, dict) else seed, "status": info.get("status"),
-            "plant": s.get("plant") or (info.get("params") or {}).get("plant.name"),
-            "plant_hash": (info.get("plant_hash") or "")[:12] or None,
-            "model": s.get("model"), "method": s.get("gain_method"),
-            "overrides": " ".join(o for o in info.get("overrides", []) if not o.startswith("+sweep=")),
-            "reused_from": info.get("reused_from"), "created": info.get("created"),
-            "code": (info.get("code") or {}).get("version"), "config_hash": info.get("config_hash"),
-            "dir": str(run_dir)}
-
-
-@functools.lru_cache(maxsize=256)
-def sweep_name(sweep_dir: str | None) -> str | None:
-    """The name of a sweep launched without `+sweep=NAME`: the overrides of its command line that sweep
-    (`enkf.ensemble_size=50,100 seed=range(3)`; all of them if none does), as Hydra wrote them into
-    <sweep>/multirun.yaml; None without that file."""
-    if not sweep_dir:
-        return None
-    try:
-        config = yaml.safe_load((Path(sweep_dir) / MULTIRUN).read_text())
-        task = [str(o) for o in ((config or {}).get("hydra") or {}).get("overrides", {}).get("task") or []
-                if not str(o).startswith("+sweep=")]
-    except (OSError, yaml.YAMLError, AttributeError):
-        return None
-    from hydra.core.override_parser.overrides_parser import OverridesParser
-    from hydra.errors import HydraException
-    try:
-        swept = [o.input_line for o in OverridesParser.create().parse_overrides(task) if o.is_sweep_override()]
-    except HydraException:
-        swept = []
-    return " ".join(swept or task) or None
+    """The identity columns of a run (IDENTITY) from its run.json (`record.RunRecord`): sweep is the
+    `+sweep=NAME` config, else the command-line overrides of the `-m` run (`sweep_name`); plant is the plant
+    file's `name:`, else its file name (the runner records it so; from the config where a run ended before
+    its summary), plant_hash the first 12 hex digits of run.json's `plant_hash` (the plant's content: two
+    files of one name that differ have different hashes)."""
+    record = RunRecord.parse(info)
+    sweep, s = record.sweep, record.summary
+    return {"id": record.id, "sweep": sweep and sweep.name, "sweep_id": sweep and sweep.id,
+            "resumes": sweep and sweep.resumes, "job": sweep and sweep.job, "seed": record.seed,
+            "status": record.status, "plant": s.plant or (record.raw.get("params") or {}).get("plant.name"),
+            "plant_hash": (record.plant_hash or "")[:12] or None, "model": s.model, "method": s.gain_method,
+            "overrides": " ".join(o for o in record.overrides if not o.startswith("+sweep=")),
+            "reused_from": record.reused_from, "created": record.created, "code": record.code_version,
+            "config_hash": record.config_hash, "dir": str(run_dir)}
 
 
 def run_metrics(info: dict) -> dict:
