@@ -519,11 +519,15 @@ OBJECTIVES = ("lam", "rate_plant", "closed_loop_rate", "open_loop_rate", "online
 
 
 def check_objective(cfg) -> None:
-    """`objective` is null or one of OBJECTIVES; `objective_penalty` a finite number >= 0."""
+    """`objective` is null or one of OBJECTIVES; `objective_penalty` a finite number >= 0; `objective_seeds` a
+    whole number >= 1."""
     objective = OmegaConf.select(cfg, "objective")
     if objective is not None and objective not in OBJECTIVES:
         raise ConfigError(f"objective: {objective!r} is not allowed, expected null or one of {', '.join(OBJECTIVES)}")
     _number(OmegaConf.select(cfg, "objective_penalty", default=1.0), "objective_penalty", low=0)
+    seeds = OmegaConf.select(cfg, "objective_seeds", default=1)
+    if isinstance(seeds, bool) or not isinstance(seeds, int) or seeds < 1:
+        raise ConfigError(f"objective_seeds: {seeds!r} is not allowed, expected a whole number >= 1")
 
 
 def _method_and_options(cfg, group: str) -> tuple[str, dict]:
