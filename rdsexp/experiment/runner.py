@@ -159,6 +159,18 @@ EXACT_COUNTERPART = {"closed_loop_rate": "rate_plant", "online_rate": "rate_plan
                      "open_loop_rate": "open_loop_exact_rate"}
 
 
+def command_with(command: str, overrides: list[str]) -> str:
+    """A run's command line (`python -m rdsexp [--config-dir DIR ...] OVERRIDES`) with other overrides: the
+    command that repeats a tuning trial's other seed or a held-out re-run by itself: a single run, without
+    `+sweep=NAME`, which would start the study again. It is exact where the sweep config sets only the study
+    (objective, sweeper), as tune_enkf does; the run's .hydra/config.yaml, which `verify` re-runs, always is."""
+    words, kept = shlex.split(command or "python -m rdsexp"), []
+    for i, word in enumerate(words[3:], start=3):
+        if word in ("--config-dir", "-cd") or (i > 3 and words[i - 1] in ("--config-dir", "-cd")):
+            kept.append(shlex.quote(word))
+    return " ".join(["python -m rdsexp", *kept, *(o for o in overrides if not o.startswith("+sweep="))])
+
+
 def at_seed(cfg: DictConfig, seed: int) -> DictConfig:
     """A copy of a job's config with another root seed."""
     other = cfg.copy()
@@ -196,7 +208,6 @@ def trial_seeds(cfg: DictConfig, run_dir: Path, failed) -> list[dict]:
     the job's run (<job>.seed<s>, a run like any other, its command the single run that repeats it);
     their run.json contents. failed(err, seed_dir): the run.json content of a seed whose run raised."""
     context, runs = hydra_context(run_dir), []
-    hc = HydraConfig.get() if HydraConfig.initialized() else None
     for seed in objective_seeds(cfg)[1:]:
         other = at_seed(cfg, seed)
         seed_dir = run_dir.with_name(f"{run_dir.name}.seed{seed}")
@@ -204,7 +215,7 @@ def trial_seeds(cfg: DictConfig, run_dir: Path, failed) -> list[dict]:
         try:
             runs.append(execute(other, seed_dir, context | {
                 "id": f"{Path(context['id']).parent}/{seed_dir.name}" if context["sweep"] else seed_dir.name,
-                "overrides": overrides, "command": " ".join(["python -m rdsexp", *config_dirs(hc), *overrides]),
+                "overrides": overrides, "command": command_with(context["command"], overrides),
                 "objective": {"role": "seed", "trial": context["id"]}}))
         except Exception as err:          # noqa: BLE001 -- a status in its run.json; the trial's mean is inf
             runs.append(failed(err, seed_dir))

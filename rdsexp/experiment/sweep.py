@@ -20,7 +20,7 @@ from ..errors import ConfigError, Exit, RunExit, WriteError
 from .config import build, check_overrides
 from .store import RunStore, status_of, write_sweep_summary
 from .store.files import atomic_write_bytes
-from .store.layout import MULTIRUN, RESUMES, SUMMARY_CSV
+from .store.layout import HYDRA_CONFIG, MULTIRUN, RESUMES, SUMMARY_CSV
 from .store.table import as_text, sweep_results
 
 
@@ -258,7 +258,7 @@ def held_out(config: DictConfig, sweep_dir: Path) -> list[str]:
     run in the sweep directory (heldout.seed<s>, run.json `objective.role` heldout, the last one with their
     mean and standard error), the result in <sweep>/heldout.json; the lines that say it, which trials are
     within each other's standard error of the best, and the objective's exact counterpart."""
-    from .runner import execute, objective_over
+    from .runner import at_seed, command_with, execute, objective_over
     trials = [run for run in RunStore(sweep_dir).runs(warn=False)
               if (run.info.get("objective") or {}).get("role") == "trial"]
     if not trials:
@@ -268,14 +268,14 @@ def held_out(config: DictConfig, sweep_dir: Path) -> list[str]:
     name, penalty, n = of(best)["metric"], of(best)["penalty"], len(of(best)["seeds"])
     used = [seed for run in trials for seed in of(run)["seeds"]]
     seeds = list(range(max(used) + 1, max(used) + 1 + n))
-    cfg = OmegaConf.load(best.dir / ".hydra" / "config.yaml")
+    cfg = OmegaConf.load(best.dir / HYDRA_CONFIG)
     runs = []
     for i, seed in enumerate(seeds):
-        other = cfg.copy()
-        other.seed = seed
+        other = at_seed(cfg, seed)
         run_dir = sweep_dir / f"heldout.seed{seed}"
         overrides = [o for o in best.info.get("overrides") or [] if not o.startswith("seed=")] + [f"seed={seed}"]
-        context = {"id": f"{sweep_dir.name}/{run_dir.name}", "command": " ".join(["python -m rdsexp", *overrides]),
+        context = {"id": f"{sweep_dir.name}/{run_dir.name}", "command": command_with(best.info.get("command"),
+                                                                                       overrides),
                    "overrides": overrides, "sweep": dict(best.info.get("sweep") or {}, job=None),
                    "objective": {"role": "heldout", "of": best.id}}
         last = i == len(seeds) - 1
