@@ -358,7 +358,7 @@ def interrupted_text() -> str:
         sweep_dir = RUNNING["sweep_dir"]
     with contextlib.suppress(OSError, WriteError):   # the count below reads what is there
         settle_interrupted(sweep_dir)
-    done = sum(_status(job) == "complete" for job in sweep_dir.iterdir() if job.is_dir())
+    done = sum(_status(job) == "complete" for job in sweep_dir.iterdir() if job.is_dir() and layout.is_job(job))
     try:
         config = OmegaConf.load(sweep_dir / layout.MULTIRUN)
         total, reuse = f" of {len(sweep_points(config))}", bool(config.get("reuse", True))

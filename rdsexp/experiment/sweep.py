@@ -18,7 +18,7 @@ from tqdm import tqdm
 
 from ..errors import ConfigError, Exit, RunExit, WriteError
 from .config import build, check_overrides
-from .store import RunStore, status_of, write_sweep_summary
+from .store import RunStore, layout, status_of, write_sweep_summary
 from .store.files import atomic_write_bytes
 from .store.layout import HYDRA_CONFIG, MULTIRUN, RESUMES, SUMMARY_CSV
 from .store.table import as_text, sweep_results
@@ -61,7 +61,7 @@ class SweepProgress:
         except OSError:                   # the sweep directory is not made yet
             return
         for job in jobs:
-            if "." in job.name:                      # a trial's other seed, a held-out run: not a job
+            if not layout.is_job(job):               # a trial's other seed, a held-out run
                 continue
             status = status_of(job)                  # None: not started, or being written
             if status not in (None, "incomplete"):

@@ -57,6 +57,12 @@ def is_run(directory: Path) -> bool:
     return (Path(directory) / RUN_JSON).exists()
 
 
+def is_job(directory: Path) -> bool:
+    """Whether a directory of a sweep is one of its jobs (named by its number), not a tuning trial's other
+    seed or a held-out re-run beside them."""
+    return Path(directory).name.isdigit()
+
+
 def is_sweep(directory: Path) -> bool:
     """Whether `directory` is a sweep directory (Hydra's multirun.yaml, or jobs with a run.json)."""
     directory = Path(directory)
