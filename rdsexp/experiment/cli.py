@@ -149,6 +149,8 @@ def main() -> None:
                   f"enkf.Q.xi= or a matrix as enkf.Q.matrix={value} (a scalar, n+p diagonal entries or "
                   f"a full (n+p)x(n+p) matrix)", file=sys.stderr)
             sys.exit(Exit.CONFIG)
+    # `data=FILE`: the data file of a data run, short for data.file=FILE (data is a mapping: file, holdout)
+    sys.argv = [sys.argv[0], *(data_shorthand(arg) for arg in sys.argv[1:])]
     if {"--help", "-h"} & set(sys.argv[1:]):
         text = help_text(sys.argv[1:])
         if text is not None:
@@ -170,6 +172,14 @@ def main() -> None:
             print("rdsexp: config error (reported by Hydra above)", file=sys.stderr)
             sys.exit(Exit.CONFIG)
         raise
+
+
+def data_shorthand(arg: str) -> str:
+    """`data=FILE` (or `+data=FILE`) -> `data.file=FILE`; any other argument unchanged."""
+    name, eq, value = arg.partition("=")
+    if not eq or name.lstrip("+") != "data" or value.startswith("{"):
+        return arg
+    return f"data.file={os.path.abspath(value)}"       # absolute: `rdsexp-runs verify` re-runs from anywhere
 
 
 # Hydra turns an exception of a callback into a warning and goes on: the sweep's validation

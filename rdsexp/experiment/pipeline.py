@@ -29,7 +29,7 @@ from ..numerics import observer_loop
 from ..numerics.analysis import empirical_rate_sq, exact_costs, ms_rate, rms_band, second_moments
 from ..numerics.distributions import expected_crps
 from ..numerics.enkf import truth_map
-from ..numerics.modeling import model_distribution, moment_draws, nominal_gain
+from ..numerics.modeling import model_distribution, moment_draws, nominal_gain, path_moment_draws
 from ..numerics.online import OnlineController, moment_factors, rates
 from ..numerics.simulation import Trajectories, simulate
 from ..numerics.synthesis import SynthesisResult, synthesize
@@ -109,6 +109,8 @@ def run_experiment(exp: Experiment, sink=None, cache=None) -> Outcome:
     options) and the open loop (what `simulate` reads: plant, the loop's observer with the moments it
     draws xi from, disturbance, initial state, seed, chunks of paths; not the gain). Tables and
     summary are the same either way. Not with tracking level full (every loop's members)."""
+    if exp.data is not None:
+        return run_on_data(exp, sink)
     if cache is not None and exp.tracking.level == "full":
         cache = None
     timings, summary = {}, {}
@@ -558,14 +560,17 @@ PASS_TOL = 1e-3        # iterated identification: stop when the moments move les
 def identified_moments(exp: Experiment, ident: Trajectories) -> tuple[MomentModel | None, str]:
     """The moments modeled from an identification run's xi_{k|k} over the window K0..K0+K1
     (identification.covariance), or (None, why not)."""
-    xi = ident.xi(ident.psi_filt_mean)[:, 0]
+    xi = ident.xi(ident.psi_filt_mean)                  # (K+1, P, p): one path simulated, or the recorded paths
     K0, K1 = exp.identification.K0, exp.identification.K1
     if ident.status != "ok" or not np.all(np.isfinite(xi[K0:K0 + K1 + 1])):
-        reason = ident.failure[0] or "the filtered xi is not finite"
-        k_fail = ident.failed_at[0] if ident.failed_at[0] >= 0 else "window"
-        return None, f"identification failed at k = {k_fail}: {FAILURES.get(reason, reason)}"
+        bad = np.flatnonzero((ident.failed_at >= 0) | ~np.all(np.isfinite(xi[K0:K0 + K1 + 1]), axis=(0, 2)))[0]
+        reason = ident.failure[bad] or "the filtered xi is not finite"
+        k_fail = ident.failed_at[bad] if ident.failed_at[bad] >= 0 else "window"
+        where = f" (path {bad})" if xi.shape[1] > 1 else ""
+        return None, f"identification failed at k = {k_fail}{where}: {FAILURES.get(reason, reason)}"
     total = exp.identification.covariance == "total"
-    return model_distribution(xi, K0, K1, ident.xi_filt_cov[:, 0] if total else None), ""
+    # the paths' windows pooled (model_distribution): one path's moments bit for bit as before
+    return model_distribution(xi, K0, K1, ident.xi_filt_cov if total else None), ""
 
 
 def iterate_identification(exp: Experiment, identify, ident, dist, failure: str, psi0: np.ndarray):
@@ -608,11 +613,17 @@ def moment_uncertainty(exp: Experiment, ident: Trajectories, summary: dict) -> t
     if not settings.resamples or not exp.model.p:
         return None
     total = settings.covariance == "total"
-    mean, cov = moment_draws(ident.xi(ident.psi_filt_mean)[:, 0], settings.K0, settings.K1,
-                             ident.xi_filt_cov[:, 0] if total else None, resamples=settings.resamples,
-                             block=settings.block, seed=[exp.seed, UNCERTAINTY_STREAM])
+    xi, xi_cov = ident.xi(ident.psi_filt_mean), ident.xi_filt_cov if total else None
+    if xi.shape[1] > 1:             # several (recorded) paths: a bootstrap over the paths
+        mean, cov = path_moment_draws(xi, settings.K0, settings.K1, xi_cov, resamples=settings.resamples,
+                                      seed=[exp.seed, UNCERTAINTY_STREAM])
+    else:
+        mean, cov = moment_draws(xi[:, 0], settings.K0, settings.K1, None if xi_cov is None else xi_cov[:, 0],
+                                 resamples=settings.resamples, block=settings.block,
+                                 seed=[exp.seed, UNCERTAINTY_STREAM])
     std = np.sqrt(np.clip(np.diagonal(cov, axis1=1, axis2=2), 0, None))
     summary["modeling_uncertainty"] = {"resamples": settings.resamples, "block": settings.block,
+                                       "over": "paths" if xi.shape[1] > 1 else "window blocks",
                                        "xi_mean_sd": mean.std(axis=0, ddof=1).tolist(),
                                        "xi_std_sd": std.std(axis=0, ddof=1).tolist()}
     return mean, cov
@@ -762,7 +773,7 @@ def gains_table(exp: Experiment, designs: dict, selected: tuple[str, str]) -> pd
                      "status": res.status, "lam": res.lam, "lam_lower": res.lam_lower,
                      "nbar": res.nbar,
                      "rate_model": safe_rate(exp.model, moments, F) if found and moments is not None else np.nan,
-                     "rate_plant": safe_rate(exp.plant, None, F) if found else np.nan,
+                     "rate_plant": safe_rate(exp.plant, None, F) if found and exp.plant is not None else np.nan,
                      **performance(exp, moments, F if found and moments is not None else None),
                      "lam_box": res.info.get("lam_box", np.nan),
                      "lam_box_lower": res.info.get("lam_box_lower", np.nan),
@@ -786,7 +797,10 @@ def performance(exp: Experiment, moments, F) -> dict:
     keys = ("lq_cost_q0_plant", "lq_cost_plant", "h2_plant", "lq_cost_model", "h2_model")
     if F is None or not np.all(np.isfinite(F)):
         return dict.fromkeys(keys, np.nan)
-    plant, model = exact_costs(exp.plant, None, F, exp.q0), exact_costs(exp.model, moments, F)
+    model = exact_costs(exp.model, moments, F)
+    if exp.plant is None:                       # a data run: no true plant, no number on it
+        return dict.fromkeys(keys[:3], np.nan) | {"lq_cost_model": model["lq_cost"], "h2_model": model["h2"]}
+    plant = exact_costs(exp.plant, None, F, exp.q0)
     return {"lq_cost_q0_plant": plant["lq_cost_x0"], "lq_cost_plant": plant["lq_cost"], "h2_plant": plant["h2"],
             "lq_cost_model": model["lq_cost"], "h2_model": model["h2"]}
 
@@ -987,3 +1001,123 @@ def loop_through_outputs(exp: Experiment, chosen, s: dict) -> dict | None:
     return {"rate": found.rate, "kalman_rate": found.kalman_rate, "estimate": exp.loop.estimate}
 
 
+
+
+# ------------------------------------------------------------------------------------ data runs
+DATA_TABLES = ("identification", "paths", "model", "gains", "metrics", "exact", "trajectories")
+
+
+def identify_recorded(exp: Experiment, recorded, seed, sim: dict, keep: bool, enkf=None) -> Trajectories:
+    """The identification EnKF run on recorded (u, y) (`simulate(recorded=...)`): batched over the recorded
+    paths, path j with the EnKF stream j of the identification's seed and the initial ensemble of a
+    simulated identification, so that a run's own record gives its estimates bit for bit."""
+    total = exp.identification.covariance == "total"
+    return simulate(None, enkf or exp.filter.enkf, d=np.zeros((recorded.steps, exp.model.m)), paths=recorded.paths,
+                    seed=seed, filter_sees_d=True, keep_members=keep, keep_xi_cov=total, recorded=recorded,
+                    **dict(sim, q0=np.zeros(exp.model.n)))
+
+
+def run_on_data(exp: Experiment, sink=None) -> Outcome:
+    """A data run (exp.data): identification on the recorded paths (all but the held-out ones), the moments
+    over the window with their uncertainty (a bootstrap over the recorded paths, or over blocks of the window
+    for one path), the loop's gain and gain.designs on them, each with its exact rate on the identified model
+    and its spread over the moments' draws. There is no plant: no loop is simulated and no number claims one.
+    Iterated identification (identification.xi_model: iterated) re-filters the same recorded data with each
+    pass's prior: the record does not change between passes (a simulated open-loop identification's would not
+    either; one under feedback would, and a data run cannot reproduce that)."""
+    timings, summary = {}, {}
+    seed = np.random.SeedSequence(exp.seed, spawn_key=SPAWN_KEYS["identification"])
+    sim, keep = exp.simulation(), exp.tracking.level == "full"
+    data = exp.data
+    with timed(timings, "identification"):
+        identify = partial(identify_recorded, exp, data.identification, seed, sim, keep)
+        ident = identify()
+        summary["identification_feedback"] = {"mode": "recorded", "used": "the recorded inputs"}
+    with timed(timings, "modeling"):
+        dist, failure = identified_moments(exp, ident)
+        if exp.identification.xi_model == "iterated" and exp.model.p:
+            ident, dist, failure, summary["identification_passes"] = iterate_identification(
+                exp, lambda enkf: identify(enkf=enkf), ident, dist, failure, sim["psi0"])
+        passes = summary.get("identification_passes") or {}
+        unsettled = dist is not None and passes.get("passes") and not passes.get("converged")
+        summary["modeling_status"] = failure or ("unsettled" if unsettled else "ok")
+        if dist is not None:
+            summary["modeling_covariance"] = exp.identification.covariance
+    draws = moment_uncertainty(exp, ident, summary) if dist is not None else None
+    with timed(timings, "synthesis"):
+        designs = {}
+        for source, moments in (("identified", dist), ("reported", exp.reported)):
+            for method in exp.design.methods if moments is not None else ():
+                designs[source, method] = (moments, safe_synthesize(
+                    exp.model, moments, method, exp.design.options_by_method[method], exp.design.lmi_max_n,
+                    label=f"synthesis/{source}/{method}"))
+        selected = (exp.design.source, exp.design.method)
+        if exp.design.source == "fixed":
+            moments = dist if dist is not None else exp.reported
+            rate = ms_rate(exp.model, moments, exp.design.F) if moments is not None else np.nan
+            designs[("fixed", "fixed")] = (moments, SynthesisResult("fixed", exp.design.F, rate, "fixed", nbar=0))
+            selected = ("fixed", "fixed")
+        chosen = designs.get(selected, (None, None))[1]
+    with timed(timings, "metrics"):
+        gains = gains_table(exp, designs, selected)
+        spread = design_spread(exp, designs, draws)
+        for column in ("rate_model_median", "rate_model_q05", "rate_model_q95", "rate_model_worst"):
+            gains[column] = [spread.get((row.distribution, row.method), {}).get(column, np.nan)
+                             for row in gains.itertuples()]
+        tables = {"identification": trajectory_table("identification", ident),
+                  "paths": path_table({"identification": LoopSummary.of(ident, exp)}),
+                  "model": model_table(exp, dist), "gains": gains,
+                  "metrics": pd.DataFrame(columns=list(METRIC_COLUMNS)),
+                  "exact": pd.DataFrame({"experiment": pd.Series(dtype=str), "k": pd.Series(dtype=np.int64),
+                                         "rms": pd.Series(dtype=float)})}
+    sink = MemorySink() if sink is None else sink
+    sink.append("trajectories", trajectory_table("closed_loop", None, exp=exp))
+    if isinstance(sink, MemorySink):
+        tables |= sink.tables()
+    summary.update(data_summary(exp, dist, chosen, designs, spread, ident))
+    recorded = tables["identification"]
+    return Outcome(tables=tables, summary=summary, timings=timings, recorded=recorded,
+                   recorded_members=members_table("identification", ident) if keep else None, squares={})
+
+
+def design_spread(exp: Experiment, designs: dict, draws) -> dict:
+    """Per design with a gain: its exact rate on the identified model at every draw of the moments
+    (`moment_uncertainty`): median, 5% and 95% quantiles and worst; {} without draws."""
+    if draws is None:
+        return {}
+    Abar, Bbar = moment_factors(exp.model, *draws)
+    out = {}
+    for (source, method), (_, res) in designs.items():
+        if source != "identified" or res.F is None:
+            continue
+        with np.errstate(all="ignore"):
+            r = rates(Abar, Bbar, np.broadcast_to(res.F, (len(Abar),) + res.F.shape))
+        q = np.nanpercentile(r, [5, 50, 95]) if np.isfinite(r).any() else [np.nan] * 3
+        out[source, method] = {"rate_model_q05": float(q[0]), "rate_model_median": float(q[1]),
+                               "rate_model_q95": float(q[2]), "rate_model_worst": float(np.max(r)),
+                               "draws": int(len(r))}
+    return out
+
+
+def data_summary(exp: Experiment, dist, chosen, designs: dict, spread: dict, ident: Trajectories) -> dict:
+    """A data run's key numbers: the data file, the modeled moments, and each design's exact rate on the
+    identified model with its spread over the moments' draws. Nothing here is a number on a true plant."""
+    info = exp.data.data.info
+    s = {"plant": None, "model": exp.model_name, "gain_method": exp.design.method,
+         "data": {"name": info["name"], "sha256": info["sha256"], "rows": info["rows"], "paths": info["paths"],
+                  "steps": info["steps"], "identification_paths": int(ident.failed_at.size),
+                  "holdout_paths": exp.data.holdout_paths},
+         "no_plant": "a data run: every rate is exact on the identified model; there is no true plant"}
+    if dist is not None:
+        s.update(nbar=int(exp.model.Gbar(dist).shape[0]), xi_mean=dist.mean.tolist(),
+                 xi_std=np.sqrt(np.diag(dist.cov)).tolist())
+    if chosen is not None:
+        s.update(synthesis_status=chosen.status, lam=chosen.lam,
+                 rate_model=safe_rate(exp.model, dist, chosen.F) if chosen.F is not None and dist is not None
+                 else None)
+    s["designs"] = {method: res.status for (source, method), (_, res) in designs.items() if source == "identified"}
+    s["design_rates"] = {method: {"status": res.status,
+                                  "rate_model": safe_rate(exp.model, dist, res.F) if res.F is not None else None,
+                                  **spread.get((source, method), {})}
+                         for (source, method), (_, res) in designs.items() if source == "identified"}
+    return s

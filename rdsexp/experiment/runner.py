@@ -73,6 +73,8 @@ def true_xi(exp: Experiment) -> dict:
     """The plant's xi in the model's terms, T s + t (`truth_map`): {"xi_true": mean (p,), "xi_true_std":
     standard deviations (p,)}, empty if there is no such map."""
     from ..numerics.enkf import truth_map
+    if exp.plant is None:                   # a data run: no true xi
+        return {}
     truth = truth_map(exp.model, exp.plant)
     if truth is None:
         return {}
@@ -140,10 +142,14 @@ def config_dirs(hc) -> list[str]:
 NOT_COMPUTED = ("store", "objective", "objective_penalty", "objective_seeds", "cache")
 
 
-def job_config(cfg: DictConfig) -> dict:
+def job_config(cfg: DictConfig, exp: Experiment | None = None) -> dict:
     """The resolved job config without the hydra node (what the run computes from; `store`, where
-    it is recorded, and what the job returns to a sweeper are not part of it)."""
-    return {k: v for k, v in OmegaConf.to_container(cfg, resolve=True).items() if k not in NOT_COMPUTED}
+    it is recorded, and what the job returns to a sweeper are not part of it). A data run's data file
+    enters by its content: data.sha256 (a changed file has another config hash, never reused)."""
+    config = {k: v for k, v in OmegaConf.to_container(cfg, resolve=True).items() if k not in NOT_COMPUTED}
+    if exp is not None and exp.data is not None:
+        config["data"] = dict(config.get("data") or {}, sha256=exp.data.data.sha256)
+    return config
 
 
 def write_config(run_dir: Path, cfg: DictConfig) -> None:
@@ -258,7 +264,7 @@ def execute(cfg: DictConfig, run_dir: Path, context: dict | None = None, amend=N
     elif HydraConfig.initialized():
         check_overrides(cfg, HydraConfig.get().overrides.task)   # `+enkf.ensemble_sze=50`: a typo, not a key
     exp = build(cfg)                                    # ConfigError before any compute
-    if OmegaConf.select(cfg, "plant.name") is None and HydraConfig.initialized():
+    if exp.data is None and OmegaConf.select(cfg, "plant.name") is None and HydraConfig.initialized():
         # a plant file without `name:` is named by its file (plant=NAME)
         exp = dataclasses.replace(exp, plant_name=HydraConfig.get().runtime.choices.get("plant") or "plant")
     if exp.tracking.level == "off":
@@ -269,9 +275,13 @@ def execute(cfg: DictConfig, run_dir: Path, context: dict | None = None, amend=N
         return info
     timings, writer, store = {}, RunWriter(run_dir), store_of(cfg)
     with timed(timings, "provenance"):
-        info, diff = run_info(run_dir, job_config(cfg), exp.seed, context)
-        info["plant_hash"] = provenance.plant_hash({name: getattr(exp.plant, name) for name in "ABCD"},
-                                                   OmegaConf.to_container(cfg.plant.xi, resolve=True))
+        info, diff = run_info(run_dir, job_config(cfg, exp), exp.seed, context)
+        if exp.data is not None:        # a data run: the data file is the identity, there is no plant
+            info["data"] = exp.data.data.info
+            info["plant_hash"] = None
+        else:
+            info["plant_hash"] = provenance.plant_hash({name: getattr(exp.plant, name) for name in "ABCD"},
+                                                       OmegaConf.to_container(cfg.plant.xi, resolve=True))
         info["params"] = flat_params(OmegaConf.to_container(cfg, resolve=True))   # what `rdsexp-runs list` shows
         previous = reusable_run(cfg, store, info)
         if previous is not None:
