@@ -105,7 +105,9 @@ def load(path, m: int, ny: int, min_steps: int) -> RecordedData:
         bad = ~np.isfinite(values)
         if bad.any():
             row = int(np.flatnonzero(bad)[0])
-            raise ConfigError(f"{where(row, column)}: {table[column].iloc[row]!r} is not a finite number")
+            raw = table[column].iloc[row]
+            shown = str(raw.item() if hasattr(raw, "item") else raw)
+            raise ConfigError(f"{where(row, column)}: {shown} is not a finite number")
         if column == "k" and not np.all(values == np.round(values)):
             row = int(np.flatnonzero(values != np.round(values))[0])
             raise ConfigError(f"{where(row, column)}: {values[row]!r} is not an integer step")

@@ -27,6 +27,11 @@ def summary_text(info: dict, run_dir: Path) -> str:
         if info.get("reused_from") else "")]
     if s.get("plant"):                    # a run that failed before its summary has none
         lines.append(f"  plant {s['plant']}, model {s.get('model')}")
+    elif s.get("data"):                   # a data run: the recorded data in place of a plant
+        d = s["data"]
+        lines.append(f"  data {d['name']} (sha256 {d['sha256'][:12]}, {d['rows']} rows, {d['paths']} paths x "
+                     f"{d['steps']} steps; {d['identification_paths']} identify, {d['holdout_paths']} held out), "
+                     f"model {s.get('model')}; no plant: every rate below is exact on the identified model")
     if info.get("error"):
         lines.append(f"  failed: {info['error']} (traceback in run.json and rdsexp.log)")
     ident = s.get("identification_feedback") or {}
@@ -80,9 +85,18 @@ def summary_text(info: dict, run_dir: Path) -> str:
                      f"{c['designed_median']:.4f}, {c['identification_median']:.4f})")
     if s.get("modeling_uncertainty"):
         u = s["modeling_uncertainty"]
-        lines.append(f"    modeled moments' spread over {u['resamples']} block-bootstrap draws of the window: xi mean "
+        over = "bootstrap draws of the recorded paths" if u.get("over") == "paths" else \
+            "block-bootstrap draws of the window"
+        lines.append(f"    modeled moments' spread over {u['resamples']} {over}: xi mean "
                      f"sd {np.round(u['xi_mean_sd'], 4).tolist()}, xi std sd {np.round(u['xi_std_sd'], 4).tolist()}")
-    if s.get("synthesis_status") is not None:
+    if s.get("design_rates"):          # a data run: each design on the identified model, over the moments' draws
+        for method, r in s["design_rates"].items():
+            line = f"  design {method}: {r['status']}, exact rate on the identified model {fmt(r.get('rate_model'))}"
+            if r.get("draws"):
+                line += (f" (over {r['draws']} draws of the moments: median {fmt(r['rate_model_median'])}, 5-95% "
+                         f"{fmt(r['rate_model_q05'])}-{fmt(r['rate_model_q95'])}, worst {fmt(r['rate_model_worst'])})")
+            lines.append(line)
+    elif s.get("synthesis_status") is not None:
         lines.append(f"  gain {s.get('gain_method')}: {s.get('synthesis_status')}, lambda {fmt(s.get('lam'))}"
                      f"{beside('lam')}, exact rate on the true plant {fmt(s.get('rate_plant'))}")
         if s.get("rate_plant") is None:
@@ -96,7 +110,7 @@ def summary_text(info: dict, run_dir: Path) -> str:
                          f"{fmt(s.get('rate_plant'))} >= 1")
     others = {m: st for m, st in (s.get("designs") or {}).items()
               if m != s.get("gain_method") and st not in ("optimal", "designed")}
-    if others:
+    if others and not s.get("design_rates"):          # a data run lists every design above
         lines.append("  other designs: " + ", ".join(f"{m} {st}" for m, st in others.items()))
     statuses = [s["synthesis_status"]] if s.get("synthesis_status") is not None else []
     for status in dict.fromkeys(statuses + list(others.values())):     # what each status shown means

@@ -23,7 +23,8 @@ IDENTITY = ["id", "sweep", "sweep_id", "resumes", "job", "objective_role", "seed
             "model", "method", "overrides", "reused_from", "created", "code", "config_hash", "dir"]
 MISSING = "-"       # how every view shows a missing value, e.g. the sweep of a run that is no sweep's job (None)
 # summary entries that are settings or nested records rather than numbers of the run
-NOT_METRICS = ("plant", "model", "gain_method", "rate_window", "reference", "designs", "identification_feedback")
+NOT_METRICS = ("plant", "model", "gain_method", "rate_window", "reference", "designs", "identification_feedback",
+               "data", "no_plant", "design_rates")
 
 
 def identity(run_dir: Path, info: dict) -> dict:
@@ -31,14 +32,20 @@ def identity(run_dir: Path, info: dict) -> dict:
     `+sweep=NAME` config, else the command-line overrides of the `-m` run (`sweep_name`); plant is the plant
     file's `name:`, else its file name (the runner records it so; from the config where a run ended before
     its summary), plant_hash the first 12 hex digits of run.json's `plant_hash` (the plant's content: two
-    files of one name that differ have different hashes)."""
+    files of one name that differ have different hashes). A data run has no plant: its identity is its data
+    file, shown as plant `data:NAME` and the first 12 hex digits of the file's sha256 as plant_hash."""
     record = RunRecord.parse(info)
     sweep, s = record.sweep, record.summary
+    if record.data is not None:
+        plant, plant_hash = f"data:{record.data.get('name')}", str(record.data.get("sha256") or "")[:12] or None
+    else:
+        plant = s.plant or (record.raw.get("params") or {}).get("plant.name")
+        plant_hash = (record.plant_hash or "")[:12] or None
     return {"id": record.id, "sweep": sweep and sweep.name, "sweep_id": sweep and sweep.id,
             "resumes": sweep and sweep.resumes, "job": sweep and sweep.job,
             "objective_role": (record.raw.get("objective") or {}).get("role"), "seed": record.seed,
-            "status": record.status, "plant": s.plant or (record.raw.get("params") or {}).get("plant.name"),
-            "plant_hash": (record.plant_hash or "")[:12] or None, "model": s.model, "method": s.gain_method,
+            "status": record.status, "plant": plant, "plant_hash": plant_hash, "model": s.model,
+            "method": s.gain_method,
             "overrides": " ".join(o for o in record.overrides if not o.startswith("+sweep=")),
             "reused_from": record.reused_from, "created": record.created, "code": record.code_version,
             "config_hash": record.config_hash, "dir": str(run_dir)}
