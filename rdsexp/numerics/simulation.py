@@ -55,6 +55,8 @@ class Trajectories:
     s: the plant's coefficients (K+1, P, p_plant), s_k moving q_k to q_{k+1} (all steps drawn).
     gain_index (K+1, P): with a controller, how many gains path j had adopted before step k (0: the
     initial gain) -- the gain in use at k is that path's gain_index-th adopted one; None without.
+    y_forecast: with keep_forecast, every member's predicted output z_k^(i) from psi_{k|k-1} without output
+    noise (`EnKF.outputs`), (K+1, P, M, ny): the one-step-ahead predictive ensemble of y_k.
     d_filt_mean, d_filt_std: with the EnKF's disturbance estimate (EnKF.disturbance), the filtered
     ensemble's mean and spread of the unknown input disturbance d, (K+1, P, m); None without.
     """
@@ -75,6 +77,7 @@ class Trajectories:
     gain_index: np.ndarray | None = None
     d_filt_mean: np.ndarray | None = None
     d_filt_std: np.ndarray | None = None
+    y_forecast: np.ndarray | None = None      # (K+1, P, M, ny) members' predicted outputs (keep_forecast)
 
     @property
     def status(self) -> str:
@@ -237,7 +240,7 @@ def simulate(plant: AffineRandomSystem | None, enkf: EnKF, *, F=None, d, q0, psi
              paths: int, seed, first_path: int = 0, filter_sees_d: bool = True, keep_members: bool = False,
              keep_xi_cov: bool = False, block: int = 16, bound: float = DIVERGENCE_BOUND, progress=None,
              controller: GainController | None = None, estimate: str = "predicted",
-             recorded: Recorded | None = None) -> Trajectories:
+             recorded: Recorded | None = None, keep_forecast: bool = False) -> Trajectories:
     """Closed loop (open loop when F is None) of `plant` observed by `enkf`, P = `paths` sample paths.
 
     d: (K+1, m) external input added on u_k (horizon K = len(d) - 1); q0: (n,) plant initial state;
@@ -257,6 +260,7 @@ def simulate(plant: AffineRandomSystem | None, enkf: EnKF, *, F=None, d, q0, psi
     recorded: recorded inputs and outputs (`Recorded`, P paths x len(d) steps) in place of the plant
     (plant None, F None, filter_sees_d True): the EnKF is told the recorded u_k and filters the recorded
     y_k; q, s stay NaN/None. The same EnKF streams and initial ensemble as a simulated run of `seed`.
+    keep_forecast: keep every member's predicted output (Trajectories.y_forecast).
     """
     F, d, q0, psi0, P0 = check_settings(plant, enkf, F, d, q0, psi0, P0, paths, estimate, recorded)
     if recorded is not None and not filter_sees_d:
@@ -291,7 +295,8 @@ def simulate(plant: AffineRandomSystem | None, enkf: EnKF, *, F=None, d, q0, psi
                        members=nan(M, dim) if keep_members else None,
                        xi_filt_cov=nan(model.p, model.p) if keep_xi_cov else None, s=source.s,
                        d_filt_mean=nan(width - dim) if width > dim else None,
-                       d_filt_std=nan(width - dim) if width > dim else None)
+                       d_filt_std=nan(width - dim) if width > dim else None,
+                       y_forecast=nan(M, ny) if keep_forecast else None)
     alive = np.ones(P, dtype=bool)
     if controller is not None:
         # per-path gains (P, m, n): the same product per path as one shared (m, n) gain, bit for bit
@@ -349,6 +354,8 @@ def simulate(plant: AffineRandomSystem | None, enkf: EnKF, *, F=None, d, q0, psi
                 a = enkf._update(psi, u_filter, y, e_v, mean_pred, out=filtered, work=work)
             fail(~a.ok, k, "singular_innovation")
             keep = alive[:, None]
+            if keep_forecast:                       # psi still holds psi_{k|k-1} (the update wrote `filtered`)
+                out.y_forecast[k] = np.where(keep[:, :, None], enkf.outputs(psi, u_filter), np.nan)
             q = source.q if recorded is None else np.full((P, n_q), np.nan)
             for name, value in (("q", q), ("y", y), ("u", u), ("psi_pred_mean", a.pred_mean[:, :dim]),
                                 ("psi_pred_std", a.pred_std[:, :dim]), ("psi_filt_mean", a.filt_mean[:, :dim]),

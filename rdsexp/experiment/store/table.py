@@ -64,7 +64,11 @@ def run_metrics(info: dict) -> dict:
             out[name], out[f"{name}_low"], out[f"{name}_high"] = value
         elif isinstance(value, dict):             # one level down, its lists by component (xi_mean_sd[i])
             for k, v in value.items():
-                out |= {f"{name}_{k}[{i}]": x for i, x in enumerate(v)} if isinstance(v, list) else {f"{name}_{k}": v}
+                if isinstance(v, dict):               # two levels (a data run's validation by law)
+                    out |= {f"{name}_{k}_{kk}": vv for kk, vv in v.items() if not isinstance(vv, (list, dict))}
+                else:
+                    out |= {f"{name}_{k}[{i}]": x for i, x in enumerate(v)} if isinstance(v, list) else \
+                        {f"{name}_{k}": v}
         elif isinstance(value, list):
             out |= {f"{name}[{i}]": v for i, v in enumerate(value)}
         else:
