@@ -2,7 +2,7 @@
 as a testbed would log them, saved in the data format (examples/dropout/dropout.csv).
 
 30 experiments (paths) of 101 steps (k = 0..100): the loop runs under a stabilizing gain designed at the nominal
-guess (the plant is open-loop unstable), u_k = F x_{k|k-1} + d_k with an M-sequence d_k as excitation, and the
+guess (the plant is open-loop unstable), u_k = F x_{k|k-1} + d_k with an M-sequence d_k in {0, 10} as excitation (conf/identification's input), and the
 applied u_k and the measured y_k are logged. A data run then models the dropout probability from them
 (README, "Your own data"):
 
@@ -30,7 +30,7 @@ def main(out=REPO / "examples" / "dropout" / "dropout.csv") -> Path:
     F = nominal_gain(plant, plant.xi_dist.mean).F          # the testbed's controller: designed at the guess
     # its observer (a Kalman-like EnKF on the plant's structure, xi at the guess): the testbed's, not rdsexp's
     observer = EnKF(plant, Q=np.diag([1e-4, 1e-4, 0.0]), R=1e-4)
-    d = mls_input(HORIZON, plant.m, 7, 1.0, levels="bipolar")
+    d = mls_input(HORIZON, plant.m, 7, 10.0, levels="unipolar")     # the identification input of conf/identification
     tr = simulate(plant, observer, F=F, d=d, q0=np.zeros(plant.n), psi0=np.r_[np.zeros(plant.n), 0.8],
                   ensemble_size=20, paths=PATHS, seed=SEED)
     out.parent.mkdir(parents=True, exist_ok=True)
