@@ -96,14 +96,7 @@ def summary_text(info: dict, run_dir: Path) -> str:
                 line += (f" (over {r['draws']} draws of the moments: median {fmt(r['rate_model_median'])}, 5-95% "
                          f"{fmt(r['rate_model_q05'])}-{fmt(r['rate_model_q95'])}, worst {fmt(r['rate_model_worst'])})")
             lines.append(line)
-    if s.get("validation"):            # a data run's held-out paths: the modeled law against the nominal model
-        v = s["validation"]
-        law = lambda name: (f"{name} CRPS {v[name]['crps']:.4g}, coverage {v[name]['coverage_50']:.2f} (50%) "
-                            f"{v[name]['coverage_90']:.2f} (90%)")
-        lines.append(f"  validation on {v['paths']} held-out paths, y_k one step ahead, k={v['k_from']}..{v['k_to']}: "
-                     f"{law('modeled')}; {law('nominal')} (xi at its mean): the modeled law is "
-                     f"{'better' if v['modeled_better'] else 'not better'} by CRPS")
-    elif s.get("synthesis_status") is not None:
+    elif s.get("data") is None and s.get("synthesis_status") is not None:
         lines.append(f"  gain {s.get('gain_method')}: {s.get('synthesis_status')}, lambda {fmt(s.get('lam'))}"
                      f"{beside('lam')}, exact rate on the true plant {fmt(s.get('rate_plant'))}")
         if s.get("rate_plant") is None:
@@ -115,6 +108,13 @@ def summary_text(info: dict, run_dir: Path) -> str:
         elif unstable(s.get("rate_plant")):
             lines.append(f"  the gain does not stabilize the true plant: its exact rate there is "
                          f"{fmt(s.get('rate_plant'))} >= 1")
+    if s.get("validation"):            # a data run's held-out paths: the modeled law against the nominal model
+        v = s["validation"]
+        law = lambda name: (f"{name} CRPS {v[name]['crps']:.4g}, coverage {v[name]['coverage_50']:.2f} (50%) "
+                            f"{v[name]['coverage_90']:.2f} (90%)")
+        lines.append(f"  validation on {v['paths']} held-out paths, y_k one step ahead, k={v['k_from']}..{v['k_to']}: "
+                     f"{law('modeled')}; {law('nominal')} (xi at its mean): the modeled law is "
+                     f"{'better' if v['modeled_better'] else 'not better'} by CRPS")
     others = {m: st for m, st in (s.get("designs") or {}).items()
               if m != s.get("gain_method") and st not in ("optimal", "designed")}
     if others and not s.get("design_rates"):          # a data run lists every design above

@@ -149,3 +149,25 @@ def test_bad_data_on_the_command_line_exits_2_and_records_nothing(tmp_path):
     assert proc.returncode == 2
     assert "bad.csv" in proc.stderr and "row 3" in proc.stderr
     assert not (tmp_path / "outputs" / "runs").exists() or not any((tmp_path / "outputs" / "runs").iterdir())
+
+
+def test_dropout_example_with_holdout_validation(tmp_path):
+    """The shipped example: recorded dropout loops (30 paths), 20% held out; the identification batches the other
+    24, the moments' spread is a bootstrap over them, and the validation table scores the one-step-ahead
+    predictive ensembles of y on the 6 held-out paths under the modeled law and the nominal model."""
+    from tests.conftest import REPO
+    example = REPO / "examples" / "dropout"
+    proc = rdsexp("--config-dir", str(example), f"data={example / 'dropout.csv'}", "model=dropout", "plant=recorded",
+                  "data.holdout=0.2", "enkf.ensemble_size=20", "identification.passes=1", cwd=tmp_path)
+    (run_dir,) = runs_of(tmp_path)
+    s = info_of(run_dir)["summary"]
+    assert s["data"]["identification_paths"] == 24 and s["data"]["holdout_paths"] == 6
+    assert s["modeling_uncertainty"]["over"] == "paths"
+    table = pd.read_parquet(run_dir / "validation.parquet")
+    assert set(table["law"]) == {"modeled", "nominal"} and set(table["output"]) == {"0", "all"}
+    assert table[["coverage_50", "coverage_90"]].apply(lambda c: c.between(0, 1)).all().all()
+    assert (table["crps"] > 0).all() and (table["paths"] == 6).all()
+    v = s["validation"]
+    assert v["modeled_better"] == (v["modeled"]["crps"] < v["nominal"]["crps"])
+    assert "validation on 6 held-out paths" in proc.stdout
+    assert "true plant" not in proc.stdout
