@@ -2,9 +2,9 @@
 as a testbed would log them, saved in the data format (examples/dropout/dropout.csv).
 
 30 experiments (paths) of 101 steps (k = 0..100): the loop runs under a stabilizing gain designed at the nominal
-guess (the plant is open-loop unstable), u_k = F x_{k|k-1} + d_k with an M-sequence d_k in {0, 10} as excitation (conf/identification's input), and the
-applied u_k and the measured y_k are logged. A data run then models the dropout probability from them
-(README, "Your own data"):
+guess (the plant is open-loop unstable), u_k = F x_{k|k-1} + d_k with an M-sequence d_k in {0, 10} as
+excitation (conf/identification's input), and the applied u_k and the measured y_k are logged. A data run
+then models the dropout probability from them (README, "Your own data"):
 
     python experiments/make_dropout_data.py            # writes examples/dropout/dropout.csv
 """
