@@ -439,6 +439,7 @@ class DataSettings:
 
     data: RecordedData
     holdout: float
+    loops: bool = False        # data.loops: the closed and open loops simulated on the identified model
 
     @property
     def holdout_paths(self) -> int:
@@ -597,7 +598,7 @@ def build_data_run(cfg, seed: int) -> Experiment:
         raise ConfigError("gain.source: 'reported' needs model.reported")
     K0, K1 = identification.K0, identification.K1
     recorded = load_data(data_file(cfg), model.m, model.ny, K0 + K1 + 1)
-    settings = DataSettings(recorded, holdout)
+    settings = DataSettings(recorded, holdout, _flag(cfg, "data.loops"))
     if settings.identification.paths < 1:
         raise ConfigError(f"data.holdout: {holdout!r} leaves no recorded path for the identification")
     return Experiment(plant=None, model=model, plant_name="none (recorded data)", model_name=model_name,

@@ -414,6 +414,11 @@ def _data_report(tables: dict[str, pd.DataFrame], s: dict) -> str:
         lines.append(f"| {method} | {r['status']} | {_fmt(r.get('rate_model'))} | {_fmt(r.get('rate_model_median'))} "
                      f"| {_fmt(r.get('rate_model_q05'))} | {_fmt(r.get('rate_model_q95'))} | "
                      f"{_fmt(r.get('rate_model_worst'))} |")
+    for name, r in (s.get("loops_on_model") or {}).items():
+        if isinstance(r, dict):
+            lines.append(f"- {name.replace('_', ' ')} (**{s['loops_on_model']['label']}**): **{r['verdict']}**, rate "
+                         f"{_fmt(r['rate'][0])} [{_fmt(r['rate'][1])}, {_fmt(r['rate'][2])}] over k = "
+                         f"{s['loops_on_model']['rate_window']}, ideal loop on the model {_fmt(r['exact_rate'])}")
     if "validation" in tables:
         v = tables["validation"]
         lines += ["", f"## Validation on held-out paths (y one step ahead, k = {s['validation']['k_from']}.."

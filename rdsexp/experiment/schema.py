@@ -220,6 +220,9 @@ SUMMARY: dict[str, tuple[str, str | None]] = {
     "rate_model": ("a data run: the exact mean-square rate of the loop's gain on the identified moments", "1/step"),
     "design_rates": ("a data run: every design's status, exact rate on the identified moments and its spread over "
                      "the moments' draws (median, 5%, 95%, worst)", "1/step"),
+    "loops_on_model": ("a data run with data.loops: the closed and open loops simulated on the identified model "
+                       "(xi ~ N of its moments), labelled 'simulated on the model, not the plant': rate window, "
+                       "verdict, rate with its interval, the ideal loop's exact rate on the model", "1/step"),
     "validation": ("a data run with data.holdout: CRPS and 50%/90% coverage of the one-step-ahead predictive "
                    "distribution of y on the held-out paths, modeled law against the nominal model", None),
 }

@@ -115,6 +115,12 @@ def summary_text(info: dict, run_dir: Path) -> str:
         lines.append(f"  validation on {v['paths']} held-out paths, y_k one step ahead, k={v['k_from']}..{v['k_to']}: "
                      f"{law('modeled')}; {law('nominal')} (xi at its mean): the modeled law is "
                      f"{'better' if v['modeled_better'] else 'not better'} by CRPS")
+    for name, r in (s.get("loops_on_model") or {}).items():      # data.loops: on the identified model
+        if isinstance(r, dict):
+            w = s["loops_on_model"]["rate_window"]
+            lines += [f"  {name.replace('_', ' ')} ({s['loops_on_model']['label']}), rate k={w[0]}..{w[1]}: "
+                      f"{interval(r['rate'])}, ideal loop on the model {fmt(r['exact_rate'])}: {r['verdict']}",
+                      f"    {r['verdict_reason']}"]
     others = {m: st for m, st in (s.get("designs") or {}).items()
               if m != s.get("gain_method") and st not in ("optimal", "designed")}
     if others and not s.get("design_rates"):          # a data run lists every design above

@@ -158,7 +158,8 @@ def test_dropout_example_with_holdout_validation(tmp_path):
     from tests.conftest import REPO
     example = REPO / "examples" / "dropout"
     proc = rdsexp("--config-dir", str(example), f"data={example / 'dropout.csv'}", "model=dropout", "plant=recorded",
-                  "data.holdout=0.2", "enkf.ensemble_size=20", "identification.passes=1", cwd=tmp_path)
+                  "data.holdout=0.2", "enkf.ensemble_size=20", "identification.passes=1", "data.loops=true",
+                  "closed_loop.paths=10", "closed_loop.floor_paths=5", cwd=tmp_path)
     (run_dir,) = runs_of(tmp_path)
     s = info_of(run_dir)["summary"]
     assert s["data"]["identification_paths"] == 24 and s["data"]["holdout_paths"] == 6
@@ -171,3 +172,12 @@ def test_dropout_example_with_holdout_validation(tmp_path):
     assert v["modeled_better"] == (v["modeled"]["crps"] < v["nominal"]["crps"])
     assert "validation on 6 held-out paths" in proc.stdout
     assert "true plant" not in proc.stdout
+    # data.loops: the loops simulated on the identified model, named and labelled so in every table and summary
+    loops = s["loops_on_model"]
+    assert loops["label"] == "simulated on the model, not the plant"
+    assert set(loops) >= {"closed_loop_on_model", "open_loop_on_model"}
+    assert "rate_plant" not in s and not any(k.startswith(("closed_loop_", "open_loop_")) for k in s)
+    metrics = pd.read_parquet(run_dir / "metrics.parquet")
+    assert list(metrics["experiment"]) == ["closed_loop_on_model", "open_loop_on_model"]
+    assert set(pd.read_parquet(run_dir / "trajectories.parquet")["experiment"]) == set(metrics["experiment"])
+    assert "closed loop on model (simulated on the model, not the plant)" in proc.stdout
