@@ -31,12 +31,12 @@ from ..numerics.distributions import ensemble_crps, expected_crps, interval_hits
 from ..numerics.enkf import sqrtm_psd, truth_map
 from ..numerics.modeling import model_distribution, moment_draws, nominal_gain, path_moment_draws
 from ..numerics.online import OnlineController, moment_factors, rates
-from ..numerics.simulation import Trajectories, simulate
+from ..numerics.simulation import Trajectories, bytes_per_path, path_generators, simulate
 from ..numerics.synthesis import SynthesisResult, synthesize
 from ..numerics.systems import MomentModel
 from ..numerics.verdict import FAILURES, Floor, judge_loop, place_window, rate_interval, window_start
 from .config import Experiment
-from .montecarlo import LoopSummary, chunk_starts, run_chunks
+from .montecarlo import MEMORY_BUDGET, LoopSummary, chunk_starts, run_chunks
 
 log = logging.getLogger("rdsexp")
 # the online loop shares the closed loop's seeds: the same plant samples and EnKF noise, a paired comparison
@@ -1007,14 +1007,37 @@ def loop_through_outputs(exp: Experiment, chosen, s: dict) -> dict | None:
 DATA_TABLES = ("identification", "paths", "model", "gains", "metrics", "exact", "trajectories")
 
 
-def identify_recorded(exp: Experiment, recorded, seed, sim: dict, keep: bool, enkf=None) -> Trajectories:
+def identify_recorded(exp: Experiment, recorded, seed, sim: dict, keep: bool, enkf=None,
+                      keep_forecast: bool = False) -> Trajectories:
     """The identification EnKF run on recorded (u, y) (`simulate(recorded=...)`): batched over the recorded
     paths, path j with the EnKF stream j of the identification's seed and the initial ensemble of a
-    simulated identification, so that a run's own record gives its estimates bit for bit."""
+    simulated identification, so that a run's own record gives its estimates bit for bit. In chunks of
+    paths within the Monte Carlo's memory budget (`montecarlo.MEMORY_BUDGET`; every path has its own streams,
+    so the chunks change nothing), joined along the path axis."""
     total = exp.identification.covariance == "total"
-    return simulate(None, enkf or exp.filter.enkf, d=np.zeros((recorded.steps, exp.model.m)), paths=recorded.paths,
-                    seed=seed, filter_sees_d=True, keep_members=keep, keep_xi_cov=total, recorded=recorded,
-                    **dict(sim, q0=np.zeros(exp.model.n)))
+    enkf = enkf or exp.filter.enkf
+    per_path = bytes_per_path(exp.model, enkf, ensemble_size=exp.filter.ensemble_size, horizon=recorded.steps - 1,
+                              keep_members=keep, block=16)
+    per_path += 8 * recorded.steps * exp.filter.ensemble_size * exp.model.ny if keep_forecast else 0
+    size = int(max(1, MEMORY_BUDGET // (3 * per_path)))
+    parts = [simulate(None, enkf, d=np.zeros((recorded.steps, exp.model.m)), paths=min(size, recorded.paths - first),
+                      first_path=first, seed=seed, filter_sees_d=True, keep_members=keep, keep_xi_cov=total,
+                      keep_forecast=keep_forecast, recorded=recorded.select(slice(first, first + size)),
+                      **dict(sim, q0=np.zeros(exp.model.n)))
+             for first in range(0, recorded.paths, size)]
+    return parts[0] if len(parts) == 1 else join_paths(parts)
+
+
+def join_paths(parts: list[Trajectories]) -> Trajectories:
+    """Trajectories of consecutive chunks of paths as one (path axis 1 of the (K+1, P, ...) arrays, 0 of the
+    per-path ones)."""
+    def join(name):
+        values = [getattr(part, name) for part in parts]
+        if values[0] is None:
+            return None
+        return np.concatenate(values, axis=0 if name in ("failed_at", "failure") else 1)
+    return Trajectories(**{f.name: parts[0].n if f.name == "n" else join(f.name)
+                           for f in dataclasses.fields(Trajectories)})
 
 
 def run_on_data(exp: Experiment, sink=None) -> Outcome:
@@ -1149,31 +1172,49 @@ def validate_holdout(exp: Experiment, dist: MomentModel, sim: dict) -> tuple[pd.
     table: one row per law and output, and `all`, the mean over outputs; the summary's entry)."""
     held = exp.data.holdout_data
     seed = np.random.SeedSequence(exp.seed, spawn_key=VALIDATION_KEY)
+    noise_seed = np.random.SeedSequence(seed.entropy, spawn_key=seed.spawn_key + (2,))   # per path: chunk-free
     k_from = max(exp.identification.K0, 1)
     enkf = exp.filter.enkf
-    noise = np.random.default_rng(np.random.SeedSequence(seed.entropy, spawn_key=seed.spawn_key + (2,)))
     steps, P, ny, M = held.steps - k_from, held.paths, exp.model.ny, exp.filter.ensemble_size
-    v = noise.standard_normal((steps, P, M, ny)) @ sqrtm_psd(enkf.R).T
-    y = held.y[k_from:]
+    R_sqrt = sqrtm_psd(enkf.R)
+    # chunks of held-out paths within the memory budget, scored as they come: sums per output of the CRPS and
+    # of the hits, and the count of finite (step, path) pairs
+    per_path = bytes_per_path(exp.model, enkf, ensemble_size=M, horizon=held.steps - 1) + 8 * 4 * held.steps * M * ny
+    size = int(max(1, MEMORY_BUDGET // (3 * per_path)))
     laws = {"modeled": dist, "nominal": MomentModel(mean=dist.mean, cov=np.zeros_like(dist.cov))}
     rows, summary = [], {"paths": P, "k_from": k_from, "k_to": held.steps - 1, "levels": list(VALIDATION_LEVELS)}
     for law, moments in laws.items():
-        tr = simulate(None, dataclasses.replace(enkf, xi_prior=moments), d=np.zeros((held.steps, exp.model.m)),
-                      paths=P, seed=seed, filter_sees_d=True, recorded=held, keep_forecast=True,
-                      **dict(sim, q0=np.zeros(exp.model.n)))
-        members = np.moveaxis(tr.y_forecast[k_from:] + v, 2, -1)                  # (T, P, ny, M)
-        finite = np.all(np.isfinite(members), axis=-1)
+        observer = dataclasses.replace(enkf, xi_prior=moments)
+        sums = np.zeros((2 + len(VALIDATION_LEVELS), ny))      # crps, hits per level, count
+        failed = 0
+        for first in range(0, P, size):
+            count = min(size, P - first)
+            part = held.select(slice(first, first + count))
+            tr = simulate(None, observer, d=np.zeros((held.steps, exp.model.m)), paths=count, first_path=first,
+                          seed=seed, filter_sees_d=True, recorded=part, keep_forecast=True,
+                          **dict(sim, q0=np.zeros(exp.model.n)))
+            v = np.stack([g.standard_normal((steps, M, ny)) for g in path_generators(noise_seed, 0,
+                                                                                     range(first, first + count))],
+                         axis=1) @ R_sqrt.T                                          # (T, count, M, ny)
+            members = np.moveaxis(tr.y_forecast[k_from:] + v, 2, -1)                 # (T, count, ny, M)
+            finite = np.all(np.isfinite(members), axis=-1)
+            y = part.y[k_from:]
+            with np.errstate(invalid="ignore"):
+                sums[0] += np.where(finite, ensemble_crps(np.nan_to_num(members), y), 0.0).sum(axis=(0, 1))
+                for j, level in enumerate(VALIDATION_LEVELS):
+                    sums[1 + j] += (finite & interval_hits(np.nan_to_num(members), y, level)).sum(axis=(0, 1))
+            sums[-1] += finite.sum(axis=(0, 1))
+            failed += int(np.sum(tr.failed_at >= 0))
         with np.errstate(invalid="ignore"):
-            crps = np.where(finite, ensemble_crps(np.nan_to_num(members), y), np.nan)
-            hits = {level: np.where(finite, interval_hits(np.nan_to_num(members), y, level), np.nan)
-                    for level in VALIDATION_LEVELS}
+            means = sums[:-1] / sums[-1]
+            total = sums[:-1].sum(axis=1) / sums[-1].sum()
         for i in [*range(ny), "all"]:
-            pick = (slice(None), slice(None), i) if i != "all" else (Ellipsis,)
-            rows.append({"law": law, "output": str(i), "crps": float(np.nanmean(crps[pick])),
-                         **{f"coverage_{round(100 * lv)}": float(np.nanmean(h[pick])) for lv, h in hits.items()},
-                         "steps": steps, "paths": P})
+            value = means[:, i] if i != "all" else total
+            rows.append({"law": law, "output": str(i), "crps": float(value[0]),
+                         **{f"coverage_{round(100 * lv)}": float(value[1 + j])
+                            for j, lv in enumerate(VALIDATION_LEVELS)}, "steps": steps, "paths": P})
         summary[law] = {k: rows[-1][k] for k in ("crps", "coverage_50", "coverage_90")}
-        summary[law]["failed_paths"] = int(np.sum(tr.failed_at >= 0))
+        summary[law]["failed_paths"] = failed
     better = summary["modeled"]["crps"] < summary["nominal"]["crps"]
     summary["crps_gain"] = summary["nominal"]["crps"] - summary["modeled"]["crps"]
     summary["modeled_better"] = bool(better)
