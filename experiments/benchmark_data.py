@@ -26,27 +26,32 @@ import numpy as np
 def run(mode: str, paths: int, steps: int, members: int, csv: str) -> dict:
     import rdsexp as rx
     from rdsexp.experiment.data import load, write
+    from rdsexp.experiment.montecarlo import MEMORY_BUDGET
     from rdsexp.numerics.enkf import EnKF
     from rdsexp.numerics.modeling import mls_input
-    from rdsexp.numerics.simulation import simulate
+    from rdsexp.numerics.simulation import bytes_per_path, simulate
     paper = rx.paper
     enkf, d = EnKF(paper.model(), paper.Q, paper.R), mls_input(steps - 1, 1, 7, 10.0, levels="unipolar")
-    settings = dict(ensemble_size=members, paths=paths, seed=0, q0=paper.q0, psi0=np.zeros(enkf.dim))
-    out = {"mode": mode}
+    settings = dict(ensemble_size=members, seed=0, q0=paper.q0, psi0=np.zeros(enkf.dim))
+    size = max(1, MEMORY_BUDGET // (3 * bytes_per_path(paper.plant(), enkf, ensemble_size=members, horizon=steps - 1)))
+    chunks = [(first, min(size, paths - first)) for first in range(0, paths, size)]   # as the pipeline chunks
+    out = {"mode": mode, "chunk_paths": size}
     if mode == "write":                           # the data file, from the simulated identification
-        tr = simulate(paper.plant(), enkf, d=d, **settings)
-        out["rows"] = write(csv, tr.u, tr.y)
-        np.save(csv + ".xi.npy", tr.psi_filt_mean[..., -3:])
+        parts = [simulate(paper.plant(), enkf, d=d, paths=c, first_path=f, **settings) for f, c in chunks]
+        out["rows"] = write(csv, np.concatenate([p.u for p in parts], 1), np.concatenate([p.y for p in parts], 1))
+        np.save(csv + ".xi.npy", np.concatenate([p.psi_filt_mean[..., -3:] for p in parts], 1))
         return out
     start = time.perf_counter()
     if mode == "simulated":
-        tr = simulate(paper.plant(), enkf, d=d, **settings)
+        parts = [simulate(paper.plant(), enkf, d=d, paths=c, first_path=f, **settings) for f, c in chunks]
     else:
         data = load(csv, m=1, ny=3, min_steps=steps)
         out["read_seconds"] = time.perf_counter() - start
-        tr = simulate(None, enkf, d=np.zeros_like(d), recorded=data.recorded, **settings)
+        parts = [simulate(None, enkf, d=np.zeros_like(d), paths=c, first_path=f,
+                          recorded=data.recorded.select(slice(f, f + c)), **settings) for f, c in chunks]
     out["seconds"] = time.perf_counter() - start
-    out["max_xi_difference"] = float(np.nanmax(np.abs(tr.psi_filt_mean[..., -3:] - np.load(csv + ".xi.npy"))))
+    xi = np.concatenate([p.psi_filt_mean[..., -3:] for p in parts], 1)
+    out["max_xi_difference"] = float(np.nanmax(np.abs(xi - np.load(csv + ".xi.npy"))))
     out["peak_mib"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     return out
 
