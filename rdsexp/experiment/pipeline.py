@@ -559,9 +559,14 @@ PASS_TOL = 1e-3        # iterated identification: stop when the moments move les
 
 def identified_moments(exp: Experiment, ident: Trajectories) -> tuple[MomentModel | None, str]:
     """The moments modeled from an identification run's xi_{k|k} over the window K0..K0+K1
-    (identification.covariance), or (None, why not)."""
+    (identification.covariance), or (None, why not). Several recorded paths: the paths whose EnKF
+    estimate failed are left out (`usable_paths`; the summary says how many), unless every one failed."""
     xi = ident.xi(ident.psi_filt_mean)                  # (K+1, P, p): one path simulated, or the recorded paths
     K0, K1 = exp.identification.K0, exp.identification.K1
+    ok = usable_paths(exp, ident)
+    if xi.shape[1] > 1 and ok.any() and not ok.all():
+        ident = select_paths(ident, ok)
+        xi = xi[:, ok]
     if ident.status != "ok" or not np.all(np.isfinite(xi[K0:K0 + K1 + 1])):
         bad = np.flatnonzero((ident.failed_at >= 0) | ~np.all(np.isfinite(xi[K0:K0 + K1 + 1]), axis=(0, 2)))[0]
         reason = ident.failure[bad] or "the filtered xi is not finite"
@@ -571,6 +576,20 @@ def identified_moments(exp: Experiment, ident: Trajectories) -> tuple[MomentMode
     total = exp.identification.covariance == "total"
     # the paths' windows pooled (model_distribution): one path's moments bit for bit as before
     return model_distribution(xi, K0, K1, ident.xi_filt_cov if total else None), ""
+
+
+def usable_paths(exp: Experiment, ident: Trajectories) -> np.ndarray:
+    """(P,) bool: the identification paths that did not fail and whose filtered xi is finite over the window."""
+    K0, K1 = exp.identification.K0, exp.identification.K1
+    xi = ident.xi(ident.psi_filt_mean)[K0:K0 + K1 + 1]
+    return (ident.failed_at < 0) & np.all(np.isfinite(xi), axis=(0, 2))
+
+
+def select_paths(tr: Trajectories, keep: np.ndarray) -> Trajectories:
+    """The paths `keep` ((P,) bool) of tr (path axis 1 of the (K+1, P, ...) arrays, 0 of the per-path ones)."""
+    pick = lambda name, v: None if v is None else (v[keep] if name in ("failed_at", "failure") else v[:, keep])
+    return Trajectories(**{f.name: tr.n if f.name == "n" else pick(f.name, getattr(tr, f.name))
+                           for f in dataclasses.fields(Trajectories)})
 
 
 def iterate_identification(exp: Experiment, identify, ident, dist, failure: str, psi0: np.ndarray):
@@ -613,6 +632,9 @@ def moment_uncertainty(exp: Experiment, ident: Trajectories, summary: dict) -> t
     if not settings.resamples or not exp.model.p:
         return None
     total = settings.covariance == "total"
+    ok = usable_paths(exp, ident)
+    if ident.failed_at.size > 1 and ok.any() and not ok.all():        # recorded paths whose estimate failed
+        ident = select_paths(ident, ok)
     xi, xi_cov = ident.xi(ident.psi_filt_mean), ident.xi_filt_cov if total else None
     if xi.shape[1] > 1:             # several (recorded) paths: a bootstrap over the paths
         mean, cov = path_moment_draws(xi, settings.K0, settings.K1, xi_cov, resamples=settings.resamples,
@@ -1106,6 +1128,11 @@ def run_on_data(exp: Experiment, sink=None) -> Outcome:
     if isinstance(sink, MemorySink):
         tables |= sink.tables()
     summary.update(data_summary(exp, dist, chosen, designs, spread, ident))
+    bad = ~usable_paths(exp, ident)
+    if bad.any() and dist is not None:       # modeled without them (`identified_moments`)
+        reasons = pd.Series(ident.failure[bad]).replace("", "the filtered xi is not finite").value_counts()
+        summary["identification_failed_paths"] = {"count": int(bad.sum()), "of": int(bad.size),
+                                                  "reasons": {str(r): int(c) for r, c in reasons.items()}}
     recorded = pd.concat([tables["identification"], *sample], ignore_index=True)
     return Outcome(tables=tables, summary=summary, timings=timings, recorded=recorded,
                    recorded_members=members_table("identification", ident) if keep else None, squares={})

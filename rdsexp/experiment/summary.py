@@ -47,6 +47,10 @@ def summary_text(info: dict, run_dir: Path) -> str:
             if unstable(ident.get("rate_plant")):
                 line += " (it does not stabilize the true plant in mean square)"
         lines.append(line)
+    if s.get("identification_failed_paths"):          # a data run: paths left out of the modeling
+        f = s["identification_failed_paths"]
+        lines.append(f"  {f['count']} of {f['of']} recorded paths left out of the modeling (their EnKF estimate "
+                     f"failed: " + ", ".join(f"{r} {c}" for r, c in f["reasons"].items()) + ")")
     vec = lambda v: np.round(v, 4).tolist()
     passes = s.get("identification_passes")
     if passes:

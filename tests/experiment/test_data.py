@@ -181,3 +181,16 @@ def test_dropout_example_with_holdout_validation(tmp_path):
     assert list(metrics["experiment"]) == ["closed_loop_on_model", "open_loop_on_model"]
     assert set(pd.read_parquet(run_dir / "trajectories.parquet")["experiment"]) == set(metrics["experiment"])
     assert "closed loop on model (simulated on the model, not the plant)" in proc.stdout
+
+
+def test_recorded_paths_whose_estimate_fails_are_left_out(round_trip):
+    """Several recorded paths, one of which makes the EnKF's estimate diverge: the moments come from the others,
+    and the summary says how many were left out and why."""
+    cwd = round_trip[0]
+    one = pd.read_csv(cwd / "d.csv")
+    wild = one.assign(path=1, **{f"y[{i}]": one[f"y[{i}]"] * 1e9 * (1 + one["k"]) for i in range(3)})
+    pd.concat([one, wild, one.assign(path=2)]).to_csv(cwd / "three.csv", index=False, float_format="%.17g")
+    rdsexp("data=three.csv", "model=paper", *SMALL, cwd=cwd)
+    s = info_of(max(runs_of(cwd), key=lambda r: r.stat().st_mtime))["summary"]
+    assert s["identification_failed_paths"]["count"] == 1 and s["identification_failed_paths"]["of"] == 3
+    assert s["modeling_status"] == "ok" and s["modeling_uncertainty"]["over"] == "paths"
