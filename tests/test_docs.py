@@ -15,7 +15,8 @@ PAGES = docs_examples.pages()
 # what a ```{.bash .no-run} fence may hold, and why the suite does not run it
 NOT_RUN = {
     r"python3 -m venv|pip install": "installs an environment (CI runs the README's two commands)",
-    r"^rerun |rdsexp-runs view": "opens the Rerun viewer (a window)",
+    r"^rerun |rdsexp-runs view|experiments/docs_screenshots\.py": "opens the Rerun viewer (a window)",
+    r"^apt-get install": "installs system packages",
     r"^mlflow server": "starts a server that runs until stopped",
     r"hydra/launcher=(slurm|ray_cluster)": "needs a Slurm or Ray cluster",
     r"python experiments/(paper|benchmark_\w+|coverage|random_plants|pole_sets|robust_width|closed_loop_rate"
