@@ -12,6 +12,26 @@ import docs_examples  # noqa: E402
 
 PAGES = docs_examples.pages()
 
+
+def examples(page) -> tuple:
+    """What running `page` does: its fences that run, write a file or check an output, in order."""
+    return tuple((f.lang, f.body) for f in docs_examples.fences(page)
+                 if f.runs or f.file or (f.lang == "text" and f.attrs.get("title") == "output"))
+
+
+# a page whose examples are the first ones of another page's is run by that page's run: the site's home
+# page is the README's tour (test_the_home_page_is_the_readmes_tour)
+def covered_by(page):
+    mine = examples(page)
+    for other in PAGES:
+        theirs = examples(other)
+        if other != page and len(theirs) > len(mine) and theirs[:len(mine)] == mine:
+            return other
+    return None
+
+
+RUN = [p for p in PAGES if examples(p) and covered_by(p) is None]
+
 # what a ```{.bash .no-run} fence may hold, and why the suite does not run it
 NOT_RUN = {
     r"python3 -m venv|pip install": "installs an environment (CI runs the README's two commands)",
@@ -25,6 +45,7 @@ NOT_RUN = {
     r"closed_loop\.paths=10000|--huge": "thousands of paths (minutes, 0.6 GB)",
     r"^export |^eval ": "changes the shell it runs in",
     r"^cd ": "a directory of the reader's",
+    r"^mkdocs (build|serve)": "builds or serves this site (CI builds it strictly before the tests)",
 }
 
 
@@ -38,12 +59,14 @@ def commands(body: str) -> list[str]:
     return out
 
 
-@pytest.mark.parametrize("page", PAGES, ids=[str(p.relative_to(REPO)) for p in PAGES])
+@pytest.mark.parametrize("page", RUN, ids=[str(p.relative_to(REPO)) for p in RUN])
 def test_examples_run(page, tmp_path):
     counts = docs_examples.run_page(page, tmp_path)
-    assert sum(counts.values()) == len([f for f in docs_examples.fences(page)
-                                        if f.lang in ("bash", "python") or f.file
-                                        or (f.lang == "text" and f.attrs.get("title") == "output")])
+    assert counts["bash"] + counts["python"] + counts["files"] + counts["outputs"] == len(examples(page))
+
+
+def test_the_home_page_is_the_readmes_tour():
+    assert covered_by(REPO / "docs" / "index.md") == REPO / "README.md"
 
 
 def test_commands_shown_but_not_run_are_of_a_named_kind():
