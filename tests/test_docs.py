@@ -32,6 +32,20 @@ def covered_by(page):
 
 RUN = [p for p in PAGES if examples(p) and covered_by(p) is None]
 
+
+def nav_pages(node) -> list[str]:
+    if isinstance(node, str):
+        return [node]
+    if isinstance(node, dict):
+        return [p for v in node.values() for p in nav_pages(v)]
+    return [p for v in node for p in nav_pages(v)]
+
+
+NAV = yaml.load((REPO / "mkdocs.yml").read_text(), Loader=yaml.BaseLoader)["nav"]     # !! tags as text
+# the guides' examples run in tests/test_docs_guides.py: two files, so that --dist loadfile shares them out
+GUIDES = {REPO / "docs" / p for section in NAV if isinstance(section, dict) and "Guides" in section
+          for p in nav_pages(section["Guides"])}
+
 # what a ```{.bash .no-run} fence may hold, and why the suite does not run it
 NOT_RUN = {
     r"python3 -m venv|pip install": "installs an environment (CI runs the README's two commands)",
@@ -59,10 +73,21 @@ def commands(body: str) -> list[str]:
     return out
 
 
-@pytest.mark.parametrize("page", RUN, ids=[str(p.relative_to(REPO)) for p in RUN])
-def test_examples_run(page, tmp_path):
-    counts = docs_examples.run_page(page, tmp_path)
+def run_examples(page, directory) -> None:
+    counts = docs_examples.run_page(page, directory)
     assert counts["bash"] + counts["python"] + counts["files"] + counts["outputs"] == len(examples(page))
+
+
+HERE = [p for p in RUN if p not in GUIDES]
+
+
+@pytest.mark.parametrize("page", HERE, ids=[str(p.relative_to(REPO)) for p in HERE])
+def test_examples_run(page, tmp_path):
+    run_examples(page, tmp_path)
+
+
+def test_the_guides_run_in_their_own_file():
+    assert GUIDES and GUIDES <= set(PAGES)
 
 
 def test_the_home_page_is_the_readmes_tour():
@@ -85,17 +110,8 @@ def test_every_fence_has_a_language():
             assert fence.lang, f"{page.relative_to(REPO)}:{fence.line}: a fence without a language"
 
 
-def nav_pages(node) -> list[str]:
-    if isinstance(node, str):
-        return [node]
-    if isinstance(node, dict):
-        return [p for v in node.values() for p in nav_pages(v)]
-    return [p for v in node for p in nav_pages(v)]
-
-
 def test_the_site_lists_every_page():
-    config = yaml.load((REPO / "mkdocs.yml").read_text(), Loader=yaml.BaseLoader)     # !! tags as text
-    listed = set(nav_pages(config["nav"]))
+    listed = set(nav_pages(NAV))
     present = {p.relative_to(REPO / "docs").as_posix() for p in (REPO / "docs").rglob("*.md")}
     assert listed == present
 
