@@ -15,7 +15,7 @@ what an earlier one left there (the runs in `outputs/`, a plant file, a figure):
   a window, starts a server, needs a cluster or runs for minutes. `tests/test_docs.py` names each
   kind it accepts (NOT_RUN) and counts them; everything else in bash and python runs.
 
-The working directory has `experiments/` and `docs/` linked from the repository, so that `python
+The working directory has `experiments/`, `docs/` and `examples/` linked from the repository, so that `python
 experiments/SCRIPT.py` runs as from the repository's root (examples only read them).
 
 Used by `tests/test_docs.py` (every page's examples) and, as an MkDocs hook (mkdocs.yml: `hooks:`),
@@ -126,7 +126,7 @@ def run_page(path: Path, directory: Path, log=None) -> dict:
     (file and line), with what it printed, when one fails or an output differs."""
     path, directory = Path(path), Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
-    for linked in ("experiments", "docs"):                  # as from the repository's root (read only)
+    for linked in ("experiments", "docs", "examples"):                  # as from the repository's root (read only)
         if not (directory / linked).exists():
             (directory / linked).symlink_to(REPO / linked)
     where = path.relative_to(REPO) if path.is_relative_to(REPO) else path
