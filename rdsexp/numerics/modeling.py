@@ -92,11 +92,11 @@ def model_distribution(xi_filt_mean: np.ndarray, K0: int, K1: int,
     Several paths, xi_filt_mean (K+1, P, p) (and xi_filt_cov (K+1, P, p, p)): the window's estimates of
     every path pooled (paths of one law of xi); P = 1 gives the one path's moments bit for bit."""
     xi = window_samples(xi_filt_mean, K0, K1)
-    p = xi.shape[-1]
-    model = MomentModel.from_samples(xi.reshape(-1, p))
+    p, samples = xi.shape[-1], int(np.prod(xi.shape[:-1]))     # (not -1: p = 0, a model without xi, is allowed)
+    model = MomentModel.from_samples(xi.reshape(samples, p))
     if xi_filt_cov is None:
         return model
-    cov = window_samples(xi_filt_cov, K0, K1).reshape(-1, p, p)
+    cov = window_samples(xi_filt_cov, K0, K1).reshape(samples, p, p)
     return MomentModel(mean=model.mean, cov=model.cov + cov.mean(axis=0))
 
 
