@@ -8,14 +8,11 @@ loop at rest (2,); inside each, path j has its own plant and EnKF streams.
 """
 from __future__ import annotations
 
-import copy
 import dataclasses
-import hashlib
-import json
 import logging
 import sys
 import time
-from contextlib import contextmanager
+from contextlib import closing, contextmanager
 from dataclasses import dataclass, field
 from functools import partial
 
@@ -75,6 +72,61 @@ def timed(timings: dict, stage: str):
     log.info("%s done in %.3f s", stage, timings[stage])
 
 
+class Stages:
+    """The one wrapper every stage of a run goes through (docs/design.md: the two levels of reuse).
+
+    `timed(name)`: the stage's seconds into `timings[name]` and rdsexp.log; an unexpected exception
+    inside becomes a StageError naming the innermost stage. `cached(name, compute, **inputs)`: a
+    stage computed from exactly `inputs` (numerics objects, arrays, seeds: their digest is the key)
+    is taken from the stage cache when it holds that key (this process's memory, then the store's
+    entries), else computed and stored there; `streamed` is the same for a stage whose value is a
+    sequence of parts (a loop's chunks), stored part by part as they are computed.
+
+    cache: a store.stages.StageCache (a store's, or `StageCache.in_process()`), or None: every stage
+    is computed (`rdsexp-runs verify`)."""
+
+    def __init__(self, cache=None):
+        self.cache = cache
+        self.timings: dict = {}
+
+    def timed(self, name: str):
+        return timed(self.timings, name)
+
+    def cached(self, name: str, compute, *, label: str | None = None, **inputs) -> tuple[object, bool]:
+        """(the stage's value, whether it was reused rather than computed in this run)."""
+        if self.cache is None:
+            return compute(), False
+        key = self.cache.key(name, **inputs)
+        value = self.cache.load(name, key, label or name)
+        if value is not None:
+            return value, True
+        value = compute()
+        self.cache.save(name, key, value)
+        return value, False
+
+    def streamed(self, name: str, compute, *, label: str | None = None, **inputs):
+        """(an iterator of the stage's parts, whether they are reused); computed parts are stored as they
+        are consumed, the entry committed when the last one is, dropped if the consumer stops early."""
+        if self.cache is None:
+            return compute(), False
+        key = self.cache.key(name, **inputs)
+        stored = self.cache.load_parts(name, key, label or name)
+        if stored is not None:
+            return stored, True
+        return self._storing(self.cache.writer(name, key), compute()), False
+
+    @staticmethod
+    def _storing(writer, parts):
+        try:
+            for part in parts:
+                writer.add(part)
+                yield part
+        except BaseException:         # an error, Ctrl-C or a consumer that closed the iterator
+            writer.abort()
+            raise
+        writer.commit()
+
+
 @contextmanager
 def console_to_tqdm():
     """Console log records through tqdm.write (they do not break a progress bar), at the console
@@ -102,40 +154,33 @@ def run_experiment(exp: Experiment, sink=None, cache=None) -> Outcome:
     chunk (store.files.ParquetSink writes them as they come); without a sink they are collected and
     returned in Outcome.tables with the others.
 
-    cache: a stage cache (store.stages.StageCache) or None (compute everything, as `verify` does).
-    With one, a stage whose inputs equal those of a stored entry is loaded from it instead of
-    computed, and a computed one is stored: identification with modeling (keyed by the plant, model,
-    EnKF, identification settings, initial state and seed), each design (model, moments, method,
-    options) and the open loop (what `simulate` reads: plant, the loop's observer with the moments it
-    draws xi from, disturbance, initial state, seed, chunks of paths; not the gain). Tables and
-    summary are the same either way. Not with tracking level full (every loop's members)."""
+    cache: a stage cache (store.stages.StageCache: a store's, or this process's memory only) or None
+    (compute everything, as `verify` does). Every stage runs through `Stages`: a cached stage whose
+    inputs equal those of a stored entry is loaded from it instead of computed, and a computed one is
+    stored: identification with modeling (keyed by the plant, model, EnKF, identification settings,
+    initial state and seed), each design (model, moments, method, options) and the open loop (what
+    `simulate` reads: plant, the loop's observer with the moments it draws xi from, disturbance,
+    initial state, seed, chunks of paths; not the gain). Tables and summary are the same either way.
+    Tracking level full (every loop's members) keeps nothing in the store, only in this process."""
     if exp.data is not None:
-        return run_on_data(exp, sink)
-    if cache is not None and exp.tracking.level == "full":
-        cache = None
-    timings, summary = {}, {}
+        return run_on_data(exp, sink, cache)
+    if cache is not None and cache.dir is not None and exp.tracking.level == "full":
+        cache = type(cache).in_process()
+    stages, summary = Stages(cache), {}
+    timings = stages.timings
     root = lambda stage: np.random.SeedSequence(exp.seed, spawn_key=SPAWN_KEYS[stage])
     sim = exp.simulation()
     keep = exp.tracking.level == "full"
 
-    stored = None
-    if cache is not None:
-        key = cache.key("identification", plant=exp.plant, model=exp.model, filter=exp.filter,
-                        identification=exp.identification, simulation=sim, seed=root("identification"),
-                        keep_members=keep)
-        stored = cache.load("identification", key)
-    if stored is not None:
-        with timed(timings, "identification"):
-            ident, dist, failure = stored["ident"], stored["dist"], stored["failure"]
-            summary.update(stored["summary"])
-    else:
-        ident, dist, failure = identify_and_model(exp, timings, summary, root("identification"), sim, keep)
-        if cache is not None:
-            cache.save("identification", key, {"ident": ident, "dist": dist, "failure": failure,
-                                               "summary": {k: summary[k] for k in IDENTIFICATION_SUMMARY
-                                                           if k in summary}})
+    with stages.timed("identification"):      # with modeling (iterated identification runs the EnKF again)
+        identified, _ = stages.cached(
+            "identification", partial(identify_and_model, exp, stages, root("identification"), sim, keep),
+            plant=exp.plant, model=exp.model, filter=exp.filter, identification=exp.identification,
+            simulation=sim, seed=root("identification"), keep_members=keep)
+    ident, dist = identified["ident"], identified["dist"]
+    summary.update(identified["summary"])
     draws = moment_uncertainty(exp, ident, summary) if dist is not None else None
-    with timed(timings, "synthesis"):
+    with stages.timed("synthesis"):
         # the loop's method and the comparison designs (gain.designs) on the identified moments (the
         # selected one with its configured options) and, when the config gives them, on the moments a
         # paper reports; a design that cannot be applied or fails is a status in the gains table, never
@@ -143,10 +188,7 @@ def run_experiment(exp: Experiment, sink=None, cache=None) -> Outcome:
         designs = {}
         for source, moments in (("identified", dist), ("reported", exp.reported)):
             for method in exp.design.methods if moments is not None else ():
-                options = exp.design.options_by_method[method]
-                designs[source, method] = (moments, safe_synthesize(exp.model, moments, method, options,
-                                                                    exp.design.lmi_max_n, cache=cache,
-                                                                    label=f"synthesis/{source}/{method}"))
+                designs[source, method] = (moments, configured_design(stages, exp, moments, method, source))
         selected = (exp.design.source, exp.design.method)
         if exp.design.source == "fixed":      # a given F (e.g. a paper's own gain): no design, its exact rate
             selected, moments = ("fixed", "fixed"), dist if dist is not None else exp.reported
@@ -160,9 +202,8 @@ def run_experiment(exp: Experiment, sink=None, cache=None) -> Outcome:
             # loop uses gain.fallback, designed on the same moments, and the summary says so
             moments = designs[selected][0]
             if (selected[0], fallback) not in designs:
-                designs[selected[0], fallback] = (moments, safe_synthesize(
-                    exp.model, moments, fallback, exp.design.options_by_method[fallback], exp.design.lmi_max_n,
-                    cache=cache, label=f"synthesis/{selected[0]}/{fallback}"))
+                designs[selected[0], fallback] = (moments, configured_design(stages, exp, moments, fallback,
+                                                                             selected[0]))
             summary["gain_fallback"] = {"method": fallback, "instead_of": selected[1],
                                         "because": chosen.info.get("reason", chosen.status)}
             selected = (selected[0], fallback)
@@ -186,43 +227,34 @@ def run_experiment(exp: Experiment, sink=None, cache=None) -> Outcome:
         settings = dict(d=exp.loop.disturbance, filter_sees_d=exp.loop.filter_sees_disturbance, **sim)
         runs = [("closed_loop", chosen.F)] + ([("open_loop", None)] if exp.loop.open_loop else [])
         for name, F in runs:
-            with timed(timings, name):
+            with stages.timed(name):
                 bar, _ = _progress(name.replace("_", " "), exp.loop.paths * exp.loop.disturbance.shape[0])
                 parts = []
-                with bar, console_to_tqdm():
-                    chunks, writer = loop_chunks(exp, name, dict(settings, F=F, seed=root(name)), observer, keep,
-                                                 bar.update, cache if name in CACHED_LOOPS else None)
-                    try:
-                        for first, tr in chunks:
-                            if writer is not None:
-                                writer.add({"first": first, "trajectories": tr})
-                            rows = trajectory_table(name, tr, first)
-                            if exp.controller.kind == "online":     # the gain in use, as in the online rows
-                                rows = with_gains(rows, np.zeros((exp.model.m, exp.model.n)) if F is None else F)
-                            parts.append(stream_chunk(exp, name, tr, first, rows, sink, sample, sample_members))
-                            tr = rows = None                    # free the chunk before the next
-                    except BaseException:
-                        if writer is not None:
-                            writer.abort()
-                        raise
-                    if writer is not None:
-                        writer.commit()
+                chunks = loop_chunks(exp, name, dict(settings, F=F, seed=root(name)), observer, keep, bar.update,
+                                     stages if name in CACHED_LOOPS else Stages(cache=None))
+                with bar, console_to_tqdm(), closing(chunks):
+                    for first, tr in chunks:
+                        rows = trajectory_table(name, tr, first)
+                        if exp.controller.kind == "online":     # the gain in use, as in the online rows
+                            rows = with_gains(rows, np.zeros((exp.model.m, exp.model.n)) if F is None else F)
+                        parts.append(stream_chunk(exp, name, tr, first, rows, sink, sample, sample_members))
+                        tr = rows = None                    # free the chunk before the next
                 loops[name] = LoopSummary.concat(parts)
     if not loops:                              # no gain to simulate: the table's columns, no rows
         sink.append("trajectories", trajectory_table("closed_loop", None, exp=exp))
     floor = None
     if "closed_loop" in loops and exp.loop.floor_paths > 0:
-        with timed(timings, "noise_floor"):
+        with stages.timed("noise_floor"):
             floor = noise_floor(exp, observer, chosen.F, root("noise_floor"), sim)
 
     online = None
     if exp.controller.kind == "online":
-        with timed(timings, "online"):
+        with stages.timed("online"):
             online, summary["online_initial"] = online_loop(exp, root("online"), keep, sim, sink, sample,
                                                             sample_members)
             loops["online"] = online[0]
 
-    with timed(timings, "metrics"):
+    with stages.timed("metrics"):
         exact = exact_table(exp, chosen)
         window = rate_window(exp, exact, floor, loops.get("closed_loop"))
         tables = {
@@ -240,7 +272,7 @@ def run_experiment(exp: Experiment, sink=None, cache=None) -> Outcome:
         if isinstance(sink, MemorySink):
             tables |= sink.tables()
     if online is not None:
-        add_online_tables(exp, tables, online, chosen, summary)
+        add_online_tables(exp, stages, tables, online, chosen, summary)
     summary.update(_summary(exp, dist, chosen, tables))
     if "gain_fallback" in summary:                      # the method whose gain the loop uses
         summary["gain_method"] = summary["gain_fallback"]["method"]
@@ -254,34 +286,31 @@ def run_experiment(exp: Experiment, sink=None, cache=None) -> Outcome:
                    recorded_members=recorded_members, squares={name: loop.sq for name, loop in loops.items()})
 
 
-# what the identification and modeling stages put in the run summary (and the stage cache stores)
-IDENTIFICATION_SUMMARY = ("identification_feedback", "identification_passes", "modeling_status",
-                          "modeling_covariance")
-
-
-def identify_and_model(exp: Experiment, timings: dict, summary: dict, seed, sim: dict, keep: bool):
-    """The identification run(s) and the moments they model: (the Trajectories the moments come from,
-    MomentModel or None, why not); the decisions go into `summary` (IDENTIFICATION_SUMMARY)."""
-    with timed(timings, "identification"):
-        F_id, info = identification_feedback(exp)
-        # the identification input is added on top of the feedback; the EnKF is told the applied input
-        total = exp.identification.covariance == "total"
-        identify = lambda F, enkf=exp.filter.enkf: simulate(
-            exp.plant, enkf, F=F, d=exp.identification.input, paths=1, seed=seed,
-            filter_sees_d=True, keep_members=keep, keep_xi_cov=total, **sim)
-        ident = identify(F_id)
-        if info.get("used") == "open_loop" and ident.failure[0] in ("diverged", "filter_diverged"):
-            # auto chose the open loop on the guess, which knows no spread of xi (the spread only raises
-            # the mean-square rate): the plant grew until it, or first the EnKF's estimate of it, diverged
-            # (random plants: 3 of 200 open-loop mean-square unstable plants stable at their mean),
-            # so identify again under nominal feedback
-            F_id, retry = identification_feedback(exp, force_nominal=True)
-            if F_id is not None:
-                info = retry | {"open_loop_diverged_at": int(ident.failed_at[0]),
-                                "open_loop_failure": str(ident.failure[0])}
-                ident = identify(F_id)
-        summary["identification_feedback"] = info
-    with timed(timings, "modeling"):
+def identify_and_model(exp: Experiment, stages: Stages, seed, sim: dict, keep: bool) -> dict:
+    """The identification run(s) and the moments they model: {"ident": the Trajectories the moments
+    come from, "dist": MomentModel or None, "failure": why not, "summary": the decisions that go into
+    the run summary (identification_feedback, identification_passes, modeling_status and _covariance)},
+    the identification stage's value (the stage cache stores it whole)."""
+    summary = {}
+    F_id, info = identification_feedback(exp)
+    # the identification input is added on top of the feedback; the EnKF is told the applied input
+    total = exp.identification.covariance == "total"
+    identify = lambda F, enkf=exp.filter.enkf: simulate(
+        exp.plant, enkf, F=F, d=exp.identification.input, paths=1, seed=seed,
+        filter_sees_d=True, keep_members=keep, keep_xi_cov=total, **sim)
+    ident = identify(F_id)
+    if info.get("used") == "open_loop" and ident.failure[0] in ("diverged", "filter_diverged"):
+        # auto chose the open loop on the guess, which knows no spread of xi (the spread only raises
+        # the mean-square rate): the plant grew until it, or first the EnKF's estimate of it, diverged
+        # (random plants: 3 of 200 open-loop mean-square unstable plants stable at their mean),
+        # so identify again under nominal feedback
+        F_id, retry = identification_feedback(exp, force_nominal=True)
+        if F_id is not None:
+            info = retry | {"open_loop_diverged_at": int(ident.failed_at[0]),
+                            "open_loop_failure": str(ident.failure[0])}
+            ident = identify(F_id)
+    summary["identification_feedback"] = info
+    with stages.timed("modeling"):
         dist, failure = identified_moments(exp, ident)
         if exp.identification.xi_model == "iterated" and exp.model.p:     # (nothing to iterate without xi)
             ident, dist, failure, summary["identification_passes"] = iterate_identification(
@@ -291,33 +320,27 @@ def identify_and_model(exp: Experiment, timings: dict, summary: dict, seed, sim:
         summary["modeling_status"] = failure or ("unsettled" if unsettled else "ok")
         if dist is not None:
             summary["modeling_covariance"] = exp.identification.covariance
-    return ident, dist, failure
+    return {"ident": ident, "dist": dist, "failure": failure, "summary": summary}
 
 
 CACHED_LOOPS = ("open_loop",)      # loops the stage cache keeps: the open loop does not depend on the gain, so
                                    # every design of a seed shares it; a closed loop is its run's own
 
 
-def loop_chunks(exp: Experiment, name: str, settings: dict, observer, keep: bool, progress, cache=None):
-    """((first path, Trajectories) of the loop's chunks in path order, an EntryWriter or None): from the
-    stage cache when it holds the loop (keyed by exactly what `simulate` reads: the plant, the
-    observer, the settings with gain, disturbance, initial state and seed, and the chunks of paths),
-    else simulated (`run_chunks`), with a writer that stores them when there is a cache."""
-    if cache is None:
-        return ((first, tr) for first, tr, _ in run_chunks(exp, settings, keep_members=keep, enkf=observer,
-                                                           workers=exp.loop.workers, progress=progress)), None
-    starts = chunk_starts(exp, keep_members=keep)
-    key = cache.key(name, plant=exp.plant, observer=observer, settings=settings, chunks=starts, keep_members=keep)
-    stored = cache.load_parts(name, key)
-    if stored is not None:
-        steps = exp.loop.disturbance.shape[0]
-        def replay():
-            for part in stored:
+def loop_chunks(exp: Experiment, name: str, settings: dict, observer, keep: bool, progress, stages: Stages):
+    """(first path, Trajectories) of the loop's chunks in path order: a stage keyed by exactly what
+    `simulate` reads (the plant, the observer, the settings with gain, disturbance, initial state and
+    seed, and the chunks of paths), simulated (`run_chunks`) or replayed from the stage cache."""
+    simulated = lambda: ({"first": first, "trajectories": tr} for first, tr, _ in run_chunks(
+        exp, settings, keep_members=keep, enkf=observer, workers=exp.loop.workers, progress=progress))
+    parts, reused = stages.streamed(name, simulated, plant=exp.plant, observer=observer, settings=settings,
+                                    chunks=chunk_starts(exp, keep_members=keep), keep_members=keep)
+    steps = exp.loop.disturbance.shape[0]
+    with closing(parts):
+        for part in parts:
+            if reused:
                 progress(part["trajectories"].q.shape[1] * steps)
-                yield part["first"], part["trajectories"]
-        return replay(), None
-    chunks, _ = loop_chunks(exp, name, settings, observer, keep, progress)
-    return chunks, cache.writer(name, key)
+            yield part["first"], part["trajectories"]
 
 
 def stream_chunk(exp: Experiment, name: str, tr: Trajectories, first: int, rows: pd.DataFrame, sink,
@@ -394,7 +417,7 @@ def gain_columns(F: np.ndarray) -> dict[str, np.ndarray]:
     return {f"F[{i},{j}]": F[:, i, j] for i in range(F.shape[1]) for j in range(F.shape[2])}
 
 
-def add_online_tables(exp: Experiment, tables: dict, online, chosen, summary: dict) -> None:
+def add_online_tables(exp: Experiment, stages: Stages, tables: dict, online, chosen, summary: dict) -> None:
     """The `controller` table (every decision), per-path and summary metrics of the online loop
     against the offline design of the same seed and the optimum on the true plant.
 
@@ -444,7 +467,7 @@ def add_online_tables(exp: Experiment, tables: dict, online, chosen, summary: di
     # the optimal rate on the true plant: the better of Theorem 2's bisection and policy iteration
     # (policy iteration from F = 0 can stall on an open-loop unstable plant)
     truth = exp.plant.check_distribution(None)
-    optimum = min((safe_synthesize(exp.plant, truth, method, {}, exp.design.lmi_max_n)
+    optimum = min((design(stages, exp.plant, truth, method, {}, exp.design.lmi_max_n, f"synthesis/plant/{method}")
                    for method in ("proposed", "policy_iteration")),
                   key=lambda res: res.lam if np.isfinite(res.lam) else np.inf)
     offline = safe_rate(exp.plant, None, chosen.F) if chosen is not None and chosen.F is not None else np.nan
@@ -467,28 +490,39 @@ def add_online_tables(exp: Experiment, tables: dict, online, chosen, summary: di
     summary["online"] = {k: (None if not np.isfinite(v) else float(v)) for k, v in online_metrics.items()}
 
 
-# designs computed in this process, by what they are computed from: the jobs of a sweep that share a
-# model, moments and options (every job's reported moments; the identified ones of jobs that differ
-# only after identification) design once. Synthesis is deterministic, so the tables are the same.
-# Each with (stage cache directory, run) that stored it there or it was loaded from (None: no cache).
-_DESIGNS: dict[str, tuple[SynthesisResult, tuple[str, str] | None]] = {}
-_DESIGNS_KEPT = 256
-
-
 LMI_METHODS = ("proposed", "nominal_lmi", "robust_box")      # designs that solve semidefinite programs
 
 
-def safe_synthesize(model, moments, method: str, options: dict, lmi_max_n: int | None = None, *,
-                    cache=None, label: str | None = None) -> SynthesisResult:
+def design(stages: Stages, model, moments: MomentModel, method: str, options: dict, lmi_max_n: int | None,
+           label: str) -> SynthesisResult:
+    """The design stage: `method` with `options` on `moments`, from the stage cache when a design with the
+    same model bases, moments, method and options is there (the jobs of a sweep that share them design
+    once; a reused design reports seconds 0: no time spent in this run), else `safe_synthesize`.
+    Synthesis is deterministic, so the tables are the same. label: the design in run.json's stage_keys."""
+    res, reused = stages.cached("synthesis", partial(safe_synthesize, model, moments, method, options, lmi_max_n),
+                                label=label, A=model.A, B=model.B, C=model.C, D=model.D, mean=moments.mean,
+                                cov=moments.cov, method=method, options=options, lmi_max_n=lmi_max_n)
+    if reused:
+        if res.status.startswith("failed"):
+            log.warning("design %s %s", method, res.status)
+        res.seconds = 0.0
+    return res
+
+
+def configured_design(stages: Stages, exp: Experiment, moments: MomentModel, method: str,
+                      source: str) -> SynthesisResult:
+    """`design` of `method` with its configured options on the moments from `source` (identified | reported)."""
+    return design(stages, exp.model, moments, method, exp.design.options_by_method[method], exp.design.lmi_max_n,
+                  f"synthesis/{source}/{method}")
+
+
+def safe_synthesize(model, moments, method: str, options: dict, lmi_max_n: int | None = None) -> SynthesisResult:
     """`synthesize`, with every way a design can fail on this system as a status, never an exception.
 
     not_applicable: pole placement without poles in the config, or an LMI design (LMI_METHODS) on a
     system with more than `lmi_max_n` states (config gain.lmi_max_n: its SDPs would run for hours, the
     SDP-free designs do not). failed: <reason>: the method raised
-    (e.g. a Riccati equation without a solution) or returned a gain that is not finite. A design
-    this process computed before from the same model, moments, method and options is reused (a
-    copy, with seconds 0: no time spent in this run), and so is one the stage cache holds (`cache`,
-    stage "synthesis"; `label` names the design in run.json's stages_reused)."""
+    (e.g. a Riccati equation without a solution) or returned a gain that is not finite."""
     if method == "pole_placement" and options.get("poles") is None:
         return SynthesisResult(method, None, float("nan"), "not_applicable", nbar=0,
                                info={"reason": "no poles in the config (plant.poles or gain.options.poles)"})
@@ -496,28 +530,6 @@ def safe_synthesize(model, moments, method: str, options: dict, lmi_max_n: int |
         return SynthesisResult(method, None, float("nan"), "not_applicable", nbar=0,
                                info={"reason": f"n = {model.n} > gain.lmi_max_n = {lmi_max_n}: an SDP of this size "
                                                f"runs for hours; policy_iteration and ms_lqr need none"})
-    key = _design_key(model, moments, method, options)
-    stage_key = cache.key("synthesis", design=key) if cache is not None else None
-    label = label or f"synthesis/{method}"
-    if key in _DESIGNS:
-        res, origin = copy.deepcopy(_DESIGNS[key][0]), _DESIGNS[key][1]
-        log.info("design %s: reused the identical design computed earlier in this process", method)
-        if cache is not None and origin is not None and origin[0] == str(cache.dir):
-            # stored in (or loaded from) this store's stage cache by a run of this process
-            cache.note(label, "synthesis", stage_key, origin[1] if origin[1] != cache.run else None)
-        elif cache is not None:                 # computed without this store's cache: store it there
-            cache.note(label, "synthesis", stage_key, None)
-            cache.save("synthesis", stage_key, res)
-            _remember(key, res, (str(cache.dir), cache.run))
-    else:
-        res = cache.load("synthesis", stage_key, label) if cache is not None else None
-        if res is not None:
-            _remember(key, res, (str(cache.dir), cache.reused[label]["run"]))
-    if res is not None:
-        if res.status.startswith("failed"):
-            log.warning("design %s %s", method, res.status)
-        res.seconds = 0.0
-        return res
     start = time.perf_counter()
     try:
         with np.errstate(all="ignore"):
@@ -528,27 +540,7 @@ def safe_synthesize(model, moments, method: str, options: dict, lmi_max_n: int |
     if res.F is not None and not np.all(np.isfinite(res.F)):
         res = SynthesisResult(method, None, float("nan"), "failed: the gain is not finite", nbar=res.nbar)
     res.seconds = res.seconds or time.perf_counter() - start
-    if cache is not None:
-        cache.save("synthesis", stage_key, res)
-    _remember(key, res, (str(cache.dir), cache.run) if cache is not None else None)
     return res
-
-
-def _remember(key: str, res: SynthesisResult, origin: tuple[str, str] | None) -> None:
-    """Keep a copy of a design in this process (_DESIGNS), the oldest dropped beyond _DESIGNS_KEPT."""
-    if len(_DESIGNS) >= _DESIGNS_KEPT:
-        _DESIGNS.pop(next(iter(_DESIGNS)))
-    _DESIGNS[key] = (copy.deepcopy(res), origin)
-
-
-def _design_key(model, moments, method: str, options: dict) -> str:
-    """What a design is computed from: the model's basis matrices, the moments, method and options."""
-    h = hashlib.sha256(f"{method}\n{json.dumps(options, sort_keys=True, default=repr)}".encode())
-    for array in (model.A, model.B, model.C, model.D, moments.mean, moments.cov):
-        array = np.ascontiguousarray(array, dtype=float)
-        h.update(f"{array.shape}".encode())
-        h.update(array.tobytes())
-    return h.hexdigest()
 
 
 UNCERTAINTY_STREAM = 3   # SeedSequence([seed, 3]): the modeling window's bootstrap (stages use spawn keys 0-2)
@@ -1062,23 +1054,25 @@ def join_paths(parts: list[Trajectories]) -> Trajectories:
                            for f in dataclasses.fields(Trajectories)})
 
 
-def run_on_data(exp: Experiment, sink=None) -> Outcome:
+def run_on_data(exp: Experiment, sink=None, cache=None) -> Outcome:
     """A data run (exp.data): identification on the recorded paths (all but the held-out ones), the moments
     over the window with their uncertainty (a bootstrap over the recorded paths, or over blocks of the window
     for one path), the loop's gain and gain.designs on them, each with its exact rate on the identified model
     and its spread over the moments' draws. There is no plant: no loop is simulated and no number claims one.
     Iterated identification (identification.xi_model: iterated) re-filters the same recorded data with each
     pass's prior: the record does not change between passes (a simulated open-loop identification's would not
-    either; one under feedback would, and a data run cannot reproduce that)."""
-    timings, summary = {}, {}
+    either; one under feedback would, and a data run cannot reproduce that). cache: as `run_experiment`'s (the
+    designs only: the recorded identification is the data file's own)."""
+    stages, summary = Stages(cache), {}
+    timings = stages.timings
     seed = np.random.SeedSequence(exp.seed, spawn_key=SPAWN_KEYS["identification"])
     sim, keep = exp.simulation(), exp.tracking.level == "full"
     data = exp.data
-    with timed(timings, "identification"):
+    with stages.timed("identification"):
         identify = partial(identify_recorded, exp, data.identification, seed, sim, keep)
         ident = identify()
         summary["identification_feedback"] = {"mode": "recorded", "used": "the recorded inputs"}
-    with timed(timings, "modeling"):
+    with stages.timed("modeling"):
         dist, failure = identified_moments(exp, ident)
         if exp.identification.xi_model == "iterated" and exp.model.p:
             ident, dist, failure, summary["identification_passes"] = iterate_identification(
@@ -1089,13 +1083,11 @@ def run_on_data(exp: Experiment, sink=None) -> Outcome:
         if dist is not None:
             summary["modeling_covariance"] = exp.identification.covariance
     draws = moment_uncertainty(exp, ident, summary) if dist is not None else None
-    with timed(timings, "synthesis"):
+    with stages.timed("synthesis"):
         designs = {}
         for source, moments in (("identified", dist), ("reported", exp.reported)):
             for method in exp.design.methods if moments is not None else ():
-                designs[source, method] = (moments, safe_synthesize(
-                    exp.model, moments, method, exp.design.options_by_method[method], exp.design.lmi_max_n,
-                    label=f"synthesis/{source}/{method}"))
+                designs[source, method] = (moments, configured_design(stages, exp, moments, method, source))
         selected = (exp.design.source, exp.design.method)
         if exp.design.source == "fixed":
             moments = dist if dist is not None else exp.reported
@@ -1103,7 +1095,7 @@ def run_on_data(exp: Experiment, sink=None) -> Outcome:
             designs[("fixed", "fixed")] = (moments, SynthesisResult("fixed", exp.design.F, rate, "fixed", nbar=0))
             selected = ("fixed", "fixed")
         chosen = designs.get(selected, (None, None))[1]
-    with timed(timings, "metrics"):
+    with stages.timed("metrics"):
         gains = gains_table(exp, designs, selected)
         spread = design_spread(exp, designs, draws)
         for column in ("rate_model_median", "rate_model_q05", "rate_model_q95", "rate_model_worst"):
@@ -1116,12 +1108,12 @@ def run_on_data(exp: Experiment, sink=None) -> Outcome:
                   "exact": pd.DataFrame({"experiment": pd.Series(dtype=str), "k": pd.Series(dtype=np.int64),
                                          "rms": pd.Series(dtype=float)})}
     if exp.data.holdout_data is not None and dist is not None:
-        with timed(timings, "validation"):
+        with stages.timed("validation"):
             tables["validation"], summary["validation"] = validate_holdout(exp, dist, sim)
     sink = MemorySink() if sink is None else sink
     sample = []
     if exp.data.loops and chosen is not None and chosen.F is not None and dist is not None:
-        with timed(timings, "loops_on_model"):
+        with stages.timed("loops_on_model"):
             summary["loops_on_model"] = loops_on_model(exp, dist, chosen, tables, sink, sample)
     else:
         sink.append("trajectories", trajectory_table("closed_loop", None, exp=exp))

@@ -21,7 +21,7 @@ from ..errors import WriteError
 from .config import Experiment, build, check_overrides
 from .pipeline import SPAWN_KEYS, TABLES, Outcome, run_experiment, timed
 from .schema import attach
-from .store import RunStore, RunWriter, layout, provenance
+from .store import RunStore, RunWriter, StageCache, layout, provenance
 from .store.table import flat_params
 
 log = logging.getLogger("rdsexp")
@@ -268,7 +268,7 @@ def execute(cfg: DictConfig, run_dir: Path, context: dict | None = None, amend=N
         # a plant file without `name:` is named by its file (plant=NAME)
         exp = dataclasses.replace(exp, plant_name=HydraConfig.get().runtime.choices.get("plant") or "plant")
     if exp.tracking.level == "off":
-        outcome = run_experiment(exp)
+        outcome = run_experiment(exp, cache=StageCache.in_process())
         info = {"id": run_dir.name, "status": "complete", "summary": outcome.summary, "timings": outcome.timings}
         if amend is not None:
             amend(info)
@@ -294,7 +294,7 @@ def execute(cfg: DictConfig, run_dir: Path, context: dict | None = None, amend=N
         sink.abort()
         raise
     outcome.timings |= timings
-    if cache is not None:               # where each reused stage came from; every stage's key
+    if cache.dir is not None:           # where each reused stage came from; every stage's key
         info.update(stages_reused=cache.reused, stage_keys=cache.keys)
     with timed(outcome.timings, "streamed_tables"):
         streamed = sink.close()
@@ -306,11 +306,11 @@ def execute(cfg: DictConfig, run_dir: Path, context: dict | None = None, amend=N
     return record(writer, outcome, exp, info, streamed, index, amend)
 
 
-def stage_cache(cfg: DictConfig, store: RunStore, info: dict):
-    """The run store's stage cache as this run uses it (config key `cache`, default true), or None."""
+def stage_cache(cfg: DictConfig, store: RunStore, info: dict) -> StageCache:
+    """The stage cache this run uses: the run store's (config key `cache`, default true), else this
+    process's memory only."""
     if not cfg.get("cache", False):
-        return None
-    from .store.stages import StageCache
+        return StageCache.in_process()
     return StageCache(store.root, info["code"]["version"], info["id"])
 
 
