@@ -366,9 +366,14 @@ def online_loop(exp: Experiment, seed, keep: bool, sim: dict, sink, sample: list
     bar, _ = _progress("online", exp.loop.paths * (K + 1))
     settings = dict(F=F0, d=exp.loop.disturbance, seed=seed, filter_sees_d=exp.loop.filter_sees_disturbance, **sim)
     make = partial(OnlineController, exp.model, exp.controller.online, F0, horizon=K)
+    enkf = loop_observer(exp, None)
+    if enkf.disturbance is None and exp.controller.disturbance is not None:
+        # controller.disturbance: the online loop's EnKF estimates an unknown input disturbance, which it
+        # would otherwise read as a wrong xi, the data the controller models xi from
+        enkf = dataclasses.replace(enkf, disturbance=exp.controller.disturbance)
     with bar, console_to_tqdm():
         for first, tr, controller in run_chunks(exp, settings, keep_members=keep, workers=exp.loop.workers,
-                                                progress=bar.update, controller=make, enkf=loop_observer(exp, None)):
+                                                progress=bar.update, controller=make, enkf=enkf):
             count = tr.q.shape[1]
             history = controller.gain_history()
             in_use = np.stack([history[j][tr.gain_index[:, j]] for j in range(count)])     # (P, K+1, m, n)
@@ -415,6 +420,8 @@ def add_online_tables(exp: Experiment, tables: dict, online, chosen, summary: di
                 "rate_current": np.concatenate([np.full(count, np.nan), d.rate_current]),
                 "rate_worst": np.concatenate([np.full(count, np.nan), d.rate_worst]),
                 "rate_current_worst": np.concatenate([np.full(count, np.nan), d.rate_current_worst]),
+                "rate_current_best": np.concatenate([np.full(count, np.nan), d.rate_current_best]),
+                "estimates": np.concatenate([np.zeros(count, int), d.estimates]),
                 "rate_plant": np.concatenate([initial_plant, rate_plant])}
         mean = np.concatenate([np.full((count, p), np.nan), d.mean])
         rows |= {f"mean[{i}]": mean[:, i] for i in range(p)}
