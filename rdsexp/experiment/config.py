@@ -570,8 +570,8 @@ def _controller(cfg, model: AffineRandomSystem, K: int) -> tuple[str, OnlineSett
     ints = {name: _number(get(cfg, f"controller.{name}"), f"controller.{name}", integer=True, low=low)
             for name, low in (("warmup", 0), ("period", 1), ("window", 2), ("resamples", 0), ("block", 1))}
     # keys added later: a controller file (or a stored run's config) without them keeps the former behaviour
-    ints["min_blocks"] = _number(plain(OmegaConf.select(cfg, "controller.min_blocks", default=OnlineSettings.min_blocks)),
-                                 "controller.min_blocks", integer=True, low=1)
+    min_blocks = OmegaConf.select(cfg, "controller.min_blocks", default=OnlineSettings.min_blocks)
+    ints["min_blocks"] = _number(plain(min_blocks), "controller.min_blocks", integer=True, low=1)
     memory = get(cfg, "controller.memory")
     if memory not in MEMORIES:
         raise ConfigError(f"controller.memory: {memory!r} is not allowed, expected one of {', '.join(MEMORIES)}")

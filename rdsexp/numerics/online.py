@@ -313,8 +313,8 @@ class OnlineController:
         worst_new = worst_cur = best_cur = np.full(idx.size, np.nan)
         s = self.settings
         if s.safeguard and s.resamples:
-            worst_new, worst_cur, best_cur = self._draw_rates(k, samples[:, idx], w, None if covs is None else covs[:, idx],
-                                                              np.nan_to_num(F_new), self.F[idx])
+            worst_new, worst_cur, best_cur = self._draw_rates(
+                k, samples[:, idx], w, None if covs is None else covs[:, idx], np.nan_to_num(F_new), self.F[idx])
             worst_new[failed != ""] = np.nan
         if s.safeguard:
             model_ok = (failed == "") & (rate_new < 1) & (rate_new < rate_cur)
