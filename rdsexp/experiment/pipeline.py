@@ -207,7 +207,10 @@ def run_experiment(exp: Experiment, sink=None, cache=None) -> Outcome:
                         writer.commit()
                 loops[name] = LoopSummary.concat(parts)
     if not loops:                              # no gain to simulate: the table's columns, no rows
-        sink.append("trajectories", trajectory_table("closed_loop", None, exp=exp))
+        rows = trajectory_table("closed_loop", None, exp=exp)
+        if exp.controller.kind == "online":    # and the gain columns the online loop's rows bring
+            rows = with_gains(rows, np.zeros((0, exp.model.m, exp.model.n)))
+        sink.append("trajectories", rows)
     floor = None
     if "closed_loop" in loops and exp.loop.floor_paths > 0:
         with timed(timings, "noise_floor"):
