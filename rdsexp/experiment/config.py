@@ -17,7 +17,7 @@ from ..errors import ConfigError, one_line
 from ..numerics.distributions import from_spec
 from ..numerics.enkf import VARIANTS, AdaptiveInflation, EnKF, check_covariance, truth_map, xi_support
 from ..numerics.modeling import COVARIANCES, mls_input
-from ..numerics.online import MEMORIES, OnlineSettings
+from ..numerics.online import MEMORIES, OBSERVERS, OnlineSettings
 from ..numerics.simulation import ESTIMATES, check_estimate
 from ..numerics.synthesis import METHODS, check_options
 from ..numerics.systems import AffineRandomSystem, MomentModel
@@ -547,7 +547,7 @@ def _flag(cfg, name: str) -> bool:
 
 CONTROLLERS = ("offline", "online")
 ONLINE_KEYS = {"type", "initial", "warmup", "period", "memory", "window", "forgetting", "method", "options",
-               "safeguard", "resamples", "block", "min_blocks", "covariance", "disturbance"}
+               "safeguard", "resamples", "block", "min_blocks", "covariance", "disturbance", "observer"}
 
 
 def _controller(cfg, model: AffineRandomSystem, K: int) -> tuple[str, OnlineSettings | None, str | np.ndarray,
@@ -588,9 +588,12 @@ def _controller(cfg, model: AffineRandomSystem, K: int) -> tuple[str, OnlineSett
     if covariance not in COVARIANCES:
         raise ConfigError(f"controller.covariance: {covariance!r} is not allowed, expected one of "
                           f"{', '.join(COVARIANCES)}")
+    observer = plain(OmegaConf.select(cfg, "controller.observer", default="random_walk"))
+    if observer not in OBSERVERS:
+        raise ConfigError(f"controller.observer: {observer!r} is not allowed, expected one of {', '.join(OBSERVERS)}")
     with key("controller.options"):
         settings = OnlineSettings(memory=memory, forgetting=forgetting, method=method, options=options,
-                                  covariance=covariance,
+                                  covariance=covariance, observer=observer,
                                   safeguard=safeguard, **ints).check(model, K)
     initial = get(cfg, "controller.initial")
     if isinstance(initial, list):

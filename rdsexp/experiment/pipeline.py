@@ -380,7 +380,8 @@ def online_loop(exp: Experiment, seed, keep: bool, sim: dict, sink, sample: list
             count = tr.q.shape[1]
             history = controller.gain_history()
             in_use = np.stack([history[j][tr.gain_index[:, j]] for j in range(count)])     # (P, K+1, m, n)
-            rows = with_gains(trajectory_table("online", tr, first, d_columns=carries_d(exp)), in_use.reshape(count * (K + 1), m, n))
+            rows = with_gains(trajectory_table("online", tr, first, d_columns=carries_d(exp)),
+                              in_use.reshape(count * (K + 1), m, n))
             parts.append(stream_chunk(exp, "online", tr, first, rows, sink, sample, sample_members))
             controllers.append((first, controller))
     return (LoopSummary.concat(parts), controllers), info

@@ -42,6 +42,7 @@ from .synthesis import METHODS, check_options, synthesize
 from .systems import AffineRandomSystem, MomentModel
 
 MEMORIES = ("window", "all", "exponential")
+OBSERVERS = ("random_walk", "model")
 REASONS = ("adopted", "adopted_unchecked", "not_stabilizing", "no_improvement", "not_robust", "waiting", "failed")
 
 
@@ -58,7 +59,9 @@ class OnlineSettings:
     rate must be < 1 and below the worst rate of the gain in use (else `not_robust`); min_blocks: below
     this many blocks in the window a passing candidate is adopted only if the gain in use is unstable
     at every resample (else `waiting`); covariance: "sample" (eq. sample-mean of the estimates) or
-    "total" (plus their mean filtered covariance).
+    "total" (plus their mean filtered covariance); observer: "random_walk" (the loop's EnKF keeps its own
+    model of xi) or "model" (once a path adopts a designed gain, its EnKF draws xi i.i.d. from the
+    moments that gain was designed on, as the offline loop's observer does: `observer_prior`).
     """
 
     warmup: int = 20
@@ -73,6 +76,7 @@ class OnlineSettings:
     block: int = 5
     min_blocks: int = 4
     covariance: str = "sample"
+    observer: str = "random_walk"
 
     def check(self, system: AffineRandomSystem, horizon: int | None = None) -> OnlineSettings:
         """One-line ValueError naming the setting; returns self."""
@@ -87,6 +91,8 @@ class OnlineSettings:
             raise ValueError(f"forgetting: {self.forgetting!r} is not allowed, expected a number in (0, 1)")
         if horizon is not None and self.memory == "window" and self.window > horizon:
             raise ValueError(f"window: {self.window} is not allowed, longer than the horizon {horizon}")
+        if self.observer not in OBSERVERS:
+            raise ValueError(f"observer: {self.observer!r} is not allowed, expected one of {', '.join(OBSERVERS)}")
         if not isinstance(self.safeguard, bool):
             raise ValueError(f"safeguard: {self.safeguard!r} is not allowed, expected true or false")
         if self.covariance not in COVARIANCES:
@@ -277,6 +283,14 @@ class OnlineController:
         self.xi_cov = np.full((self.K + 1, self.P, system.p, system.p), np.nan) if self.needs_xi_cov else None
         self._rows: list[dict] = []
         self._updates = set(settings.updates(self.K).tolist())
+        # with observer = "model": per path, the moments of its adopted gain's model, for the EnKF's prediction
+        self._prior = (np.zeros((self.P, system.p)), np.zeros((self.P, system.p, system.p)), np.zeros(self.P, bool))
+
+    def observer_prior(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """What `simulate` passes to the EnKF's prediction (`EnKF._predict(path_prior=...)`): per path the mean
+        (P, p) and covariance square root (P, p, p) of the model its gain was designed on, and whether it has
+        one (P,); None with observer = "random_walk" or before any adoption."""
+        return self._prior if self.settings.observer == "model" and self._prior[2].any() else None
 
     def weights(self, k: int) -> tuple[int, np.ndarray]:
         """(first step, weights (k - first + 1,)) of the estimates the model at step k uses."""
@@ -336,6 +350,11 @@ class OnlineController:
         if not adopt.any():
             return None
         self.F[idx[adopt]] = F_new[adopt]
+        if self.settings.observer == "model":
+            lam, V = np.linalg.eigh(cov[adopt])
+            self._prior[0][idx[adopt]] = mean[adopt]
+            self._prior[1][idx[adopt]] = (V * np.sqrt(np.clip(lam, 0.0, None))[:, None, :]) @ V.transpose(0, 2, 1)
+            self._prior[2][idx[adopt]] = True
         return idx[adopt], F_new[adopt]
 
     def resample_steps(self, k: int, T: int) -> np.ndarray:
@@ -404,5 +423,5 @@ class OnlineController:
         return [np.concatenate([self.F0[j][None], d.F[(d.path == j) & d.adopted]]) for j in range(self.P)]
 
 
-__all__ = ["Decisions", "MEMORIES", "METHODS", "OnlineController", "OnlineSettings", "moment_factors",
+__all__ = ["Decisions", "MEMORIES", "METHODS", "OBSERVERS", "OnlineController", "OnlineSettings", "moment_factors",
            "policy_iteration_batch", "rates", "weighted_moments"]

@@ -98,7 +98,8 @@ class GainController(Protocol):
                xi_filt_cov: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray] | None:
         """After filtering at step k: psi_{k|k} means (P, n+p), alive (P,) and the filtered xi covariance
         (P, p, p) -> None (no change) or (paths (U,) int, gains (U, m, n)): the gains those paths use
-        from step k+1 on."""
+        from step k+1 on. Optionally observer_prior() -> None or per-path moments the EnKF's prediction draws
+        xi from (`EnKF._predict(path_prior=...)`)."""
 
 
 def check_estimate(plant: AffineRandomSystem, model: AffineRandomSystem, estimate: str) -> None:
@@ -278,7 +279,9 @@ def simulate(plant: AffineRandomSystem, enkf: EnKF, *, F=None, d, q0, psi0, P0=N
                     F[idx] = gains
                     adopted[idx] += 1
             q = (A_s[k] @ q[..., None])[..., 0] + (B_s[k] @ u[..., None])[..., 0]
-            enkf._predict(filtered, u_filter, e_w, out=psi)
+            prior = controller.observer_prior() if controller is not None and hasattr(controller, "observer_prior") \
+                else None
+            enkf._predict(filtered, u_filter, e_w, out=psi, path_prior=prior)
     return out
 
 
