@@ -331,14 +331,19 @@ class OnlineController:
                 k, samples[:, idx], w, None if covs is None else covs[:, idx], np.nan_to_num(F_new), self.F[idx])
             worst_new[failed != ""] = np.nan
         if s.safeguard:
-            model_ok = (failed == "") & (rate_new < 1) & (rate_new < rate_cur)
-            robust = model_ok & (worst_new < 1) & (worst_new < worst_cur) if s.resamples else model_ok
+            # failing: the gain in use is unstable at every draw; there any candidate that beats it at its worst
+            # is adopted, also one the model does not call stabilizing (the model of a loop that grows is
+            # biased; waiting for a model that certifies < 1 loses the path)
+            failing = best_cur >= 1
+            stabilizing = (rate_new < 1) | failing
+            model_ok = (failed == "") & stabilizing & (rate_new < rate_cur)
+            robust = model_ok & ((worst_new < 1) | failing) & (worst_new < worst_cur) if s.resamples else model_ok
             # with fewer than min_blocks blocks the draws' spread says little: act only where the gain in
             # use fails at every draw (a first model on an open-loop unstable plant from F = 0)
             enough = samples.shape[0] >= s.min_blocks * s.block or not s.resamples
-            adopt = robust & (enough | (best_cur >= 1))
+            adopt = robust & (enough | failing)
             reason = np.where(failed != "", failed, np.where(
-                adopt, "adopted", np.where(rate_new >= 1, "not_stabilizing", np.where(
+                adopt, "adopted", np.where(~stabilizing, "not_stabilizing", np.where(
                     ~model_ok, "no_improvement", np.where(robust, "waiting", "not_robust")))))
         else:
             adopt = failed == ""
