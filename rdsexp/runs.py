@@ -4,6 +4,7 @@ layer above the store and is added here.
 
     rdsexp-runs plot SWEEP|--where "..." --x KEY [--x KEY2] --y METRIC [--hue KEY] [--logx] [--logy] [--out DIR]
     rdsexp-runs export --mlflow URI [SWEEP|RUN] [--where "..."] [--experiment NAME] [--no-tables] [--root DIR]
+    rdsexp-runs export --data RUN --out FILE [--root DIR]   (a run's identification u, y in the data format)
 """
 import os
 import sys
@@ -66,7 +67,10 @@ def _plot_command(args) -> int:
 def _add_export_arguments(p) -> None:
     p.add_argument("sweep", nargs="?", help="a sweep (directory or name) or a run (directory or id); default: "
                                             "the runs --where selects")
-    p.add_argument("--mlflow", required=True, metavar="URI", help="MLflow tracking URI, e.g. http://127.0.0.1:5000")
+    p.add_argument("--mlflow", metavar="URI", help="MLflow tracking URI, e.g. http://127.0.0.1:5000")
+    p.add_argument("--data", metavar="RUN", help="a run's identification inputs and outputs in the data format "
+                                                 "(path, k, u[i], y[i]) for `rdsexp data=FILE model=NAME`")
+    p.add_argument("--out", metavar="FILE", help="with --data: the file to write (.csv, .csv.gz, .parquet)")
     p.add_argument("--where", help='filter, e.g. "plant == \'mine\' and enkf.q_scale >= 1"')
     p.add_argument("--experiment", default="rdsexp", help="MLflow experiment (default: rdsexp; created if missing)")
     p.add_argument("--no-tables", action="store_true", help="artifacts: run.json and config.yaml, not the tables")
@@ -74,6 +78,17 @@ def _add_export_arguments(p) -> None:
 
 
 def _export_command(args) -> int:
+    if args.data is not None:
+        if args.out is None or args.mlflow is not None:
+            print("rdsexp-runs export: --data RUN needs --out FILE (and no --mlflow)", file=sys.stderr)
+            return 2
+        from .experiment.runs import export_data
+        rows, note = export_data(args.data, args.out, root=args.root)
+        print(f"{args.out}: {rows} rows ({note})")
+        return 0
+    if args.mlflow is None:
+        print("rdsexp-runs export: give --mlflow URI or --data RUN --out FILE", file=sys.stderr)
+        return 2
     from .report import to_mlflow
     report = to_mlflow.export(args.sweep, args.mlflow, args.experiment, where=args.where, root=args.root,
                               tables=not args.no_tables)

@@ -67,7 +67,7 @@ def test_imports_only_go_downward(path):
 
 
 # the experiment layer from the bottom up: each module imports only those before it
-EXPERIMENT = ["store", "schema", "config", "montecarlo", "pipeline", "summary", "recording", "runner", "failures",
+EXPERIMENT = ["store", "schema", "data", "config", "montecarlo", "pipeline", "summary", "recording", "runner", "failures",
               "runs", "sweep", "cli"]
 
 

@@ -42,21 +42,32 @@ RUNNING: dict[str, Path | None] = {}      # the run (and sweep) directory of the
 @hydra.main(config_path=CONF_PACKAGE, config_name="config", version_base="1.3")
 def hydra_main(cfg: DictConfig) -> dict | float:
     """One job: its run.json content, or with `objective: METRIC` that metric as a float (what an
-    optimizing sweeper such as Optuna's reads; `runner.objective_value`)."""
+    optimizing sweeper such as Optuna's reads; `runner.objective_value`): its mean over `objective_seeds`
+    seeds, the job's and the ones after it, each a run beside the job's (`runner.trial_seeds`)."""
     # imported here: `rdsexp --help` and shell completion need Hydra only, not the numerics
-    from .runner import execute, objective_value
+    from .runner import execute, objective_over, objective_seeds, objective_value, trial_seeds
     from .store import write_sweep_summary
     from .summary import summary_text
     hc = HydraConfig.get()
     run_dir = Path(hc.runtime.output_dir)
     multirun = hc.mode == RunMode.MULTIRUN
     RUNNING.update(run_dir=run_dir, sweep_dir=Path(hc.sweep.dir) if multirun else None)
+    amend = None
     try:
-        info = execute(cfg, run_dir)
+        if cfg.get("objective") and len(objective_seeds(cfg)) > 1:
+            # a tuning trial's objective is its mean over objective_seeds seeds, with its standard error: its
+            # other seeds run first, each a run beside this one, and the mean goes into this run's run.json
+            others = trial_seeds(cfg, run_dir, lambda err, seed_dir: record_failure(
+                err, cfg, seed_dir, job=hc.job.num if multirun else 0))
+            penalty = float(cfg.get("objective_penalty", 1.0))
+            amend = lambda info: info.update(objective=objective_over(                 # noqa: E731
+                cfg.objective, penalty, [info, *others], objective_seeds(cfg), "trial"))
+        info = execute(cfg, run_dir, amend=amend)
     except KeyboardInterrupt:             # run.json "interrupted", no temporary file, the sweep's summary agrees
         ignore_sigint()                   # a second Ctrl-C does not cut the record short
         from .store import settle_interrupted
-        settle_interrupted(run_dir, wait=0)
+        for stopped in [run_dir, *run_dir.parent.glob(f"{run_dir.name}.seed*")]:    # a trial's other seeds too
+            settle_interrupted(stopped, wait=0)
         if multirun:
             with contextlib.suppress(WriteError):
                 write_sweep_summary(Path(hc.sweep.dir))
@@ -73,7 +84,9 @@ def hydra_main(cfg: DictConfig) -> dict | float:
         if info.get("status") != "complete":
             raise RunExit(Exit.FAILED)
     if cfg.get("objective"):
-        return objective_value(info, cfg.objective, float(cfg.get("objective_penalty", 1.0)))
+        trial = info.get("objective")            # over objective_seeds seeds (one seed: this run's value)
+        return trial["mean"] if trial else objective_value(info, cfg.objective, float(cfg.get("objective_penalty",
+                                                                                                  1.0)))
     return info
 
 
@@ -136,6 +149,8 @@ def main() -> None:
                   f"enkf.Q.xi= or a matrix as enkf.Q.matrix={value} (a scalar, n+p diagonal entries or "
                   f"a full (n+p)x(n+p) matrix)", file=sys.stderr)
             sys.exit(Exit.CONFIG)
+    # `data=FILE`: the data file of a data run, short for data.file=FILE (data is a mapping: file, holdout)
+    sys.argv = [sys.argv[0], *(data_shorthand(arg) for arg in sys.argv[1:])]
     if {"--help", "-h"} & set(sys.argv[1:]):
         text = help_text(sys.argv[1:])
         if text is not None:
@@ -157,6 +172,14 @@ def main() -> None:
             print("rdsexp: config error (reported by Hydra above)", file=sys.stderr)
             sys.exit(Exit.CONFIG)
         raise
+
+
+def data_shorthand(arg: str) -> str:
+    """`data=FILE` (or `+data=FILE`) -> `data.file=FILE`; any other argument unchanged."""
+    name, eq, value = arg.partition("=")
+    if not eq or name.lstrip("+") != "data" or value.startswith("{"):
+        return arg
+    return f"data.file={os.path.abspath(value)}"       # absolute: `rdsexp-runs verify` re-runs from anywhere
 
 
 # Hydra turns an exception of a callback into a warning and goes on: the sweep's validation
@@ -345,7 +368,7 @@ def interrupted_text() -> str:
         sweep_dir = RUNNING["sweep_dir"]
     with contextlib.suppress(OSError, WriteError):   # the count below reads what is there
         settle_interrupted(sweep_dir)
-    done = sum(_status(job) == "complete" for job in sweep_dir.iterdir() if job.is_dir())
+    done = sum(_status(job) == "complete" for job in sweep_dir.iterdir() if job.is_dir() and layout.is_job(job))
     try:
         config = OmegaConf.load(sweep_dir / layout.MULTIRUN)
         total, reuse = f" of {len(sweep_points(config))}", bool(config.get("reuse", True))

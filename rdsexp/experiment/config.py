@@ -18,9 +18,11 @@ from ..numerics.distributions import from_spec
 from ..numerics.enkf import VARIANTS, AdaptiveInflation, EnKF, check_covariance, truth_map, xi_support
 from ..numerics.modeling import COVARIANCES, mls_input
 from ..numerics.online import MEMORIES, OBSERVERS, OnlineSettings
-from ..numerics.simulation import ESTIMATES, check_estimate
+from ..numerics.simulation import ESTIMATES, Recorded, check_estimate
 from ..numerics.synthesis import METHODS, check_options
 from ..numerics.systems import AffineRandomSystem, MomentModel
+from .data import RecordedData
+from .data import load as load_data
 
 TRACKING_LEVELS = ("off", "summary", "full")
 FEEDBACK_MODES = ("none", "nominal", "auto")     # identification.feedback, or a gain F (m x n)
@@ -422,12 +424,65 @@ class Experiment:
     loop: LoopSettings
     tracking: TrackingSettings
     controller: ControllerSettings
+    data: DataSettings | None = None      # a data run: recorded (u, y) in place of the plant (plant None)
 
     def simulation(self) -> dict:
         """simulate()'s initial-state, filter and feedback-estimate arguments: q0, psi0, P0, ensemble_size,
         estimate (every loop the controller closes uses the same estimate, identification's included)."""
         f = self.filter
         return dict(q0=self.q0, psi0=f.psi0, P0=f.P0, ensemble_size=f.ensemble_size, estimate=self.loop.estimate)
+
+
+@dataclass(frozen=True)
+class DataSettings:
+    """conf `data`: the recorded data a data run identifies from (`data.RecordedData`, checked) and the
+    fraction of its paths held out for validation (the last `holdout_paths` by path id)."""
+
+    data: RecordedData
+    holdout: float
+    loops: bool = False        # data.loops: the closed and open loops simulated on the identified model
+
+    @property
+    def holdout_paths(self) -> int:
+        P = self.data.recorded.paths
+        return min(P - 1, int(math.ceil(self.holdout * P))) if self.holdout > 0 else 0
+
+    @property
+    def identification(self) -> Recorded:
+        """The recorded paths the identification uses (all but the held-out ones)."""
+        return self.data.recorded.select(slice(0, self.data.recorded.paths - self.holdout_paths))
+
+    @property
+    def holdout_data(self) -> Recorded | None:
+        h = self.holdout_paths
+        return self.data.recorded.select(slice(self.data.recorded.paths - h, None)) if h else None
+
+
+def data_file(cfg) -> str | None:
+    """data.file as an absolute path (relative to the directory rdsexp was started in), or None."""
+    value = plain(OmegaConf.select(cfg, "data.file"))
+    if value is None:
+        return None
+    if not isinstance(value, str) or not value:
+        raise ConfigError(f"data.file: {value!r} is not allowed, expected null or a file name")
+    try:
+        from hydra.utils import to_absolute_path
+        return to_absolute_path(value)
+    except (ValueError, ImportError):
+        return str(Path(value).resolve())
+
+
+def model_prior(cfg, model: AffineRandomSystem) -> AffineRandomSystem:
+    """A data run's stand-in for the plant while settings are built: the model with the prior guess of
+    its xi (model.xi, in the plant-file schema; None without one): the initial ensemble's xi, the EnKF's
+    support box and a nominal guess come from it. Nothing is simulated on it."""
+    spec = plain(OmegaConf.select(cfg, "model.xi"))
+    dist = None
+    if spec is not None:
+        with key("model.xi"):
+            dist = from_spec(spec)
+    with key("model.xi"):
+        return AffineRandomSystem(model.A, model.B, model.C, model.D, xi_dist=dist)
 
 
 # every key a plant file may hold (conf/plant/*.yaml; README "Your own system"); any other is a typo
@@ -469,6 +524,8 @@ def build(cfg) -> Experiment:
     """Validate the composed job config `cfg` (without the hydra node) and build the Experiment."""
     check_plant_keys(cfg)
     seed = _number(get(cfg, "seed"), "seed", integer=True, low=0)
+    if data_file(cfg) is not None:
+        return build_data_run(cfg, seed)
     xi = get(cfg, "plant.xi")
     with key("plant.xi"):
         xi_dist = from_spec(xi)      # {family: normal (default) | uniform | bernoulli | discrete, ...}
@@ -514,17 +571,58 @@ def build(cfg) -> Experiment:
                       design=design, loop=loop, tracking=tracking, controller=controller)
 
 
+def build_data_run(cfg, seed: int) -> Experiment:
+    """A data run's Experiment: the model group's structure (model=NAME) with its xi as the prior guess,
+    the recorded data checked against it (`data.load`: one line per defect, before any compute), no plant.
+    The plant group's system is not used; its settings lines (identification_xi, identification_covariance,
+    initial_xi, ...: the paper's plant file's method) still set the identification's method."""
+    if OmegaConf.select(cfg, "model.A") is None:
+        raise ConfigError("model: a data run needs a model with bases (model=NAME, a file of the model group with "
+                          "A, B, C, D), not the plant's own structure")
+    model, model_name = system_from(cfg, "model"), str(plain(OmegaConf.select(cfg, "model.name")) or "model")
+    reported = plain(OmegaConf.select(cfg, "model.reported"))
+    if reported is not None:
+        with key("model.reported"):
+            reported = model.check_distribution(MomentModel(mean=reported["mean"], cov=reported["cov"]))
+    prior = model_prior(cfg, model)
+    holdout = _number(get(cfg, "data.holdout"), "data.holdout", low=0, high=0.9)
+    check_objective(cfg)
+    identification = IdentificationSettings.from_config(cfg, prior)
+    filter_ = FilterSettings.from_config(cfg, model, prior, identification.xi_guess)
+    design = DesignSettings.from_config(cfg, model, reported)
+    loop = LoopSettings.from_config(cfg, model, prior)
+    tracking = TrackingSettings.from_config(cfg)
+    controller = ControllerSettings.from_config(cfg, model, loop.horizon)
+    if controller.kind == "online":
+        raise ConfigError("controller: 'online' is not allowed in a data run (there is no plant to run it on)")
+    if design.source == "reported" and reported is None:
+        raise ConfigError("gain.source: 'reported' needs model.reported")
+    K0, K1 = identification.K0, identification.K1
+    recorded = load_data(data_file(cfg), model.m, model.ny, K0 + K1 + 1)
+    settings = DataSettings(recorded, holdout, _flag(cfg, "data.loops"))
+    if settings.identification.paths < 1:
+        raise ConfigError(f"data.holdout: {holdout!r} leaves no recorded path for the identification")
+    return Experiment(plant=None, model=model, plant_name="none (recorded data)", model_name=model_name,
+                      reported=reported, reference=None, q0=np.zeros(model.n), seed=seed, filter=filter_,
+                      identification=identification, design=design, loop=loop, tracking=tracking,
+                      controller=controller, data=settings)
+
+
 # metrics a job may return as its objective (config `objective`), all minimized
 OBJECTIVES = ("lam", "rate_plant", "closed_loop_rate", "open_loop_rate", "online_rate", "closed_loop_exact_rate",
               "xi_mean_error", "xi_std_error", "xi_crps", "closed_loop_failed_fraction", "seconds")
 
 
 def check_objective(cfg) -> None:
-    """`objective` is null or one of OBJECTIVES; `objective_penalty` a finite number >= 0."""
+    """`objective` is null or one of OBJECTIVES; `objective_penalty` a finite number >= 0; `objective_seeds` a
+    whole number >= 1."""
     objective = OmegaConf.select(cfg, "objective")
     if objective is not None and objective not in OBJECTIVES:
         raise ConfigError(f"objective: {objective!r} is not allowed, expected null or one of {', '.join(OBJECTIVES)}")
     _number(OmegaConf.select(cfg, "objective_penalty", default=1.0), "objective_penalty", low=0)
+    seeds = OmegaConf.select(cfg, "objective_seeds", default=1)
+    if isinstance(seeds, bool) or not isinstance(seeds, int) or seeds < 1:
+        raise ConfigError(f"objective_seeds: {seeds!r} is not allowed, expected a whole number >= 1")
 
 
 def _method_and_options(cfg, group: str) -> tuple[str, dict]:
@@ -660,7 +758,10 @@ def _identification_feedback(cfg, plant: AffineRandomSystem) -> tuple[str, np.nd
                           f"{', '.join(FEEDBACK_MODES)} or a gain [[...]] of shape (m, n) = {(plant.m, plant.n)}")
     guess = plain(OmegaConf.select(cfg, "identification.xi_guess"))
     with key("identification.xi_guess"):
-        xi_guess = plant.check_distribution(None).mean if guess is None else np.asarray(guess, dtype=float)
+        if guess is None and plant.xi_dist is None:     # a data run's model without a prior xi
+            xi_guess = np.zeros(plant.p)
+        else:
+            xi_guess = plant.check_distribution(None).mean if guess is None else np.asarray(guess, dtype=float)
         if xi_guess.shape != (plant.p,) or not np.all(np.isfinite(xi_guess)):
             raise ValueError(f"{guess!r} is not allowed, expected null or p = {plant.p} finite numbers "
                              "(the plant file's xi)")
@@ -669,7 +770,7 @@ def _identification_feedback(cfg, plant: AffineRandomSystem) -> tuple[str, np.nd
 
 # ------------------------------------------------------------------------- strict overrides
 GROUPS = ("plant", "model", "enkf", "identification", "gain", "closed_loop", "tracking")
-TOP_LEVEL = ("seed", "reuse", "cache", "objective", "objective_penalty")
+TOP_LEVEL = ("seed", "reuse", "cache", "objective", "objective_penalty", "data")
 # keys `build` reads with a default when the group's file does not set them: `+key=value` may add them
 OPTIONAL_KEYS = ("plant.name", "plant.C", "plant.D", "plant.q0", "plant.poles", "plant.reference",
                  "plant.identification_feedback", "plant.identification_covariance", "plant.identification_xi",

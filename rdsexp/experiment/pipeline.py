@@ -8,14 +8,11 @@ loop at rest (2,); inside each, path j has its own plant and EnKF streams.
 """
 from __future__ import annotations
 
-import copy
 import dataclasses
-import hashlib
-import json
 import logging
 import sys
 import time
-from contextlib import contextmanager
+from contextlib import closing, contextmanager
 from dataclasses import dataclass, field
 from functools import partial
 
@@ -27,16 +24,16 @@ from tqdm.contrib.logging import logging_redirect_tqdm
 from ..errors import ConfigError, StageError, WriteError, one_line
 from ..numerics import observer_loop
 from ..numerics.analysis import empirical_rate_sq, exact_costs, ms_rate, rms_band, second_moments
-from ..numerics.distributions import expected_crps
-from ..numerics.enkf import truth_map
-from ..numerics.modeling import model_distribution, moment_draws, nominal_gain
+from ..numerics.distributions import ensemble_crps, expected_crps, interval_hits
+from ..numerics.enkf import sqrtm_psd, truth_map
+from ..numerics.modeling import model_distribution, moment_draws, nominal_gain, path_moment_draws
 from ..numerics.online import OnlineController, moment_factors, rates
-from ..numerics.simulation import Trajectories, simulate
+from ..numerics.simulation import Trajectories, bytes_per_path, path_generators, simulate
 from ..numerics.synthesis import SynthesisResult, synthesize
 from ..numerics.systems import MomentModel
 from ..numerics.verdict import FAILURES, Floor, judge_loop, place_window, rate_interval, window_start
 from .config import Experiment
-from .montecarlo import LoopSummary, chunk_starts, run_chunks
+from .montecarlo import MEMORY_BUDGET, LoopSummary, chunk_starts, run_chunks
 
 log = logging.getLogger("rdsexp")
 # the online loop shares the closed loop's seeds: the same plant samples and EnKF noise, a paired comparison
@@ -75,6 +72,61 @@ def timed(timings: dict, stage: str):
     log.info("%s done in %.3f s", stage, timings[stage])
 
 
+class Stages:
+    """The one wrapper every stage of a run goes through (docs/design.md: the two levels of reuse).
+
+    `timed(name)`: the stage's seconds into `timings[name]` and rdsexp.log; an unexpected exception
+    inside becomes a StageError naming the innermost stage. `cached(name, compute, **inputs)`: a
+    stage computed from exactly `inputs` (numerics objects, arrays, seeds: their digest is the key)
+    is taken from the stage cache when it holds that key (this process's memory, then the store's
+    entries), else computed and stored there; `streamed` is the same for a stage whose value is a
+    sequence of parts (a loop's chunks), stored part by part as they are computed.
+
+    cache: a store.stages.StageCache (a store's, or `StageCache.in_process()`), or None: every stage
+    is computed (`rdsexp-runs verify`)."""
+
+    def __init__(self, cache=None):
+        self.cache = cache
+        self.timings: dict = {}
+
+    def timed(self, name: str):
+        return timed(self.timings, name)
+
+    def cached(self, name: str, compute, *, label: str | None = None, **inputs) -> tuple[object, bool]:
+        """(the stage's value, whether it was reused rather than computed in this run)."""
+        if self.cache is None:
+            return compute(), False
+        key = self.cache.key(name, **inputs)
+        value = self.cache.load(name, key, label or name)
+        if value is not None:
+            return value, True
+        value = compute()
+        self.cache.save(name, key, value)
+        return value, False
+
+    def streamed(self, name: str, compute, *, label: str | None = None, **inputs):
+        """(an iterator of the stage's parts, whether they are reused); computed parts are stored as they
+        are consumed, the entry committed when the last one is, dropped if the consumer stops early."""
+        if self.cache is None:
+            return compute(), False
+        key = self.cache.key(name, **inputs)
+        stored = self.cache.load_parts(name, key, label or name)
+        if stored is not None:
+            return stored, True
+        return self._storing(self.cache.writer(name, key), compute()), False
+
+    @staticmethod
+    def _storing(writer, parts):
+        try:
+            for part in parts:
+                writer.add(part)
+                yield part
+        except BaseException:         # an error, Ctrl-C or a consumer that closed the iterator
+            writer.abort()
+            raise
+        writer.commit()
+
+
 @contextmanager
 def console_to_tqdm():
     """Console log records through tqdm.write (they do not break a progress bar), at the console
@@ -102,38 +154,33 @@ def run_experiment(exp: Experiment, sink=None, cache=None) -> Outcome:
     chunk (store.files.ParquetSink writes them as they come); without a sink they are collected and
     returned in Outcome.tables with the others.
 
-    cache: a stage cache (store.stages.StageCache) or None (compute everything, as `verify` does).
-    With one, a stage whose inputs equal those of a stored entry is loaded from it instead of
-    computed, and a computed one is stored: identification with modeling (keyed by the plant, model,
-    EnKF, identification settings, initial state and seed), each design (model, moments, method,
-    options) and the open loop (what `simulate` reads: plant, the loop's observer with the moments it
-    draws xi from, disturbance, initial state, seed, chunks of paths; not the gain). Tables and
-    summary are the same either way. Not with tracking level full (every loop's members)."""
-    if cache is not None and exp.tracking.level == "full":
-        cache = None
-    timings, summary = {}, {}
+    cache: a stage cache (store.stages.StageCache: a store's, or this process's memory only) or None
+    (compute everything, as `verify` does). Every stage runs through `Stages`: a cached stage whose
+    inputs equal those of a stored entry is loaded from it instead of computed, and a computed one is
+    stored: identification with modeling (keyed by the plant, model, EnKF, identification settings,
+    initial state and seed), each design (model, moments, method, options) and the open loop (what
+    `simulate` reads: plant, the loop's observer with the moments it draws xi from, disturbance,
+    initial state, seed, chunks of paths; not the gain). Tables and summary are the same either way.
+    Tracking level full (every loop's members) keeps nothing in the store, only in this process."""
+    if exp.data is not None:
+        return run_on_data(exp, sink, cache)
+    if cache is not None and cache.dir is not None and exp.tracking.level == "full":
+        cache = type(cache).in_process()
+    stages, summary = Stages(cache), {}
+    timings = stages.timings
     root = lambda stage: np.random.SeedSequence(exp.seed, spawn_key=SPAWN_KEYS[stage])
     sim = exp.simulation()
     keep = exp.tracking.level == "full"
 
-    stored = None
-    if cache is not None:
-        key = cache.key("identification", plant=exp.plant, model=exp.model, filter=exp.filter,
-                        identification=exp.identification, simulation=sim, seed=root("identification"),
-                        keep_members=keep)
-        stored = cache.load("identification", key)
-    if stored is not None:
-        with timed(timings, "identification"):
-            ident, dist, failure = stored["ident"], stored["dist"], stored["failure"]
-            summary.update(stored["summary"])
-    else:
-        ident, dist, failure = identify_and_model(exp, timings, summary, root("identification"), sim, keep)
-        if cache is not None:
-            cache.save("identification", key, {"ident": ident, "dist": dist, "failure": failure,
-                                               "summary": {k: summary[k] for k in IDENTIFICATION_SUMMARY
-                                                           if k in summary}})
+    with stages.timed("identification"):      # with modeling (iterated identification runs the EnKF again)
+        identified, _ = stages.cached(
+            "identification", partial(identify_and_model, exp, stages, root("identification"), sim, keep),
+            plant=exp.plant, model=exp.model, filter=exp.filter, identification=exp.identification,
+            simulation=sim, seed=root("identification"), keep_members=keep)
+    ident, dist = identified["ident"], identified["dist"]
+    summary.update(identified["summary"])
     draws = moment_uncertainty(exp, ident, summary) if dist is not None else None
-    with timed(timings, "synthesis"):
+    with stages.timed("synthesis"):
         # the loop's method and the comparison designs (gain.designs) on the identified moments (the
         # selected one with its configured options) and, when the config gives them, on the moments a
         # paper reports; a design that cannot be applied or fails is a status in the gains table, never
@@ -141,10 +188,7 @@ def run_experiment(exp: Experiment, sink=None, cache=None) -> Outcome:
         designs = {}
         for source, moments in (("identified", dist), ("reported", exp.reported)):
             for method in exp.design.methods if moments is not None else ():
-                options = exp.design.options_by_method[method]
-                designs[source, method] = (moments, safe_synthesize(exp.model, moments, method, options,
-                                                                    exp.design.lmi_max_n, cache=cache,
-                                                                    label=f"synthesis/{source}/{method}"))
+                designs[source, method] = (moments, configured_design(stages, exp, moments, method, source))
         selected = (exp.design.source, exp.design.method)
         if exp.design.source == "fixed":      # a given F (e.g. a paper's own gain): no design, its exact rate
             selected, moments = ("fixed", "fixed"), dist if dist is not None else exp.reported
@@ -158,9 +202,8 @@ def run_experiment(exp: Experiment, sink=None, cache=None) -> Outcome:
             # loop uses gain.fallback, designed on the same moments, and the summary says so
             moments = designs[selected][0]
             if (selected[0], fallback) not in designs:
-                designs[selected[0], fallback] = (moments, safe_synthesize(
-                    exp.model, moments, fallback, exp.design.options_by_method[fallback], exp.design.lmi_max_n,
-                    cache=cache, label=f"synthesis/{selected[0]}/{fallback}"))
+                designs[selected[0], fallback] = (moments, configured_design(stages, exp, moments, fallback,
+                                                                             selected[0]))
             summary["gain_fallback"] = {"method": fallback, "instead_of": selected[1],
                                         "because": chosen.info.get("reason", chosen.status)}
             selected = (selected[0], fallback)
@@ -184,27 +227,18 @@ def run_experiment(exp: Experiment, sink=None, cache=None) -> Outcome:
         settings = dict(d=exp.loop.disturbance, filter_sees_d=exp.loop.filter_sees_disturbance, **sim)
         runs = [("closed_loop", chosen.F)] + ([("open_loop", None)] if exp.loop.open_loop else [])
         for name, F in runs:
-            with timed(timings, name):
+            with stages.timed(name):
                 bar, _ = _progress(name.replace("_", " "), exp.loop.paths * exp.loop.disturbance.shape[0])
                 parts = []
-                with bar, console_to_tqdm():
-                    chunks, writer = loop_chunks(exp, name, dict(settings, F=F, seed=root(name)), observer, keep,
-                                                 bar.update, cache if name in CACHED_LOOPS else None)
-                    try:
-                        for first, tr in chunks:
-                            if writer is not None:
-                                writer.add({"first": first, "trajectories": tr})
-                            rows = trajectory_table(name, tr, first, d_columns=carries_d(exp))
-                            if exp.controller.kind == "online":     # the gain in use, as in the online rows
-                                rows = with_gains(rows, np.zeros((exp.model.m, exp.model.n)) if F is None else F)
-                            parts.append(stream_chunk(exp, name, tr, first, rows, sink, sample, sample_members))
-                            tr = rows = None                    # free the chunk before the next
-                    except BaseException:
-                        if writer is not None:
-                            writer.abort()
-                        raise
-                    if writer is not None:
-                        writer.commit()
+                chunks = loop_chunks(exp, name, dict(settings, F=F, seed=root(name)), observer, keep, bar.update,
+                                     stages if name in CACHED_LOOPS else Stages(cache=None))
+                with bar, console_to_tqdm(), closing(chunks):
+                    for first, tr in chunks:
+                        rows = trajectory_table(name, tr, first, d_columns=carries_d(exp))
+                        if exp.controller.kind == "online":     # the gain in use, as in the online rows
+                            rows = with_gains(rows, np.zeros((exp.model.m, exp.model.n)) if F is None else F)
+                        parts.append(stream_chunk(exp, name, tr, first, rows, sink, sample, sample_members))
+                        tr = rows = None                    # free the chunk before the next
                 loops[name] = LoopSummary.concat(parts)
     if not loops:                              # no gain to simulate: the table's columns, no rows
         rows = trajectory_table("closed_loop", None, exp=exp)
@@ -213,17 +247,17 @@ def run_experiment(exp: Experiment, sink=None, cache=None) -> Outcome:
         sink.append("trajectories", rows)
     floor = None
     if "closed_loop" in loops and exp.loop.floor_paths > 0:
-        with timed(timings, "noise_floor"):
+        with stages.timed("noise_floor"):
             floor = noise_floor(exp, observer, chosen.F, root("noise_floor"), sim)
 
     online = None
     if exp.controller.kind == "online":
-        with timed(timings, "online"):
+        with stages.timed("online"):
             online, summary["online_initial"] = online_loop(exp, root("online"), keep, sim, sink, sample,
                                                             sample_members)
             loops["online"] = online[0]
 
-    with timed(timings, "metrics"):
+    with stages.timed("metrics"):
         exact = exact_table(exp, chosen)
         window = rate_window(exp, exact, floor, loops.get("closed_loop"))
         tables = {
@@ -241,7 +275,7 @@ def run_experiment(exp: Experiment, sink=None, cache=None) -> Outcome:
         if isinstance(sink, MemorySink):
             tables |= sink.tables()
     if online is not None:
-        add_online_tables(exp, tables, online, chosen, summary)
+        add_online_tables(exp, stages, tables, online, chosen, summary)
     summary.update(_summary(exp, dist, chosen, tables))
     if "gain_fallback" in summary:                      # the method whose gain the loop uses
         summary["gain_method"] = summary["gain_fallback"]["method"]
@@ -255,34 +289,31 @@ def run_experiment(exp: Experiment, sink=None, cache=None) -> Outcome:
                    recorded_members=recorded_members, squares={name: loop.sq for name, loop in loops.items()})
 
 
-# what the identification and modeling stages put in the run summary (and the stage cache stores)
-IDENTIFICATION_SUMMARY = ("identification_feedback", "identification_passes", "modeling_status",
-                          "modeling_covariance")
-
-
-def identify_and_model(exp: Experiment, timings: dict, summary: dict, seed, sim: dict, keep: bool):
-    """The identification run(s) and the moments they model: (the Trajectories the moments come from,
-    MomentModel or None, why not); the decisions go into `summary` (IDENTIFICATION_SUMMARY)."""
-    with timed(timings, "identification"):
-        F_id, info = identification_feedback(exp)
-        # the identification input is added on top of the feedback; the EnKF is told the applied input
-        total = exp.identification.covariance == "total"
-        identify = lambda F, enkf=exp.filter.enkf: simulate(
-            exp.plant, enkf, F=F, d=exp.identification.input, paths=1, seed=seed,
-            filter_sees_d=True, keep_members=keep, keep_xi_cov=total, **sim)
-        ident = identify(F_id)
-        if info.get("used") == "open_loop" and ident.failure[0] in ("diverged", "filter_diverged"):
-            # auto chose the open loop on the guess, which knows no spread of xi (the spread only raises
-            # the mean-square rate): the plant grew until it, or first the EnKF's estimate of it, diverged
-            # (random plants: 3 of 200 open-loop mean-square unstable plants stable at their mean),
-            # so identify again under nominal feedback
-            F_id, retry = identification_feedback(exp, force_nominal=True)
-            if F_id is not None:
-                info = retry | {"open_loop_diverged_at": int(ident.failed_at[0]),
-                                "open_loop_failure": str(ident.failure[0])}
-                ident = identify(F_id)
-        summary["identification_feedback"] = info
-    with timed(timings, "modeling"):
+def identify_and_model(exp: Experiment, stages: Stages, seed, sim: dict, keep: bool) -> dict:
+    """The identification run(s) and the moments they model: {"ident": the Trajectories the moments
+    come from, "dist": MomentModel or None, "failure": why not, "summary": the decisions that go into
+    the run summary (identification_feedback, identification_passes, modeling_status and _covariance)},
+    the identification stage's value (the stage cache stores it whole)."""
+    summary = {}
+    F_id, info = identification_feedback(exp)
+    # the identification input is added on top of the feedback; the EnKF is told the applied input
+    total = exp.identification.covariance == "total"
+    identify = lambda F, enkf=exp.filter.enkf: simulate(
+        exp.plant, enkf, F=F, d=exp.identification.input, paths=1, seed=seed,
+        filter_sees_d=True, keep_members=keep, keep_xi_cov=total, **sim)
+    ident = identify(F_id)
+    if info.get("used") == "open_loop" and ident.failure[0] in ("diverged", "filter_diverged"):
+        # auto chose the open loop on the guess, which knows no spread of xi (the spread only raises
+        # the mean-square rate): the plant grew until it, or first the EnKF's estimate of it, diverged
+        # (random plants: 3 of 200 open-loop mean-square unstable plants stable at their mean),
+        # so identify again under nominal feedback
+        F_id, retry = identification_feedback(exp, force_nominal=True)
+        if F_id is not None:
+            info = retry | {"open_loop_diverged_at": int(ident.failed_at[0]),
+                            "open_loop_failure": str(ident.failure[0])}
+            ident = identify(F_id)
+    summary["identification_feedback"] = info
+    with stages.timed("modeling"):
         dist, failure = identified_moments(exp, ident)
         if exp.identification.xi_model == "iterated" and exp.model.p:     # (nothing to iterate without xi)
             ident, dist, failure, summary["identification_passes"] = iterate_identification(
@@ -292,33 +323,27 @@ def identify_and_model(exp: Experiment, timings: dict, summary: dict, seed, sim:
         summary["modeling_status"] = failure or ("unsettled" if unsettled else "ok")
         if dist is not None:
             summary["modeling_covariance"] = exp.identification.covariance
-    return ident, dist, failure
+    return {"ident": ident, "dist": dist, "failure": failure, "summary": summary}
 
 
 CACHED_LOOPS = ("open_loop",)      # loops the stage cache keeps: the open loop does not depend on the gain, so
                                    # every design of a seed shares it; a closed loop is its run's own
 
 
-def loop_chunks(exp: Experiment, name: str, settings: dict, observer, keep: bool, progress, cache=None):
-    """((first path, Trajectories) of the loop's chunks in path order, an EntryWriter or None): from the
-    stage cache when it holds the loop (keyed by exactly what `simulate` reads: the plant, the
-    observer, the settings with gain, disturbance, initial state and seed, and the chunks of paths),
-    else simulated (`run_chunks`), with a writer that stores them when there is a cache."""
-    if cache is None:
-        return ((first, tr) for first, tr, _ in run_chunks(exp, settings, keep_members=keep, enkf=observer,
-                                                           workers=exp.loop.workers, progress=progress)), None
-    starts = chunk_starts(exp, keep_members=keep)
-    key = cache.key(name, plant=exp.plant, observer=observer, settings=settings, chunks=starts, keep_members=keep)
-    stored = cache.load_parts(name, key)
-    if stored is not None:
-        steps = exp.loop.disturbance.shape[0]
-        def replay():
-            for part in stored:
+def loop_chunks(exp: Experiment, name: str, settings: dict, observer, keep: bool, progress, stages: Stages):
+    """(first path, Trajectories) of the loop's chunks in path order: a stage keyed by exactly what
+    `simulate` reads (the plant, the observer, the settings with gain, disturbance, initial state and
+    seed, and the chunks of paths), simulated (`run_chunks`) or replayed from the stage cache."""
+    simulated = lambda: ({"first": first, "trajectories": tr} for first, tr, _ in run_chunks(
+        exp, settings, keep_members=keep, enkf=observer, workers=exp.loop.workers, progress=progress))
+    parts, reused = stages.streamed(name, simulated, plant=exp.plant, observer=observer, settings=settings,
+                                    chunks=chunk_starts(exp, keep_members=keep), keep_members=keep)
+    steps = exp.loop.disturbance.shape[0]
+    with closing(parts):
+        for part in parts:
+            if reused:
                 progress(part["trajectories"].q.shape[1] * steps)
-                yield part["first"], part["trajectories"]
-        return replay(), None
-    chunks, _ = loop_chunks(exp, name, settings, observer, keep, progress)
-    return chunks, cache.writer(name, key)
+            yield part["first"], part["trajectories"]
 
 
 def stream_chunk(exp: Experiment, name: str, tr: Trajectories, first: int, rows: pd.DataFrame, sink,
@@ -401,7 +426,7 @@ def gain_columns(F: np.ndarray) -> dict[str, np.ndarray]:
     return {f"F[{i},{j}]": F[:, i, j] for i in range(F.shape[1]) for j in range(F.shape[2])}
 
 
-def add_online_tables(exp: Experiment, tables: dict, online, chosen, summary: dict) -> None:
+def add_online_tables(exp: Experiment, stages: Stages, tables: dict, online, chosen, summary: dict) -> None:
     """The `controller` table (every decision), per-path and summary metrics of the online loop
     against the offline design of the same seed and the optimum on the true plant.
 
@@ -453,7 +478,7 @@ def add_online_tables(exp: Experiment, tables: dict, online, chosen, summary: di
     # the optimal rate on the true plant: the better of Theorem 2's bisection and policy iteration
     # (policy iteration from F = 0 can stall on an open-loop unstable plant)
     truth = exp.plant.check_distribution(None)
-    optimum = min((safe_synthesize(exp.plant, truth, method, {}, exp.design.lmi_max_n)
+    optimum = min((design(stages, exp.plant, truth, method, {}, exp.design.lmi_max_n, f"synthesis/plant/{method}")
                    for method in ("proposed", "policy_iteration")),
                   key=lambda res: res.lam if np.isfinite(res.lam) else np.inf)
     offline = safe_rate(exp.plant, None, chosen.F) if chosen is not None and chosen.F is not None else np.nan
@@ -476,28 +501,39 @@ def add_online_tables(exp: Experiment, tables: dict, online, chosen, summary: di
     summary["online"] = {k: (None if not np.isfinite(v) else float(v)) for k, v in online_metrics.items()}
 
 
-# designs computed in this process, by what they are computed from: the jobs of a sweep that share a
-# model, moments and options (every job's reported moments; the identified ones of jobs that differ
-# only after identification) design once. Synthesis is deterministic, so the tables are the same.
-# Each with (stage cache directory, run) that stored it there or it was loaded from (None: no cache).
-_DESIGNS: dict[str, tuple[SynthesisResult, tuple[str, str] | None]] = {}
-_DESIGNS_KEPT = 256
-
-
 LMI_METHODS = ("proposed", "nominal_lmi", "robust_box")      # designs that solve semidefinite programs
 
 
-def safe_synthesize(model, moments, method: str, options: dict, lmi_max_n: int | None = None, *,
-                    cache=None, label: str | None = None) -> SynthesisResult:
+def design(stages: Stages, model, moments: MomentModel, method: str, options: dict, lmi_max_n: int | None,
+           label: str) -> SynthesisResult:
+    """The design stage: `method` with `options` on `moments`, from the stage cache when a design with the
+    same model bases, moments, method and options is there (the jobs of a sweep that share them design
+    once; a reused design reports seconds 0: no time spent in this run), else `safe_synthesize`.
+    Synthesis is deterministic, so the tables are the same. label: the design in run.json's stage_keys."""
+    res, reused = stages.cached("synthesis", partial(safe_synthesize, model, moments, method, options, lmi_max_n),
+                                label=label, A=model.A, B=model.B, C=model.C, D=model.D, mean=moments.mean,
+                                cov=moments.cov, method=method, options=options, lmi_max_n=lmi_max_n)
+    if reused:
+        if res.status.startswith("failed"):
+            log.warning("design %s %s", method, res.status)
+        res.seconds = 0.0
+    return res
+
+
+def configured_design(stages: Stages, exp: Experiment, moments: MomentModel, method: str,
+                      source: str) -> SynthesisResult:
+    """`design` of `method` with its configured options on the moments from `source` (identified | reported)."""
+    return design(stages, exp.model, moments, method, exp.design.options_by_method[method], exp.design.lmi_max_n,
+                  f"synthesis/{source}/{method}")
+
+
+def safe_synthesize(model, moments, method: str, options: dict, lmi_max_n: int | None = None) -> SynthesisResult:
     """`synthesize`, with every way a design can fail on this system as a status, never an exception.
 
     not_applicable: pole placement without poles in the config, or an LMI design (LMI_METHODS) on a
     system with more than `lmi_max_n` states (config gain.lmi_max_n: its SDPs would run for hours, the
     SDP-free designs do not). failed: <reason>: the method raised
-    (e.g. a Riccati equation without a solution) or returned a gain that is not finite. A design
-    this process computed before from the same model, moments, method and options is reused (a
-    copy, with seconds 0: no time spent in this run), and so is one the stage cache holds (`cache`,
-    stage "synthesis"; `label` names the design in run.json's stages_reused)."""
+    (e.g. a Riccati equation without a solution) or returned a gain that is not finite."""
     if method == "pole_placement" and options.get("poles") is None:
         return SynthesisResult(method, None, float("nan"), "not_applicable", nbar=0,
                                info={"reason": "no poles in the config (plant.poles or gain.options.poles)"})
@@ -505,28 +541,6 @@ def safe_synthesize(model, moments, method: str, options: dict, lmi_max_n: int |
         return SynthesisResult(method, None, float("nan"), "not_applicable", nbar=0,
                                info={"reason": f"n = {model.n} > gain.lmi_max_n = {lmi_max_n}: an SDP of this size "
                                                f"runs for hours; policy_iteration and ms_lqr need none"})
-    key = _design_key(model, moments, method, options)
-    stage_key = cache.key("synthesis", design=key) if cache is not None else None
-    label = label or f"synthesis/{method}"
-    if key in _DESIGNS:
-        res, origin = copy.deepcopy(_DESIGNS[key][0]), _DESIGNS[key][1]
-        log.info("design %s: reused the identical design computed earlier in this process", method)
-        if cache is not None and origin is not None and origin[0] == str(cache.dir):
-            # stored in (or loaded from) this store's stage cache by a run of this process
-            cache.note(label, "synthesis", stage_key, origin[1] if origin[1] != cache.run else None)
-        elif cache is not None:                 # computed without this store's cache: store it there
-            cache.note(label, "synthesis", stage_key, None)
-            cache.save("synthesis", stage_key, res)
-            _remember(key, res, (str(cache.dir), cache.run))
-    else:
-        res = cache.load("synthesis", stage_key, label) if cache is not None else None
-        if res is not None:
-            _remember(key, res, (str(cache.dir), cache.reused[label]["run"]))
-    if res is not None:
-        if res.status.startswith("failed"):
-            log.warning("design %s %s", method, res.status)
-        res.seconds = 0.0
-        return res
     start = time.perf_counter()
     try:
         with np.errstate(all="ignore"):
@@ -537,27 +551,7 @@ def safe_synthesize(model, moments, method: str, options: dict, lmi_max_n: int |
     if res.F is not None and not np.all(np.isfinite(res.F)):
         res = SynthesisResult(method, None, float("nan"), "failed: the gain is not finite", nbar=res.nbar)
     res.seconds = res.seconds or time.perf_counter() - start
-    if cache is not None:
-        cache.save("synthesis", stage_key, res)
-    _remember(key, res, (str(cache.dir), cache.run) if cache is not None else None)
     return res
-
-
-def _remember(key: str, res: SynthesisResult, origin: tuple[str, str] | None) -> None:
-    """Keep a copy of a design in this process (_DESIGNS), the oldest dropped beyond _DESIGNS_KEPT."""
-    if len(_DESIGNS) >= _DESIGNS_KEPT:
-        _DESIGNS.pop(next(iter(_DESIGNS)))
-    _DESIGNS[key] = (copy.deepcopy(res), origin)
-
-
-def _design_key(model, moments, method: str, options: dict) -> str:
-    """What a design is computed from: the model's basis matrices, the moments, method and options."""
-    h = hashlib.sha256(f"{method}\n{json.dumps(options, sort_keys=True, default=repr)}".encode())
-    for array in (model.A, model.B, model.C, model.D, moments.mean, moments.cov):
-        array = np.ascontiguousarray(array, dtype=float)
-        h.update(f"{array.shape}".encode())
-        h.update(array.tobytes())
-    return h.hexdigest()
 
 
 UNCERTAINTY_STREAM = 3   # SeedSequence([seed, 3]): the modeling window's bootstrap (stages use spawn keys 0-2)
@@ -568,15 +562,37 @@ PASS_TOL = 1e-3        # iterated identification: stop when the moments move les
 
 def identified_moments(exp: Experiment, ident: Trajectories) -> tuple[MomentModel | None, str]:
     """The moments modeled from an identification run's xi_{k|k} over the window K0..K0+K1
-    (identification.covariance), or (None, why not)."""
-    xi = ident.xi(ident.psi_filt_mean)[:, 0]
+    (identification.covariance), or (None, why not). Several recorded paths: the paths whose EnKF
+    estimate failed are left out (`usable_paths`; the summary says how many), unless every one failed."""
+    xi = ident.xi(ident.psi_filt_mean)                  # (K+1, P, p): one path simulated, or the recorded paths
     K0, K1 = exp.identification.K0, exp.identification.K1
+    ok = usable_paths(exp, ident)
+    if xi.shape[1] > 1 and ok.any() and not ok.all():
+        ident = select_paths(ident, ok)
+        xi = xi[:, ok]
     if ident.status != "ok" or not np.all(np.isfinite(xi[K0:K0 + K1 + 1])):
-        reason = ident.failure[0] or "the filtered xi is not finite"
-        k_fail = ident.failed_at[0] if ident.failed_at[0] >= 0 else "window"
-        return None, f"identification failed at k = {k_fail}: {FAILURES.get(reason, reason)}"
+        bad = np.flatnonzero((ident.failed_at >= 0) | ~np.all(np.isfinite(xi[K0:K0 + K1 + 1]), axis=(0, 2)))[0]
+        reason = ident.failure[bad] or "the filtered xi is not finite"
+        k_fail = ident.failed_at[bad] if ident.failed_at[bad] >= 0 else "window"
+        where = f" (path {bad})" if xi.shape[1] > 1 else ""
+        return None, f"identification failed at k = {k_fail}{where}: {FAILURES.get(reason, reason)}"
     total = exp.identification.covariance == "total"
-    return model_distribution(xi, K0, K1, ident.xi_filt_cov[:, 0] if total else None), ""
+    # the paths' windows pooled (model_distribution): one path's moments bit for bit as before
+    return model_distribution(xi, K0, K1, ident.xi_filt_cov if total else None), ""
+
+
+def usable_paths(exp: Experiment, ident: Trajectories) -> np.ndarray:
+    """(P,) bool: the identification paths that did not fail and whose filtered xi is finite over the window."""
+    K0, K1 = exp.identification.K0, exp.identification.K1
+    xi = ident.xi(ident.psi_filt_mean)[K0:K0 + K1 + 1]
+    return (ident.failed_at < 0) & np.all(np.isfinite(xi), axis=(0, 2))
+
+
+def select_paths(tr: Trajectories, keep: np.ndarray) -> Trajectories:
+    """The paths `keep` ((P,) bool) of tr (path axis 1 of the (K+1, P, ...) arrays, 0 of the per-path ones)."""
+    pick = lambda name, v: None if v is None else (v[keep] if name in ("failed_at", "failure") else v[:, keep])
+    return Trajectories(**{f.name: tr.n if f.name == "n" else pick(f.name, getattr(tr, f.name))
+                           for f in dataclasses.fields(Trajectories)})
 
 
 def iterate_identification(exp: Experiment, identify, ident, dist, failure: str, psi0: np.ndarray):
@@ -619,11 +635,20 @@ def moment_uncertainty(exp: Experiment, ident: Trajectories, summary: dict) -> t
     if not settings.resamples or not exp.model.p:
         return None
     total = settings.covariance == "total"
-    mean, cov = moment_draws(ident.xi(ident.psi_filt_mean)[:, 0], settings.K0, settings.K1,
-                             ident.xi_filt_cov[:, 0] if total else None, resamples=settings.resamples,
-                             block=settings.block, seed=[exp.seed, UNCERTAINTY_STREAM])
+    ok = usable_paths(exp, ident)
+    if ident.failed_at.size > 1 and ok.any() and not ok.all():        # recorded paths whose estimate failed
+        ident = select_paths(ident, ok)
+    xi, xi_cov = ident.xi(ident.psi_filt_mean), ident.xi_filt_cov if total else None
+    if xi.shape[1] > 1:             # several (recorded) paths: a bootstrap over the paths
+        mean, cov = path_moment_draws(xi, settings.K0, settings.K1, xi_cov, resamples=settings.resamples,
+                                      seed=[exp.seed, UNCERTAINTY_STREAM])
+    else:
+        mean, cov = moment_draws(xi[:, 0], settings.K0, settings.K1, None if xi_cov is None else xi_cov[:, 0],
+                                 resamples=settings.resamples, block=settings.block,
+                                 seed=[exp.seed, UNCERTAINTY_STREAM])
     std = np.sqrt(np.clip(np.diagonal(cov, axis1=1, axis2=2), 0, None))
     summary["modeling_uncertainty"] = {"resamples": settings.resamples, "block": settings.block,
+                                       "over": "paths" if xi.shape[1] > 1 else "window blocks",
                                        "xi_mean_sd": mean.std(axis=0, ddof=1).tolist(),
                                        "xi_std_sd": std.std(axis=0, ddof=1).tolist()}
     return mean, cov
@@ -783,7 +808,7 @@ def gains_table(exp: Experiment, designs: dict, selected: tuple[str, str]) -> pd
                      "status": res.status, "lam": res.lam, "lam_lower": res.lam_lower,
                      "nbar": res.nbar,
                      "rate_model": safe_rate(exp.model, moments, F) if found and moments is not None else np.nan,
-                     "rate_plant": safe_rate(exp.plant, None, F) if found else np.nan,
+                     "rate_plant": safe_rate(exp.plant, None, F) if found and exp.plant is not None else np.nan,
                      **performance(exp, moments, F if found and moments is not None else None),
                      "lam_box": res.info.get("lam_box", np.nan),
                      "lam_box_lower": res.info.get("lam_box_lower", np.nan),
@@ -807,7 +832,10 @@ def performance(exp: Experiment, moments, F) -> dict:
     keys = ("lq_cost_q0_plant", "lq_cost_plant", "h2_plant", "lq_cost_model", "h2_model")
     if F is None or not np.all(np.isfinite(F)):
         return dict.fromkeys(keys, np.nan)
-    plant, model = exact_costs(exp.plant, None, F, exp.q0), exact_costs(exp.model, moments, F)
+    model = exact_costs(exp.model, moments, F)
+    if exp.plant is None:                       # a data run: no true plant, no number on it
+        return dict.fromkeys(keys[:3], np.nan) | {"lq_cost_model": model["lq_cost"], "h2_model": model["h2"]}
+    plant = exact_costs(exp.plant, None, F, exp.q0)
     return {"lq_cost_q0_plant": plant["lq_cost_x0"], "lq_cost_plant": plant["lq_cost"], "h2_plant": plant["h2"],
             "lq_cost_model": model["lq_cost"], "h2_model": model["h2"]}
 
@@ -1008,3 +1036,274 @@ def loop_through_outputs(exp: Experiment, chosen, s: dict) -> dict | None:
     return {"rate": found.rate, "kalman_rate": found.kalman_rate, "estimate": exp.loop.estimate}
 
 
+
+
+# ------------------------------------------------------------------------------------ data runs
+DATA_TABLES = ("identification", "paths", "model", "gains", "metrics", "exact", "trajectories")
+
+
+def identify_recorded(exp: Experiment, recorded, seed, sim: dict, keep: bool, enkf=None,
+                      keep_forecast: bool = False) -> Trajectories:
+    """The identification EnKF run on recorded (u, y) (`simulate(recorded=...)`): batched over the recorded
+    paths, path j with the EnKF stream j of the identification's seed and the initial ensemble of a
+    simulated identification, so that a run's own record gives its estimates bit for bit. In chunks of
+    paths within the Monte Carlo's memory budget (`montecarlo.MEMORY_BUDGET`; every path has its own streams,
+    so the chunks change nothing), joined along the path axis."""
+    total = exp.identification.covariance == "total"
+    enkf = enkf or exp.filter.enkf
+    per_path = bytes_per_path(exp.model, enkf, ensemble_size=exp.filter.ensemble_size, horizon=recorded.steps - 1,
+                              keep_members=keep, block=16)
+    per_path += 8 * recorded.steps * exp.filter.ensemble_size * exp.model.ny if keep_forecast else 0
+    size = int(max(1, MEMORY_BUDGET // (3 * per_path)))
+    parts = [simulate(None, enkf, d=np.zeros((recorded.steps, exp.model.m)), paths=min(size, recorded.paths - first),
+                      first_path=first, seed=seed, filter_sees_d=True, keep_members=keep, keep_xi_cov=total,
+                      keep_forecast=keep_forecast, recorded=recorded.select(slice(first, first + size)),
+                      **dict(sim, q0=np.zeros(exp.model.n)))
+             for first in range(0, recorded.paths, size)]
+    return parts[0] if len(parts) == 1 else join_paths(parts)
+
+
+def join_paths(parts: list[Trajectories]) -> Trajectories:
+    """Trajectories of consecutive chunks of paths as one (path axis 1 of the (K+1, P, ...) arrays, 0 of the
+    per-path ones)."""
+    def join(name):
+        values = [getattr(part, name) for part in parts]
+        if values[0] is None:
+            return None
+        return np.concatenate(values, axis=0 if name in ("failed_at", "failure") else 1)
+    return Trajectories(**{f.name: parts[0].n if f.name == "n" else join(f.name)
+                           for f in dataclasses.fields(Trajectories)})
+
+
+def run_on_data(exp: Experiment, sink=None, cache=None) -> Outcome:
+    """A data run (exp.data): identification on the recorded paths (all but the held-out ones), the moments
+    over the window with their uncertainty (a bootstrap over the recorded paths, or over blocks of the window
+    for one path), the loop's gain and gain.designs on them, each with its exact rate on the identified model
+    and its spread over the moments' draws. There is no plant: no loop is simulated and no number claims one.
+    Iterated identification (identification.xi_model: iterated) re-filters the same recorded data with each
+    pass's prior: the record does not change between passes (a simulated open-loop identification's would not
+    either; one under feedback would, and a data run cannot reproduce that). cache: as `run_experiment`'s (the
+    designs only: the recorded identification is the data file's own)."""
+    stages, summary = Stages(cache), {}
+    timings = stages.timings
+    seed = np.random.SeedSequence(exp.seed, spawn_key=SPAWN_KEYS["identification"])
+    sim, keep = exp.simulation(), exp.tracking.level == "full"
+    data = exp.data
+    with stages.timed("identification"):
+        identify = partial(identify_recorded, exp, data.identification, seed, sim, keep)
+        ident = identify()
+        summary["identification_feedback"] = {"mode": "recorded", "used": "the recorded inputs"}
+    with stages.timed("modeling"):
+        dist, failure = identified_moments(exp, ident)
+        if exp.identification.xi_model == "iterated" and exp.model.p:
+            ident, dist, failure, summary["identification_passes"] = iterate_identification(
+                exp, lambda enkf: identify(enkf=enkf), ident, dist, failure, sim["psi0"])
+        passes = summary.get("identification_passes") or {}
+        unsettled = dist is not None and passes.get("passes") and not passes.get("converged")
+        summary["modeling_status"] = failure or ("unsettled" if unsettled else "ok")
+        if dist is not None:
+            summary["modeling_covariance"] = exp.identification.covariance
+    draws = moment_uncertainty(exp, ident, summary) if dist is not None else None
+    with stages.timed("synthesis"):
+        designs = {}
+        for source, moments in (("identified", dist), ("reported", exp.reported)):
+            for method in exp.design.methods if moments is not None else ():
+                designs[source, method] = (moments, configured_design(stages, exp, moments, method, source))
+        selected = (exp.design.source, exp.design.method)
+        if exp.design.source == "fixed":
+            moments = dist if dist is not None else exp.reported
+            rate = ms_rate(exp.model, moments, exp.design.F) if moments is not None else np.nan
+            designs[("fixed", "fixed")] = (moments, SynthesisResult("fixed", exp.design.F, rate, "fixed", nbar=0))
+            selected = ("fixed", "fixed")
+        chosen = designs.get(selected, (None, None))[1]
+    with stages.timed("metrics"):
+        gains = gains_table(exp, designs, selected)
+        spread = design_spread(exp, designs, draws)
+        for column in ("rate_model_median", "rate_model_q05", "rate_model_q95", "rate_model_worst"):
+            gains[column] = [spread.get((row.distribution, row.method), {}).get(column, np.nan)
+                             for row in gains.itertuples()]
+        tables = {"identification": trajectory_table("identification", ident),
+                  "paths": path_table({"identification": LoopSummary.of(ident, exp)}),
+                  "model": model_table(exp, dist), "gains": gains,
+                  "metrics": pd.DataFrame(columns=list(METRIC_COLUMNS)),
+                  "exact": pd.DataFrame({"experiment": pd.Series(dtype=str), "k": pd.Series(dtype=np.int64),
+                                         "rms": pd.Series(dtype=float)})}
+    if exp.data.holdout_data is not None and dist is not None:
+        with stages.timed("validation"):
+            tables["validation"], summary["validation"] = validate_holdout(exp, dist, sim)
+    sink = MemorySink() if sink is None else sink
+    sample = []
+    if exp.data.loops and chosen is not None and chosen.F is not None and dist is not None:
+        with stages.timed("loops_on_model"):
+            summary["loops_on_model"] = loops_on_model(exp, dist, chosen, tables, sink, sample)
+    else:
+        sink.append("trajectories", trajectory_table("closed_loop", None, exp=exp))
+    if isinstance(sink, MemorySink):
+        tables |= sink.tables()
+    summary.update(data_summary(exp, dist, chosen, designs, spread, ident))
+    bad = ~usable_paths(exp, ident)
+    if bad.any() and dist is not None:       # modeled without them (`identified_moments`)
+        reasons = pd.Series(ident.failure[bad]).replace("", "the filtered xi is not finite").value_counts()
+        summary["identification_failed_paths"] = {"count": int(bad.sum()), "of": int(bad.size),
+                                                  "reasons": {str(r): int(c) for r, c in reasons.items()}}
+    recorded = pd.concat([tables["identification"], *sample], ignore_index=True)
+    return Outcome(tables=tables, summary=summary, timings=timings, recorded=recorded,
+                   recorded_members=members_table("identification", ident) if keep else None, squares={})
+
+
+def design_spread(exp: Experiment, designs: dict, draws) -> dict:
+    """Per design with a gain: its exact rate on the identified model at every draw of the moments
+    (`moment_uncertainty`): median, 5% and 95% quantiles and worst; {} without draws."""
+    if draws is None:
+        return {}
+    Abar, Bbar = moment_factors(exp.model, *draws)
+    out = {}
+    for (source, method), (_, res) in designs.items():
+        if source != "identified" or res.F is None:
+            continue
+        with np.errstate(all="ignore"):
+            r = rates(Abar, Bbar, np.broadcast_to(res.F, (len(Abar),) + res.F.shape))
+        q = np.nanpercentile(r, [5, 50, 95]) if np.isfinite(r).any() else [np.nan] * 3
+        out[source, method] = {"rate_model_q05": float(q[0]), "rate_model_median": float(q[1]),
+                               "rate_model_q95": float(q[2]), "rate_model_worst": float(np.max(r)),
+                               "draws": int(len(r))}
+    return out
+
+
+def data_summary(exp: Experiment, dist, chosen, designs: dict, spread: dict, ident: Trajectories) -> dict:
+    """A data run's key numbers: the data file, the modeled moments, and each design's exact rate on the
+    identified model with its spread over the moments' draws. Nothing here is a number on a true plant."""
+    info = exp.data.data.info
+    s = {"plant": None, "model": exp.model_name, "gain_method": exp.design.method,
+         "data": {"name": info["name"], "sha256": info["sha256"], "rows": info["rows"], "paths": info["paths"],
+                  "steps": info["steps"], "identification_paths": int(ident.failed_at.size),
+                  "holdout_paths": exp.data.holdout_paths},
+         "no_plant": "a data run: every rate is exact on the identified model; there is no true plant"}
+    if dist is not None:
+        s.update(nbar=int(exp.model.Gbar(dist).shape[0]), xi_mean=dist.mean.tolist(),
+                 xi_std=np.sqrt(np.diag(dist.cov)).tolist())
+    if chosen is not None:
+        s.update(synthesis_status=chosen.status, lam=chosen.lam,
+                 rate_model=safe_rate(exp.model, dist, chosen.F) if chosen.F is not None and dist is not None
+                 else None)
+    s["designs"] = {method: res.status for (source, method), (_, res) in designs.items() if source == "identified"}
+    s["design_rates"] = {method: {"status": res.status,
+                                  "rate_model": safe_rate(exp.model, dist, res.F) if res.F is not None else None,
+                                  **spread.get((source, method), {})}
+                         for (source, method), (_, res) in designs.items() if source == "identified"}
+    return s
+
+
+VALIDATION_KEY = (4,)          # SeedSequence(seed, spawn_key=(4,)): the held-out paths' EnKF (stages use 0-2)
+VALIDATION_LEVELS = (0.5, 0.9)  # central intervals whose coverage is reported
+VALIDATION_COLUMNS = ("law", "output", "crps", "coverage_50", "coverage_90", "steps", "paths")
+
+
+def validate_holdout(exp: Experiment, dist: MomentModel, sim: dict) -> tuple[pd.DataFrame, dict]:
+    """The modeled law on the held-out recorded paths (data.holdout), against the nominal model.
+
+    For each law of xi, the EnKF runs on the held-out (u, y) with its predicted xi drawn i.i.d. from it
+    (`EnKF.xi_prior`): `modeled`, the identified moments; `nominal`, xi fixed at their mean (zero covariance).
+    The one-step-ahead predictive ensemble of y_k is every member's predicted output from psi_{k|k-1} plus
+    output noise N(0, R) (the EnKF's R: the noise the model assumes), the same noise draws for both laws and
+    the same EnKF streams (a paired comparison). Scored for k = max(K0, 1)..K (after the identification's
+    warm-up) on every held-out path and output: CRPS (mean; lower is better) and the fraction of y_k inside
+    the ensemble's central 50% and 90% intervals (calibrated: 0.5 and 0.9). Returns (the `validation`
+    table: one row per law and output, and `all`, the mean over outputs; the summary's entry)."""
+    held = exp.data.holdout_data
+    seed = np.random.SeedSequence(exp.seed, spawn_key=VALIDATION_KEY)
+    noise_seed = np.random.SeedSequence(seed.entropy, spawn_key=seed.spawn_key + (2,))   # per path: chunk-free
+    k_from = max(exp.identification.K0, 1)
+    enkf = exp.filter.enkf
+    steps, P, ny, M = held.steps - k_from, held.paths, exp.model.ny, exp.filter.ensemble_size
+    R_sqrt = sqrtm_psd(enkf.R)
+    # chunks of held-out paths within the memory budget, scored as they come: sums per output of the CRPS and
+    # of the hits, and the count of finite (step, path) pairs
+    per_path = bytes_per_path(exp.model, enkf, ensemble_size=M, horizon=held.steps - 1) + 8 * 4 * held.steps * M * ny
+    size = int(max(1, MEMORY_BUDGET // (3 * per_path)))
+    laws = {"modeled": dist, "nominal": MomentModel(mean=dist.mean, cov=np.zeros_like(dist.cov))}
+    rows, summary = [], {"paths": P, "k_from": k_from, "k_to": held.steps - 1, "levels": list(VALIDATION_LEVELS)}
+    for law, moments in laws.items():
+        observer = dataclasses.replace(enkf, xi_prior=moments)
+        sums = np.zeros((2 + len(VALIDATION_LEVELS), ny))      # crps, hits per level, count
+        failed = 0
+        for first in range(0, P, size):
+            count = min(size, P - first)
+            part = held.select(slice(first, first + count))
+            tr = simulate(None, observer, d=np.zeros((held.steps, exp.model.m)), paths=count, first_path=first,
+                          seed=seed, filter_sees_d=True, recorded=part, keep_forecast=True,
+                          **dict(sim, q0=np.zeros(exp.model.n)))
+            v = np.stack([g.standard_normal((steps, M, ny)) for g in path_generators(noise_seed, 0,
+                                                                                     range(first, first + count))],
+                         axis=1) @ R_sqrt.T                                          # (T, count, M, ny)
+            members = np.moveaxis(tr.y_forecast[k_from:] + v, 2, -1)                 # (T, count, ny, M)
+            finite = np.all(np.isfinite(members), axis=-1)
+            y = part.y[k_from:]
+            with np.errstate(invalid="ignore"):
+                sums[0] += np.where(finite, ensemble_crps(np.nan_to_num(members), y), 0.0).sum(axis=(0, 1))
+                for j, level in enumerate(VALIDATION_LEVELS):
+                    sums[1 + j] += (finite & interval_hits(np.nan_to_num(members), y, level)).sum(axis=(0, 1))
+            sums[-1] += finite.sum(axis=(0, 1))
+            failed += int(np.sum(tr.failed_at >= 0))
+        with np.errstate(invalid="ignore"):
+            means = sums[:-1] / sums[-1]
+            total = sums[:-1].sum(axis=1) / sums[-1].sum()
+        for i in [*range(ny), "all"]:
+            value = means[:, i] if i != "all" else total
+            rows.append({"law": law, "output": str(i), "crps": float(value[0]),
+                         **{f"coverage_{round(100 * lv)}": float(value[1 + j])
+                            for j, lv in enumerate(VALIDATION_LEVELS)}, "steps": steps, "paths": P})
+        summary[law] = {k: rows[-1][k] for k in ("crps", "coverage_50", "coverage_90")}
+        summary[law]["failed_paths"] = failed
+    better = summary["modeled"]["crps"] < summary["nominal"]["crps"]
+    summary["crps_gain"] = summary["nominal"]["crps"] - summary["modeled"]["crps"]
+    summary["modeled_better"] = bool(better)
+    return pd.DataFrame(rows, columns=list(VALIDATION_COLUMNS)), summary
+
+
+ON_MODEL = "_on_model"       # a data run's loops are named closed_loop_on_model, open_loop_on_model everywhere
+ON_MODEL_LABEL = "simulated on the model, not the plant"
+
+
+def model_system(exp: Experiment, dist: MomentModel):
+    """The identified model as a system to simulate: the model's bases with xi ~ N(mean, cov) of the identified
+    moments (a Gaussian law of those moments: the moments are all a data run knows of xi)."""
+    from ..numerics.distributions import from_spec
+    from ..numerics.systems import AffineRandomSystem
+    law = from_spec({"family": "normal", "mean": dist.mean.tolist(), "cov": dist.cov.tolist()})
+    return AffineRandomSystem(exp.model.A, exp.model.B, exp.model.C, exp.model.D, xi_dist=law)
+
+
+def loops_on_model(exp: Experiment, dist: MomentModel, chosen: SynthesisResult, tables: dict, sink,
+                   sample: list) -> dict:
+    """data.loops: the closed loop (and, with closed_loop.open_loop, the open loop) of the loop's gain with the
+    EnKF observer, simulated on the identified model (`model_system`, q0 = ones) exactly as a run simulates them
+    on a plant (same seeds, chunks, noise floor, rate window and verdicts), named closed_loop_on_model and
+    open_loop_on_model in every table and labelled so in the summary: they are evidence about the model, not
+    about the system the data came from. Adds the metrics and exact tables (renamed); returns the summary entry."""
+    sexp = dataclasses.replace(exp, plant=model_system(exp, dist), q0=np.ones(exp.model.n), data=None)
+    root = lambda stage: np.random.SeedSequence(exp.seed, spawn_key=SPAWN_KEYS[stage])
+    sim = sexp.simulation()
+    observer = loop_observer(sexp, dist)
+    settings = dict(d=exp.loop.disturbance, filter_sees_d=exp.loop.filter_sees_disturbance, **sim)
+    loops = {}
+    for name, F in [("closed_loop", chosen.F)] + ([("open_loop", None)] if exp.loop.open_loop else []):
+        parts = []
+        for first, tr, _ in run_chunks(sexp, dict(settings, F=F, seed=root(name)), keep_members=False,
+                                       enkf=observer, workers=exp.loop.workers):
+            rows = trajectory_table(name + ON_MODEL, tr, first)
+            parts.append(stream_chunk(sexp, name, tr, first, rows, sink, sample, []))
+        loops[name] = LoopSummary.concat(parts)
+    floor = noise_floor(sexp, observer, chosen.F, root("noise_floor"), sim) if exp.loop.floor_paths > 0 else None
+    exact = exact_table(sexp, chosen)
+    window = rate_window(sexp, exact, floor, loops.get("closed_loop"))
+    metrics = metrics_table(sexp, loops, window, floor, exact)
+    rename = lambda frame: frame.assign(experiment=frame["experiment"] + ON_MODEL)
+    tables["metrics"], tables["exact"] = rename(metrics), rename(exact)
+    tables["paths"] = pd.concat([tables["paths"], rename(path_table(loops))], ignore_index=True)
+    out = {"label": ON_MODEL_LABEL, "rate_window": list(window.k), "xi_law": "normal (the identified moments)"}
+    for row in metrics.itertuples():
+        out[row.experiment + ON_MODEL] = {"verdict": row.verdict, "verdict_reason": row.verdict_reason,
+                                          "rate": [row.rate, row.rate_low, row.rate_high],
+                                          "exact_rate": row.exact_rate, "failed_fraction": row.failed_fraction}
+    return out

@@ -396,9 +396,44 @@ def _fmt(v) -> str:
     return str(v)
 
 
+def _data_report(tables: dict[str, pd.DataFrame], s: dict) -> str:
+    """A data run's report: the data file, the moments, each design's exact rate on the identified model with
+    its spread over the moments' draws, and the held-out validation. No number here is about a plant."""
+    d = s["data"]
+    lines = [f"# data {d['name']} / model {s.get('model', '')}", "",
+             f"- data: sha256 {d['sha256'][:12]}, {d['rows']} rows, {d['paths']} paths x {d['steps']} steps "
+             f"({d['identification_paths']} identify, {d['holdout_paths']} held out); **no plant**: every rate is "
+             f"exact on the identified model",
+             f"- modeling: **{s.get('modeling_status', 'n/a')}**"
+             + (f", xi mean {np.round(s['xi_mean'], 4).tolist()}, std {np.round(s['xi_std'], 4).tolist()}"
+                if "xi_mean" in s else ""),
+             "", "## Designs on the identified model", "",
+             "| method | status | rate on model | median over draws | 5% | 95% | worst |",
+             "|---|---|---|---|---|---|---|"]
+    for method, r in (s.get("design_rates") or {}).items():
+        lines.append(f"| {method} | {r['status']} | {_fmt(r.get('rate_model'))} | {_fmt(r.get('rate_model_median'))} "
+                     f"| {_fmt(r.get('rate_model_q05'))} | {_fmt(r.get('rate_model_q95'))} | "
+                     f"{_fmt(r.get('rate_model_worst'))} |")
+    for name, r in (s.get("loops_on_model") or {}).items():
+        if isinstance(r, dict):
+            lines.append(f"- {name.replace('_', ' ')} (**{s['loops_on_model']['label']}**): **{r['verdict']}**, rate "
+                         f"{_fmt(r['rate'][0])} [{_fmt(r['rate'][1])}, {_fmt(r['rate'][2])}] over k = "
+                         f"{s['loops_on_model']['rate_window']}, ideal loop on the model {_fmt(r['exact_rate'])}")
+    if "validation" in tables:
+        v = tables["validation"]
+        lines += ["", f"## Validation on held-out paths (y one step ahead, k = {s['validation']['k_from']}.."
+                      f"{s['validation']['k_to']})", "", "| law | output | CRPS | coverage 50% | coverage 90% |",
+                  "|---|---|---|---|---|"]
+        lines += [f"| {r.law} | {r.output} | {_fmt(r.crps)} | {_fmt(r.coverage_50)} | {_fmt(r.coverage_90)} |"
+                  for r in v.itertuples()]
+    return "\n".join(lines) + "\n"
+
+
 def report_markdown(tables: dict[str, pd.DataFrame], summary: dict) -> str:
     """The run's gain, statuses and key metrics as a markdown document."""
     s = summary
+    if s.get("data"):                  # a data run: no plant, every rate on the identified model
+        return _data_report(tables, s)
     lines = [f"# {s.get('plant', 'plant')} / model {s.get('model', '')}", "",
              f"- modeling: **{s.get('modeling_status', 'n/a')}**"
              + (f", xi mean {np.round(s['xi_mean'], 4).tolist()}, nbar {s.get('nbar')}" if "xi_mean" in s else ""),

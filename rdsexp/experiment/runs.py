@@ -115,6 +115,33 @@ def load(run, table: str, long: bool = False, root=DEFAULT_ROOT) -> pd.DataFrame
     return out[[*order, "quantity", "index", "value"]]       # column by column, as melted
 
 
+def export_data(run, out, root=DEFAULT_ROOT) -> tuple[int, str]:
+    """`rdsexp-runs export --data RUN --out FILE`: the run's identification inputs and outputs (u_k, y_k of
+    every identification path) in the data format (long form CSV or parquet: path, k, u[i], y[i]; `data.py`),
+    the file a data run (`rdsexp data=FILE model=NAME`) identifies from. Returns (rows written, a note).
+
+    The identification table holds the run's last identification pass: for an open-loop identification
+    every pass filters the same plant outputs, so the file replays each of them; under feedback
+    (identification.feedback nominal or a gain) the input of each pass depended on that pass's estimates,
+    and the file holds the last pass's record only (a data run re-filters it, it cannot re-run the plant)."""
+    from .data import write
+    frame = load(run, "identification", root=root)
+    feedback = ((Run(Path(run["dir"]) if isinstance(run, pd.Series) else locate(str(run), Path(root)))
+                 .info.get("summary") or {}).get("identification_feedback") or {})
+    m = sum(1 for c in frame.columns if c.startswith("u["))
+    ny = sum(1 for c in frame.columns if c.startswith("y["))
+    frame = frame.sort_values(["path", "k"], kind="stable")
+    ids = frame["path"].unique()
+    steps = int(frame["k"].max()) + 1
+    shape = lambda cols: frame[cols].to_numpy(dtype=float).reshape(len(ids), steps, len(cols)).transpose(1, 0, 2)
+    rows = write(out, shape([f"u[{i}]" for i in range(m)]), shape([f"y[{i}]" for i in range(ny)]), ids)
+    used = feedback.get("used") or feedback.get("mode") or "open_loop"
+    note = "open-loop identification: the file replays it exactly" if str(used).startswith(
+        ("open_loop", "none", "recorded", "the recorded")) or feedback.get("mode") == "none" else \
+        f"identification under feedback ({used}): the file holds the last pass's inputs and outputs"
+    return rows, note
+
+
 def locate(run: str, root: Path = DEFAULT_ROOT) -> Path:
     """A run directory from a path or an id; LookupError with one line if there is none."""
     return RunStore(root).locate(run)
@@ -288,7 +315,12 @@ def verify(run_dir: Path) -> tuple[bool, list[str]]:
     code = provenance.code_version()["version"]
     if code != (info.get("code") or {}).get("version"):
         lines.append(f"note: the run was made with code {(info.get('code') or {}).get('version')}, this is {code}")
-    outcome = run_experiment(build(cfg))
+    exp = build(cfg)
+    recorded_data = info.get("data")
+    if recorded_data and exp.data is not None and exp.data.data.sha256 != recorded_data.get("sha256"):
+        return False, [*lines, f"verify: the data file {exp.data.data.file} has changed since the run (sha256 "
+                               f"{exp.data.data.sha256[:12]}, the run's {str(recorded_data.get('sha256'))[:12]})"]
+    outcome = run_experiment(exp)
     ok = not damaged
     for name in (info.get("tables") or {}):
         fresh = outcome.tables.get(name)

@@ -75,6 +75,23 @@ COLUMNS: dict[str, dict[str, tuple[str, str | None]]] = {
         "min_infeasible_width": ("robust_box with find_max_width: smallest width proven infeasible (NaN otherwise)",
                                  None),
         "F[i,j]": ("gain entry (row i = input, column j = state), u = F x; NaN without a gain", None),
+        "rate_model_median": ("a data run: median exact rate of F over the draws of the identified moments", "1/step"),
+        "rate_model_q05": ("a data run: 5% quantile of F's exact rate over the moments' draws", "1/step"),
+        "rate_model_q95": ("a data run: 95% quantile of F's exact rate over the moments' draws", "1/step"),
+        "rate_model_worst": ("a data run: the largest exact rate of F over the moments' draws", "1/step"),
+    },
+    "validation": {
+        "law": ("the law of xi the EnKF draws from: modeled (the identified moments) or nominal (xi at their "
+                "mean)", None),
+        "output": ("the output component i of y, or all (the mean over components)", None),
+        "crps": ("mean CRPS of the one-step-ahead predictive ensemble of y_k on the held-out paths (lower is "
+                 "better)", "output"),
+        "coverage_50": ("fraction of held-out y_k inside the ensemble's central 50% interval (calibrated: 0.5)",
+                        None),
+        "coverage_90": ("fraction of held-out y_k inside the ensemble's central 90% interval (calibrated: 0.9)",
+                        None),
+        "steps": ("steps scored per path (k = max(K0, 1)..K)", None),
+        "paths": ("held-out recorded paths", None),
     },
     "metrics": {
         "experiment": _TRAJECTORY["experiment"],
@@ -203,6 +220,18 @@ SUMMARY: dict[str, tuple[str, str | None]] = {
     "online_initial": ("the online controller's initial gain and where it came from", None),
     "online": ("the online controller's key numbers (adoptions, final gains' exact rates, ...)", None),
     "reference": ("the paper's reported numbers for this experiment, where it is the paper's", None),
+    "data": ("a data run's data file: name, sha256, rows, paths, steps, identification and held-out paths", None),
+    "no_plant": ("a data run: there is no true plant; every rate is exact on the identified model", None),
+    "rate_model": ("a data run: the exact mean-square rate of the loop's gain on the identified moments", "1/step"),
+    "design_rates": ("a data run: every design's status, exact rate on the identified moments and its spread over "
+                     "the moments' draws (median, 5%, 95%, worst)", "1/step"),
+    "identification_failed_paths": ("a data run: recorded paths whose EnKF estimate failed, left out of the "
+                                    "modeling: count, of how many, reasons", None),
+    "loops_on_model": ("a data run with data.loops: the closed and open loops simulated on the identified model "
+                       "(xi ~ N of its moments), labelled 'simulated on the model, not the plant': rate window, "
+                       "verdict, rate with its interval, the ideal loop's exact rate on the model", "1/step"),
+    "validation": ("a data run with data.holdout: CRPS and 50%/90% coverage of the one-step-ahead predictive "
+                   "distribution of y on the held-out paths, modeled law against the nominal model", None),
 }
 LOOPS = ("closed_loop", "open_loop", "online")
 

@@ -27,6 +27,11 @@ def summary_text(info: dict, run_dir: Path) -> str:
         if info.get("reused_from") else "")]
     if s.get("plant"):                    # a run that failed before its summary has none
         lines.append(f"  plant {s['plant']}, model {s.get('model')}")
+    elif s.get("data"):                   # a data run: the recorded data in place of a plant
+        d = s["data"]
+        lines.append(f"  data {d['name']} (sha256 {d['sha256'][:12]}, {d['rows']} rows, {d['paths']} paths x "
+                     f"{d['steps']} steps; {d['identification_paths']} identify, {d['holdout_paths']} held out), "
+                     f"model {s.get('model')}; no plant: every rate below is exact on the identified model")
     if info.get("error"):
         lines.append(f"  failed: {info['error']} (traceback in run.json and rdsexp.log)")
     ident = s.get("identification_feedback") or {}
@@ -42,6 +47,10 @@ def summary_text(info: dict, run_dir: Path) -> str:
             if unstable(ident.get("rate_plant")):
                 line += " (it does not stabilize the true plant in mean square)"
         lines.append(line)
+    if s.get("identification_failed_paths"):          # a data run: paths left out of the modeling
+        f = s["identification_failed_paths"]
+        lines.append(f"  {f['count']} of {f['of']} recorded paths left out of the modeling (their EnKF estimate "
+                     f"failed: " + ", ".join(f"{r} {c}" for r, c in f["reasons"].items()) + ")")
     vec = lambda v: np.round(v, 4).tolist()
     passes = s.get("identification_passes")
     if passes:
@@ -80,9 +89,18 @@ def summary_text(info: dict, run_dir: Path) -> str:
                      f"{c['designed_median']:.4f}, {c['identification_median']:.4f})")
     if s.get("modeling_uncertainty"):
         u = s["modeling_uncertainty"]
-        lines.append(f"    modeled moments' spread over {u['resamples']} block-bootstrap draws of the window: xi mean "
+        over = "bootstrap draws of the recorded paths" if u.get("over") == "paths" else \
+            "block-bootstrap draws of the window"
+        lines.append(f"    modeled moments' spread over {u['resamples']} {over}: xi mean "
                      f"sd {np.round(u['xi_mean_sd'], 4).tolist()}, xi std sd {np.round(u['xi_std_sd'], 4).tolist()}")
-    if s.get("synthesis_status") is not None:
+    if s.get("design_rates"):          # a data run: each design on the identified model, over the moments' draws
+        for method, r in s["design_rates"].items():
+            line = f"  design {method}: {r['status']}, exact rate on the identified model {fmt(r.get('rate_model'))}"
+            if r.get("draws"):
+                line += (f" (over {r['draws']} draws of the moments: median {fmt(r['rate_model_median'])}, 5-95% "
+                         f"{fmt(r['rate_model_q05'])}-{fmt(r['rate_model_q95'])}, worst {fmt(r['rate_model_worst'])})")
+            lines.append(line)
+    elif s.get("data") is None and s.get("synthesis_status") is not None:
         lines.append(f"  gain {s.get('gain_method')}: {s.get('synthesis_status')}, lambda {fmt(s.get('lam'))}"
                      f"{beside('lam')}, exact rate on the true plant {fmt(s.get('rate_plant'))}")
         if s.get("rate_plant") is None:
@@ -94,9 +112,22 @@ def summary_text(info: dict, run_dir: Path) -> str:
         elif unstable(s.get("rate_plant")):
             lines.append(f"  the gain does not stabilize the true plant: its exact rate there is "
                          f"{fmt(s.get('rate_plant'))} >= 1")
+    if s.get("validation"):            # a data run's held-out paths: the modeled law against the nominal model
+        v = s["validation"]
+        law = lambda name: (f"{name} CRPS {v[name]['crps']:.4g}, coverage {v[name]['coverage_50']:.2f} (50%) "
+                            f"{v[name]['coverage_90']:.2f} (90%)")
+        lines.append(f"  validation on {v['paths']} held-out paths, y_k one step ahead, k={v['k_from']}..{v['k_to']}: "
+                     f"{law('modeled')}; {law('nominal')} (xi at its mean): the modeled law is "
+                     f"{'better' if v['modeled_better'] else 'not better'} by CRPS")
+    for name, r in (s.get("loops_on_model") or {}).items():      # data.loops: on the identified model
+        if isinstance(r, dict):
+            w = s["loops_on_model"]["rate_window"]
+            lines += [f"  {name.replace('_', ' ')} ({s['loops_on_model']['label']}), rate k={w[0]}..{w[1]}: "
+                      f"{interval(r['rate'])}, ideal loop on the model {fmt(r['exact_rate'])}: {r['verdict']}",
+                      f"    {r['verdict_reason']}"]
     others = {m: st for m, st in (s.get("designs") or {}).items()
               if m != s.get("gain_method") and st not in ("optimal", "designed")}
-    if others:
+    if others and not s.get("design_rates"):          # a data run lists every design above
         lines.append("  other designs: " + ", ".join(f"{m} {st}" for m, st in others.items()))
     statuses = [s["synthesis_status"]] if s.get("synthesis_status") is not None else []
     for status in dict.fromkeys(statuses + list(others.values())):     # what each status shown means

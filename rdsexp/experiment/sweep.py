@@ -3,11 +3,13 @@ jobs, and the sweep's summary table written once all have returned."""
 from __future__ import annotations
 
 import json
+import logging
 import os
 import sys
 import threading
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 import yaml
 from hydra.experimental.callback import Callback
@@ -16,9 +18,9 @@ from tqdm import tqdm
 
 from ..errors import ConfigError, Exit, RunExit, WriteError
 from .config import build, check_overrides
-from .store import RunStore, status_of, write_sweep_summary
+from .store import RunStore, layout, status_of, write_sweep_summary
 from .store.files import atomic_write_bytes
-from .store.layout import MULTIRUN, RESUMES, SUMMARY_CSV
+from .store.layout import HYDRA_CONFIG, MULTIRUN, RESUMES, SUMMARY_CSV
 from .store.table import as_text, sweep_results
 
 
@@ -59,6 +61,8 @@ class SweepProgress:
         except OSError:                   # the sweep directory is not made yet
             return
         for job in jobs:
+            if not layout.is_job(job):               # a trial's other seed, a held-out run
+                continue
             status = status_of(job)                  # None: not started, or being written
             if status not in (None, "incomplete"):
                 self.finished(job.name)
@@ -214,6 +218,10 @@ class SweepSummary(Callback):
         except WriteError as err:
             print(f"rdsexp: {err}", file=sys.stderr)
             raise RunExit(Exit.FAILED) from None
+        if not enumerable(config) and config.get("objective"):
+            for line in held_out(config, path.parent):     # the best trial again, on fresh seeds
+                print(line)
+            path = write_sweep_summary(path.parent)
         print(f"sweep summary: {path}")
         jobs = RunStore(path.parent).runs()
         if not jobs:                       # tracking=off: the jobs recorded nothing to draw
@@ -239,6 +247,62 @@ class SweepSummary(Callback):
             print(f"rdsexp: sweep {path.parent}: {failed.sum()} of {len(status)} jobs did not complete ({counts}); "
                   f"see {path.with_name(SUMMARY_CSV)}", file=sys.stderr)
             raise RunExit(Exit.FAILED)
+
+
+HELD_OUT = "heldout.json"
+
+
+def held_out(config: DictConfig, sweep_dir: Path) -> list[str]:
+    """At the end of a tuning study (an optimizing sweep with `objective`): its best trial (least mean
+    objective) re-run on as many fresh seeds as a trial averages (after every seed the study used), each a
+    run in the sweep directory (heldout.seed<s>, run.json `objective.role` heldout, the last one with their
+    mean and standard error), the result in <sweep>/heldout.json; the lines that say it, which trials are
+    within each other's standard error of the best, and the objective's exact counterpart."""
+    from .runner import at_seed, command_with, execute, objective_over
+    trials = [run for run in RunStore(sweep_dir).runs(warn=False)
+              if (run.info.get("objective") or {}).get("role") == "trial"]
+    if not trials:
+        return []
+    of = lambda run: run.info["objective"]                         # noqa: E731
+    best = min(trials, key=lambda run: of(run)["mean"])
+    name, penalty, n = of(best)["metric"], of(best)["penalty"], len(of(best)["seeds"])
+    used = [seed for run in trials for seed in of(run)["seeds"]]
+    seeds = list(range(max(used) + 1, max(used) + 1 + n))
+    cfg = OmegaConf.load(best.dir / HYDRA_CONFIG)
+    runs = []
+    for i, seed in enumerate(seeds):
+        other = at_seed(cfg, seed)
+        run_dir = sweep_dir / f"heldout.seed{seed}"
+        overrides = [o for o in best.info.get("overrides") or [] if not o.startswith("seed=")] + [f"seed={seed}"]
+        context = {"id": f"{sweep_dir.name}/{run_dir.name}", "command": command_with(best.info.get("command"),
+                                                                                       overrides),
+                   "overrides": overrides, "sweep": dict(best.info.get("sweep") or {}, job=None),
+                   "objective": {"role": "heldout", "of": best.id}}
+        last = i == len(seeds) - 1
+        amend = (lambda info: info.update(objective=objective_over(
+            name, penalty, [*runs, info], seeds, "heldout", of=best.id))) if last else None
+        logging.disable(logging.INFO)        # the stages' progress lines: the jobs' go to their logs, not here
+        try:
+            runs.append(execute(other, run_dir, context, amend))
+        finally:
+            logging.disable(logging.NOTSET)
+    result = runs[-1].get("objective") or objective_over(name, penalty, runs, seeds, "heldout", of=best.id)
+    atomic_write_bytes(sweep_dir / HELD_OUT, json.dumps(result, indent=1).encode())
+    best_ = of(best)
+    lines = [f"tuning: best trial {best.id}: {name} {best_['mean']:.4f} +- {best_['se']:.4f} (standard error over "
+             f"seeds {best_['seeds']}); held out on fresh seeds {seeds}: {result['mean']:.4f} +- {result['se']:.4f}"]
+    close = [run.id for run in trials if run is not best
+             and abs(of(run)["mean"] - best_["mean"]) <= np.nan_to_num(of(run)["se"]) + np.nan_to_num(best_["se"])]
+    lines.append(f"tuning: {len(close)} other trial(s) within one standard error of the best ({', '.join(close)}): the "
+                 f"study cannot tell them apart" if close else "tuning: no other trial is within one standard "
+                 "error of the best")
+    exact = best_.get("exact")
+    if exact:
+        spread = [of(run)["exact"]["mean"] for run in trials]
+        lines.append(f"tuning: {name} is a Monte Carlo estimate of a rate; its exact counterpart {exact['metric']} "
+                     f"(the gain's exact rate on the true plant): best trial {exact['mean']:.4f}, held out "
+                     f"{result['exact']['mean']:.4f}, over the trials {min(spread):.4f} to {max(spread):.4f}")
+    return lines
 
 
 def stage_cache_note(infos: list[dict]) -> str:

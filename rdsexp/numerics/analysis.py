@@ -406,8 +406,9 @@ def empirical_rate(q: np.ndarray, k_from: int, k_to: int, level: float = 0.95) -
     """Rate (sqrt(E||q_to||^2) / sqrt(E||q_from||^2))^(1/(k_to-k_from)) from sample paths, with a CI.
 
     q: (K+1, P, n) trajectories. The expectation is the sample mean over the P paths (as in the
-    paper, which used k = 60 -> 80); the interval is the delta-method interval for the log ratio of
-    the two correlated means. Returns (rate, low, high); NaN when a path is not finite at either step.
+    paper, which used k = 60 -> 80); the interval is the one a run's verdict uses
+    (`verdict.rate_interval`: bootstrap over paths, calibrated where a few paths carry the mean square).
+    Returns (rate, low, high); NaN when a path is not finite at either step.
     """
     return empirical_rate_sq(np.sum(q[k_from] ** 2, axis=-1), np.sum(q[k_to] ** 2, axis=-1), k_to - k_from, level)
 
@@ -415,15 +416,8 @@ def empirical_rate(q: np.ndarray, k_from: int, k_to: int, level: float = 0.95) -
 def empirical_rate_sq(b: np.ndarray, a: np.ndarray, span: int, level: float = 0.95) -> tuple[float, float, float]:
     """`empirical_rate` from the per-path ||q_{k_from}||^2 = b (P,) and ||q_{k_to}||^2 = a (P,);
     span = k_to - k_from (what a run split into chunks of paths keeps)."""
-    if not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))) or a.mean() <= 0 or b.mean() <= 0:
-        return float("nan"), float("nan"), float("nan")
-    P, span = a.size, 2.0 * span
-    log_ratio = np.log(a.mean()) - np.log(b.mean())
-    # gradient of log(mean a) - log(mean b) applied to the per-path pairs
-    g = a / a.mean() - b / b.mean()
-    se = np.std(g, ddof=1) / np.sqrt(P) if P > 1 else np.inf
-    z = ndtri(0.5 + level / 2)          # the standard normal quantile
-    return tuple(float(np.exp(v / span)) for v in (log_ratio, log_ratio - z * se, log_ratio + z * se))
+    from .verdict import rate_interval
+    return rate_interval(b, a, span, level=level)
 
 
 def rms_band(sq: np.ndarray, level: float = 0.95) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -431,8 +425,8 @@ def rms_band(sq: np.ndarray, level: float = 0.95) -> tuple[np.ndarray, np.ndarra
 
     At each k the mean is over the paths where ||q_k||^2 is finite. The interval is the delta-method
     interval of log E||q_k||^2 (the standard error of the mean over paths divided by the mean),
-    mapped back through exp and the square root: positive on a log axis, and the same construction
-    as `empirical_rate_sq`'s interval of the rate. NaN where fewer than two paths are finite."""
+    mapped back through exp and the square root: positive on a log axis. A band to draw, per step (the
+    rate's interval, `verdict.rate_interval`, is a bootstrap). NaN where fewer than two paths are finite."""
     sq = np.where(np.isfinite(sq), sq, np.nan)
     count = np.sum(np.isfinite(sq), axis=1)
     z = ndtri(0.5 + level / 2)          # the standard normal quantile

@@ -222,3 +222,22 @@ def expected_crps(mean, std, draws) -> np.ndarray:
         z = (draws - mean) / std
         gauss = std * (z * (2 * ndtr(z) - 1) + 2 * np.exp(-z ** 2 / 2) / np.sqrt(2 * np.pi)) - std / np.sqrt(np.pi)
     return np.where(std > 0, gauss, np.abs(draws - mean)).mean(axis=0)
+
+
+def ensemble_crps(members, y) -> np.ndarray:
+    """CRPS of the ensemble's empirical law against observations: members (..., M), y (...) -> (...).
+
+    CRPS = E|X - y| - E|X - X'| / 2 over the M members (Gneiting & Raftery 2007, eq. 21, the empirical
+    law itself); E|X - X'| = 2 / M^2 sum_i (2 i - M - 1) x_(i) from the sorted members, O(M log M)."""
+    x = np.sort(np.asarray(members, float), axis=-1)
+    y = np.asarray(y, float)
+    M = x.shape[-1]
+    weights = (2 * np.arange(1, M + 1) - M - 1) / M ** 2
+    return np.abs(x - y[..., None]).mean(axis=-1) - (x * weights).sum(axis=-1)
+
+
+def interval_hits(members, y, level: float) -> np.ndarray:
+    """Whether y (...) lies in the central `level` interval of the members (..., M) (their empirical
+    quantiles (1 - level) / 2 and (1 + level) / 2, linear interpolation): bool (...)."""
+    low, high = np.quantile(np.asarray(members, float), [(1 - level) / 2, (1 + level) / 2], axis=-1)
+    return (low <= y) & (y <= high)

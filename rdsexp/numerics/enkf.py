@@ -239,6 +239,15 @@ class EnKF:
         u = np.asarray(u)[..., None, :]
         return u if self.disturbance is None else u + psi[..., self.dim:]
 
+    def outputs(self, psi: np.ndarray, u: np.ndarray | None) -> np.ndarray:
+        """Each member's predicted output without noise, z^(i) = C(xi) x + D(xi) (u + d), eq. (output-pred2)
+        without v: psi (..., M, width), u (..., m) (None: D = 0) -> (..., M, ny), a new array."""
+        x, xi = self.split(psi)
+        z = np.array(affine_apply(self.model.C, xi, x))
+        if self.model.D.any() and u is not None:
+            z += affine_apply(self.model.D, xi, self.inputs(psi, u))
+        return z
+
     def predict(self, psi: np.ndarray, u: np.ndarray, e_w: np.ndarray) -> np.ndarray:
         """State prediction, eq. (state-pred2): psi_{k|k-1}^(i) = f(psi_{k-1|k-1}^(i), u_{k-1}) + w_k^(i).
 

@@ -87,11 +87,17 @@ def model_distribution(xi_filt_mean: np.ndarray, K0: int, K1: int,
     the law of total variance, Cov(xi) = Cov_k(E[xi_k | Y_k]) + E_k[Cov(xi_k | Y_k)]: eq. (sample-mean)'s
     covariance of the filtered means plus the mean filtered covariance over the window. The filtered
     mean of a per-step xi is shrunk toward its prediction wherever the outputs tell little about
-    xi_k (one output, several xi), so the first term alone underestimates the spread."""
-    model = MomentModel.from_samples(window_samples(xi_filt_mean, K0, K1))
+    xi_k (one output, several xi), so the first term alone underestimates the spread.
+
+    Several paths, xi_filt_mean (K+1, P, p) (and xi_filt_cov (K+1, P, p, p)): the window's estimates of
+    every path pooled (paths of one law of xi); P = 1 gives the one path's moments bit for bit."""
+    xi = window_samples(xi_filt_mean, K0, K1)
+    p, samples = xi.shape[-1], int(np.prod(xi.shape[:-1]))     # (not -1: p = 0, a model without xi, is allowed)
+    model = MomentModel.from_samples(xi.reshape(samples, p))
     if xi_filt_cov is None:
         return model
-    return MomentModel(mean=model.mean, cov=model.cov + window_samples(xi_filt_cov, K0, K1).mean(axis=0))
+    cov = window_samples(xi_filt_cov, K0, K1).reshape(samples, p, p)
+    return MomentModel(mean=model.mean, cov=model.cov + cov.mean(axis=0))
 
 
 def block_bootstrap_steps(T: int, resamples: int, block: int, seed) -> np.ndarray:
@@ -141,3 +147,23 @@ def nominal_gain(model, xi_guess) -> SynthesisResult:
         if result.F is not None and np.all(np.isfinite(result.F)) and result.lam < 1:
             return result
     return result
+
+
+def path_moment_draws(xi_filt_mean: np.ndarray, K0: int, K1: int, xi_filt_cov: np.ndarray | None = None, *,
+                      resamples: int, seed=0) -> tuple[np.ndarray, np.ndarray]:
+    """The modeled moments' uncertainty over P independent paths: `resamples` bootstrap resamples of
+    the paths (P drawn with replacement, each with its whole window K0..K0+K1), each modeled as in
+    `model_distribution` (pooled, 1/N), as means (B, p) and covariances (B, p, p).
+
+    xi_filt_mean (K+1, P, p); xi_filt_cov (K+1, P, p, p) or None. Paths are independent, so resampling
+    them keeps each path's correlation in k (no block length to choose). From default_rng(seed)."""
+    xi = window_samples(xi_filt_mean, K0, K1)                            # (T, P, p)
+    T, P, p = xi.shape
+    picks = np.random.default_rng(seed).integers(0, P, size=(resamples, P))
+    draws = xi[:, picks].transpose(1, 0, 2, 3).reshape(resamples, T * P, p)    # (B, T P, p)
+    mean = draws.mean(axis=1)
+    dev = draws - mean[:, None]
+    cov = np.einsum("btp,btq->bpq", dev, dev) / (T * P)
+    if xi_filt_cov is not None:
+        cov += window_samples(xi_filt_cov, K0, K1)[:, picks].mean(axis=(0, 2))
+    return mean, cov

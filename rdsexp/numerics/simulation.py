@@ -55,6 +55,8 @@ class Trajectories:
     s: the plant's coefficients (K+1, P, p_plant), s_k moving q_k to q_{k+1} (all steps drawn).
     gain_index (K+1, P): with a controller, how many gains path j had adopted before step k (0: the
     initial gain) -- the gain in use at k is that path's gain_index-th adopted one; None without.
+    y_forecast: with keep_forecast, every member's predicted output z_k^(i) from psi_{k|k-1} without output
+    noise (`EnKF.outputs`), (K+1, P, M, ny): the one-step-ahead predictive ensemble of y_k.
     d_filt_mean, d_filt_std: with the EnKF's disturbance estimate (EnKF.disturbance), the filtered
     ensemble's mean and spread of the unknown input disturbance d, (K+1, P, m); None without.
     """
@@ -75,6 +77,7 @@ class Trajectories:
     gain_index: np.ndarray | None = None
     d_filt_mean: np.ndarray | None = None
     d_filt_std: np.ndarray | None = None
+    y_forecast: np.ndarray | None = None      # (K+1, P, M, ny) members' predicted outputs (keep_forecast)
 
     @property
     def status(self) -> str:
@@ -102,21 +105,114 @@ class GainController(Protocol):
         xi from (`EnKF._predict(path_prior=...)`)."""
 
 
-def check_estimate(plant: AffineRandomSystem, model: AffineRandomSystem, estimate: str) -> None:
-    """One-line ValueError unless `estimate` (ESTIMATES) applies: "filtered" needs D = 0 in plant and model."""
+@dataclass(frozen=True)
+class Recorded:
+    """Recorded inputs and outputs of P paths over steps k = 0..K: u (K+1, P, m), y (K+1, P, ny).
+
+    In place of the plant in `simulate` (recorded=...): the EnKF is told u_k and filters y_k, exactly
+    as it is told and filters a simulated plant's, so a run replayed from its own record gives the same
+    estimates bit for bit (same per-path EnKF streams and initial ensemble)."""
+
+    u: np.ndarray
+    y: np.ndarray
+
+    def __post_init__(self):
+        u, y = np.asarray(self.u, dtype=float), np.asarray(self.y, dtype=float)
+        if u.ndim != 3 or y.ndim != 3 or u.shape[:2] != y.shape[:2]:
+            raise ValueError(f"recorded: u {u.shape} and y {y.shape}, expected (K+1, P, m) and (K+1, P, ny)")
+        if not (np.all(np.isfinite(u)) and np.all(np.isfinite(y))):
+            raise ValueError("recorded: u and y must be finite")
+        object.__setattr__(self, "u", u)
+        object.__setattr__(self, "y", y)
+
+    @property
+    def steps(self) -> int:
+        return self.u.shape[0]
+
+    @property
+    def paths(self) -> int:
+        return self.u.shape[1]
+
+    def select(self, paths) -> Recorded:
+        """The recorded paths `paths` (indices or a slice), in that order."""
+        return Recorded(self.u[:, paths], self.y[:, paths])
+
+
+class _PlantSource:
+    """The simulated plant of `simulate`: coefficients s_k drawn per path (PLANT streams), state q_k."""
+
+    def __init__(self, plant: AffineRandomSystem, q0, rngs, K: int):
+        self.s = np.stack([plant.xi_dist.sample(g, (K + 1,)) for g in rngs], axis=1)    # (K+1, P, p_plant)
+        self.A, self.B, self.C, self.D = plant.at(self.s)
+        self.q = np.broadcast_to(q0, (len(rngs), plant.n)).copy()
+
+    def stop(self, dead):
+        self.q[dead] = 0.0                     # no overflow on failed paths
+
+    def input(self, k, u):
+        return u                                 # the decided input is applied
+
+    def output(self, k, u=None):
+        y = (self.C[k] @ self.q[..., None])[..., 0]
+        return y if u is None else y + (self.D[k] @ u[..., None])[..., 0]
+
+    def advance(self, k, u):
+        self.q = (self.A[k] @ self.q[..., None])[..., 0] + (self.B[k] @ u[..., None])[..., 0]
+
+
+class _RecordedSource:
+    """Recorded (u_k, y_k) in place of the plant: no state (q is empty: nothing to diverge), the
+    recorded input replaces the decided one."""
+
+    s = None
+
+    def __init__(self, recorded: Recorded):
+        self.rec = recorded
+        self.q = np.zeros((recorded.paths, 0))
+
+    def stop(self, dead):
+        pass
+
+    def input(self, k, u):
+        return self.rec.u[k]
+
+    def output(self, k, u=None):
+        return self.rec.y[k]
+
+    def advance(self, k, u):
+        pass
+
+
+def check_estimate(plant: AffineRandomSystem | None, model: AffineRandomSystem, estimate: str) -> None:
+    """One-line ValueError unless `estimate` (ESTIMATES) applies: "filtered" needs D = 0 in plant and model
+    (plant None: recorded data, the model alone)."""
     if estimate not in ESTIMATES:
         raise ValueError(f"estimate: {estimate!r} is not allowed, expected one of {', '.join(ESTIMATES)}")
-    if estimate == "filtered" and (plant.D.any() or model.D.any()):
+    if estimate == "filtered" and ((plant is not None and plant.D.any()) or model.D.any()):
         raise ValueError("estimate: 'filtered' needs D = 0 in the plant and the model (with D, y_k depends on "
                          "u_k, which would depend on y_k); use 'predicted'")
 
 
-def check_settings(plant: AffineRandomSystem, enkf: EnKF, F, d, q0, psi0, P0, paths: int = 1,
-                   estimate: str = "predicted") -> tuple:
-    """Validate and convert the simulation inputs; one-line ValueError naming the argument."""
+def check_settings(plant: AffineRandomSystem | None, enkf: EnKF, F, d, q0, psi0, P0, paths: int = 1,
+                   estimate: str = "predicted", recorded: Recorded | None = None) -> tuple:
+    """Validate and convert the simulation inputs; one-line ValueError naming the argument.
+
+    recorded: the recorded (u, y) that replace the plant (plant None, F None, len(d) = recorded steps)."""
     model = enkf.model
     check_estimate(plant, model, estimate)
-    if plant.xi_dist is None:
+    if recorded is not None:
+        if plant is not None or F is not None:
+            raise ValueError("recorded: replaces the plant and its input: plant and F must be None")
+        if recorded.paths != paths or recorded.steps != len(d):
+            raise ValueError(f"recorded: {recorded.paths} paths x {recorded.steps} steps, expected paths = {paths} "
+                             f"x len(d) = {len(d)}")
+        if recorded.u.shape[2] != model.m or recorded.y.shape[2] != model.ny:
+            raise ValueError(f"recorded: u has {recorded.u.shape[2]} and y {recorded.y.shape[2]} columns, the "
+                             f"EnKF model's (m, ny) = {(model.m, model.ny)}")
+        plant = model                     # the state's size only (q0), no coefficients are drawn
+    elif plant is None:
+        raise ValueError("plant: None is only allowed with recorded data")
+    elif plant.xi_dist is None:
         raise ValueError("plant: needs xi_dist, the distribution its coefficients are drawn from")
     if (plant.n, plant.m, plant.ny) != (model.n, model.m, model.ny):
         raise ValueError(f"plant: (n, m, ny) = {(plant.n, plant.m, plant.ny)} does not match the "
@@ -141,10 +237,11 @@ def check_settings(plant: AffineRandomSystem, enkf: EnKF, F, d, q0, psi0, P0, pa
     return F, d, q0, psi0, P0
 
 
-def simulate(plant: AffineRandomSystem, enkf: EnKF, *, F=None, d, q0, psi0, P0=None, ensemble_size: int,
+def simulate(plant: AffineRandomSystem | None, enkf: EnKF, *, F=None, d, q0, psi0, P0=None, ensemble_size: int,
              paths: int, seed, first_path: int = 0, filter_sees_d: bool = True, keep_members: bool = False,
              keep_xi_cov: bool = False, block: int = 16, bound: float = DIVERGENCE_BOUND, progress=None,
-             controller: GainController | None = None, estimate: str = "predicted") -> Trajectories:
+             controller: GainController | None = None, estimate: str = "predicted",
+             recorded: Recorded | None = None, keep_forecast: bool = False) -> Trajectories:
     """Closed loop (open loop when F is None) of `plant` observed by `enkf`, P = `paths` sample paths.
 
     d: (K+1, m) external input added on u_k (horizon K = len(d) - 1); q0: (n,) plant initial state;
@@ -161,8 +258,14 @@ def simulate(plant: AffineRandomSystem, enkf: EnKF, *, F=None, d, q0, psi0, P0=N
     F: None (open loop), one gain (m, n) or one per path (P, m, n). controller: changes per-path
     gains between steps (`GainController.update`, called after filtering at every step k < K);
     then F is each path's initial gain and out.gain_index counts the adopted gains.
+    recorded: recorded inputs and outputs (`Recorded`, P paths x len(d) steps) in place of the plant
+    (plant None, F None, filter_sees_d True): the EnKF is told the recorded u_k and filters the recorded
+    y_k; q, s stay NaN/None. The same EnKF streams and initial ensemble as a simulated run of `seed`.
+    keep_forecast: keep every member's predicted output (Trajectories.y_forecast).
     """
-    F, d, q0, psi0, P0 = check_settings(plant, enkf, F, d, q0, psi0, P0, paths, estimate)
+    F, d, q0, psi0, P0 = check_settings(plant, enkf, F, d, q0, psi0, P0, paths, estimate, recorded)
+    if recorded is not None and not filter_sees_d:
+        raise ValueError("filter_sees_d: must be True with recorded data (the EnKF is told the recorded input)")
     M, P, K = int(ensemble_size), int(paths), d.shape[0] - 1
     if M < 2:
         raise ValueError(f"ensemble_size: {M}, must be >= 2 (the EnKF needs a sample covariance)")
@@ -177,23 +280,24 @@ def simulate(plant: AffineRandomSystem, enkf: EnKF, *, F=None, d, q0, psi0, P0=N
         psi0 = np.concatenate([psi0, np.zeros(width - dim)])
         P0 = np.block([[P0, np.zeros((dim, width - dim))], [np.zeros((width - dim, dim)), enkf.disturbance]])
 
-    plant_rngs = path_generators(seed, PLANT, range(first_path, first_path + P))
+    # the plant (its coefficients from the PLANT streams) or the recorded data: what gives (u_k, y_k)
+    source = _RecordedSource(recorded) if recorded is not None else \
+        _PlantSource(plant, q0, path_generators(seed, PLANT, range(first_path, first_path + P)), K)
     enkf_rngs = path_generators(seed, ENKF, range(first_path, first_path + P))
-    s = np.stack([plant.xi_dist.sample(g, (K + 1,)) for g in plant_rngs], axis=1)    # (K+1, P, p_plant)
-    A_s, B_s, C_s, D_s = plant.at(s)
+    n_q = model.n if recorded is not None else plant.n
     # ensembles psi_{k|k-1}, psi_{k|k} and the EnKF's scratch, reused at every step (see EnKF._predict)
     psi, filtered, work = (component_major((P, M, c)) for c in (width, width, width + ny + 1))
     psi[...] = psi0 + np.stack([g.standard_normal((M, width)) for g in enkf_rngs]) @ sqrtm_psd(P0)
 
     nan = lambda *shape: np.full((K + 1, P) + shape, np.nan)
-    out = Trajectories(q=nan(plant.n), y=nan(ny), u=nan(model.m), psi_pred_mean=nan(dim),
+    out = Trajectories(q=nan(n_q), y=nan(ny), u=nan(model.m), psi_pred_mean=nan(dim),
                        psi_pred_std=nan(dim), psi_filt_mean=nan(dim), psi_filt_std=nan(dim),
                        failed_at=np.full(P, -1), failure=np.full(P, "", dtype=object), n=model.n,
                        members=nan(M, dim) if keep_members else None,
-                       xi_filt_cov=nan(model.p, model.p) if keep_xi_cov else None, s=s,
+                       xi_filt_cov=nan(model.p, model.p) if keep_xi_cov else None, s=source.s,
                        d_filt_mean=nan(width - dim) if width > dim else None,
-                       d_filt_std=nan(width - dim) if width > dim else None)
-    q = np.broadcast_to(q0, (P, plant.n)).copy()
+                       d_filt_std=nan(width - dim) if width > dim else None,
+                       y_forecast=nan(M, ny) if keep_forecast else None)
     alive = np.ones(P, dtype=bool)
     if controller is not None:
         # per-path gains (P, m, n): the same product per path as one shared (m, n) gain, bit for bit
@@ -232,24 +336,28 @@ def simulate(plant: AffineRandomSystem, enkf: EnKF, *, F=None, d, q0, psi0, P0=N
             mean_pred = ensemble_mean(psi)                                          # eq. (state-pred1)
             # a path whose state or ensemble left the bound (or is not finite) stops here; the
             # reason says which: the plant ("diverged") or only the EnKF's estimate
-            fail(~np.all(np.abs(q) <= bound, axis=1), k, "diverged")
+            fail(~np.all(np.abs(source.q) <= bound, axis=1), k, "diverged")
             fail(~np.all(np.abs(mean_pred) <= bound, axis=1), k, "filter_diverged")
-            q[~alive], psi[~alive], mean_pred[~alive] = 0.0, 0.0, 0.0    # no overflow on failed paths
+            source.stop(~alive)
+            psi[~alive], mean_pred[~alive] = 0.0, 0.0                    # no overflow on failed paths
             if estimate == "filtered":              # D = 0: y_k first, then u_k = F x_{k|k} + d_k
-                y = (C_s[k] @ q[..., None])[..., 0]
+                y = source.output(k)
                 a = enkf._update(psi, None, y, e_v, mean_pred, out=filtered, work=work)   # D = 0: no u
                 x_hat = a.filt_mean
             else:
                 x_hat = mean_pred
             # eq. (sf-enkf) + d_k, one product per path: the rounding of a single (P, n) @ (n, m)
             # product depends on P
-            u = (F @ x_hat[:, :model.n, None])[..., 0] + d[k]
+            u = source.input(k, (F @ x_hat[:, :model.n, None])[..., 0] + d[k])
             u_filter = u if filter_sees_d else u - d[k]
             if estimate == "predicted":
-                y = (C_s[k] @ q[..., None])[..., 0] + (D_s[k] @ u[..., None])[..., 0]
+                y = source.output(k, u)
                 a = enkf._update(psi, u_filter, y, e_v, mean_pred, out=filtered, work=work)
             fail(~a.ok, k, "singular_innovation")
             keep = alive[:, None]
+            if keep_forecast:                       # psi still holds psi_{k|k-1} (the update wrote `filtered`)
+                out.y_forecast[k] = np.where(keep[:, :, None], enkf.outputs(psi, u_filter), np.nan)
+            q = source.q if recorded is None else np.full((P, n_q), np.nan)
             for name, value in (("q", q), ("y", y), ("u", u), ("psi_pred_mean", a.pred_mean[:, :dim]),
                                 ("psi_pred_std", a.pred_std[:, :dim]), ("psi_filt_mean", a.filt_mean[:, :dim]),
                                 ("psi_filt_std", a.filt_std[:, :dim])):
@@ -278,7 +386,7 @@ def simulate(plant: AffineRandomSystem, enkf: EnKF, *, F=None, d, q0, psi0, P0=N
                     idx, gains = change
                     F[idx] = gains
                     adopted[idx] += 1
-            q = (A_s[k] @ q[..., None])[..., 0] + (B_s[k] @ u[..., None])[..., 0]
+            source.advance(k, u)
             prior = controller.observer_prior() if controller is not None and hasattr(controller, "observer_prior") \
                 else None
             enkf._predict(filtered, u_filter, e_w, out=psi, path_prior=prior)

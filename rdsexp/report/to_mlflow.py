@@ -15,8 +15,8 @@ experiment (default "rdsexp"), written with `MlflowClient` (explicit run ids, no
                not have, is left out) at step 0, and the RMS curves sqrt(E||q_k||^2) at step k:
                rms/<loop> over the paths of the trajectories table, rms/<loop>_exact of the ideal
                loop (exact table); names as MLflow allows them: xi_mean[0] is xi_mean.0
-    tags       rdsexp.run_id, rdsexp.code, rdsexp.config_hash, rdsexp.plant_hash, rdsexp.status, rdsexp.plant,
-               rdsexp.sweep,
+    tags       rdsexp.run_id, rdsexp.code, rdsexp.config_hash, rdsexp.plant_hash (a data run: rdsexp.data_sha256,
+               its data file's), rdsexp.status, rdsexp.plant, rdsexp.sweep,
                rdsexp.seed, ... (the identity columns), summary.<name> for the summary's words
                (verdicts, statuses), rdsexp.recording: the path of recording.rrd (a link, not a copy,
                also in the run's note)
@@ -46,7 +46,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from ..errors import DamagedRecord
+from ..errors import DamagedRecord, one_line
 from ..experiment.runs import DEFAULT_ROOT, locate, locate_sweep, query, search
 from ..experiment.store import Run, layout
 from ..experiment.store.table import changed_params, run_metrics, run_params
@@ -97,7 +97,7 @@ class Report:
 def export(table_or_selection=None, uri: str = "", experiment: str = DEFAULT_EXPERIMENT, *,
            where: str | None = None, root=DEFAULT_ROOT, tables: bool = True, client=None) -> Report:
     """Write stored runs to the MLflow tracking server at `uri` (any tracking URI MlflowClient takes:
-    http://host:port, sqlite:///file.db, a directory); returns a `Report`.
+    http://host:port, sqlite:///file.db; MLflow refuses a plain directory); returns a `Report`.
 
     table_or_selection: a `search` table (its rows, then `where`), a sweep (directory or name) or a
     run (directory or id) under root, or None: the runs under root that `where` selects.
@@ -110,8 +110,12 @@ def export(table_or_selection=None, uri: str = "", experiment: str = DEFAULT_EXP
     if not uri:
         raise ValueError("export: give the MLflow tracking URI (--mlflow URI)")
     reachable(uri)
+    from mlflow.exceptions import MlflowException
     with _quiet():
-        return _export(table, client or MlflowClient(tracking_uri=uri), uri, experiment, tables)
+        try:
+            return _export(table, client or MlflowClient(tracking_uri=uri), uri, experiment, tables)
+        except MlflowException as err:      # e.g. a backend MLflow no longer writes (a file store): one line
+            raise ValueError(f"export: MLflow at {uri}: {one_line(err)}") from None
 
 
 def _export(table: pd.DataFrame, client, uri: str, experiment: str, tables: bool) -> Report:
@@ -354,6 +358,7 @@ def _tags(row: pd.Series, info: dict, run_dir: Path, parent: str | None, name: s
     summary = info.get("summary") or {}
     tags = {RUN_KEY: row["id"], "rdsexp.kind": "run", "rdsexp.code": code.get("version"),
             "rdsexp.config_hash": info.get("config_hash"), "rdsexp.plant_hash": info.get("plant_hash"),
+            "rdsexp.data_sha256": (info.get("data") or {}).get("sha256"),
             "rdsexp.status": info.get("status"),
             "rdsexp.plant": row.get("plant"), "rdsexp.model": row.get("model"), "rdsexp.method": row.get("method"),
             "rdsexp.sweep": row.get("sweep"), SWEEP_KEY: row.get("sweep_id"), "rdsexp.job": row.get("job"),

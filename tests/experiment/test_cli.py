@@ -243,3 +243,19 @@ def test_a_sweep_that_records_nothing_says_so_in_one_line(tmp_path):
                   "closed_loop.horizon=20", "hydra/launcher=basic", cwd=tmp_path)
     assert "sweep recording: none (no job recorded a run: tracking.level=off)" in proc.stdout
     assert "ZeroDivisionError" not in proc.stderr and "no sweep recording" not in proc.stderr
+
+
+def test_a_m_sweep_is_found_by_the_name_list_shows(tmp_path, capsys):
+    """A sweep launched with -m and no +sweep=NAME is named by its swept overrides in `list`; `show` and
+    `plot` find it by that name."""
+    from rdsexp import runs
+    rdsexp("-m", "seed=1,2", *SMALL, "tracking=summary", "hydra/launcher=basic", cwd=tmp_path)
+    root = str(tmp_path / "outputs")
+    capsys.readouterr()
+    assert runs.main(["list", root, "--columns", "sweep"]) == 0
+    assert set(capsys.readouterr().out.split()[1:]) >= {"seed=1,2"}
+    assert runs.main(["show", "seed=1,2", "--root", root]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("sweep ") and "2 jobs (2 complete)" in out
+    assert runs.main(["plot", "seed=1,2", "--x", "seed", "--y", "closed_loop_rate", "--root", root]) == 0
+    assert list((tmp_path / "outputs" / "sweeps").glob("*/closed_loop_rate_vs_seed.png"))

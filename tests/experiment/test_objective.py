@@ -2,6 +2,7 @@
 import json
 import math
 
+import numpy as np
 import pytest
 import yaml
 from conftest import SMALL, rdsexp
@@ -44,21 +45,47 @@ def test_objective_is_checked_and_left_out_of_the_config_hash():
         build(compose("config", overrides=["objective=rate"]))
     with pytest.raises(ConfigError, match="objective_penalty: -1"):
         build(compose("config", overrides=["objective=lam", "objective_penalty=-1"]))
-    plain, tuned = compose("config"), compose("config", overrides=["objective=lam", "objective_penalty=3"])
+    with pytest.raises(ConfigError, match="objective_seeds: 0 is not allowed, expected a whole number >= 1"):
+        build(compose("config", overrides=["objective=lam", "objective_seeds=0"]))
+    plain = compose("config")
+    tuned = compose("config", overrides=["objective=lam", "objective_penalty=3", "objective_seeds=5"])
     assert provenance.config_hash(job_config(plain)) == provenance.config_hash(job_config(tuned))
 
 
-def test_tune_enkf_runs_optuna_trials_as_stored_runs(tmp_path):
-    """Three Optuna trials on a small paper plant: each a complete run in the store, the study and its best
-    trial in the sweep directory, the best value the smallest objective of the stored runs."""
+def test_tune_enkf_averages_each_trial_over_seeds_and_holds_out_the_best(tmp_path):
+    """Three Optuna trials of two seeds each on a small paper plant: every seed a complete run in the study's
+    directory; each trial's stored mean and standard error recomputed from its stored runs; Optuna minimized
+    those means; the best trial re-run on two fresh seeds, recorded, found by the catalog and reported."""
     pytest.importorskip("hydra_plugins.hydra_optuna_sweeper")
-    rdsexp("+sweep=tune_enkf", "hydra.sweeper.n_trials=3", "tracking.recording=false", *SMALL, cwd=tmp_path,
-           timeout=600)
+    proc = rdsexp("+sweep=tune_enkf", "hydra.sweeper.n_trials=3", "objective_seeds=2", "tracking.recording=false",
+                  *SMALL, cwd=tmp_path, timeout=600)
     (sweep,) = (tmp_path / "outputs" / "sweeps").iterdir()
-    runs = [json.loads(p.read_text()) for p in sorted(sweep.glob("*/run.json"))]
-    assert len(runs) == 3 and all(r["status"] == "complete" for r in runs)
-    assert len({(r["params"]["enkf.q_scale"], r["params"]["enkf.r_scale"]) for r in runs}) == 3   # 3 proposals
-    assert (sweep / "study.db").stat().st_size > 0
+    runs = {p.parent.name: json.loads(p.read_text()) for p in sorted(sweep.glob("*/run.json"))}
+    assert sorted(runs) == ["0", "0.seed1", "1", "1.seed1", "2", "2.seed1", "heldout.seed2", "heldout.seed3"]
+    assert all(r["status"] == "complete" for r in runs.values())
+    assert len({(runs[j]["params"]["enkf.q_scale"], runs[j]["params"]["enkf.r_scale"]) for j in "012"}) == 3
+    means = {}
+    for job in "012":
+        trial, other = runs[job], runs[f"{job}.seed1"]
+        assert other["params"] == {**trial["params"], "seed": 1} and other["objective"]["trial"] == trial["id"]
+        values = [objective_value(r, "closed_loop_rate", 1.0) for r in (trial, other)]
+        recorded = trial["objective"]
+        assert recorded["values"] == values and recorded["seeds"] == [0, 1]
+        assert recorded["mean"] == pytest.approx(np.mean(values), rel=1e-12)
+        assert recorded["se"] == pytest.approx(abs(values[0] - values[1]) / 2, rel=1e-9)   # std(ddof=1) / sqrt(2)
+        means[trial["id"]] = recorded["mean"]
     best = yaml.safe_load((sweep / "optimization_results.yaml").read_text())
-    values = [objective_value(r, "closed_loop_rate", 1.0) for r in runs]
-    assert best["best_value"] == pytest.approx(min(values))
+    assert best["best_value"] == pytest.approx(min(means.values()))
+    best_id = min(means, key=means.get)
+    held = runs["heldout.seed3"]["objective"]
+    assert held["role"] == "heldout" and held["of"] == best_id and held["seeds"] == [2, 3]
+    values = [objective_value(runs[f"heldout.seed{s}"], "closed_loop_rate", 1.0) for s in (2, 3)]
+    assert held["mean"] == pytest.approx(np.mean(values), rel=1e-12)
+    assert json.loads((sweep / "heldout.json").read_text())["mean"] == held["mean"]
+    for s in (2, 3):
+        assert runs[f"heldout.seed{s}"]["params"] == {**runs[best_id.split("/")[1]]["params"], "seed": s}
+    from rdsexp.runs import search
+    found = search(sweep, "objective_role == 'heldout'")
+    assert sorted(found["seed"]) == [2, 3] and found["metrics.objective_mean"].dropna().tolist() == [held["mean"]]
+    assert f"tuning: best trial {best_id}: closed_loop_rate {means[best_id]:.4f}" in proc.stdout
+    assert "held out on fresh seeds [2, 3]" in proc.stdout and "exact counterpart rate_plant" in proc.stdout

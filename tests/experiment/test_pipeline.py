@@ -1,4 +1,4 @@
-"""The stage pipeline: designs computed once per process for identical inputs, the same tables."""
+"""The stage pipeline: stages computed once per process for identical inputs, the same tables."""
 import copy
 
 import numpy as np
@@ -10,6 +10,7 @@ from hydra import compose, initialize_config_module
 from rdsexp.errors import ConfigError
 from rdsexp.experiment import pipeline
 from rdsexp.experiment.config import build
+from rdsexp.experiment.store import stages
 
 
 def experiment(*extra):
@@ -17,24 +18,48 @@ def experiment(*extra):
         return build(compose("config", overrides=[*SMALL, "tracking=off", "gain.designs=all", *extra]))
 
 
-def test_identical_designs_are_reused_within_a_process_with_the_same_tables():
-    """A second run of the same identification designs nothing (seconds 0) and gives the same tables
-    as a fresh computation; another seed (other identified moments) designs those again, and the
-    reported moments, the same in both, are reused."""
-    pipeline._DESIGNS.clear()
-    first = pipeline.run_experiment(experiment("seed=3"))
+def test_identical_stages_are_reused_within_a_process_with_the_same_tables():
+    """With this process's stage cache (StageCache.in_process), a second run of the same identification
+    takes identification and designs from memory (designs report seconds 0) and gives the same tables as a
+    fresh computation; another seed (other identified moments) designs those again, and the reported
+    moments, the same in both, are reused. Without a cache (verify) everything is computed."""
+    stages._MEMORY.clear()
+    cache = lambda: stages.StageCache.in_process()
+    first = pipeline.run_experiment(experiment("seed=3"), cache=cache())
     assert all(s > 0 for name, s in first.timings["synthesis_by_method"].items()
                if not name.endswith("pole_placement"))
-    again = pipeline.run_experiment(experiment("seed=3", "closed_loop.paths=2"))    # only the loop differs
+    again_cache = cache()
+    again = pipeline.run_experiment(experiment("seed=3", "closed_loop.paths=2"), cache=again_cache)  # only the loop
     assert set(again.timings["synthesis_by_method"].values()) == {0.0}
-    pd.testing.assert_frame_equal(again.tables["gains"], first.tables["gains"], check_exact=True)
-    other = pipeline.run_experiment(experiment("seed=4"))
+    assert "modeling" not in again.timings                       # identification with modeling from memory
+    assert "identification" in again_cache.keys and not again_cache.reused     # (no store: no run to name)
+    for name in ("gains", "identification", "model"):
+        pd.testing.assert_frame_equal(again.tables[name], first.tables[name], check_exact=True)
+    other = pipeline.run_experiment(experiment("seed=4"), cache=cache())
     seconds = other.timings["synthesis_by_method"]
     assert all(seconds[f"reported/{m}"] == 0.0 for m in ("proposed", "policy_iteration", "robust_box"))
     assert all(seconds[f"identified/{m}"] > 0 for m in ("proposed", "policy_iteration", "robust_box"))
-    pipeline._DESIGNS.clear()
     fresh = pipeline.run_experiment(experiment("seed=4"))
-    pd.testing.assert_frame_equal(fresh.tables["gains"], other.tables["gains"], check_exact=True)
+    assert all(s > 0 for name, s in fresh.timings["synthesis_by_method"].items()
+               if not name.endswith("pole_placement"))
+    for name in ("gains", "identification", "model", "metrics"):
+        pd.testing.assert_frame_equal(fresh.tables[name], other.tables[name], check_exact=True)
+
+
+def test_memory_keeps_at_most_its_bound_and_copies(monkeypatch):
+    """The process's memory drops its oldest entries beyond MEMORY_KEPT and hands out copies: a caller
+    that changes what it got (a reused design's seconds) does not change the kept value."""
+    monkeypatch.setattr(stages, "MEMORY_KEPT", 3)
+    stages._MEMORY.clear()
+    cache = stages.StageCache.in_process()
+    keys = [cache.key("synthesis", i=i) for i in range(5)]
+    for i, key in enumerate(keys):
+        cache.save("synthesis", key, {"seconds": float(i)})
+    assert len(stages._MEMORY) == 3
+    assert cache.load("synthesis", keys[0]) is None and cache.load("synthesis", keys[1]) is None
+    got = cache.load("synthesis", keys[4])
+    got["seconds"] = 0.0
+    assert cache.load("synthesis", keys[4]) == {"seconds": 4.0}
 
 
 def test_a_run_designs_its_method_and_the_designs_it_asks_for():
@@ -220,9 +245,9 @@ def test_the_loop_keeps_the_identification_gain_where_the_designed_one_is_worse(
     with initialize_config_module(config_module="rdsexp.conf", version_base="1.3"):
         exp = build(compose("config", overrides=[f"hydra.searchpath=[file://{tmp_path}]", "plant=unst3", "model=plant",
                                                  *SMALL, "identification.resamples=20", "tracking=off"]))
-    summary = {}
-    ident, dist, _ = pipeline.identify_and_model(exp, {}, summary, np.random.SeedSequence(0, spawn_key=(0,)),
-                                                 exp.simulation(), False)
+    identified = pipeline.identify_and_model(exp, pipeline.Stages(), np.random.SeedSequence(0, spawn_key=(0,)),
+                                             exp.simulation(), False)
+    ident, dist, summary = identified["ident"], identified["dist"], identified["summary"]
     draws = pipeline.moment_uncertainty(exp, ident, summary)
     assert draws[0].shape == (20, 2) and len(summary["modeling_uncertainty"]["xi_mean_sd"]) == 2
     assert summary["identification_feedback"]["used"] == "nominal"

@@ -10,6 +10,7 @@ from conftest import SMALL, rdsexp
 
 from rdsexp.experiment import runs
 from rdsexp.experiment.store import layout
+from rdsexp.experiment.store import stages as stage_cache
 from rdsexp.experiment.store.stages import StageCache, digest, pack, unpack
 
 # two designs x two seeds of the `paper` sweep, at the small size (open loop on, recording off)
@@ -131,11 +132,13 @@ def test_a_damaged_or_partial_entry_is_recomputed_not_a_traceback(tmp_path):
     npz.write_bytes(npz.read_bytes()[:100])                    # truncated
     (loop / "meta.json").unlink()                              # partial: no meta.json
     (stages / "open_loop" / f".{loop.name}.999999.tmp").mkdir()   # a writer that never finished
+    stage_cache._MEMORY.clear()                                # a later process: only the store's entries
     second = single(tmp_path)
     assert "identification" not in second["stages_reused"] and "open_loop" not in second["stages_reused"]
     assert {k: v["sha256"] for k, v in second["tables"].items()} == {k: v["sha256"] for k, v in first["tables"].items()}
     log = (tmp_path / "outputs" / "runs" / second["id"] / layout.LOG).read_text()
     assert "ignoring the damaged entry" in log
+    stage_cache._MEMORY.clear()
     third = single(tmp_path)                                   # the damaged entry was replaced by a good one
     assert "identification" in third["stages_reused"]
     assert {k: v["sha256"] for k, v in third["tables"].items()} == {k: v["sha256"] for k, v in first["tables"].items()}
@@ -178,3 +181,28 @@ def test_a_reused_stage_is_said_in_the_summary_and_the_log_not_on_the_terminal(t
     assert "INFO" not in proc.stderr, proc.stderr
     (run,) = sorted((tmp_path / "outputs" / "runs").iterdir())[-1:]
     assert "open_loop: reused from run" in (run / "rdsexp.log").read_text()
+
+
+def test_a_streamed_stage_is_stored_only_when_consumed_whole(tmp_path):
+    """`Stages.streamed` stores a loop's parts as they are consumed: a consumer that stops early (an error,
+    Ctrl-C) leaves neither an entry nor a temporary directory; one that reads every part commits the
+    entry, and the next lookup replays the same parts."""
+    from contextlib import closing
+
+    from rdsexp.experiment.pipeline import Stages
+    computed = []
+    def parts():
+        for first in (0, 3, 6):
+            computed.append(first)
+            yield {"first": first, "values": np.arange(first, first + 3.0)}
+    stages = Stages(StageCache(tmp_path, "v", "run-a"))
+    chunks, reused = stages.streamed("open_loop", parts, x=1)
+    with closing(chunks):
+        assert next(chunks)["first"] == 0 and not reused
+    assert not any((tmp_path / layout.STAGES / "open_loop").iterdir())
+    chunks, reused = stages.streamed("open_loop", parts, x=1)
+    assert [p["first"] for p in chunks] == [0, 3, 6] and not reused
+    computed.clear()
+    chunks, reused = Stages(StageCache(tmp_path, "v", "run-b")).streamed("open_loop", parts, x=1)
+    replayed = list(chunks)
+    assert reused and not computed and np.array_equal(replayed[2]["values"], np.arange(6.0, 9.0))

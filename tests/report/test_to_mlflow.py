@@ -279,3 +279,27 @@ def test_reused_copies_add_no_mlflow_run_and_no_second_parent(uri, store):
         assert whole.runs[copy.id] == original.info.run_id
         assert original.data.tags[to_mlflow.mlflow_key(f"rdsexp.copy.{copy.id}")] == str(Path(copy.dir).resolve())
     assert "copies 3 (on their originals' runs)" in whole.lines()[0]
+
+
+def test_a_data_run_is_exported_with_its_data_file_as_identity(uri, tmp_path):
+    """A data run (recorded data in place of a plant) on the real server: no plant hash, the data file's
+    sha256 as its identity tag, its key numbers (exact rates on the identified model) as metrics."""
+    example = Path(__file__).parents[2] / "examples" / "dropout"
+    rdsexp("--config-dir", str(example), f"data={example / 'dropout.csv'}", "model=dropout", "plant=recorded",
+           "data.holdout=0.2", "enkf.ensemble_size=20", "tracking=summary", cwd=tmp_path)
+    store = tmp_path / "outputs"
+    report = to_mlflow.export(str(next((store / "runs").iterdir())), uri, "data", root=store)
+    (run_id,) = report.runs.values()
+    run = mlflow.MlflowClient(uri).get_run(run_id)
+    (info,) = [json.loads(p.read_text()) for p in (store / "runs").glob("*/run.json")]
+    assert run.data.tags["rdsexp.data_sha256"] == info["data"]["sha256"] and "rdsexp.plant_hash" not in run.data.tags
+    assert run.data.metrics["rate_model"] == info["summary"]["rate_model"]
+    assert run.data.tags["summary.validation_modeled_better"] == str(info["summary"]["validation"]["modeled_better"])
+
+
+def test_a_directory_uri_is_one_line(store, capsys, tmp_path):
+    """MLflow refuses to write a plain directory: the export says so in one line, exit 2."""
+    assert runs.main(["export", "--mlflow", f"file://{tmp_path}/mlruns", "--where", "seed == 0",
+                      "--root", str(store)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith(f"rdsexp-runs: export: MLflow at file://{tmp_path}/mlruns: ") and "\n" not in err

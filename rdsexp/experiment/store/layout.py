@@ -4,7 +4,9 @@
         runs/<stamp>_<uid>/       one run (RUN_DIR)
         sweeps/<stamp>_<uid>/     one sweep: multirun.yaml, summary.parquet (+ .csv), summary.rrd,
                                   resumes.json when it resumes an interrupted sweep
-            <job>/                one job, a run directory like any other
+            <job>/                one job, a run directory like any other (named by its number); a tuning
+                                  trial's other seeds <job>.seed<s>/ and a study's held-out re-runs
+                                  heldout.seed<s>/ beside them
         index/                    the reuse index, one small JSON file per config hash and code version
         stages/<stage>/<key>/     the stage cache: one stage's result by the sha256 of what it is computed
                                   from (`stages`)
@@ -53,6 +55,12 @@ def stage_entry(root: Path, stage: str, key: str) -> Path:
 def is_run(directory: Path) -> bool:
     """Whether `directory` is a run directory (it has a run.json)."""
     return (Path(directory) / RUN_JSON).exists()
+
+
+def is_job(directory: Path) -> bool:
+    """Whether a directory of a sweep is one of its jobs (named by its number), not a tuning trial's other
+    seed or a held-out re-run beside them."""
+    return Path(directory).name.isdigit()
 
 
 def is_sweep(directory: Path) -> bool:

@@ -96,6 +96,7 @@ class RunRecord:
     sweep: SweepRef | None
     config_hash: str | None
     plant_hash: str | None
+    data: dict | None                 # a data run's data file: name, sha256, rows, columns (no plant)
     code_version: str | None
     seed: int | None
     reused_from: str | None
@@ -116,6 +117,7 @@ class RunRecord:
             overrides=tuple(str(o) for o in info.get("overrides") or ()),
             sweep=_sweep(sweep) if isinstance(sweep, dict) and sweep.get("dir") else None,
             config_hash=info.get("config_hash"), plant_hash=info.get("plant_hash") or None,
+            data=info.get("data") if isinstance(info.get("data"), dict) else None,
             code_version=(info.get("code") or {}).get("version"),
             seed=seed.get("root") if isinstance(seed, dict) else seed,
             reused_from=info.get("reused_from"), error=info.get("error"), seconds=info.get("seconds"),

@@ -8,6 +8,7 @@ from . import layout
 from .check import Finding, check, quarantine
 from .index import find_reusable, index_add, rebuild_index
 from .layout import DEFAULT_ROOT
+from .record import sweep_name
 from .run import Run, intact_runs, read_runs
 from .table import runs_table, write_sweep_summary
 
@@ -60,8 +61,12 @@ class RunStore:
             return Path(sweep)
         runs = self.runs()
         dirs = [r.dir.parent for r in runs if str(r.info.get("id") or "").startswith(f"{sweep}/")]
-        if not dirs:
-            dirs = [r.dir.parent for r in runs if (r.info.get("sweep") or {}).get("name") == sweep]
+        if not dirs:            # by name: `+sweep=NAME`'s, or a `-m` sweep's overrides (the name `list` shows)
+            names = {}
+            for r in runs:
+                if isinstance(r.info.get("sweep"), dict) and r.dir.parent not in names:
+                    names[r.dir.parent] = r.info["sweep"].get("name") or sweep_name(r.dir.parent)
+            dirs = [d for d, name in names.items() if name == sweep]
         return dirs[-1] if dirs else None
 
     # --- the reuse index

@@ -11,6 +11,11 @@ files. A part is one Python value (`pack`): its structure in JSON (floats exactl
 included) and its arrays in an uncompressed .npz read without pickle; dataclasses are rebuilt only
 from rdsexp's own modules.
 
+In front of the store's entries, this process keeps its own copies of single-value entries (at most
+MEMORY_KEPT, the oldest dropped first), by stage and inputs: the jobs of a sweep that run in one process
+share their identifications and designs without reading them back from disk, and a cache without a
+store (`StageCache.in_process()`: tracking off, tests) has only these.
+
 An entry is written into a temporary directory and renamed into place, so a reader sees a complete
 entry or none; when several processes write the same key, the first rename wins and the others
 discard theirs (the contents are equal). An entry whose files are missing, unreadable or do not match
@@ -19,6 +24,7 @@ replaced. The cache is derived data: a write that fails is a warning, never the 
 """
 from __future__ import annotations
 
+import copy
 import dataclasses
 import hashlib
 import importlib
@@ -27,6 +33,7 @@ import json
 import logging
 import os
 import shutil
+from collections import OrderedDict
 from pathlib import Path
 
 import numpy as np
@@ -37,6 +44,10 @@ from .layout import STAGES, stage_entry
 log = logging.getLogger("rdsexp")
 META = "meta.json"
 FORMAT = 1
+MEMORY_KEPT = 256
+# this process's single-value entries: (stage, digest of the inputs) -> (value, origin), origin the
+# (stage cache directory, run) that stored the value there or loaded it from there, None without a store
+_MEMORY: OrderedDict[tuple[str, str], tuple[object, tuple[str, str] | None]] = OrderedDict()
 
 
 # ---------------------------------------------------------------------------------- keys
@@ -171,26 +182,35 @@ def _sha(data: bytes) -> str:
 
 # ---------------------------------------------------------------------------------- the cache
 class StageCache:
-    """The stage cache of a store (`<root>/stages/`) as one run uses it: `key` a stage's inputs,
-    `load` a stored entry (None on a miss or a damaged entry), `save` or `writer` a computed one.
+    """The stage cache as one run uses it: `key` a stage's inputs, `load` an entry (None on a miss or a
+    damaged entry), `save` or `writer` a computed one. root: the store whose `<root>/stages/` holds the
+    entries, or None (`in_process`: this process's memory only).
 
     `reused` ({label: {"stage", "key", "run"}}: what this run loaded and from which run) and `keys`
     ({label: key}: every stage it looked up) go into run.json (`stages_reused`, `stage_keys`)."""
 
-    def __init__(self, root: Path, code: str, run: str):
-        self.dir, self.code, self.run = Path(root) / STAGES, str(code), str(run)
+    def __init__(self, root: Path | None, code: str, run: str | None):
+        self.dir = Path(root) / STAGES if root is not None else None
+        self.code, self.run = str(code), None if run is None else str(run)
         self.reused: dict[str, dict] = {}
         self.keys: dict[str, str] = {}
         self._inputs: dict[str, dict] = {}
+        self._memory: dict[str, str] = {}       # key -> the digest of its inputs without the code version
+
+    @classmethod
+    def in_process(cls) -> StageCache:
+        """A cache of this process's memory only (no store: nothing is written)."""
+        return cls(None, "", None)
 
     def __repr__(self) -> str:
-        return f"StageCache({str(self.dir)!r})"
+        return f"StageCache({str(self.dir) if self.dir is not None else 'in process'!r})"
 
     def key(self, stage: str, **inputs) -> str:
         """The key of `stage` computed from `inputs` (each digested; the names are part of the key)."""
         parts = {name: digest(value) for name, value in inputs.items()}
         key = digest({"stage": stage, "code": self.code, "inputs": parts})
         self._inputs[key] = parts
+        self._memory[key] = digest({"stage": stage, "inputs": parts})     # one process: one code version
         return key
 
     def note(self, label: str, stage: str, key: str, run: str | None) -> None:
@@ -199,13 +219,43 @@ class StageCache:
         if run is not None:
             self.reused[label] = {"stage": stage, "key": key, "run": run}
 
+    def _origin(self, run: str | None) -> tuple[str, str] | None:
+        return (str(self.dir), str(run)) if self.dir is not None else None
+
+    def _remember(self, stage: str, key: str, value, run: str | None) -> None:
+        """Keep a copy of a single-value entry in this process's memory, the oldest dropped beyond MEMORY_KEPT."""
+        slot = (stage, self._memory[key])
+        _MEMORY.pop(slot, None)
+        if len(_MEMORY) >= MEMORY_KEPT:
+            _MEMORY.popitem(last=False)
+        _MEMORY[slot] = (copy.deepcopy(value), self._origin(run))
+
+    def _recall(self, stage: str, key: str, label: str):
+        """A copy of the entry from this process's memory (None: not there). One that came from this store
+        is noted as reused from its run; one computed without this store (or whose entry there is gone) is
+        stored in it now."""
+        found = _MEMORY.get((stage, self._memory[key]))
+        if found is None:
+            return None
+        value, origin = copy.deepcopy(found[0]), found[1]
+        stored = self.dir is not None and (stage_entry(self.dir.parent, stage, key) / META).exists()
+        if stored and origin is not None and origin[0] == str(self.dir):
+            self.note(label, stage, key, origin[1] if origin[1] != self.run else None)
+        else:
+            self.note(label, stage, key, None)
+            if self.dir is not None:
+                self._store(stage, key, value)
+                self._remember(stage, key, value, self.run)
+        log.info("%s: reused from this process's memory", label)
+        return value
+
     # --- reading
     def load_parts(self, stage: str, key: str, label: str | None = None):
         """The parts of the entry (a list of lazily decoded values: an iterator), or None when there
         is no intact entry. Every file is checked against meta.json before the first value is given."""
         label = label or stage
-        entry = stage_entry(self.dir.parent, stage, key)
-        if not (entry / META).exists():
+        entry = stage_entry(self.dir.parent, stage, key) if self.dir is not None else None
+        if entry is None or not (entry / META).exists():
             self.note(label, stage, key, None)
             return None
         try:
@@ -226,17 +276,27 @@ class StageCache:
         return (self._decode(entry, part) for part in meta["parts"])     # one part in memory at a time
 
     def load(self, stage: str, key: str, label: str | None = None):
-        """The one value of a single-part entry, or None (a miss or a damaged entry)."""
+        """The value of a single-part entry: from this process's memory, else from the store (then kept
+        in memory); None on a miss or a damaged entry."""
+        label = label or stage
+        value = self._recall(stage, key, label)
+        if value is not None or self.dir is None:
+            if value is None:
+                self.note(label, stage, key, None)
+            return value
         parts = self.load_parts(stage, key, label)
         if parts is None:
             return None
         try:
             values = list(parts)
         except (OSError, ValueError, KeyError, TypeError, AttributeError, ImportError) as err:
-            log.warning("stage cache: cannot read %s/%s (%s); computing %s", stage, key, err, label or stage)
-            self.reused.pop(label or stage, None)
+            log.warning("stage cache: cannot read %s/%s (%s); computing %s", stage, key, err, label)
+            self.reused.pop(label, None)
             return None
-        return values[0] if len(values) == 1 else None
+        if len(values) != 1:
+            return None
+        self._remember(stage, key, values[0], self.reused[label]["run"])
+        return values[0]
 
     @staticmethod
     def _decode(entry: Path, part: dict):
@@ -250,13 +310,19 @@ class StageCache:
 
     # --- writing
     def save(self, stage: str, key: str, value) -> None:
-        """Store a single-part entry (nothing when it fails: a warning)."""
-        writer = self.writer(stage, key)
-        writer.add(value)
-        writer.commit()
+        """Store a single-part entry, in this process's memory and in the store (a failed write: a warning)."""
+        self._store(stage, key, value)
+        self._remember(stage, key, value, self.run)
+
+    def _store(self, stage: str, key: str, value) -> None:
+        if self.dir is not None:
+            writer = self.writer(stage, key)
+            writer.add(value)
+            writer.commit()
 
     def writer(self, stage: str, key: str) -> EntryWriter:
-        """A writer of the entry's parts, one `add` at a time (a loop's chunks), then `commit`."""
+        """A writer of the entry's parts, one `add` at a time (a loop's chunks), then `commit` (without a
+        store: one that writes nothing; multi-part entries are not kept in memory)."""
         return EntryWriter(self, stage, key)
 
     def _discard(self, entry: Path) -> None:
@@ -275,10 +341,12 @@ class EntryWriter:
 
     def __init__(self, cache: StageCache, stage: str, key: str):
         self.cache, self.stage, self.key = cache, stage, key
+        self.parts: list[dict] = []
+        self.ok = cache.dir is not None
+        if not self.ok:
+            return
         self.final = stage_entry(cache.dir.parent, stage, key)
         self.tmp = self.final.with_name(f".{key}.{os.getpid()}.tmp")
-        self.parts: list[dict] = []
-        self.ok = True
         try:
             shutil.rmtree(self.tmp, ignore_errors=True)
             self.tmp.mkdir(parents=True)
@@ -324,5 +392,6 @@ class EntryWriter:
         self.ok = False
 
     def abort(self) -> None:
+        if self.cache.dir is not None:
+            shutil.rmtree(self.tmp, ignore_errors=True)
         self.ok = False
-        shutil.rmtree(self.tmp, ignore_errors=True)

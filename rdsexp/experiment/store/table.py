@@ -19,11 +19,12 @@ from .layout import SUMMARY, SUMMARY_CSV, SUMMARY_LOCK
 from .record import RunRecord
 from .run import MATRIX, read_runs, scalar_config, scalars_only
 
-IDENTITY = ["id", "sweep", "sweep_id", "resumes", "job", "seed", "status", "plant", "plant_hash", "model", "method",
-            "overrides", "reused_from", "created", "code", "config_hash", "dir"]
+IDENTITY = ["id", "sweep", "sweep_id", "resumes", "job", "objective_role", "seed", "status", "plant", "plant_hash",
+            "model", "method", "overrides", "reused_from", "created", "code", "config_hash", "dir"]
 MISSING = "-"       # how every view shows a missing value, e.g. the sweep of a run that is no sweep's job (None)
 # summary entries that are settings or nested records rather than numbers of the run
-NOT_METRICS = ("plant", "model", "gain_method", "rate_window", "reference", "designs", "identification_feedback")
+NOT_METRICS = ("plant", "model", "gain_method", "rate_window", "reference", "designs", "identification_feedback",
+               "data", "no_plant", "design_rates")
 
 
 def identity(run_dir: Path, info: dict) -> dict:
@@ -31,13 +32,20 @@ def identity(run_dir: Path, info: dict) -> dict:
     `+sweep=NAME` config, else the command-line overrides of the `-m` run (`sweep_name`); plant is the plant
     file's `name:`, else its file name (the runner records it so; from the config where a run ended before
     its summary), plant_hash the first 12 hex digits of run.json's `plant_hash` (the plant's content: two
-    files of one name that differ have different hashes)."""
+    files of one name that differ have different hashes). A data run has no plant: its identity is its data
+    file, shown as plant `data:NAME` and the first 12 hex digits of the file's sha256 as plant_hash."""
     record = RunRecord.parse(info)
     sweep, s = record.sweep, record.summary
+    if record.data is not None:
+        plant, plant_hash = f"data:{record.data.get('name')}", str(record.data.get("sha256") or "")[:12] or None
+    else:
+        plant = s.plant or (record.raw.get("params") or {}).get("plant.name")
+        plant_hash = (record.plant_hash or "")[:12] or None
     return {"id": record.id, "sweep": sweep and sweep.name, "sweep_id": sweep and sweep.id,
-            "resumes": sweep and sweep.resumes, "job": sweep and sweep.job, "seed": record.seed,
-            "status": record.status, "plant": s.plant or (record.raw.get("params") or {}).get("plant.name"),
-            "plant_hash": (record.plant_hash or "")[:12] or None, "model": s.model, "method": s.gain_method,
+            "resumes": sweep and sweep.resumes, "job": sweep and sweep.job,
+            "objective_role": (record.raw.get("objective") or {}).get("role"), "seed": record.seed,
+            "status": record.status, "plant": plant, "plant_hash": plant_hash, "model": s.model,
+            "method": s.gain_method,
             "overrides": " ".join(o for o in record.overrides if not o.startswith("+sweep=")),
             "reused_from": record.reused_from, "created": record.created, "code": record.code_version,
             "config_hash": record.config_hash, "dir": str(run_dir)}
@@ -45,7 +53,8 @@ def identity(run_dir: Path, info: dict) -> dict:
 
 def run_metrics(info: dict) -> dict:
     """{"metrics.<name>": value}: the key numbers and statuses of run.json's summary, flattened
-    (closed_loop_rate, _low, _high; xi_mean[i]; closed_loop_failed_fraction, ...) and seconds."""
+    (closed_loop_rate, _low, _high; xi_mean[i]; closed_loop_failed_fraction, ...), a tuning trial's
+    objective_mean, _se and _seeds (run.json `objective`), and seconds."""
     s = info.get("summary") or {}
     out = {}
     for name, value in s.items():
@@ -55,7 +64,11 @@ def run_metrics(info: dict) -> dict:
             out[name], out[f"{name}_low"], out[f"{name}_high"] = value
         elif isinstance(value, dict):             # one level down, its lists by component (xi_mean_sd[i])
             for k, v in value.items():
-                out |= {f"{name}_{k}[{i}]": x for i, x in enumerate(v)} if isinstance(v, list) else {f"{name}_{k}": v}
+                if isinstance(v, dict):               # two levels (a data run's validation by law)
+                    out |= {f"{name}_{k}_{kk}": vv for kk, vv in v.items() if not isinstance(vv, (list, dict))}
+                else:
+                    out |= {f"{name}_{k}[{i}]": x for i, x in enumerate(v)} if isinstance(v, list) else \
+                        {f"{name}_{k}": v}
         elif isinstance(value, list):
             out |= {f"{name}[{i}]": v for i, v in enumerate(value)}
         else:
@@ -63,6 +76,10 @@ def run_metrics(info: dict) -> dict:
     for loop in ("closed_loop", "open_loop"):
         if f"{loop}_status" in s:
             out.setdefault(f"{loop}_failed_fraction", 0.0)
+    objective = info.get("objective") or {}      # a tuning trial's (or held-out re-run's) mean over its seeds
+    if "mean" in objective:
+        out |= {"objective_mean": objective["mean"], "objective_se": objective["se"],
+                "objective_seeds": len(objective.get("seeds") or [])}
     out["seconds"] = info.get("seconds")
     return {f"metrics.{k}": (np.nan if v is None else v) for k, v in out.items()}
 
@@ -109,8 +126,10 @@ def as_text(table: pd.DataFrame, max_rows: int | None = None) -> str:
     missing; at most max_rows rows, with a last line saying how many were left out."""
     short = {c: c.split(".", 1)[1] if c.startswith(("params.", "metrics.")) else c for c in table.columns}
     shown = table if max_rows is None else table.head(max_rows)
-    # None in a column of objects (the sweep of a run that is no sweep's job) prints as "None" otherwise
-    shown = shown.apply(lambda col: col.where(col.notna(), MISSING) if col.dtype == object else col)
+    # None in a column of objects (the sweep of a run that is no sweep's job) prints as "None" otherwise, a
+    # missing whole number (the job of a held-out run) as "<NA>"
+    shown = shown.apply(lambda col: col.astype(object).where(col.notna(), MISSING)
+                        if col.dtype == object or pd.api.types.is_extension_array_dtype(col) else col)
     text = shown.rename(columns=short).to_string(index=False, float_format=lambda v: f"{v:.4g}", na_rep=MISSING)
     return text + (f"\n... {len(table) - len(shown)} more rows" if len(shown) < len(table) else "")
 

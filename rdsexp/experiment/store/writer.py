@@ -56,8 +56,9 @@ class RunWriter:
         files.write_json(self.dir / RUN_JSON, info)
         return info
 
-    def reuse(self, previous: Path, info: dict) -> dict:
-        """Record this run as a copy of the complete run `previous` (files hard-linked where possible)."""
+    def reuse(self, previous: Path, info: dict, amend=None) -> dict:
+        """Record this run as a copy of the complete run `previous` (files hard-linked where possible);
+        amend(info) adds to its run.json before it is written."""
         previous = Path(previous)
         old = read_run(previous)
         for name in [meta["file"] for meta in old["tables"].values()] + [RECORDING, DIFF]:
@@ -66,6 +67,8 @@ class RunWriter:
         log.info("reused the complete run %s (same config hash and code version)", old["id"])
         info.update(status="complete", finished=provenance.now(), reused_from=old["id"],
                     **{k: old[k] for k in ("summary", "tables", "recording", "timings", "seconds") if k in old})
+        if amend is not None:
+            amend(info)
         return self.finish(info)
 
     def fail(self, status: str, message: str, trace: str | None = None, fallback: dict | None = None) -> dict:
