@@ -23,6 +23,9 @@ there a candidate that passes is adopted only when the gain in use is unstable a
 (min_b lam_b(F_k) >= 1: waiting costs more than acting on thin evidence), else it `waits`. No
 warm-up beyond `warmup` (the filter's) is needed: on a plant whose estimates say clearly that the
 gain in use fails (an open-loop unstable plant from F = 0), the first model is acted on at once.
+A candidate that the model or a draw does not certify below 1 is never adopted, not even where the
+gain in use fails: the model of a growing loop is biased, and such a candidate can be worse on the
+plant than the gain in use.
 
 No identification run. `OnlineController` is what `simulation.simulate(controller=...)` calls
 after filtering; every decision (adopted or not, and why) is kept in `decisions()`.
@@ -331,19 +334,17 @@ class OnlineController:
                 k, samples[:, idx], w, None if covs is None else covs[:, idx], np.nan_to_num(F_new), self.F[idx])
             worst_new[failed != ""] = np.nan
         if s.safeguard:
-            # failing: the gain in use is unstable at every draw; there any candidate that beats it at its worst
-            # is adopted, also one the model does not call stabilizing (the model of a loop that grows is
-            # biased; waiting for a model that certifies < 1 loses the path)
-            failing = best_cur >= 1
-            stabilizing = (rate_new < 1) | failing
-            model_ok = (failed == "") & stabilizing & (rate_new < rate_cur)
-            robust = model_ok & ((worst_new < 1) | failing) & (worst_new < worst_cur) if s.resamples else model_ok
+            # every candidate must be certified: exact rate < 1 and below the gain in use's on the window's model
+            # and at the worst bootstrap draw (the model of a loop that grows is biased: a candidate the model
+            # does not call stabilizing can be worse on the plant than the gain in use, and is never adopted)
+            model_ok = (failed == "") & (rate_new < 1) & (rate_new < rate_cur)
+            robust = model_ok & (worst_new < 1) & (worst_new < worst_cur) if s.resamples else model_ok
             # with fewer than min_blocks blocks the draws' spread says little: act only where the gain in
             # use fails at every draw (a first model on an open-loop unstable plant from F = 0)
             enough = samples.shape[0] >= s.min_blocks * s.block or not s.resamples
-            adopt = robust & (enough | failing)
+            adopt = robust & (enough | (best_cur >= 1))
             reason = np.where(failed != "", failed, np.where(
-                adopt, "adopted", np.where(~stabilizing, "not_stabilizing", np.where(
+                adopt, "adopted", np.where(~(rate_new < 1), "not_stabilizing", np.where(
                     ~model_ok, "no_improvement", np.where(robust, "waiting", "not_robust")))))
         else:
             adopt = failed == ""
