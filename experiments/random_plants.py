@@ -593,15 +593,21 @@ def print_online(table: pd.DataFrame) -> None:
     lost_off = rows["failed_fraction"].map(lambda v: 0.0 if _missing(v) else v).astype(float)
     print("\nonline (learning-type) against offline, per plant: final gains' median exact rate, the offline gain's, "
           "gap; paths lost (fraction)")
-    for r, g, on, off in zip(rows.itertuples(), gap, lost_on, lost_off):
+    # an offline run with no gain (its identification or design failed) has no closed loop to compare with:
+    # counted apart, neither as no worse nor as losing more
+    none = rows["offline_rate_plant"].map(_missing).to_numpy()
+    for r, g, on, off, gainless in zip(rows.itertuples(), gap, lost_on, lost_off, none):
+        verdict = "  (no offline gain)" if gainless else (
+            ("  WORSE" if not g <= ONLINE_TOLERANCE else "") + ("  LOST MORE" if on > off else ""))
         print(f"  {r.plant}: online {_f(r.online_final_rate)} offline {_f(r.offline_rate_plant)} gap "
-              f"{'-' if not np.isfinite(g) else format(g, '+.4f')}; lost {on:.2f} vs {off:.2f}"
-              + ("  WORSE" if not g <= ONLINE_TOLERANCE else "") + ("  LOST MORE" if on > off else ""))
-    # an offline run with no gain (its design failed) cannot be compared on the rate: online ends no worse there
-    no_worse = (gap <= ONLINE_TOLERANCE) | rows["offline_rate_plant"].map(_missing)
-    print(f"online ends no worse than offline (final median rate <= offline + {ONLINE_TOLERANCE}, or no offline "
-          f"gain): {int(no_worse.sum())}/{len(rows)} ({no_worse.mean():.0%}); loses more paths: "
-          f"{int((lost_on > lost_off).sum())}/{len(rows)}")
+              f"{'-' if not np.isfinite(g) else format(g, '+.4f')}; lost {on:.2f} vs {off:.2f}{verdict}")
+    compared = ~none
+    no_worse = (gap <= ONLINE_TOLERANCE)[compared]
+    more = (lost_on > lost_off)[compared]
+    print(f"online ends no worse than offline (final median rate <= offline + {ONLINE_TOLERANCE}): "
+          f"{int(no_worse.sum())}/{int(compared.sum())} ({no_worse.mean():.0%}); loses more paths: "
+          f"{int(more.sum())}/{int(compared.sum())}"
+          + (f"; no offline gain (not compared): {', '.join(rows.plant[none])}" if none.any() else ""))
 
 
 # what a run's summary (its printed output, in the plant's log) says when the closed loop's verdict
