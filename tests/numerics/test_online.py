@@ -349,7 +349,9 @@ def test_online_run_records_the_controller_table(tmp_path):
     traj = pd.read_parquet(run / "trajectories.parquet")
     metrics = pd.read_parquet(run / "metrics.parquet").set_index("experiment")
     assert set(table["k"]) == {-1, 15, 25, 35}                      # initial gain, then warmup + j period
-    assert len(table[table["k"] == -1]) == 4 and (table["F[0,0]"][table["k"] == -1] == 0).all()
+    initial = table[table["k"] == -1]                                # the default start: the nominal gain
+    assert len(initial) == 4 and (initial.filter(like="F[").nunique() == 1).all() and (initial["F[0,0]"] != 0).all()
+    assert set(initial["reason"]) == {"initial"} and (initial["rate_plant"] < 1).all()
     # the gain in use in the trajectories is the path's adopted gain from the step after its update
     online = traj[traj["experiment"] == "online"]
     adopted = table[table["adopted"] & (table["k"] >= 0)]
