@@ -384,7 +384,8 @@ def read_record(outcome: Outcome) -> dict:
     """What the table shows from a run's run.json and metrics table (missing keys stay None)."""
     row = {"run_status": None, "modeling_status": None, "synthesis_status": None, "rate_plant": None,
            "verdict": None, "verdict_reason": None, "closed_loop_status": None, "cl_rate": None, "cl_low": None,
-           "cl_high": None, "failed_fraction": None, "run_seconds": None, "code_version": None}
+           "cl_high": None, "failed_fraction": None, "run_seconds": None, "code_version": None,
+           "online_failed_fraction": None, "online_final_rate": None, "offline_rate_plant": None}
     if outcome.run_dir is None:
         return row
     try:
@@ -418,6 +419,12 @@ def read_record(outcome: Outcome) -> dict:
                                     ("closed_loop_status", "status")):
                     if row[key] is None and column in loop.index and not _missing(loop[column]):
                         row[key] = loop[column].item() if hasattr(loop[column], "item") else loop[column]
+            online = metrics[metrics["experiment"] == "online"]       # controller=online: its row
+            if len(online):
+                online = online.iloc[0]
+                row.update(online_failed_fraction=float(online["failed_fraction"]),
+                           online_final_rate=float(online["final_rate_plant_median"]),
+                           offline_rate_plant=float(online["offline_rate_plant"]))
         except Exception as err:                                # a damaged table is a finding, not a crash
             outcome.note = "; ".join(filter(None, [outcome.note, f"metrics unreadable: {type(err).__name__}: {err}"]))
     return row
@@ -565,9 +572,42 @@ def print_results(table: pd.DataFrame) -> None:
     print(f"among the plants whose gain's loop through y can decay (y_rate < 1, or not computed): stable with no "
           f"failed path {stable_there}/{int(can_decay.sum())} ({stable_there / max(int(can_decay.sum()), 1):.0%}); "
           f"y_rate >= 1: {', '.join(f'{r.plant} ({r.verdict})' for r in table[~can_decay].itertuples()) or 'none'}")
+    if table["online_final_rate"].map(lambda v: not _missing(v)).any():
+        print_online(table)
     print(f"run wall time: median {table['wall_seconds'].median():.1f} s, max {table['wall_seconds'].max():.1f} s")
     versions = sorted(v for v in table["code_version"].dropna().unique())
     print(f"code version{'s (the runs differ!)' if len(versions) > 1 else ''}: {', '.join(versions) or '-'}")
+
+
+ONLINE_TOLERANCE = 0.005      # online "no worse": its final gains' median rate at most this above the offline gain's
+
+
+def print_online(table: pd.DataFrame) -> None:
+    """controller=online: per plant, the online loop's final gains' median exact rate on the true plant against
+    the offline gain's, and the paths each loop lost; then how often online ends no worse (within
+    ONLINE_TOLERANCE, or better) and how often it loses more paths."""
+    rows = table[table["online_final_rate"].map(lambda v: not _missing(v))
+                 | table["online_failed_fraction"].map(lambda v: not _missing(v))]
+    gap = rows["online_final_rate"].astype(float) - rows["offline_rate_plant"].astype(float)
+    lost_on = rows["online_failed_fraction"].astype(float)
+    lost_off = rows["failed_fraction"].map(lambda v: 0.0 if _missing(v) else v).astype(float)
+    print("\nonline (learning-type) against offline, per plant: final gains' median exact rate, the offline gain's, "
+          "gap; paths lost (fraction)")
+    # an offline run with no gain (its identification or design failed) has no closed loop to compare with:
+    # counted apart, neither as no worse nor as losing more
+    none = rows["offline_rate_plant"].map(_missing).to_numpy()
+    for r, g, on, off, gainless in zip(rows.itertuples(), gap, lost_on, lost_off, none):
+        verdict = "  (no offline gain)" if gainless else (
+            ("  WORSE" if not g <= ONLINE_TOLERANCE else "") + ("  LOST MORE" if on > off else ""))
+        print(f"  {r.plant}: online {_f(r.online_final_rate)} offline {_f(r.offline_rate_plant)} gap "
+              f"{'-' if not np.isfinite(g) else format(g, '+.4f')}; lost {on:.2f} vs {off:.2f}{verdict}")
+    compared = ~none
+    no_worse = (gap <= ONLINE_TOLERANCE)[compared]
+    more = (lost_on > lost_off)[compared]
+    print(f"online ends no worse than offline (final median rate <= offline + {ONLINE_TOLERANCE}): "
+          f"{int(no_worse.sum())}/{int(compared.sum())} ({no_worse.mean():.0%}); loses more paths: "
+          f"{int(more.sum())}/{int(compared.sum())}"
+          + (f"; no offline gain (not compared): {', '.join(rows.plant[none])}" if none.any() else ""))
 
 
 # what a run's summary (its printed output, in the plant's log) says when the closed loop's verdict

@@ -17,7 +17,7 @@ from ..errors import ConfigError, one_line
 from ..numerics.distributions import from_spec
 from ..numerics.enkf import VARIANTS, AdaptiveInflation, EnKF, check_covariance, truth_map, xi_support
 from ..numerics.modeling import COVARIANCES, mls_input
-from ..numerics.online import MEMORIES, OnlineSettings
+from ..numerics.online import MEMORIES, OBSERVERS, OnlineSettings
 from ..numerics.simulation import ESTIMATES, Recorded, check_estimate
 from ..numerics.synthesis import METHODS, check_options
 from ..numerics.systems import AffineRandomSystem, MomentModel
@@ -398,6 +398,7 @@ class ControllerSettings:
     kind: str = "offline"
     online: OnlineSettings | None = None
     initial: str | np.ndarray = "zero"
+    disturbance: np.ndarray | None = None   # Q_d of the online loop's unknown-input estimate (None: enkf.disturbance)
 
     @classmethod
     def from_config(cls, cfg, model: AffineRandomSystem, K: int) -> ControllerSettings:
@@ -644,11 +645,13 @@ def _flag(cfg, name: str) -> bool:
 
 CONTROLLERS = ("offline", "online")
 ONLINE_KEYS = {"type", "initial", "warmup", "period", "memory", "window", "forgetting", "method", "options",
-               "safeguard", "resamples", "block", "covariance"}
+               "safeguard", "resamples", "block", "min_blocks", "covariance", "disturbance", "observer"}
 
 
-def _controller(cfg, model: AffineRandomSystem, K: int) -> tuple[str, OnlineSettings | None, str | np.ndarray]:
-    """controller.type (offline | online; default offline) and the online controller's settings."""
+def _controller(cfg, model: AffineRandomSystem, K: int) -> tuple[str, OnlineSettings | None, str | np.ndarray,
+                                                                 np.ndarray | None]:
+    """controller.type (offline | online; default offline), the online controller's settings, its initial
+    gain and the covariance of its loop's unknown-input estimate (controller.disturbance, None: off)."""
     node = plain(OmegaConf.select(cfg, "controller")) or {"type": "offline"}
     kind = node.get("type", "offline") if isinstance(node, dict) else node
     if kind not in CONTROLLERS:
@@ -658,12 +661,15 @@ def _controller(cfg, model: AffineRandomSystem, K: int) -> tuple[str, OnlineSett
         if extra:                         # e.g. +controller.period=5 without controller=online
             raise ConfigError(f"controller.{extra[0]}: not read by controller=offline (the online controller's "
                               f"settings need controller=online)")
-        return kind, None, "zero"
+        return kind, None, "zero", None
     extra = sorted(set(node) - ONLINE_KEYS)
     if extra:
         raise ConfigError(f"controller: {extra!r} is not allowed, expected keys among {', '.join(sorted(ONLINE_KEYS))}")
     ints = {name: _number(get(cfg, f"controller.{name}"), f"controller.{name}", integer=True, low=low)
             for name, low in (("warmup", 0), ("period", 1), ("window", 2), ("resamples", 0), ("block", 1))}
+    # keys added later: a controller file (or a stored run's config) without them keeps the former behaviour
+    min_blocks = OmegaConf.select(cfg, "controller.min_blocks", default=OnlineSettings.min_blocks)
+    ints["min_blocks"] = _number(plain(min_blocks), "controller.min_blocks", integer=True, low=1)
     memory = get(cfg, "controller.memory")
     if memory not in MEMORIES:
         raise ConfigError(f"controller.memory: {memory!r} is not allowed, expected one of {', '.join(MEMORIES)}")
@@ -680,9 +686,12 @@ def _controller(cfg, model: AffineRandomSystem, K: int) -> tuple[str, OnlineSett
     if covariance not in COVARIANCES:
         raise ConfigError(f"controller.covariance: {covariance!r} is not allowed, expected one of "
                           f"{', '.join(COVARIANCES)}")
+    observer = plain(OmegaConf.select(cfg, "controller.observer", default="random_walk"))
+    if observer not in OBSERVERS:
+        raise ConfigError(f"controller.observer: {observer!r} is not allowed, expected one of {', '.join(OBSERVERS)}")
     with key("controller.options"):
         settings = OnlineSettings(memory=memory, forgetting=forgetting, method=method, options=options,
-                                  covariance=covariance,
+                                  covariance=covariance, observer=observer,
                                   safeguard=safeguard, **ints).check(model, K)
     initial = get(cfg, "controller.initial")
     if isinstance(initial, list):
@@ -691,7 +700,13 @@ def _controller(cfg, model: AffineRandomSystem, K: int) -> tuple[str, OnlineSett
     elif initial not in ("zero", "nominal"):
         raise ConfigError(f"controller.initial: {initial!r} is not allowed, expected zero, nominal or a gain "
                           f"[[...]] of shape (m, n) = {(model.m, model.n)}")
-    return kind, settings, initial
+    disturbance = None
+    if OmegaConf.select(cfg, "controller.disturbance", default=None) is not None:
+        disturbance = _covariance(cfg, "controller.disturbance", model.m)
+        if not disturbance.any():
+            raise ConfigError(f"controller.disturbance: {get(cfg, 'controller.disturbance')!r} is not allowed, "
+                              f"expected null or a nonzero covariance (a scale, m diagonal entries or m x m)")
+    return kind, settings, initial, disturbance
 
 
 def _process_noise(cfg, n: int, p: int) -> np.ndarray:

@@ -234,14 +234,17 @@ def run_experiment(exp: Experiment, sink=None, cache=None) -> Outcome:
                                      stages if name in CACHED_LOOPS else Stages(cache=None))
                 with bar, console_to_tqdm(), closing(chunks):
                     for first, tr in chunks:
-                        rows = trajectory_table(name, tr, first)
+                        rows = trajectory_table(name, tr, first, d_columns=carries_d(exp))
                         if exp.controller.kind == "online":     # the gain in use, as in the online rows
                             rows = with_gains(rows, np.zeros((exp.model.m, exp.model.n)) if F is None else F)
                         parts.append(stream_chunk(exp, name, tr, first, rows, sink, sample, sample_members))
                         tr = rows = None                    # free the chunk before the next
                 loops[name] = LoopSummary.concat(parts)
     if not loops:                              # no gain to simulate: the table's columns, no rows
-        sink.append("trajectories", trajectory_table("closed_loop", None, exp=exp))
+        rows = trajectory_table("closed_loop", None, exp=exp)
+        if exp.controller.kind == "online":    # and the gain columns the online loop's rows bring
+            rows = with_gains(rows, np.zeros((0, exp.model.m, exp.model.n)))
+        sink.append("trajectories", rows)
     floor = None
     if "closed_loop" in loops and exp.loop.floor_paths > 0:
         with stages.timed("noise_floor"):
@@ -391,13 +394,19 @@ def online_loop(exp: Experiment, seed, keep: bool, sim: dict, sink, sample: list
     bar, _ = _progress("online", exp.loop.paths * (K + 1))
     settings = dict(F=F0, d=exp.loop.disturbance, seed=seed, filter_sees_d=exp.loop.filter_sees_disturbance, **sim)
     make = partial(OnlineController, exp.model, exp.controller.online, F0, horizon=K)
+    enkf = loop_observer(exp, None)
+    if enkf.disturbance is None and exp.controller.disturbance is not None:
+        # controller.disturbance: the online loop's EnKF estimates an unknown input disturbance, which it
+        # would otherwise read as a wrong xi, the data the controller models xi from
+        enkf = dataclasses.replace(enkf, disturbance=exp.controller.disturbance)
     with bar, console_to_tqdm():
         for first, tr, controller in run_chunks(exp, settings, keep_members=keep, workers=exp.loop.workers,
-                                                progress=bar.update, controller=make, enkf=loop_observer(exp, None)):
+                                                progress=bar.update, controller=make, enkf=enkf):
             count = tr.q.shape[1]
             history = controller.gain_history()
             in_use = np.stack([history[j][tr.gain_index[:, j]] for j in range(count)])     # (P, K+1, m, n)
-            rows = with_gains(trajectory_table("online", tr, first), in_use.reshape(count * (K + 1), m, n))
+            rows = with_gains(trajectory_table("online", tr, first, d_columns=carries_d(exp)),
+                              in_use.reshape(count * (K + 1), m, n))
             parts.append(stream_chunk(exp, "online", tr, first, rows, sink, sample, sample_members))
             controllers.append((first, controller))
     return (LoopSummary.concat(parts), controllers), info
@@ -440,6 +449,8 @@ def add_online_tables(exp: Experiment, stages: Stages, tables: dict, online, cho
                 "rate_current": np.concatenate([np.full(count, np.nan), d.rate_current]),
                 "rate_worst": np.concatenate([np.full(count, np.nan), d.rate_worst]),
                 "rate_current_worst": np.concatenate([np.full(count, np.nan), d.rate_current_worst]),
+                "rate_current_best": np.concatenate([np.full(count, np.nan), d.rate_current_best]),
+                "estimates": np.concatenate([np.zeros(count, int), d.estimates]),
                 "rate_plant": np.concatenate([initial_plant, rate_plant])}
         mean = np.concatenate([np.full((count, p), np.nan), d.mean])
         rows |= {f"mean[{i}]": mean[:, i] for i in range(p)}
@@ -717,15 +728,24 @@ def _columns(name: str, values: np.ndarray) -> dict:
     return {f"{name}[{i}]": values[..., i].ravel() for i in range(values.shape[-1])}
 
 
+def carries_d(exp: Experiment) -> bool:
+    """Whether some loop of the trajectories table estimates the unknown input disturbance d: every loop with
+    enkf.disturbance (`loop_observer`), the online loop with controller.disturbance (`online_loop`)."""
+    return exp.filter.disturbance is not None or (exp.controller.kind == "online"
+                                                   and exp.controller.disturbance is not None)
+
+
 def trajectory_table(experiment: str, tr: Trajectories | None, first_path: int = 0,
-                     exp: Experiment | None = None) -> pd.DataFrame:
+                     exp: Experiment | None = None, d_columns: bool = False) -> pd.DataFrame:
     """One row per (path, k), paths first_path.. in order: plant q, y, u and the EnKF's mean and
     spread of x and xi before and after filtering, and where the EnKF estimates the unknown input
-    disturbance d (enkf.disturbance: every loop's EnKF, `loop_observer`) its filtered mean and spread."""
+    disturbance d (enkf.disturbance: every loop's EnKF, `loop_observer`; controller.disturbance: the
+    online loop's) its filtered mean and spread; with d_columns, a loop whose EnKF does not has them NaN
+    (one set of columns for every loop of a table, `carries_d`)."""
     if tr is None:                       # no gain to simulate: an empty table with the usual columns
         n, p, ny, m = exp.model.n, exp.model.p, exp.model.ny, exp.model.m
         shape = lambda d: np.zeros((0, 0, d))
-        d = shape(m) if exp.filter.disturbance is not None else None
+        d = shape(m) if carries_d(exp) else None
         tr = Trajectories(q=shape(n), y=shape(ny), u=shape(m), psi_pred_mean=shape(n + p),
                           psi_pred_std=shape(n + p), psi_filt_mean=shape(n + p), psi_filt_std=shape(n + p),
                           failed_at=np.zeros(0, int), failure=np.zeros(0, object), n=n, d_filt_mean=d, d_filt_std=d)
@@ -737,8 +757,9 @@ def trajectory_table(experiment: str, tr: Trajectories | None, first_path: int =
         for stat in ("mean", "std"):
             psi = getattr(tr, f"psi_{stage}_{stat}")
             cols.update(_columns(f"x_{stage}_{stat}", tr.x(psi)) | _columns(f"xi_{stage}_{stat}", tr.xi(psi)))
-    for stat in ("mean", "std") if tr.d_filt_mean is not None else ():
-        cols.update(_columns(f"d_filt_{stat}", getattr(tr, f"d_filt_{stat}")))
+    for stat in ("mean", "std") if tr.d_filt_mean is not None or d_columns else ():
+        values = getattr(tr, f"d_filt_{stat}")
+        cols.update(_columns(f"d_filt_{stat}", np.full(tr.u.shape, np.nan) if values is None else values))
     return pd.DataFrame(cols)
 
 

@@ -147,13 +147,18 @@ COLUMNS: dict[str, dict[str, tuple[str, str | None]]] = {
               "step"),
         "adopted": ("whether the path adopted the designed gain (from step k + 1 on)", None),
         "reason": ("initial, adopted, adopted_unchecked, or why not: not_stabilizing, no_improvement, not_robust "
-                   "(fails on a bootstrap resample), failed: ... (the design's status)", None),
+                   "(fails on a bootstrap resample), waiting (passes, but the window holds fewer than "
+                   "controller.min_blocks blocks and the gain in use is stable at some resample), failed: ... "
+                   "(the design's status)", None),
         "gain_index": ("index of the gain among the path's adopted gains (0: initial; -1: not adopted)", None),
         "rate_model": ("exact mean-square rate of the designed F on the current modeled moments", "1/step"),
         "rate_current": ("exact rate of the gain in use on the current modeled moments", "1/step"),
         "rate_worst": ("largest exact rate of the designed F over the bootstrap resamples of the window "
                        "(controller.resamples > 0; NaN without)", "1/step"),
         "rate_current_worst": ("largest exact rate of the gain in use over the same resamples", "1/step"),
+        "rate_current_best": ("smallest exact rate of the gain in use over the same resamples (>= 1: it fails "
+                              "at every resample)", "1/step"),
+        "estimates": ("estimates xi_{k|k} in the modeling window (0 for the initial gain)", None),
         "rate_plant": ("exact rate of the designed F on the true plant distribution", "1/step"),
         "mean[i]": ("modeled mean of xi from the path's own estimates, component i", "xi"),
         "cov[i,j]": ("modeled covariance of xi, entry (i, j)", "xi^2"),

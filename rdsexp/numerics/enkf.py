@@ -275,13 +275,32 @@ class EnKF:
     # `simulate` calls the two steps below with buffers it reuses at every step: allocating the
     # large arrays afresh costs a page fault per 4 kB once the allocator has returned them to the OS.
 
-    def _predict(self, psi: np.ndarray, u: np.ndarray, e_w: np.ndarray, out: np.ndarray) -> np.ndarray:
-        """`predict` into `out` (..., M, width), component-major, which must not overlap psi; returns out."""
+    def _predict(self, psi: np.ndarray, u: np.ndarray, e_w: np.ndarray, out: np.ndarray,
+                 path_prior: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+        """`predict` into `out` (..., M, width), component-major, which must not overlap psi; returns out.
+
+        path_prior: None, or per-path moments the predicted xi is drawn from i.i.d. (as `xi_prior` does for
+        every path): (mean (P, p), square root of the covariance (P, p, p), active (P,) bool) for psi of
+        shape (P, M, width); paths not active keep the EnKF's own model of xi (the random walk). The online
+        controller's paths, each with the moments its gain was designed on (`OnlineController.observer_prior`)."""
         n, dim = self.model.n, self.dim
         x, xi = self.split(psi)
         np.matmul(self._Q_sqrt.T, e_w.swapaxes(-1, -2), out=out.swapaxes(-1, -2))    # w = Q^(1/2) e_w
         psi_next = components(out)
-        if self.xi_prior is not None and self.model.p:        # Assumption 1 with the known moments:
+        walk = self.xi_prior is None
+        if path_prior is not None and walk and self.model.p and path_prior[2].any():
+            mean, sqrt, active = path_prior
+            e = components(e_w)[n:dim][:, active]                                      # (p, A, M)
+            draws = np.einsum("jil,ljm->ijm", sqrt[active], e) + mean[active].T[..., None]
+            if self.xi_bounds is not None:
+                self._clip_xi(draws)
+            psi_next[n:dim][:, active] = draws
+            xi = np.where(active[:, None, None], out[..., n:dim], xi)   # active paths move x with the draw
+            psi_next[:n] += components(affine_apply(self.model.A, xi, x))
+            psi_next[:n] += components(affine_apply(self.model.B, xi, self.inputs(psi, u)))
+            psi_next[n:dim][:, ~active] += components(psi[..., n:dim])[:, ~active]    # the others: random walk
+            walk = False
+        elif self.xi_prior is not None and self.model.p:        # Assumption 1 with the known moments:
             # xi_k drawn i.i.d. moves x_k to x_{k+1} and stays in the ensemble, so that the update with
             # y_{k+1} estimates the coefficient of the step that produced it
             np.matmul(self._xi_prior_sqrt, components(e_w)[n:dim].reshape(self.model.p, -1),
@@ -290,9 +309,10 @@ class EnKF:
             if self.xi_bounds is not None:       # a Gaussian draw of moments also leaves the support
                 self._clip_xi(psi_next[n:dim])
             xi = out[..., n:dim]
-        psi_next[:n] += components(affine_apply(self.model.A, xi, x))                 # eq. (f-A-B)
-        psi_next[:n] += components(affine_apply(self.model.B, xi, self.inputs(psi, u)))   # B(xi) (u + d)
-        if self.xi_prior is None:
+        if path_prior is None or not (self.xi_prior is None and self.model.p and path_prior[2].any()):
+            psi_next[:n] += components(affine_apply(self.model.A, xi, x))             # eq. (f-A-B)
+            psi_next[:n] += components(affine_apply(self.model.B, xi, self.inputs(psi, u)))   # B(xi) (u + d)
+        if walk:
             psi_next[n:dim] += components(xi)                                          # random walk
         if self.disturbance is not None:
             psi_next[dim:] += components(psi[..., dim:])                               # d: random walk

@@ -10,10 +10,22 @@ can model the distribution of xi from its own filtered estimates xi_{k|k} and re
                                              F_new = design(model, moments) by `method`
                                              adopted from k+1 on if lam(F_new) < 1 and
                                              lam(F_new) < lam(F_k), both exact rates on the new
-                                             moments (the safeguard; can be switched off); with
-                                             `resamples` > 0 both rates are also taken at their
-                                             worst over a moving-block bootstrap of the window,
-                                             and the candidate must pass there too
+                                             moments (the safeguard; can be switched off), and
+                                             if the evidence carries it (below)
+
+The evidence (`resamples` > 0, the default): the modeled moments' uncertainty as B moving-block
+bootstrap draws of the window's estimates (`modeling.block_bootstrap_steps`, blocks of `block`
+consecutive xi_{k|k}, which are correlated in k). The candidate must beat the gain in use at its
+worst over the draws: max_b lam_b(F_new) < 1 and max_b lam_b(F_new) < max_b lam_b(F_k) (else
+`not_robust`). A window of fewer than `min_blocks` blocks gives too few distinct resamples for
+their spread to measure the uncertainty (with 2 blocks of 5 estimates, 21 distinct resamples):
+there a candidate that passes is adopted only when the gain in use is unstable at every draw
+(min_b lam_b(F_k) >= 1: waiting costs more than acting on thin evidence), else it `waits`. No
+warm-up beyond `warmup` (the filter's) is needed: on a plant whose estimates say clearly that the
+gain in use fails (an open-loop unstable plant from F = 0), the first model is acted on at once.
+A candidate that the model or a draw does not certify below 1 is never adopted, not even where the
+gain in use fails: the model of a growing loop is biased, and such a candidate can be worse on the
+plant than the gain in use.
 
 No identification run. `OnlineController` is what `simulation.simulate(controller=...)` calls
 after filtering; every decision (adopted or not, and why) is kept in `decisions()`.
@@ -33,7 +45,8 @@ from .synthesis import METHODS, check_options, synthesize
 from .systems import AffineRandomSystem, MomentModel
 
 MEMORIES = ("window", "all", "exponential")
-REASONS = ("adopted", "adopted_unchecked", "not_stabilizing", "no_improvement", "not_robust", "failed")
+OBSERVERS = ("random_walk", "model")
+REASONS = ("adopted", "adopted_unchecked", "not_stabilizing", "no_improvement", "not_robust", "waiting", "failed")
 
 
 @dataclass(frozen=True)
@@ -46,8 +59,12 @@ class OnlineSettings:
     method / options: a `synthesis.METHODS` design; safeguard: adopt only certified improvements;
     resamples: 0 (the window's model only) or B moving-block bootstrap resamples of the window (blocks
     of `block` consecutive estimates: xi_{k|k} are correlated in k), over which the candidate's worst
-    rate must be < 1 and below the worst rate of the gain in use (else `not_robust`); covariance:
-    "sample" (eq. sample-mean of the estimates) or "total" (plus their mean filtered covariance).
+    rate must be < 1 and below the worst rate of the gain in use (else `not_robust`); min_blocks: below
+    this many blocks in the window a passing candidate is adopted only if the gain in use is unstable
+    at every resample (else `waiting`); covariance: "sample" (eq. sample-mean of the estimates) or
+    "total" (plus their mean filtered covariance); observer: "random_walk" (the loop's EnKF keeps its own
+    model of xi) or "model" (once a path adopts a designed gain, its EnKF draws xi i.i.d. from the
+    moments that gain was designed on, as the offline loop's observer does: `observer_prior`).
     """
 
     warmup: int = 20
@@ -58,13 +75,16 @@ class OnlineSettings:
     method: str = "policy_iteration"
     options: dict = field(default_factory=dict)
     safeguard: bool = True
-    resamples: int = 0
+    resamples: int = 50
     block: int = 5
+    min_blocks: int = 4
     covariance: str = "sample"
+    observer: str = "random_walk"
 
     def check(self, system: AffineRandomSystem, horizon: int | None = None) -> OnlineSettings:
         """One-line ValueError naming the setting; returns self."""
-        for name, low in (("warmup", 0), ("period", 1), ("window", 2), ("resamples", 0), ("block", 1)):
+        for name, low in (("warmup", 0), ("period", 1), ("window", 2), ("resamples", 0), ("block", 1),
+                          ("min_blocks", 1)):
             value = getattr(self, name)
             if not (isinstance(value, (int, np.integer)) and not isinstance(value, bool) and value >= low):
                 raise ValueError(f"{name}: {value!r} is not allowed, expected an integer >= {low}")
@@ -74,6 +94,8 @@ class OnlineSettings:
             raise ValueError(f"forgetting: {self.forgetting!r} is not allowed, expected a number in (0, 1)")
         if horizon is not None and self.memory == "window" and self.window > horizon:
             raise ValueError(f"window: {self.window} is not allowed, longer than the horizon {horizon}")
+        if self.observer not in OBSERVERS:
+            raise ValueError(f"observer: {self.observer!r} is not allowed, expected one of {', '.join(OBSERVERS)}")
         if not isinstance(self.safeguard, bool):
             raise ValueError(f"safeguard: {self.safeguard!r} is not allowed, expected true or false")
         if self.covariance not in COVARIANCES:
@@ -226,8 +248,9 @@ class Decisions:
     k: the step after whose filtering it happened (the gain acts from k+1); mean (U, p), cov (U, p, p):
     the modeled moments; F (U, m, n): the designed gain (NaN if none); rate_model: its exact rate on
     the modeled moments; rate_current: the exact rate of the gain in use on the same moments;
-    rate_worst / rate_current_worst: their maxima over the bootstrap resamples (NaN without);
-    adopted and reason (REASONS; "failed: ..." with the method's error)."""
+    rate_worst / rate_current_worst: their maxima over the bootstrap resamples, rate_current_best the
+    minimum of the gain in use's (NaN without resamples); estimates: how many xi_{k|k} the window
+    holds; adopted and reason (REASONS; "failed: ..." with the method's error)."""
 
     k: np.ndarray
     path: np.ndarray
@@ -238,6 +261,8 @@ class Decisions:
     rate_current: np.ndarray
     rate_worst: np.ndarray
     rate_current_worst: np.ndarray
+    rate_current_best: np.ndarray
+    estimates: np.ndarray
     adopted: np.ndarray
     reason: np.ndarray
 
@@ -261,6 +286,14 @@ class OnlineController:
         self.xi_cov = np.full((self.K + 1, self.P, system.p, system.p), np.nan) if self.needs_xi_cov else None
         self._rows: list[dict] = []
         self._updates = set(settings.updates(self.K).tolist())
+        # with observer = "model": per path, the moments of its adopted gain's model, for the EnKF's prediction
+        self._prior = (np.zeros((self.P, system.p)), np.zeros((self.P, system.p, system.p)), np.zeros(self.P, bool))
+
+    def observer_prior(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """What `simulate` passes to the EnKF's prediction (`EnKF._predict(path_prior=...)`): per path the mean
+        (P, p) and covariance square root (P, p, p) of the model its gain was designed on, and whether it has
+        one (P,); None with observer = "random_walk" or before any adoption."""
+        return self._prior if self.settings.observer == "model" and self._prior[2].any() else None
 
     def weights(self, k: int) -> tuple[int, np.ndarray]:
         """(first step, weights (k - first + 1,)) of the estimates the model at step k uses."""
@@ -294,27 +327,40 @@ class OnlineController:
             rate_new = rates(Abar, Bbar, np.nan_to_num(F_new))
             rate_new[failed != ""] = np.nan
             rate_cur = rates(Abar, Bbar, self.F[idx])
-        worst_new = worst_cur = np.full(idx.size, np.nan)
-        if self.settings.safeguard and self.settings.resamples:
-            worst_new, worst_cur = self._worst_rates(k, samples[:, idx], w, None if covs is None else covs[:, idx],
-                                                     np.nan_to_num(F_new), self.F[idx])
+        worst_new = worst_cur = best_cur = np.full(idx.size, np.nan)
+        s = self.settings
+        if s.safeguard and s.resamples:
+            worst_new, worst_cur, best_cur = self._draw_rates(
+                k, samples[:, idx], w, None if covs is None else covs[:, idx], np.nan_to_num(F_new), self.F[idx])
             worst_new[failed != ""] = np.nan
-        if self.settings.safeguard:
+        if s.safeguard:
+            # every candidate must be certified: exact rate < 1 and below the gain in use's on the window's model
+            # and at the worst bootstrap draw (the model of a loop that grows is biased: a candidate the model
+            # does not call stabilizing can be worse on the plant than the gain in use, and is never adopted)
             model_ok = (failed == "") & (rate_new < 1) & (rate_new < rate_cur)
-            robust = (worst_new < 1) & (worst_new < worst_cur) if self.settings.resamples else True
-            adopt = model_ok & robust
+            robust = model_ok & (worst_new < 1) & (worst_new < worst_cur) if s.resamples else model_ok
+            # with fewer than min_blocks blocks the draws' spread says little: act only where the gain in
+            # use fails at every draw (a first model on an open-loop unstable plant from F = 0)
+            enough = samples.shape[0] >= s.min_blocks * s.block or not s.resamples
+            adopt = robust & (enough | (best_cur >= 1))
             reason = np.where(failed != "", failed, np.where(
-                adopt, "adopted", np.where(rate_new >= 1, "not_stabilizing",
-                                           np.where(model_ok, "not_robust", "no_improvement"))))
+                adopt, "adopted", np.where(~(rate_new < 1), "not_stabilizing", np.where(
+                    ~model_ok, "no_improvement", np.where(robust, "waiting", "not_robust")))))
         else:
             adopt = failed == ""
             reason = np.where(adopt, "adopted_unchecked", failed)
         self._rows.append(dict(k=np.full(idx.size, k), path=idx, mean=mean, cov=cov, F=F_new, rate_model=rate_new,
                                rate_current=rate_cur, rate_worst=worst_new, rate_current_worst=worst_cur,
+                               rate_current_best=best_cur, estimates=np.full(idx.size, samples.shape[0]),
                                adopted=adopt, reason=reason.astype(object)))
         if not adopt.any():
             return None
         self.F[idx[adopt]] = F_new[adopt]
+        if self.settings.observer == "model":
+            lam, V = np.linalg.eigh(cov[adopt])
+            self._prior[0][idx[adopt]] = mean[adopt]
+            self._prior[1][idx[adopt]] = (V * np.sqrt(np.clip(lam, 0.0, None))[:, None, :]) @ V.transpose(0, 2, 1)
+            self._prior[2][idx[adopt]] = True
         return idx[adopt], F_new[adopt]
 
     def resample_steps(self, k: int, T: int) -> np.ndarray:
@@ -322,18 +368,18 @@ class OnlineController:
         from a generator seeded by (k, T), the same for every path, so the controller stays deterministic."""
         return block_bootstrap_steps(T, self.settings.resamples, self.settings.block, [k, T])
 
-    def _worst_rates(self, k: int, samples: np.ndarray, w: np.ndarray, covs: np.ndarray | None, F_new: np.ndarray,
-                     F_cur: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The largest exact rates of F_new and F_cur (U, m, n) over B moving-block bootstrap resamples of
-        the window samples (T, U, p) with weights w (T,) and filtered covariances covs (T, U, p, p) or None
-        (`resample_steps`): (U,) each."""
+    def _draw_rates(self, k: int, samples: np.ndarray, w: np.ndarray, covs: np.ndarray | None, F_new: np.ndarray,
+                    F_cur: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The largest exact rates of F_new and F_cur (U, m, n) and the smallest of F_cur over B moving-block
+        bootstrap resamples of the window samples (T, U, p) with weights w (T,) and filtered covariances covs
+        (T, U, p, p) or None (`resample_steps`): (U,) each."""
         steps = self.resample_steps(k, samples.shape[0])
         with np.errstate(all="ignore"):
             mean, cov = weighted_moments(samples[steps], w[steps], None if covs is None else covs[steps])
             B, U, p = mean.shape
             Abar, Bbar = moment_factors(self.system, mean.reshape(B * U, p), cov.reshape(B * U, p, p))
-            worst = [rates(Abar, Bbar, np.tile(F, (B, 1, 1))).reshape(B, U).max(axis=0) for F in (F_new, F_cur)]
-        return worst[0], worst[1]
+            new, cur = (rates(Abar, Bbar, np.tile(F, (B, 1, 1))).reshape(B, U) for F in (F_new, F_cur))
+        return new.max(axis=0), cur.max(axis=0), cur.min(axis=0)
 
     def _design(self, idx, mean, cov, Abar, Bbar) -> tuple[np.ndarray, np.ndarray]:
         """Gains (U, m, n) for the paths idx and a failure text per path ("" if designed)."""
@@ -371,7 +417,8 @@ class OnlineController:
             empty = {"mean": (0, p), "cov": (0, p, p), "F": (0, m, n)}
             return Decisions(k=np.zeros(0, int), path=np.zeros(0, int), **{a: np.zeros(s) for a, s in empty.items()},
                              rate_model=np.zeros(0), rate_current=np.zeros(0), rate_worst=np.zeros(0),
-                             rate_current_worst=np.zeros(0), adopted=np.zeros(0, bool),
+                             rate_current_worst=np.zeros(0), rate_current_best=np.zeros(0),
+                             estimates=np.zeros(0, int), adopted=np.zeros(0, bool),
                              reason=np.zeros(0, object))
         return Decisions(**{name: np.concatenate([r[name] for r in self._rows]) for name in self._rows[0]})
 
@@ -382,5 +429,5 @@ class OnlineController:
         return [np.concatenate([self.F0[j][None], d.F[(d.path == j) & d.adopted]]) for j in range(self.P)]
 
 
-__all__ = ["Decisions", "MEMORIES", "METHODS", "OnlineController", "OnlineSettings", "moment_factors",
+__all__ = ["Decisions", "MEMORIES", "METHODS", "OBSERVERS", "OnlineController", "OnlineSettings", "moment_factors",
            "policy_iteration_batch", "rates", "weighted_moments"]

@@ -101,7 +101,8 @@ class GainController(Protocol):
                xi_filt_cov: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray] | None:
         """After filtering at step k: psi_{k|k} means (P, n+p), alive (P,) and the filtered xi covariance
         (P, p, p) -> None (no change) or (paths (U,) int, gains (U, m, n)): the gains those paths use
-        from step k+1 on."""
+        from step k+1 on. Optionally observer_prior() -> None or per-path moments the EnKF's prediction draws
+        xi from (`EnKF._predict(path_prior=...)`)."""
 
 
 @dataclass(frozen=True)
@@ -386,7 +387,9 @@ def simulate(plant: AffineRandomSystem | None, enkf: EnKF, *, F=None, d, q0, psi
                     F[idx] = gains
                     adopted[idx] += 1
             source.advance(k, u)
-            enkf._predict(filtered, u_filter, e_w, out=psi)
+            prior = controller.observer_prior() if controller is not None and hasattr(controller, "observer_prior") \
+                else None
+            enkf._predict(filtered, u_filter, e_w, out=psi, path_prior=prior)
     return out
 
 

@@ -174,7 +174,7 @@ def test_safeguard_never_adopts_a_gain_not_certified_on_the_current_model(memory
     for trial in range(6):
         system = random_system(rng, 3, 1, 2, degenerate=trial % 3 == 2)
         system = rx.AffineRandomSystem(A=system.A * 1.3, B=system.B, xi_dist=system.xi_dist)  # often unstable
-        settings = OnlineSettings(warmup=2, period=3, memory=memory, window=4, forgetting=0.7)
+        settings = OnlineSettings(warmup=2, period=3, memory=memory, window=4, forgetting=0.7, resamples=0)
         ctrl = feed(system, settings, K=40, paths=5, seed=trial)
         d = ctrl.decisions()
         assert set(d.reason) <= {"adopted", "not_stabilizing", "no_improvement"}
@@ -200,14 +200,15 @@ def test_safeguard_never_adopts_a_gain_not_certified_on_the_current_model(memory
 def test_bootstrap_safeguard_reports_the_worst_rates_and_adopts_only_what_passes_them():
     """With resamples: rate_worst / rate_current_worst are the largest exact rates (checked independently)
     over the moving-block resamples of the window; a gain is adopted only when it passes on the model and
-    on the worst resample, `not_robust` when only the model passes; at the first re-design the adopted
+    on the worst resample, `not_robust` when only the model passes, `waiting` when both pass on fewer than
+    min_blocks blocks and the gain in use is stable at some draw (rate_current_best, checked too); at the first re-design the adopted
     paths are a subset of those the model-only safeguard adopts; the decisions repeat exactly."""
     rng = np.random.default_rng(11)
-    checked = robust_refusals = 0
+    checked = robust_refusals = waits = 0
     for trial in range(4):
         system = random_system(rng, 3, 1, 2, degenerate=trial == 3)
         system = rx.AffineRandomSystem(A=system.A * 1.2, B=system.B, xi_dist=system.xi_dist)
-        settings = OnlineSettings(warmup=2, period=4, memory="window", window=8, resamples=6, block=3)
+        settings = OnlineSettings(warmup=2, period=4, memory="window", window=8, resamples=6, block=3, min_blocks=2)
         ctrl = feed(system, settings, K=30, paths=4, seed=trial)
         d = ctrl.decisions()
         again = feed(system, settings, K=30, paths=4, seed=trial).decisions()
@@ -219,15 +220,21 @@ def test_bootstrap_safeguard_reports_the_worst_rates_and_adopts_only_what_passes
             first, w = ctrl.weights(k)
             steps = ctrl.resample_steps(k, k + 1 - first)
             assert steps.shape == (6, k + 1 - first) and np.all(np.diff(steps[:, :3], axis=1) == 1)
-            worst = [max(kron_rate(system, *moments(ctrl.xi[first:k + 1, j][s], w[s]), F) for s in steps)
-                     for F in (d.F[i], current[j])]
+            at = [[kron_rate(system, *moments(ctrl.xi[first:k + 1, j][s], w[s]), F) for s in steps]
+                  for F in (d.F[i], current[j])]
+            worst = [max(r) for r in at]
             if np.all(np.isfinite(d.F[i])):
                 assert d.rate_worst[i] == pytest.approx(worst[0], rel=1e-8)
             assert d.rate_current_worst[i] == pytest.approx(worst[1], rel=1e-8)
+            assert d.rate_current_best[i] == pytest.approx(min(at[1]), rel=1e-8)
             model_ok = d.rate_model[i] < 1 and d.rate_model[i] < d.rate_current[i]
             passes = worst[0] < 1 and worst[0] < worst[1]
-            assert d.adopted[i] == (model_ok and passes)
-            assert d.reason[i] == ("adopted" if d.adopted[i] else "not_robust" if model_ok else d.reason[i])
+            # below min_blocks blocks only where the gain in use fails at every draw
+            enough = k + 1 - first >= settings.min_blocks * settings.block or min(at[1]) >= 1
+            assert d.adopted[i] == (model_ok and passes and enough)
+            assert d.reason[i] == ("adopted" if d.adopted[i] else "waiting" if model_ok and passes
+                                   else "not_robust" if model_ok else d.reason[i])
+            waits += d.reason[i] == "waiting"
             robust_refusals += d.reason[i] == "not_robust"
             if d.adopted[i]:
                 current[j] = d.F[i]
@@ -237,7 +244,36 @@ def test_bootstrap_safeguard_reports_the_worst_rates_and_adopts_only_what_passes
         at_first = d.k == d.k.min()
         assert set(d.path[at_first & d.adopted]) <= set(plain.path[(plain.k == plain.k.min()) & plain.adopted])
         assert np.isnan(plain.rate_worst).all()
-    assert checked > 0 and robust_refusals > 0
+    assert checked > 0 and robust_refusals > 0 and waits > 0
+
+
+def test_first_candidate_unstable_on_the_true_plant_is_rejected_on_the_bootstrap_evidence():
+    """Constructed: x+ = (1.2 + xi) x + u, xi ~ N(0.5, 0.25); ten estimates xi_{k|k} biased to mean -0.6 with
+    spread 0.85 (a biased EnKF). The first candidate, designed on their model, has model rate 0.85 < 1, below
+    the gain in use's (F = 0), and passes the model-only safeguard, but its exact rate on the true plant is
+    1.21: with the default bootstrap evidence it is rejected (not_robust: its worst draw is >= 1)."""
+    system = rx.AffineRandomSystem(A=[np.array([[1.2]]), np.array([[1.0]])], B=[np.array([[1.0]]), np.zeros((1, 1))],
+                                   xi_dist=from_spec({"family": "normal", "mean": [0.5], "cov": [[0.25]]}))
+    z = np.random.default_rng(0).normal(size=10)
+    xi = -0.6 + 0.85 * (z - z.mean()) / z.std()
+
+    def first_decision(**kw):
+        ctrl = OnlineController(system, OnlineSettings(warmup=0, period=10, memory="window", window=10, **kw),
+                                np.zeros((1, 1)), paths=1, horizon=20)
+        for k in range(11):
+            ctrl.update(k, np.array([[0.0, xi[k - 1] if k else 0.0]]), np.ones(1, bool))
+        d = ctrl.decisions()
+        assert len(d.k) == 1 and d.k[0] == 10 and d.estimates[0] == 10
+        return d
+
+    d = first_decision()                                                    # the defaults: resamples 50
+    assert d.rate_model[0] == pytest.approx(0.85, rel=1e-9) and d.rate_model[0] < d.rate_current[0]
+    assert rx.ms_rate(system, None, d.F[0]) >= 1.2                          # unstable on the true plant
+    assert not d.adopted[0] and d.reason[0] == "not_robust" and d.rate_worst[0] >= 1
+    assert d.rate_current_best[0] <= d.rate_current_worst[0]
+    plain = first_decision(resamples=0)                                     # the model alone would take it
+    assert plain.adopted[0] and plain.reason[0] == "adopted"
+    np.testing.assert_array_equal(plain.F, d.F)
 
 
 def moments(xi, w):
@@ -313,7 +349,9 @@ def test_online_run_records_the_controller_table(tmp_path):
     traj = pd.read_parquet(run / "trajectories.parquet")
     metrics = pd.read_parquet(run / "metrics.parquet").set_index("experiment")
     assert set(table["k"]) == {-1, 15, 25, 35}                      # initial gain, then warmup + j period
-    assert len(table[table["k"] == -1]) == 4 and (table["F[0,0]"][table["k"] == -1] == 0).all()
+    initial = table[table["k"] == -1]                                # the default start: the nominal gain
+    assert len(initial) == 4 and (initial.filter(like="F[").nunique() == 1).all() and (initial["F[0,0]"] != 0).all()
+    assert set(initial["reason"]) == {"initial"} and (initial["rate_plant"] < 1).all()
     # the gain in use in the trajectories is the path's adopted gain from the step after its update
     online = traj[traj["experiment"] == "online"]
     adopted = table[table["adopted"] & (table["k"] >= 0)]
