@@ -288,7 +288,8 @@ class EnKF:
         np.matmul(self._Q_sqrt.T, e_w.swapaxes(-1, -2), out=out.swapaxes(-1, -2))    # w = Q^(1/2) e_w
         psi_next = components(out)
         walk = self.xi_prior is None
-        if path_prior is not None and walk and self.model.p and path_prior[2].any():
+        per_path = path_prior is not None and walk and self.model.p and path_prior[2].any()
+        if per_path:
             mean, sqrt, active = path_prior
             e = components(e_w)[n:dim][:, active]                                      # (p, A, M)
             draws = np.einsum("jil,ljm->ijm", sqrt[active], e) + mean[active].T[..., None]
@@ -296,8 +297,6 @@ class EnKF:
                 self._clip_xi(draws)
             psi_next[n:dim][:, active] = draws
             xi = np.where(active[:, None, None], out[..., n:dim], xi)   # active paths move x with the draw
-            psi_next[:n] += components(affine_apply(self.model.A, xi, x))
-            psi_next[:n] += components(affine_apply(self.model.B, xi, self.inputs(psi, u)))
             psi_next[n:dim][:, ~active] += components(psi[..., n:dim])[:, ~active]    # the others: random walk
             walk = False
         elif self.xi_prior is not None and self.model.p:        # Assumption 1 with the known moments:
@@ -309,9 +308,8 @@ class EnKF:
             if self.xi_bounds is not None:       # a Gaussian draw of moments also leaves the support
                 self._clip_xi(psi_next[n:dim])
             xi = out[..., n:dim]
-        if path_prior is None or not (self.xi_prior is None and self.model.p and path_prior[2].any()):
-            psi_next[:n] += components(affine_apply(self.model.A, xi, x))             # eq. (f-A-B)
-            psi_next[:n] += components(affine_apply(self.model.B, xi, self.inputs(psi, u)))   # B(xi) (u + d)
+        psi_next[:n] += components(affine_apply(self.model.A, xi, x))                 # eq. (f-A-B)
+        psi_next[:n] += components(affine_apply(self.model.B, xi, self.inputs(psi, u)))   # B(xi) (u + d)
         if walk:
             psi_next[n:dim] += components(xi)                                          # random walk
         if self.disturbance is not None:
