@@ -117,4 +117,4 @@ def cli() -> None:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    cli()

@@ -134,6 +134,13 @@ def quiet_resource_tracker() -> None:
 
 def main() -> None:
     """Console entry point `rdsexp` (and `python -m rdsexp`)."""
+    try:
+        _main()
+    except BrokenPipeError:            # `rdsexp --help | head`: the reader stopped early, not an error
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+
+
+def _main() -> None:
     quiet_resource_tracker()
     # Ctrl-C stops a run or sweep even when the launching process ignored SIGINT (a child inherits
     # an ignored SIGINT): Python's default handler raises KeyboardInterrupt, which ends the run

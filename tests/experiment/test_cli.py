@@ -1,7 +1,10 @@
 """Runner, configs, sweeps, recordings and the run catalog, end to end."""
 import json
+import os
 import re
 import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -259,3 +262,17 @@ def test_a_m_sweep_is_found_by_the_name_list_shows(tmp_path, capsys):
     assert out.startswith("sweep ") and "2 jobs (2 complete)" in out
     assert runs.main(["plot", "seed=1,2", "--x", "seed", "--y", "closed_loop_rate", "--root", root]) == 0
     assert list((tmp_path / "outputs" / "sweeps").glob("*/closed_loop_rate_vs_seed.png"))
+
+
+@pytest.mark.parametrize("module", ["rdsexp", "rdsexp.runs"])
+def test_output_into_a_reader_that_stopped_is_no_traceback(module):
+    """`rdsexp --help | head`: standard output whose reader is gone (every write fails: EPIPE) ends without a
+    BrokenPipeError traceback, exit 0."""
+    read, write = os.pipe()
+    os.close(read)
+    try:
+        proc = subprocess.run([sys.executable, "-m", module, "--help"], stdout=write, stderr=subprocess.PIPE,
+                              text=True, timeout=120)
+    finally:
+        os.close(write)
+    assert proc.stderr == "" and proc.returncode == 0
