@@ -313,17 +313,25 @@ def identify_and_model(exp: Experiment, stages: Stages, seed, sim: dict, keep: b
                             "open_loop_failure": str(ident.failure[0])}
             ident = identify(F_id)
     summary["identification_feedback"] = info
+    ident, dist, failure = model_moments(exp, stages, ident, lambda enkf: identify(F_id, enkf), sim, summary)
+    return {"ident": ident, "dist": dist, "failure": failure, "summary": summary}
+
+
+def model_moments(exp: Experiment, stages: Stages, ident: Trajectories, identify, sim: dict, summary: dict):
+    """The modeling stage: the moments of xi from the identification's estimates (`identified_moments`), with
+    identification.xi_model: iterated the passes that filter again with each pass's prior (`identify(enkf)`);
+    (the Trajectories they come from, MomentModel or None, why not). Its decisions go into `summary`."""
     with stages.timed("modeling"):
         dist, failure = identified_moments(exp, ident)
         if exp.identification.xi_model == "iterated" and exp.model.p:     # (nothing to iterate without xi)
             ident, dist, failure, summary["identification_passes"] = iterate_identification(
-                exp, lambda enkf: identify(F_id, enkf), ident, dist, failure, sim["psi0"])
+                exp, identify, ident, dist, failure, sim["psi0"])
         passes = summary.get("identification_passes") or {}
         unsettled = dist is not None and passes.get("passes") and not passes.get("converged")
         summary["modeling_status"] = failure or ("unsettled" if unsettled else "ok")
         if dist is not None:
             summary["modeling_covariance"] = exp.identification.covariance
-    return {"ident": ident, "dist": dist, "failure": failure, "summary": summary}
+    return ident, dist, failure
 
 
 CACHED_LOOPS = ("open_loop",)      # loops the stage cache keeps: the open loop does not depend on the gain, so
@@ -1093,16 +1101,7 @@ def run_on_data(exp: Experiment, sink=None, cache=None) -> Outcome:
         identify = partial(identify_recorded, exp, data.identification, seed, sim, keep)
         ident = identify()
         summary["identification_feedback"] = {"mode": "recorded", "used": "the recorded inputs"}
-    with stages.timed("modeling"):
-        dist, failure = identified_moments(exp, ident)
-        if exp.identification.xi_model == "iterated" and exp.model.p:
-            ident, dist, failure, summary["identification_passes"] = iterate_identification(
-                exp, lambda enkf: identify(enkf=enkf), ident, dist, failure, sim["psi0"])
-        passes = summary.get("identification_passes") or {}
-        unsettled = dist is not None and passes.get("passes") and not passes.get("converged")
-        summary["modeling_status"] = failure or ("unsettled" if unsettled else "ok")
-        if dist is not None:
-            summary["modeling_covariance"] = exp.identification.covariance
+    ident, dist, _ = model_moments(exp, stages, ident, lambda enkf: identify(enkf=enkf), sim, summary)
     draws = moment_uncertainty(exp, ident, summary) if dist is not None else None
     with stages.timed("synthesis"):
         designs = {}
