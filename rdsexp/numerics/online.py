@@ -63,8 +63,9 @@ class OnlineSettings:
     this many blocks in the window a passing candidate is adopted only if the gain in use is unstable
     at every resample (else `waiting`); covariance: "sample" (eq. sample-mean of the estimates) or
     "total" (plus their mean filtered covariance); observer: "random_walk" (the loop's EnKF keeps its own
-    model of xi) or "model" (once a path adopts a designed gain, its EnKF draws xi i.i.d. from the
-    moments that gain was designed on, as the offline loop's observer does: `observer_prior`).
+    model of xi) or "model" (from a path's first re-design on, its EnKF draws xi i.i.d. from the path's
+    latest modeled moments, adopted or not, as the offline loop's observer draws from the identified
+    ones: `observer_prior`; the random walk before).
     """
 
     warmup: int = 20
@@ -286,13 +287,13 @@ class OnlineController:
         self.xi_cov = np.full((self.K + 1, self.P, system.p, system.p), np.nan) if self.needs_xi_cov else None
         self._rows: list[dict] = []
         self._updates = set(settings.updates(self.K).tolist())
-        # with observer = "model": per path, the moments of its adopted gain's model, for the EnKF's prediction
+        # with observer = "model": per path, the moments of its latest model, for the EnKF's prediction
         self._prior = (np.zeros((self.P, system.p)), np.zeros((self.P, system.p, system.p)), np.zeros(self.P, bool))
 
     def observer_prior(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         """What `simulate` passes to the EnKF's prediction (`EnKF._predict(path_prior=...)`): per path the mean
-        (P, p) and covariance square root (P, p, p) of the model its gain was designed on, and whether it has
-        one (P,); None with observer = "random_walk" or before any adoption."""
+        (P, p) and covariance square root (P, p, p) of its latest model, and whether it has one (P,); None with
+        observer = "random_walk" or before any path's first re-design."""
         return self._prior if self.settings.observer == "model" and self._prior[2].any() else None
 
     def weights(self, k: int) -> tuple[int, np.ndarray]:
@@ -353,14 +354,17 @@ class OnlineController:
                                rate_current=rate_cur, rate_worst=worst_new, rate_current_worst=worst_cur,
                                rate_current_best=best_cur, estimates=np.full(idx.size, samples.shape[0]),
                                adopted=adopt, reason=reason.astype(object)))
+        if self.settings.observer == "model":
+            # the path's latest model, its gain adopted or not: a random walk left running in a loop whose state
+            # decays drifts (y carries less and less of xi) until the filter diverges, whatever the gain
+            modeled = np.all(np.isfinite(mean), axis=1) & np.all(np.isfinite(cov), axis=(1, 2))
+            lam, V = np.linalg.eigh(cov[modeled])
+            self._prior[0][idx[modeled]] = mean[modeled]
+            self._prior[1][idx[modeled]] = (V * np.sqrt(np.clip(lam, 0.0, None))[:, None, :]) @ V.transpose(0, 2, 1)
+            self._prior[2][idx[modeled]] = True
         if not adopt.any():
             return None
         self.F[idx[adopt]] = F_new[adopt]
-        if self.settings.observer == "model":
-            lam, V = np.linalg.eigh(cov[adopt])
-            self._prior[0][idx[adopt]] = mean[adopt]
-            self._prior[1][idx[adopt]] = (V * np.sqrt(np.clip(lam, 0.0, None))[:, None, :]) @ V.transpose(0, 2, 1)
-            self._prior[2][idx[adopt]] = True
         return idx[adopt], F_new[adopt]
 
     def resample_steps(self, k: int, T: int) -> np.ndarray:

@@ -108,6 +108,31 @@ def test_total_covariance_adds_the_mean_filtered_covariance_of_the_window():
     np.testing.assert_allclose(cov, plain_cov + np.einsum("t,tjab->jab", w / w.sum(), covs), rtol=1e-12)
 
 
+def test_model_observer_draws_from_each_paths_latest_model_adopted_or_not():
+    """observer = model: no prior before the first re-design (the random walk); after each, every path with finite
+    moments has its latest decision's moments as the EnKF's prior, also where the candidate was not adopted."""
+    settings = OnlineSettings(warmup=4, period=6, memory="all", observer="model")
+    priors = []
+
+    class Kept(OnlineController):
+        def update(self, k, *args, **kw):
+            change = super().update(k, *args, **kw)
+            prior = self.observer_prior()
+            priors.append((k, None if prior is None else tuple(np.array(a) for a in prior)))
+            return change
+
+    ctrl = Kept(paper.model(), settings, np.zeros((1, 6)), paths=4, horizon=30)
+    closed_loop(np.zeros((1, 6)), paths=4, horizon=30, controller=ctrl)
+    dec = ctrl.decisions()
+    assert all(prior is None for k, prior in priors if k < 10) and (~dec.adopted).any()
+    for k, (mean, root, has) in priors[10:]:
+        last = dec.k == max(j for j in set(dec.k) if j <= k)
+        assert has[dec.path[last]].all() and has.sum() == last.sum()
+        np.testing.assert_array_equal(mean[dec.path[last]], dec.mean[last])
+        np.testing.assert_allclose(root[dec.path[last]] @ root[dec.path[last]], dec.cov[last], rtol=1e-9,
+                                   atol=1e-12 * np.abs(dec.cov[last]).max())
+
+
 def test_period_beyond_the_horizon_is_the_fixed_gain_closed_loop_bit_for_bit():
     fixed = closed_loop(paper.F_proposed)
     ctrl = OnlineController(paper.model(), OnlineSettings(warmup=0, period=31, window=10), paper.F_proposed,
