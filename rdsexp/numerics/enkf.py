@@ -282,7 +282,7 @@ class EnKF:
         path_prior: None, or per-path moments the predicted xi is drawn from i.i.d. (as `xi_prior` does for
         every path): (mean (P, p), square root of the covariance (P, p, p), active (P,) bool) for psi of
         shape (P, M, width); paths not active keep the EnKF's own model of xi (the random walk). The online
-        controller's paths, each with the moments its gain was designed on (`OnlineController.observer_prior`)."""
+        controller's paths, each with its latest modeled moments (`OnlineController.observer_prior`)."""
         n, dim = self.model.n, self.dim
         x, xi = self.split(psi)
         np.matmul(self._Q_sqrt.T, e_w.swapaxes(-1, -2), out=out.swapaxes(-1, -2))    # w = Q^(1/2) e_w
