@@ -42,6 +42,7 @@ from ..errors import one_line
 from .analysis import DENSE_MAX_N, perron
 from .modeling import COVARIANCES, block_bootstrap_steps
 from .synthesis import METHODS, check_options, synthesize
+from .synthesis.riccati import greedy_gain
 from .systems import AffineRandomSystem, MomentModel
 
 MEMORIES = ("window", "all", "exponential")
@@ -205,10 +206,12 @@ def policy_iteration_batch(Abar: np.ndarray, Bbar: np.ndarray, F0: np.ndarray, *
                            tol: float = 1e-13) -> np.ndarray:
     """`synthesis.riccati.policy_iteration` for P models at once: gains (P, m, n) from F0 (P, m, n).
 
-    Per path: P_j = Perron eigenvector of X -> sum_r Acl_r^T X Acl_r, then
-    F = -E[B^T P B]^+ E[B^T P A]; the rate never increases; a path stops when it no longer decreases
-    by tol (relative)."""
+    Per path: P_j = Perron eigenvector of X -> sum_r Acl_r^T X Acl_r, then F = `greedy_gain` of P_j; a path
+    stops when its rate no longer decreases by tol (relative). As the single-path one, it returns each
+    path's gain with the smallest rate seen, never worse than F0: with a singular P_j the step can raise
+    the rate (a random plant whose B is certain: 0.93 at the optimum, 2.2 one step later)."""
     F = np.array(F0, dtype=float)
+    best = F.copy()
     Pn, _, n, m = Bbar.shape
     lam = np.full(Pn, np.inf)
     active = np.ones(Pn, dtype=bool)
@@ -227,18 +230,16 @@ def policy_iteration_batch(Abar: np.ndarray, Bbar: np.ndarray, F0: np.ndarray, *
         X = (v @ back).reshape(-1, n, n)
         X = (X + X.transpose(0, 2, 1)) / 2
         X *= (np.sign(np.trace(X, axis1=1, axis2=2)) / np.abs(X).max(axis=(1, 2)))[:, None, None]
+        better = new < lam[idx]
+        best[idx[better]] = F[idx[better]]
         done = (lam[idx] - new <= tol * np.maximum(new, 1e-300)) & (it > 0)
         lam[idx] = np.minimum(lam[idx], new)
         active[idx[done]] = False
-        go = idx[~done]
-        if go.size == 0:
+        go = ~done
+        if not go.any():
             break
-        Xg, Ag, Bg = X[~done], Abar[go], Bbar[go]
-        XB, XA = Xg[:, None] @ Bg, Xg[:, None] @ Ag                     # (paths, nbar, n, m or n)
-        BPB = np.einsum("jrai,jral->jil", Bg, XB)
-        BPA = np.einsum("jrai,jral->jil", Bg, XA)
-        F[go] = -np.linalg.pinv(BPB) @ BPA                   # minimum-norm minimiser if singular
-    return F
+        F[idx[go]] = greedy_gain(Abar[idx[go]], Bbar[idx[go]], X[go])
+    return best
 
 
 # ------------------------------------------------------------------------------ the controller

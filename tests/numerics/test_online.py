@@ -67,6 +67,34 @@ def test_batched_rates_and_policy_iteration_match_the_single_path_ones():
             assert kron_rate(system, mean[j], cov[j], Fb[j]) == pytest.approx(single.lam, rel=1e-8, abs=1e-12)
 
 
+def test_batched_policy_iteration_returns_its_best_gain_where_a_step_raises_the_rate():
+    """With B certain and m = n, the optimum is dead beat at the mean: Acl = sum_i (xi_i - mean_i) A_i, whose
+    rate sqrt(rho(sum_il cov_il A_i (x) A_l)) no gain beats (an independent computation). The Perron vector
+    there is singular and the minimum-norm step moves away from it (the rate can rise): from any start, the
+    batched policy iteration returns the optimum and never a gain worse than its start."""
+    misses = 0
+    for seed in range(12):
+        rng = np.random.default_rng(100 + seed)
+        n, p = int(rng.integers(2, 4)), int(rng.integers(1, 3))
+        system = random_system(rng, n, n, p, degenerate=True)     # B_i = 0 for i >= 1: B(xi) = B_0
+        P = 3
+        mean = 0.5 * rng.normal(size=(P, p))
+        L = 0.5 * rng.normal(size=(P, p, p))
+        cov = L @ L.transpose(0, 2, 1)
+        Abar, Bbar = moment_factors(system, mean, cov)
+        F0 = np.stack([np.zeros((n, n)), rng.normal(size=(n, n)),
+                       -np.linalg.solve(system.B[0], system.A[0] + np.tensordot(mean[2], system.A[1:], 1))])
+        F = policy_iteration_batch(Abar, Bbar, F0)
+        for j in range(P):
+            Ai = system.A[1:]
+            optimum = np.sqrt(np.abs(np.linalg.eigvals(sum(cov[j][i, l] * np.kron(Ai[i], Ai[l])
+                                                           for i in range(p) for l in range(p)))).max())
+            assert kron_rate(system, mean[j], cov[j], F[j]) == pytest.approx(optimum, rel=1e-7, abs=1e-12)
+            assert kron_rate(system, mean[j], cov[j], F[j]) <= kron_rate(system, mean[j], cov[j], F0[j]) + 1e-12
+            misses += kron_rate(system, mean[j], cov[j], F[j]) > 1e-9
+    assert misses > 0          # not every optimum is zero (cov != 0): the check is not vacuous
+
+
 def test_weighted_moments_are_the_sample_moments_with_equal_weights():
     xi = np.random.default_rng(0).normal(size=(30, 3, 2))
     mean, cov = weighted_moments(xi, np.ones(30))

@@ -14,33 +14,35 @@ LOWER_MARGIN = 1e-9          # relative back-off of c before its independent che
 
 
 def scaled_blocks(Abar: np.ndarray, Bbar: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(S / (g g^T), g): S = E[[A B]^T P [A B]] = sum_r [Abar_r Bbar_r]^T P [Abar_r Bbar_r] (n+m, n+m)
-    and the column sizes g_i = sqrt(sum_r ||[Abar_r Bbar_r] e_i||^2) (0 -> 1).
+    """(S / (g g^T), g): S = E[[A B]^T P [A B]] = sum_r [Abar_r Bbar_r]^T P [Abar_r Bbar_r] (..., n+m, n+m)
+    and the column sizes g_i = sqrt(sum_r ||[Abar_r Bbar_r] e_i||^2) (0 -> 1) (..., n+m), for Abar
+    (..., r, n, n), Bbar (..., r, n, m), P (..., n, n) (leading axes: a batch of models).
 
     Scaled so, an entry's rounding error is about eps ||P|| whatever the sizes of A and B (A huge and B
     small, say); that sets which eigenvalues count as exact zeros (KERNEL_TOL * ||P||). The scaling
     is a congruence: it changes neither the minimiser over F (rescaled back) nor the pencil below."""
-    G = np.concatenate([Abar, Bbar], axis=2)                      # (nbar, n, n+m)
-    g = np.sqrt(np.sum(G ** 2, axis=(0, 1)))
+    G = np.concatenate([Abar, Bbar], axis=-1)                     # (..., nbar, n, n+m)
+    g = np.sqrt(np.sum(G ** 2, axis=(-3, -2)))
     g[g == 0] = 1.0
-    G = G / g
-    k = G.shape[2]
-    S = G.reshape(-1, k).T @ (P @ G).reshape(-1, k)              # sum_r G_r^T P G_r: two BLAS products
-    return (S + S.T) / 2, g
+    G = G / g[..., None, None, :]
+    S = np.sum(G.swapaxes(-1, -2) @ (P[..., None, :, :] @ G), axis=-3)
+    return (S + S.swapaxes(-1, -2)) / 2, g
 
 
 def greedy_gain(Abar: np.ndarray, Bbar: np.ndarray, P: np.ndarray) -> np.ndarray:
-    """argmin_F E[(A + B F)^T P (A + B F)] = -S_bb^+ S_ba (m, n), the minimum-norm minimiser.
+    """argmin_F E[(A + B F)^T P (A + B F)] = -S_bb^+ S_ba (..., m, n), the minimum-norm minimiser
+    (`scaled_blocks`' batch axes).
 
     Eigenvalues of (scaled) S_bb below KERNEL_TOL ||P|| are rounding of exact zeros (inputs that P
     does not see, e.g. an uncontrollable mode): inverting them would give gains with huge entries
     that change nothing in exact arithmetic but ruin every computation with them, so they are dropped."""
-    n = Abar.shape[1]
+    n = Abar.shape[-1]
     S, g = scaled_blocks(Abar, Bbar, P)
-    w, U = np.linalg.eigh(S[n:, n:])
-    keep = w > KERNEL_TOL * np.abs(P).max()
-    Ft = -(U[:, keep] / w[keep]) @ (U[:, keep].T @ S[n:, :n])    # the minimiser in scaled variables
-    return Ft / g[n:, None] * g[None, :n]
+    w, U = np.linalg.eigh(S[..., n:, n:])
+    keep = w > KERNEL_TOL * np.abs(P).max(axis=(-2, -1))[..., None]
+    inv_w = np.where(keep, 1 / np.where(keep, w, 1.0), 0.0)     # dropped eigenvalues: zero rows
+    Ft = -(U * inv_w[..., None, :]) @ (U.swapaxes(-1, -2) @ S[..., n:, :n])    # the minimiser in scaled variables
+    return Ft / g[..., n:, None] * g[..., None, :n]
 
 
 def rate_lower_bound(Abar: np.ndarray, Bbar: np.ndarray, P: np.ndarray) -> float:
