@@ -121,9 +121,9 @@ def check_covariance(name: str, value, dim: int) -> np.ndarray:
 
 
 def sqrtm_psd(S: np.ndarray) -> np.ndarray:
-    """Symmetric square root of a PSD matrix (valid when S is singular)."""
+    """Symmetric square root of PSD matrices S (..., n, n) (valid when S is singular)."""
     w, V = np.linalg.eigh(S)
-    return (V * np.sqrt(np.clip(w, 0.0, None))) @ V.T
+    return (V * np.sqrt(np.clip(w, 0.0, None))[..., None, :]) @ V.swapaxes(-1, -2)
 
 
 @dataclass(frozen=True)

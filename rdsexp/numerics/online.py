@@ -40,6 +40,7 @@ import numpy as np
 
 from ..errors import one_line
 from .analysis import DENSE_MAX_N, perron
+from .enkf import sqrtm_psd
 from .modeling import COVARIANCES, block_bootstrap_steps
 from .synthesis import METHODS, check_options, synthesize
 from .synthesis.riccati import greedy_gain
@@ -359,9 +360,8 @@ class OnlineController:
             # the path's latest model, its gain adopted or not: a random walk left running in a loop whose state
             # decays drifts (y carries less and less of xi) until the filter diverges, whatever the gain
             modeled = np.all(np.isfinite(mean), axis=1) & np.all(np.isfinite(cov), axis=(1, 2))
-            lam, V = np.linalg.eigh(cov[modeled])
             self._prior[0][idx[modeled]] = mean[modeled]
-            self._prior[1][idx[modeled]] = (V * np.sqrt(np.clip(lam, 0.0, None))[:, None, :]) @ V.transpose(0, 2, 1)
+            self._prior[1][idx[modeled]] = sqrtm_psd(cov[modeled])
             self._prior[2][idx[modeled]] = True
         if not adopt.any():
             return None

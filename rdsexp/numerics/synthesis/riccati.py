@@ -25,7 +25,9 @@ def scaled_blocks(Abar: np.ndarray, Bbar: np.ndarray, P: np.ndarray) -> tuple[np
     g = np.sqrt(np.sum(G ** 2, axis=(-3, -2)))
     g[g == 0] = 1.0
     G = G / g[..., None, None, :]
-    S = np.sum(G.swapaxes(-1, -2) @ (P[..., None, :, :] @ G), axis=-3)
+    lead, k = G.shape[:-3], G.shape[-1]
+    S = (G.reshape(lead + (-1, k)).swapaxes(-1, -2)                 # sum_r G_r^T P G_r: one product per model
+         @ (P[..., None, :, :] @ G).reshape(lead + (-1, k)))
     return (S + S.swapaxes(-1, -2)) / 2, g
 
 
@@ -40,8 +42,8 @@ def greedy_gain(Abar: np.ndarray, Bbar: np.ndarray, P: np.ndarray) -> np.ndarray
     S, g = scaled_blocks(Abar, Bbar, P)
     w, U = np.linalg.eigh(S[..., n:, n:])
     keep = w > KERNEL_TOL * np.abs(P).max(axis=(-2, -1))[..., None]
-    inv_w = np.where(keep, 1 / np.where(keep, w, 1.0), 0.0)     # dropped eigenvalues: zero rows
-    Ft = -(U * inv_w[..., None, :]) @ (U.swapaxes(-1, -2) @ S[..., n:, :n])    # the minimiser in scaled variables
+    Uw = np.where(keep[..., None, :], U / np.where(keep, w, 1.0)[..., None, :], 0.0)   # dropped eigenvalues: 0
+    Ft = -Uw @ (U.swapaxes(-1, -2) @ S[..., n:, :n])             # the minimiser in scaled variables
     return Ft / g[..., n:, None] * g[..., None, :n]
 
 
