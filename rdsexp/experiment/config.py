@@ -645,7 +645,7 @@ def _flag(cfg, name: str) -> bool:
 
 CONTROLLERS = ("offline", "online")
 ONLINE_KEYS = {"type", "initial", "warmup", "period", "memory", "window", "forgetting", "method", "options",
-               "safeguard", "resamples", "block", "min_blocks", "covariance", "disturbance", "observer"}
+               "safeguard", "resamples", "block", "min_blocks", "covariance", "disturbance", "observer", "lag"}
 
 
 def _controller(cfg, model: AffineRandomSystem, K: int) -> tuple[str, OnlineSettings | None, str | np.ndarray,
@@ -670,6 +670,8 @@ def _controller(cfg, model: AffineRandomSystem, K: int) -> tuple[str, OnlineSett
     # keys added later: a controller file (or a stored run's config) without them keeps the former behaviour
     min_blocks = OmegaConf.select(cfg, "controller.min_blocks", default=OnlineSettings.min_blocks)
     ints["min_blocks"] = _number(plain(min_blocks), "controller.min_blocks", integer=True, low=1)
+    lag = OmegaConf.select(cfg, "controller.lag", default=OnlineSettings.lag)
+    ints["lag"] = _number(plain(lag), "controller.lag", integer=True, low=0)
     memory = get(cfg, "controller.memory")
     if memory not in MEMORIES:
         raise ConfigError(f"controller.memory: {memory!r} is not allowed, expected one of {', '.join(MEMORIES)}")

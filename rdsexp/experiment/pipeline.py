@@ -407,6 +407,7 @@ def online_loop(exp: Experiment, seed, keep: bool, sim: dict, sink, sample: list
         # controller.disturbance: the online loop's EnKF estimates an unknown input disturbance, which it
         # would otherwise read as a wrong xi, the data the controller models xi from
         enkf = dataclasses.replace(enkf, disturbance=exp.controller.disturbance)
+    enkf = dataclasses.replace(enkf, lag=exp.controller.online.lag)
     with bar, console_to_tqdm():
         for first, tr, controller in run_chunks(exp, settings, keep_members=keep, workers=exp.loop.workers,
                                                 progress=bar.update, controller=make, enkf=enkf):

@@ -169,6 +169,7 @@ class EnKF:
     xi_bounds: tuple[np.ndarray, np.ndarray] | None = None
     xi_prior: MomentModel | None = None
     disturbance: np.ndarray | None = None
+    lag: int = 0
 
     def __post_init__(self):
         if self.xi_prior is not None:
@@ -191,6 +192,10 @@ class EnKF:
             object.__setattr__(self, "disturbance", Q_d)
             Q_full = np.block([[self.Q, np.zeros((self.dim, self.model.m))],
                                [np.zeros((self.model.m, self.dim)), Q_d]])      # w = [w_x; w_xi; w_d]
+        if not (isinstance(self.lag, (int, np.integer)) and not isinstance(self.lag, bool) and self.lag >= 0):
+            raise ValueError(f"lag: {self.lag!r} is not allowed, expected an integer >= 0")
+        lags = self.width - Q_full.shape[0]                                          # passive: no noise
+        Q_full = np.block([[Q_full, np.zeros((len(Q_full), lags))], [np.zeros((lags, len(Q_full) + lags))]])
         object.__setattr__(self, "_Q_sqrt", sqrtm_psd(Q_full))
         object.__setattr__(self, "_R_sqrt", sqrtm_psd(self.R))
         if self.variant not in VARIANTS:
@@ -226,8 +231,21 @@ class EnKF:
 
     @property
     def width(self) -> int:
-        """The ensembles' last axis: n + p, or n + p + m with the disturbance estimate [x; xi; d]."""
-        return self.dim + (self.model.m if self.disturbance is not None else 0)
+        """The ensembles' last axis: n + p, plus m with the disturbance estimate [x; xi; d], plus lag p with
+        the smoother's past draws [x; xi; d; xi_{k-1}; ...; xi_{k-lag}]."""
+        return self.d_slice.stop + self.lag * self.model.p
+
+    @property
+    def d_slice(self) -> slice:
+        """Where psi holds the disturbance estimate d (empty without it)."""
+        return slice(self.dim, self.dim + (self.model.m if self.disturbance is not None else 0))
+
+    @property
+    def xi_estimate(self) -> slice:
+        """Where psi holds the estimate of xi the online controller models from: xi itself, or with a lag the
+        oldest past draw, xi_{k-1-lag} given y up to k (the fixed-lag smoother's estimate)."""
+        p = self.model.p
+        return slice(self.model.n, self.dim) if self.lag == 0 else slice(self.width - p, self.width)
 
     def split(self, psi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(x, xi) parts of psi (..., width), eqs. (psi-x-xi), (psi-x-xi-i)."""
@@ -237,7 +255,7 @@ class EnKF:
         """The input each member's model sees: u (..., m) as (..., 1, m), or u + d^(i) (..., M, m) with
         the disturbance estimate (psi (..., M, width))."""
         u = np.asarray(u)[..., None, :]
-        return u if self.disturbance is None else u + psi[..., self.dim:]
+        return u if self.disturbance is None else u + psi[..., self.d_slice]
 
     def outputs(self, psi: np.ndarray, u: np.ndarray | None) -> np.ndarray:
         """Each member's predicted output without noise, z^(i) = C(xi) x + D(xi) (u + d), eq. (output-pred2)
@@ -313,7 +331,11 @@ class EnKF:
         if walk:
             psi_next[n:dim] += components(xi)                                          # random walk
         if self.disturbance is not None:
-            psi_next[dim:] += components(psi[..., dim:])                               # d: random walk
+            psi_next[self.d_slice] += components(psi[..., self.d_slice])               # d: random walk
+        if self.lag:                    # the smoother's past draws move down one slot, the latest enters
+            p, first = self.model.p, self.d_slice.stop
+            psi_next[first:first + p] = components(psi[..., n:dim])
+            psi_next[first + p:] = components(psi[..., first:self.width - p])
         if self._rho != 1:                          # rho (psi - mean) + mean; skipped at 1 (bit-identical)
             mean = components(ensemble_mean(out))[..., None]
             psi_next -= mean
@@ -461,20 +483,22 @@ class EnKF:
         return np.clip(xi, self.xi_bounds[0].reshape(shape), self.xi_bounds[1].reshape(shape), out=xi)
 
     def _project(self, filtered: np.ndarray, mean: np.ndarray, std: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Clip the xi rows of `filtered` (width, ..., M) (components) onto xi_bounds in place; returns the
-        filtered mean and spread (..., width) with their xi part recomputed from the projected members."""
-        n, dim = self.model.n, self.dim
-        xi = self._clip_xi(filtered[n:dim])
+        """Clip the xi rows of `filtered` (width, ..., M) (components) onto xi_bounds in place, and the
+        smoother's past draws; returns the filtered mean and spread (..., width) with those parts recomputed
+        from the projected members."""
+        p, first = self.model.p, self.d_slice.stop
         mean, std = mean.copy(), std.copy()
-        mean[..., n:dim] = np.moveaxis(xi.mean(axis=-1), 0, -1)
-        std[..., n:dim] = np.moveaxis(xi.std(axis=-1, ddof=1), 0, -1)
+        for rows in [slice(self.model.n, self.dim)] + [slice(first + j * p, first + (j + 1) * p) for j in range(self.lag)]:
+            xi = self._clip_xi(filtered[rows])
+            mean[..., rows] = np.moveaxis(xi.mean(axis=-1), 0, -1)
+            std[..., rows] = np.moveaxis(xi.std(axis=-1, ddof=1), 0, -1)
         return mean, std
 
 
 class Analysis(NamedTuple):
     """Result of one EnKF update: filtered ensemble (..., M, width), ok (...,), and the ensemble
     mean and spread (std over members, ddof 1) before (pred_*) and after (filt_*) filtering, (..., width)
-    (width = n+p, or n+p+m with the disturbance estimate: EnKF.width).
+    (width = n+p, plus m with the disturbance estimate, plus lag p with the smoother: EnKF.width).
     inflation: the factor (...,) this update scaled the forecast anomalies by (enkf_n: lambda;
     adaptive inflation: rho_k), None otherwise; pred_std is the spread after the scaling."""
 

@@ -83,11 +83,12 @@ class OnlineSettings:
     min_blocks: int = 4
     covariance: str = "sample"
     observer: str = "random_walk"
+    lag: int = 0
 
     def check(self, system: AffineRandomSystem, horizon: int | None = None) -> OnlineSettings:
         """One-line ValueError naming the setting; returns self."""
         for name, low in (("warmup", 0), ("period", 1), ("window", 2), ("resamples", 0), ("block", 1),
-                          ("min_blocks", 1)):
+                          ("min_blocks", 1), ("lag", 0)):
             value = getattr(self, name)
             if not (isinstance(value, (int, np.integer)) and not isinstance(value, bool) and value >= low):
                 raise ValueError(f"{name}: {value!r} is not allowed, expected an integer >= {low}")

@@ -99,8 +99,8 @@ class GainController(Protocol):
 
     def update(self, k: int, psi_filt_mean: np.ndarray, alive: np.ndarray,
                xi_filt_cov: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray] | None:
-        """After filtering at step k: psi_{k|k} means (P, n+p), alive (P,) and the filtered xi covariance
-        (P, p, p) -> None (no change) or (paths (U,) int, gains (U, m, n)): the gains those paths use
+        """After filtering at step k: psi_{k|k} means (P, n+p) (the xi part: `EnKF.xi_estimate`, smoothed with a
+        lag), alive (P,) and that xi's filtered covariance (P, p, p) -> None (no change) or (paths (U,) int, gains (U, m, n)): the gains those paths use
         from step k+1 on. Optionally observer_prior() -> None or per-path moments the EnKF's prediction draws
         xi from (`EnKF._predict(path_prior=...)`)."""
 
@@ -276,9 +276,13 @@ def simulate(plant: AffineRandomSystem | None, enkf: EnKF, *, F=None, d, q0, psi
     if block < 1:
         raise ValueError(f"block: {block}, must be >= 1")
     model, dim, ny, width = enkf.model, enkf.dim, enkf.model.ny, enkf.width
-    if width > dim:                                  # [x; xi; d]: d_{0|-1} ~ N(0, Q_d)
-        psi0 = np.concatenate([psi0, np.zeros(width - dim)])
-        P0 = np.block([[P0, np.zeros((dim, width - dim))], [np.zeros((width - dim, dim)), enkf.disturbance]])
+    md = enkf.d_slice.stop - dim
+    if md:                                           # [x; xi; d]: d_{0|-1} ~ N(0, Q_d)
+        psi0 = np.concatenate([psi0, np.zeros(md)])
+        P0 = np.block([[P0, np.zeros((dim, md))], [np.zeros((md, dim)), enkf.disturbance]])
+    if enkf.lag:                                     # the smoother's past draws start at the initial xi, fixed
+        psi0 = np.concatenate([psi0, np.tile(psi0[model.n:dim], enkf.lag)])
+        P0 = np.block([[P0, np.zeros((len(P0), width - len(P0)))], [np.zeros((width - len(P0), width))]])
 
     # the plant (its coefficients from the PLANT streams) or the recorded data: what gives (u_k, y_k)
     source = _RecordedSource(recorded) if recorded is not None else \
@@ -295,8 +299,7 @@ def simulate(plant: AffineRandomSystem | None, enkf: EnKF, *, F=None, d, q0, psi
                        failed_at=np.full(P, -1), failure=np.full(P, "", dtype=object), n=model.n,
                        members=nan(M, dim) if keep_members else None,
                        xi_filt_cov=nan(model.p, model.p) if keep_xi_cov else None, s=source.s,
-                       d_filt_mean=nan(width - dim) if width > dim else None,
-                       d_filt_std=nan(width - dim) if width > dim else None,
+                       d_filt_mean=nan(md) if md else None, d_filt_std=nan(md) if md else None,
                        y_forecast=nan(M, ny) if keep_forecast else None)
     alive = np.ones(P, dtype=bool)
     if controller is not None:
@@ -362,17 +365,16 @@ def simulate(plant: AffineRandomSystem | None, enkf: EnKF, *, F=None, d, q0, psi
                                 ("psi_pred_std", a.pred_std[:, :dim]), ("psi_filt_mean", a.filt_mean[:, :dim]),
                                 ("psi_filt_std", a.filt_std[:, :dim])):
                 getattr(out, name)[k] = np.where(keep, value, np.nan)
-            if width > dim:
-                out.d_filt_mean[k] = np.where(keep, a.filt_mean[:, dim:], np.nan)
-                out.d_filt_std[k] = np.where(keep, a.filt_std[:, dim:], np.nan)
+            if md:
+                out.d_filt_mean[k] = np.where(keep, a.filt_mean[:, enkf.d_slice], np.nan)
+                out.d_filt_std[k] = np.where(keep, a.filt_std[:, enkf.d_slice], np.nan)
             if keep_members:
                 out.members[k] = np.where(keep[:, :, None], a.psi[..., :dim], np.nan)
             xi_cov = None
-            if keep_xi_cov or (controller is not None and controller.needs_xi_cov):
-                dev = a.psi[..., model.n:dim] - a.filt_mean[:, None, model.n:dim]                # (P, M, p)
-                xi_cov = np.where(keep[:, :, None], np.einsum("jip,jiq->jpq", dev, dev) / (M - 1), np.nan)
             if keep_xi_cov:
-                out.xi_filt_cov[k] = xi_cov
+                out.xi_filt_cov[k] = xi_cov = _xi_cov(a, slice(model.n, dim), keep)
+            if controller is not None and controller.needs_xi_cov:
+                xi_cov = _xi_cov(a, enkf.xi_estimate, keep) if enkf.lag or xi_cov is None else xi_cov
             if progress is not None:
                 progress(k)
             if k == K:
@@ -381,7 +383,9 @@ def simulate(plant: AffineRandomSystem | None, enkf: EnKF, *, F=None, d, q0, psi
                 break
             if controller is not None:
                 out.gain_index[k] = adopted
-                change = controller.update(k, np.where(keep, a.filt_mean[:, :dim], np.nan), alive.copy(), xi_cov)
+                # x_{k|k} and the xi estimate it models from (with the EnKF's lag: smoothed)
+                modeled = np.concatenate([a.filt_mean[:, :model.n], a.filt_mean[:, enkf.xi_estimate]], axis=1)
+                change = controller.update(k, np.where(keep, modeled, np.nan), alive.copy(), xi_cov)
                 if change is not None:                  # the new gains act from step k+1 on
                     idx, gains = change
                     F[idx] = gains
@@ -391,6 +395,12 @@ def simulate(plant: AffineRandomSystem | None, enkf: EnKF, *, F=None, d, q0, psi
                 else None
             enkf._predict(filtered, u_filter, e_w, out=psi, path_prior=prior)
     return out
+
+
+def _xi_cov(a, rows: slice, keep: np.ndarray) -> np.ndarray:
+    """The filtered members' sample covariance (P, p, p) of psi's rows `rows` (NaN on paths not kept (P, 1))."""
+    dev = a.psi[..., rows] - a.filt_mean[:, None, rows]                                     # (P, M, p)
+    return np.where(keep[:, :, None], np.einsum("jip,jiq->jpq", dev, dev) / (dev.shape[1] - 1), np.nan)
 
 
 def bytes_per_path(plant: AffineRandomSystem, enkf: EnKF, *, ensemble_size: int, horizon: int,
@@ -403,7 +413,7 @@ def bytes_per_path(plant: AffineRandomSystem, enkf: EnKF, *, ensemble_size: int,
     M, K1, model, dim, width = int(ensemble_size), int(horizon) + 1, enkf.model, enkf.dim, enkf.width
     n, m, ny = model.n, model.m, model.ny
     per_step = plant.xi_dist.p if plant.xi_dist is not None else 0
-    per_step += n * n + n * m + ny * n + ny * m + n + ny + m + 4 * dim + 2 * (width - dim) \
+    per_step += n * n + n * m + ny * n + ny * m + n + ny + m + 4 * dim + 2 * (enkf.d_slice.stop - dim) \
         + (M * dim if keep_members else 0)
     ensembles = M * (3 * width + ny + 1)
     noise = 2 * min(block, K1) * M * (enkf.output_noise_dim + width)
