@@ -488,7 +488,8 @@ class EnKF:
         from the projected members."""
         p, first = self.model.p, self.d_slice.stop
         mean, std = mean.copy(), std.copy()
-        for rows in [slice(self.model.n, self.dim)] + [slice(first + j * p, first + (j + 1) * p) for j in range(self.lag)]:
+        past = [slice(first + j * p, first + (j + 1) * p) for j in range(self.lag)]
+        for rows in [slice(self.model.n, self.dim)] + past:
             xi = self._clip_xi(filtered[rows])
             mean[..., rows] = np.moveaxis(xi.mean(axis=-1), 0, -1)
             std[..., rows] = np.moveaxis(xi.std(axis=-1, ddof=1), 0, -1)

@@ -100,9 +100,9 @@ class GainController(Protocol):
     def update(self, k: int, psi_filt_mean: np.ndarray, alive: np.ndarray,
                xi_filt_cov: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray] | None:
         """After filtering at step k: psi_{k|k} means (P, n+p) (the xi part: `EnKF.xi_estimate`, smoothed with a
-        lag), alive (P,) and that xi's filtered covariance (P, p, p) -> None (no change) or (paths (U,) int, gains (U, m, n)): the gains those paths use
-        from step k+1 on. Optionally observer_prior() -> None or per-path moments the EnKF's prediction draws
-        xi from (`EnKF._predict(path_prior=...)`)."""
+        lag), alive (P,) and that xi's filtered covariance (P, p, p) -> None (no change) or (paths (U,) int,
+        gains (U, m, n)): the gains those paths use from step k+1 on. Optionally observer_prior() -> None or
+        per-path moments the EnKF's prediction draws xi from (`EnKF._predict(path_prior=...)`)."""
 
 
 @dataclass(frozen=True)

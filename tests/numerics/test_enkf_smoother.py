@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 import rdsexp as rx
-from rdsexp.numerics.enkf import EnKF, sqrtm_psd
+from rdsexp.numerics.enkf import EnKF
 
 
 def unmeasured_coupling(xi_scale=1.0):
