@@ -174,6 +174,23 @@ def test_period_beyond_the_horizon_is_the_fixed_gain_closed_loop_bit_for_bit():
     np.testing.assert_array_equal(same.q, fixed.q)
 
 
+def test_controller_models_xi_from_the_smoothed_estimate():
+    """With EnKF.lag the controller gets the oldest past draw, xi_{k-1-lag} given y up to k, and its covariance.
+    An EnKF whose model outputs see nothing (C = 0) never updates, so with lag 1 that is exactly the filtered
+    xi of the step before, as `simulate` records it."""
+    m = paper.model()
+    blind = rx.AffineRandomSystem(A=m.A, B=m.B, C=np.zeros_like(m.C), D=m.D)
+    ctrl = OnlineController(blind, OnlineSettings(warmup=0, period=31, covariance="total"), paper.F_proposed,
+                            paths=3, horizon=30)
+    tr = simulate(paper.plant(), EnKF(blind, paper.Q, paper.R, variant="etkf", lag=1), F=paper.F_proposed,
+                  d=paper.disturbance(30), q0=paper.q0, psi0=paper.psi0 + 0.1, P0=0.01, ensemble_size=20, paths=3,
+                  seed=3, filter_sees_d=False, controller=ctrl, keep_xi_cov=True)
+    assert np.all(np.diff(tr.xi(tr.psi_filt_mean), axis=0) != 0)              # xi moves: the walk's noise
+    np.testing.assert_allclose(ctrl.xi[1:30], tr.xi(tr.psi_filt_mean)[:29], rtol=1e-14, atol=1e-15)
+    np.testing.assert_allclose(ctrl.xi_cov[1:30], tr.xi_filt_cov[:29], rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(ctrl.xi[0], np.broadcast_to(paper.psi0[6:] + 0.1, (3, 3)), rtol=1e-15)  # the start
+
+
 def test_adopted_gains_act_from_the_next_step_on():
     """With updates, u_k = F_k x_{k|k-1} holds with each path's gain in use at k (from gain_index)."""
     ctrl = OnlineController(paper.model(), OnlineSettings(warmup=5, period=5, memory="all", safeguard=False),
@@ -369,6 +386,8 @@ def hydra_context():
     ("controller=online controller.safeguard=maybe", "controller.safeguard: 'maybe' is not allowed"),
     ("controller=online controller.covariance=full", "controller.covariance: 'full' is not allowed"),
     ("controller=online controller.resamples=-1", "controller.resamples: -1 is not allowed"),
+    ("controller=online controller.lag=-1", "controller.lag: -1 is not allowed"),
+    ("controller=online controller.lag=1.5", "controller.lag: 1.5 is not allowed"),
     ("controller=online +controller.options.max_iter=-1", "controller.options: max_iter: -1 is not allowed"),
     ("controller.type=hybrid", "controller.type: 'hybrid' is not allowed"),
     ("+controller.period=5", "controller.period: not read by controller=offline"),
