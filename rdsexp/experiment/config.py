@@ -15,7 +15,7 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from ..errors import ConfigError, one_line
 from ..numerics.distributions import from_spec
-from ..numerics.enkf import VARIANTS, AdaptiveInflation, EnKF, check_covariance, truth_map, xi_support
+from ..numerics.enkf import VARIANTS, AdaptiveInflation, EnKF, check_covariance, output_delay, truth_map, xi_support
 from ..numerics.modeling import COVARIANCES, mls_input
 from ..numerics.online import MEMORIES, OBSERVERS, OnlineSettings
 from ..numerics.simulation import ESTIMATES, Recorded, check_estimate
@@ -670,8 +670,10 @@ def _controller(cfg, model: AffineRandomSystem, K: int) -> tuple[str, OnlineSett
     # keys added later: a controller file (or a stored run's config) without them keeps the former behaviour
     min_blocks = OmegaConf.select(cfg, "controller.min_blocks", default=OnlineSettings.min_blocks)
     ints["min_blocks"] = _number(plain(min_blocks), "controller.min_blocks", integer=True, low=1)
-    lag = OmegaConf.select(cfg, "controller.lag", default=OnlineSettings.lag)
-    ints["lag"] = _number(plain(lag), "controller.lag", integer=True, low=0)
+    lag = plain(OmegaConf.select(cfg, "controller.lag", default=OnlineSettings.lag))
+    # auto: at least one step, and enough that every component of xi reaches an output (`output_delay`)
+    ints["lag"] = max(1, int(output_delay(model).max(initial=0))) if lag == "auto" else \
+        _number(lag, "controller.lag", integer=True, low=0)
     memory = get(cfg, "controller.memory")
     if memory not in MEMORIES:
         raise ConfigError(f"controller.memory: {memory!r} is not allowed, expected one of {', '.join(MEMORIES)}")

@@ -25,7 +25,7 @@ from ..errors import ConfigError, StageError, WriteError, one_line
 from ..numerics import observer_loop
 from ..numerics.analysis import empirical_rate_sq, exact_costs, ms_rate, rms_band, second_moments
 from ..numerics.distributions import ensemble_crps, expected_crps, interval_hits
-from ..numerics.enkf import sqrtm_psd, truth_map
+from ..numerics.enkf import output_delay, sqrtm_psd, truth_map
 from ..numerics.modeling import model_distribution, moment_draws, nominal_gain, path_moment_draws
 from ..numerics.online import OnlineController, moment_factors, rates
 from ..numerics.simulation import Trajectories, bytes_per_path, path_generators, simulate
@@ -388,7 +388,8 @@ def online_loop(exp: Experiment, seed, keep: bool, sim: dict, sink, sample: list
     chunk), rows streamed to the sink with the gain in use (F[i,j]). Returns
     ((LoopSummary, [(first_path, controller)]), info for the summary)."""
     m, n = exp.model.m, exp.model.n
-    info = {"initial": exp.controller.initial if isinstance(exp.controller.initial, str) else "given"}
+    info = {"initial": exp.controller.initial if isinstance(exp.controller.initial, str) else "given",
+            "lag": exp.controller.online.lag, "output_delay": output_delay(exp.model).tolist()}
     F0 = exp.controller.initial if not isinstance(exp.controller.initial, str) else np.zeros((m, n))
     if isinstance(exp.controller.initial, str) and exp.controller.initial == "nominal":
         res = nominal_gain(exp.plant, exp.identification.xi_guess)

@@ -77,6 +77,13 @@ state of unknown-input estimation). The d part starts at one step of its walk fr
 updated with the rest of psi by the same gain. `dim` stays n + p (the paper's psi, the part reported
 as the filtered x and xi); `width` = n + p + m is the ensembles' last axis, and the d part is psi[..., dim:].
 
+Fixed-lag smoother (`lag` L >= 1): a draw xi_k that moves only states y does not measure is invisible to
+y_{k+1}, so updated once its posterior is its prior (`output_delay`). With a lag, the ensemble keeps each
+step's xi for L more steps as passive components, psi = [x; xi; d; xi_{k-1}; ...; xi_{k-L}], that later
+outputs update through their sample covariance with y, like every other component (the standard augmented
+state of fixed-lag smoothing). Prediction moves them down one slot, without noise; the oldest,
+xi_{k-1-L} given y up to k (`xi_estimate`), is what the online controller models xi from. They are
+projected onto xi_bounds with xi.
 Ensembles returned by `predict` and `update` are stored component-major: they are (..., M, n+p)
 views of (n+p, ..., M) arrays, so each component of all paths and members is one contiguous block
 and the elementwise work runs as single long loops instead of short strided ones over the n+p
@@ -157,7 +164,9 @@ class EnKF:
     xi_bounds: None or (low, high) (p,) each, the box the xi part of analysed members is projected onto
     (+-inf: free); xi_prior: None (the random walk) or a MomentModel the predicted xi is drawn from i.i.d.;
     disturbance: None (off) or Q_d, the covariance (m, m) (a scalar times I, or m diagonal entries; not 0)
-    of the random-walk increment of an unknown input disturbance estimated in psi = [x; xi; d].
+    of the random-walk increment of an unknown input disturbance estimated in psi = [x; xi; d];
+    lag: steps each xi stays in the ensemble after its own, updated by later outputs (the fixed-lag
+    smoother; 0: none).
     """
 
     model: AffineRandomSystem
@@ -632,6 +641,31 @@ def xi_support(model: AffineRandomSystem, plant: AffineRandomSystem) -> tuple[np
         with np.errstate(invalid="ignore"):
             low[i], high[i] = np.nanmin(ends), np.nanmax(ends)
     return low, high
+
+
+def output_delay(model: AffineRandomSystem) -> np.ndarray:
+    """(p,) int: the steps j >= 0 after which xi_i, drawn at k, first reaches an output, y_{k+1+j}; -1 if never.
+
+    xi_k moves x_{k+1} = A(xi_k) x_k + B(xi_k) u_k in the states where A_i or B_i has a nonzero row, and
+    y_{k+1} = C(xi_k) x_{k+1} + D(xi_k) u_{k+1} directly with C_i or D_i nonzero (j = 0). Otherwise it reaches
+    y_{k+1+j} where the states it moved reach a measured state in j steps of the dynamics (structurally:
+    the nonzero pattern of A_0, ..., A_p; the inputs, which the filter is told, carry nothing of it). An EnKF
+    that keeps xi_k `lag` more steps (EnKF.lag) learns it only if j <= lag."""
+    n, p = model.n, model.p
+    reach = np.any(model.A != 0, axis=0)                                    # (n, n): x_a at k+1 <- x_b at k
+    measured = np.any(model.C != 0, axis=(0, 1))                            # (n,)
+    out = np.full(p, -1)
+    for i in range(p):
+        moved = np.any(model.A[1 + i] != 0, axis=1) | np.any(model.B[1 + i] != 0, axis=1)
+        if model.C[1 + i].any() or model.D[1 + i].any():
+            out[i] = 0
+            continue
+        for j in range(n):
+            if np.any(moved & measured):
+                out[i] = j
+                break
+            moved = np.any(reach[:, moved], axis=1)
+    return out
 
 
 def _finite_or_inf(name: str, value, p: int) -> np.ndarray:

@@ -2,7 +2,7 @@
 import numpy as np
 import pandas as pd
 import pytest
-from conftest import SMALL, rdsexp
+from conftest import REPO, SMALL, rdsexp
 from hydra import compose, initialize_config_module
 
 import rdsexp as rx
@@ -398,6 +398,23 @@ def test_bad_controller_config_is_one_line(hydra_context, overrides, message):
         build(compose("config", overrides=overrides.split()))
     assert str(err.value).startswith(message), str(err.value)
     assert "\n" not in str(err.value)
+
+
+def test_lag_auto_reaches_every_component(tmp_path):
+    """controller.lag=auto (the default): one step, or as many as the slowest xi needs to reach an output
+    (`output_delay`). The multiplicative plant measures x1 and x3: xi_2 on a23 moves x2, seen one step later;
+    measuring x1 alone, xi_3 (a31) and xi_4 (the input gain) move x3, two steps from x1."""
+    import yaml
+    spec = yaml.safe_load((REPO / "conf" / "plant" / "multiplicative.yaml").read_text())
+    (tmp_path / "plant").mkdir()
+    (tmp_path / "plant" / "x1_only.yaml").write_text(yaml.safe_dump(dict(spec, name="x1_only", C=[[[1, 0, 0]]])))
+    lags = {}
+    with initialize_config_module(config_module="rdsexp.conf", version_base="1.3"):
+        for plant, extra in (("paper", []), ("multiplicative", []), ("x1_only", []), ("x1_only", ["controller.lag=0"])):
+            exp = build(compose("config", overrides=[f"hydra.searchpath=[file://{tmp_path}]", f"plant={plant}",
+                                                     "controller=online", *extra]))
+            lags[plant, bool(extra)] = exp.controller.online.lag
+    assert lags == {("paper", False): 1, ("multiplicative", False): 1, ("x1_only", False): 2, ("x1_only", True): 0}
 
 
 def test_offline_is_the_default_and_online_builds(hydra_context):
