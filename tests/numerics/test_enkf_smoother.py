@@ -113,7 +113,7 @@ def test_output_delay_against_the_propagated_derivative():
         C[0, :, int(rng.integers(n))] = 0.0                                    # some states unmeasured
         system = rx.AffineRandomSystem(A=A, B=B, C=C, D=D)
         delay = output_delay(system)
-        at = lambda M: M[0] + np.tensordot(rng.normal(size=p), M[1:], 1)      # M(xi') at a random xi'
+        at = lambda M, p=p: M[0] + np.tensordot(rng.normal(size=p), M[1:], 1)    # M(xi') at a random xi'
         for i in range(p):
             x, u = rng.normal(size=n), rng.normal(size=m)
             v = A[1 + i] @ x + B[1 + i] @ u                                   # d x_{k+1} / d xi_i
