@@ -75,7 +75,7 @@ random walk d_{k+1} = d_k + w_d, w_d ~ N(0, Q_d), entering eqs. (f-A-B), (h-C-D)
 x_{k+1} = A(xi) x_k + B(xi) (u_k + d_k), z_k = C(xi) x_k + D(xi) (u_k + d_k) (the standard augmented
 state of unknown-input estimation). The d part starts at one step of its walk from 0, N(0, Q_d), and is
 updated with the rest of psi by the same gain. `dim` stays n + p (the paper's psi, the part reported
-as the filtered x and xi); `width` = n + p + m is the ensembles' last axis, and the d part is psi[..., dim:].
+as the filtered x and xi); `width` = n + p + m is the ensembles' last axis, and the d part is psi[..., d_slice].
 
 Fixed-lag smoother (`lag` L >= 1): a draw xi_k that moves only states y does not measure is invisible to
 y_{k+1}, so updated once its posterior is its prior (`output_delay`). With a lag, the ensemble keeps each
@@ -84,6 +84,7 @@ outputs update through their sample covariance with y, like every other componen
 state of fixed-lag smoothing). Prediction moves them down one slot, without noise; the oldest,
 xi_{k-1-L} given y up to k (`xi_estimate`), is what the online controller models xi from. They are
 projected onto xi_bounds with xi.
+
 Ensembles returned by `predict` and `update` are stored component-major: they are (..., M, n+p)
 views of (n+p, ..., M) arrays, so each component of all paths and members is one contiguous block
 and the elementwise work runs as single long loops instead of short strided ones over the n+p

@@ -67,7 +67,8 @@ class OnlineSettings:
     "total" (plus their mean filtered covariance); observer: "random_walk" (the loop's EnKF keeps its own
     model of xi) or "model" (from a path's first re-design on, its EnKF draws xi i.i.d. from the path's
     latest modeled moments, adopted or not, as the offline loop's observer draws from the identified
-    ones: `observer_prior`; the random walk before).
+    ones: `observer_prior`; the random walk before); lag: the smoothing lag of the loop's EnKF (`EnKF.lag`,
+    set where that EnKF is built): the estimates modeled at k are then xi_{k-1-lag} given y up to k.
     """
 
     warmup: int = 20
