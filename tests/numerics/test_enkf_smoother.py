@@ -101,7 +101,7 @@ def test_output_delay_against_the_propagated_derivative():
     """output_delay (from the nonzero patterns) against the derivative of y_{k+1+j} in xi_i at random points:
     C(xi') x_{k+1} + D(xi') u with C_i, D_i for j = 0, then C(xi'') A(xi'_j) ... A(xi'_1) (A_i x_k + B_i u_k)
     with a fresh random xi' per step, on 600 random sparse systems; exact zeros are structural (no
-    cancellation among random entries). The cases cover every delay from -1 (never) to n - 1."""
+    cancellation among random entries). The cases cover the delays -1 (never), 0, 1 and 2."""
     from rdsexp.numerics.enkf import output_delay
     rng = np.random.default_rng(21)
     seen = set()
