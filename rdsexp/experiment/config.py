@@ -17,7 +17,7 @@ from ..errors import ConfigError, one_line
 from ..numerics.distributions import from_spec
 from ..numerics.enkf import VARIANTS, AdaptiveInflation, EnKF, check_covariance, output_delay, truth_map, xi_support
 from ..numerics.modeling import COVARIANCES, mls_input
-from ..numerics.online import MEMORIES, OBSERVERS, OnlineSettings
+from ..numerics.online import MEMORIES, OBSERVERS, STARTS, OnlineSettings
 from ..numerics.simulation import ESTIMATES, Recorded, check_estimate
 from ..numerics.synthesis import METHODS, check_options
 from ..numerics.systems import AffineRandomSystem, MomentModel
@@ -645,7 +645,7 @@ def _flag(cfg, name: str) -> bool:
 
 CONTROLLERS = ("offline", "online")
 ONLINE_KEYS = {"type", "initial", "warmup", "period", "memory", "window", "forgetting", "method", "options",
-               "safeguard", "resamples", "block", "min_blocks", "covariance", "disturbance", "observer", "lag"}
+               "safeguard", "resamples", "block", "min_blocks", "covariance", "disturbance", "observer", "start", "lag"}
 
 
 def _controller(cfg, model: AffineRandomSystem, K: int) -> tuple[str, OnlineSettings | None, str | np.ndarray,
@@ -693,9 +693,12 @@ def _controller(cfg, model: AffineRandomSystem, K: int) -> tuple[str, OnlineSett
     observer = plain(OmegaConf.select(cfg, "controller.observer", default="random_walk"))
     if observer not in OBSERVERS:
         raise ConfigError(f"controller.observer: {observer!r} is not allowed, expected one of {', '.join(OBSERVERS)}")
+    start = plain(OmegaConf.select(cfg, "controller.start", default=OnlineSettings.start))
+    if start not in STARTS:
+        raise ConfigError(f"controller.start: {start!r} is not allowed, expected one of {', '.join(STARTS)}")
     with key("controller.options"):
         settings = OnlineSettings(memory=memory, forgetting=forgetting, method=method, options=options,
-                                  covariance=covariance, observer=observer,
+                                  covariance=covariance, observer=observer, start=start,
                                   safeguard=safeguard, **ints).check(model, K)
     initial = get(cfg, "controller.initial")
     if isinstance(initial, list):

@@ -389,6 +389,8 @@ def online_loop(exp: Experiment, seed, keep: bool, sim: dict, sink, sample: list
     ((LoopSummary, [(first_path, controller)]), info for the summary)."""
     m, n = exp.model.m, exp.model.n
     info = {"initial": exp.controller.initial if isinstance(exp.controller.initial, str) else "given",
+            # the start applies before a path's first model, drawn from with observer = model only
+            "start": exp.controller.online.start if exp.controller.online.observer == "model" else "random_walk",
             "lag": exp.controller.online.lag, "output_delay": output_delay(exp.model).tolist()}
     F0 = exp.controller.initial if not isinstance(exp.controller.initial, str) else np.zeros((m, n))
     if isinstance(exp.controller.initial, str) and exp.controller.initial == "nominal":
@@ -408,7 +410,7 @@ def online_loop(exp: Experiment, seed, keep: bool, sim: dict, sink, sample: list
         # controller.disturbance: the online loop's EnKF estimates an unknown input disturbance, which it
         # would otherwise read as a wrong xi, the data the controller models xi from
         enkf = dataclasses.replace(enkf, disturbance=exp.controller.disturbance)
-    enkf = dataclasses.replace(enkf, lag=exp.controller.online.lag)
+    enkf = dataclasses.replace(enkf, lag=exp.controller.online.lag, static_mean=info["start"] == "static_mean")
     with bar, console_to_tqdm():
         for first, tr, controller in run_chunks(exp, settings, keep_members=keep, workers=exp.loop.workers,
                                                 progress=bar.update, controller=make, enkf=enkf):

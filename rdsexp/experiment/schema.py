@@ -217,8 +217,9 @@ SUMMARY: dict[str, tuple[str, str | None]] = {
     "{loop}_failed": ("failed paths: fraction, first and median step, reasons (only where a path failed)", None),
     "closed_loop_through_y": ("where the loop is not found stable although its gain stabilizes the true plant: the "
                               "exact rate of the loop through y with the best linear observer found", "1/step"),
-    "online_initial": ("the online controller's initial gain and where it came from, its EnKF's smoothing lag "
-                       "(controller.lag) and the steps after which each xi first reaches an output", None),
+    "online_initial": ("the online controller's initial gain and where it came from, its EnKF's start before a "
+                       "path's first model (controller.start), smoothing lag (controller.lag) and the steps after "
+                       "which each xi first reaches an output", None),
     "online": ("the online controller's key numbers (adoptions, final gains' exact rates, ...)", None),
     "reference": ("the paper's reported numbers for this experiment, where it is the paper's", None),
     "data": ("a data run's data file: name, sha256, rows, paths, steps, identification and held-out paths", None),

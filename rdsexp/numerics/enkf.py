@@ -85,6 +85,16 @@ state of fixed-lag smoothing). Prediction moves them down one slot, without nois
 xi_{k-1-L} given y up to k (`xi_estimate`), is what the online controller models xi from. They are
 projected onto xi_bounds with xi.
 
+Static-mean start (`static_mean`): the online controller's paths have no model of xi before their first
+re-design, so their EnKF walks (xi_{k+1|k} = xi_{k|k} + w), and a walk's spread grows with k where the
+outputs say little. With a static mean, psi = [x; xi; d; mu; past draws], mu a static component (no noise)
+started at N(xi_{0}, Q_xi), and each step draws xi_k = mu + w_xi i.i.d. about it (Assumption 1 with an
+unknown mean), moves x with that draw and keeps it, as the draws from known moments do (`xi_prior`): the
+update with y_{k+1} then learns mu through its sample covariance with y, and mu's spread shrinks with the
+data where the walk's grows. Components that reach an output only later (`output_delay` > 0) stay on the
+walk: y_{k+1} does not see their draw, and their first models (from the smoother's estimates) come out too
+narrow to learn from (docs/online.md). mu is projected onto xi_bounds with xi (a mean of draws in the box).
+
 Ensembles returned by `predict` and `update` are stored component-major: they are (..., M, n+p)
 views of (n+p, ..., M) arrays, so each component of all paths and members is one contiguous block
 and the elementwise work runs as single long loops instead of short strided ones over the n+p
@@ -167,7 +177,8 @@ class EnKF:
     disturbance: None (off) or Q_d, the covariance (m, m) (a scalar times I, or m diagonal entries; not 0)
     of the random-walk increment of an unknown input disturbance estimated in psi = [x; xi; d];
     lag: steps each xi stays in the ensemble after its own, updated by later outputs (the fixed-lag
-    smoother; 0: none).
+    smoother; 0: none); static_mean: paths without a per-path prior draw xi about a static mean in psi (the
+    online loop's start; module docstring) rather than walk.
     """
 
     model: AffineRandomSystem
@@ -180,6 +191,7 @@ class EnKF:
     xi_prior: MomentModel | None = None
     disturbance: np.ndarray | None = None
     lag: int = 0
+    static_mean: bool = False
 
     def __post_init__(self):
         if self.xi_prior is not None:
@@ -204,7 +216,11 @@ class EnKF:
                                [np.zeros((self.model.m, self.dim)), Q_d]])      # w = [w_x; w_xi; w_d]
         if not (isinstance(self.lag, (int, np.integer)) and not isinstance(self.lag, bool) and self.lag >= 0):
             raise ValueError(f"lag: {self.lag!r} is not allowed, expected an integer >= 0")
-        lags = self.width - Q_full.shape[0]                                          # passive: no noise
+        if not isinstance(self.static_mean, (bool, np.bool_)):
+            raise ValueError(f"static_mean: {self.static_mean!r} is not allowed, expected true or false")
+        # components on the walk in the static-mean start: those the next output does not see
+        object.__setattr__(self, "_walked", output_delay(self.model) > 0 if self.static_mean else None)
+        lags = self.width - Q_full.shape[0]                            # mu and the past draws: no noise
         Q_full = np.block([[Q_full, np.zeros((len(Q_full), lags))], [np.zeros((lags, len(Q_full) + lags))]])
         object.__setattr__(self, "_Q_sqrt", sqrtm_psd(Q_full))
         object.__setattr__(self, "_R_sqrt", sqrtm_psd(self.R))
@@ -241,14 +257,19 @@ class EnKF:
 
     @property
     def width(self) -> int:
-        """The ensembles' last axis: n + p, plus m with the disturbance estimate [x; xi; d], plus lag p with
-        the smoother's past draws [x; xi; d; xi_{k-1}; ...; xi_{k-lag}]."""
-        return self.d_slice.stop + self.lag * self.model.p
+        """The ensembles' last axis: n + p, plus m with the disturbance estimate [x; xi; d], plus p with the
+        static mean [x; xi; d; mu], plus lag p with the smoother's past draws [...; xi_{k-1}; ...; xi_{k-lag}]."""
+        return self.mu_slice.stop + self.lag * self.model.p
 
     @property
     def d_slice(self) -> slice:
         """Where psi holds the disturbance estimate d (empty without it)."""
         return slice(self.dim, self.dim + (self.model.m if self.disturbance is not None else 0))
+
+    @property
+    def mu_slice(self) -> slice:
+        """Where psi holds the static mean mu of the start (empty without it)."""
+        return slice(self.d_slice.stop, self.d_slice.stop + (self.model.p if self.static_mean else 0))
 
     @property
     def xi_estimate(self) -> slice:
@@ -315,18 +336,16 @@ class EnKF:
         x, xi = self.split(psi)
         np.matmul(self._Q_sqrt.T, e_w.swapaxes(-1, -2), out=out.swapaxes(-1, -2))    # w = Q^(1/2) e_w
         psi_next = components(out)
-        walk = self.xi_prior is None
-        per_path = path_prior is not None and walk and self.model.p and path_prior[2].any()
-        if per_path:
+        walk = self.xi_prior is None and self.model.p
+        rest = slice(None)                                  # the paths without a model of xi: all, or
+        if walk and path_prior is not None and path_prior[2].any():
             mean, sqrt, active = path_prior
             e = components(e_w)[n:dim][:, active]                                      # (p, A, M)
             draws = np.einsum("jil,ljm->ijm", sqrt[active], e) + mean[active].T[..., None]
             if self.xi_bounds is not None:
                 self._clip_xi(draws)
             psi_next[n:dim][:, active] = draws
-            xi = np.where(active[:, None, None], out[..., n:dim], xi)   # active paths move x with the draw
-            psi_next[n:dim][:, ~active] += components(psi[..., n:dim])[:, ~active]    # the others: random walk
-            walk = False
+            rest = ~active
         elif self.xi_prior is not None and self.model.p:        # Assumption 1 with the known moments:
             # xi_k drawn i.i.d. moves x_k to x_{k+1} and stays in the ensemble, so that the update with
             # y_{k+1} estimates the coefficient of the step that produced it
@@ -336,14 +355,17 @@ class EnKF:
             if self.xi_bounds is not None:       # a Gaussian draw of moments also leaves the support
                 self._clip_xi(psi_next[n:dim])
             xi = out[..., n:dim]
+        if walk:
+            moved = self._start(psi, psi_next, rest)
+            xi = moved if isinstance(rest, slice) else np.where(rest[:, None, None], moved, out[..., n:dim])
         psi_next[:n] += components(affine_apply(self.model.A, xi, x))                 # eq. (f-A-B)
         psi_next[:n] += components(affine_apply(self.model.B, xi, self.inputs(psi, u)))   # B(xi) (u + d)
-        if walk:
-            psi_next[n:dim] += components(xi)                                          # random walk
         if self.disturbance is not None:
             psi_next[self.d_slice] += components(psi[..., self.d_slice])               # d: random walk
+        if self.static_mean:
+            psi_next[self.mu_slice] = components(psi[..., self.mu_slice])             # mu: static
         if self.lag:                    # the smoother's past draws move down one slot, the latest enters
-            p, first = self.model.p, self.d_slice.stop
+            p, first = self.model.p, self.mu_slice.stop
             psi_next[first:first + p] = components(psi[..., n:dim])
             psi_next[first + p:] = components(psi[..., first:self.width - p])
         if self._rho != 1:                          # rho (psi - mean) + mean; skipped at 1 (bit-identical)
@@ -352,6 +374,23 @@ class EnKF:
             psi_next *= self._rho
             psi_next += mean
         return out
+
+    def _start(self, psi: np.ndarray, psi_next: np.ndarray, rest) -> np.ndarray:
+        """The predicted xi of paths `rest` (a slice, or (P,) bool) that have no model of xi yet, added into
+        psi_next's xi rows (p, ..., M) (components), which hold w: the random walk xi_{k|k} + w, or with the
+        static mean xi_k = mu + w for the components the next output sees (module docstring). Returns the xi
+        (..., M, p) that moves x: xi_{k|k} on the walk, the new draw about mu."""
+        n, dim = self.model.n, self.dim
+        xi = psi[..., n:dim]
+        if not self.static_mean:
+            psi_next[n:dim][:, rest] += components(xi)[:, rest]
+            return xi
+        walked = self._walked.reshape((-1,) + (1,) * (psi_next.ndim - 1))
+        draws = psi_next[n:dim][:, rest] + components(np.where(self._walked, xi, psi[..., self.mu_slice]))[:, rest]
+        if self.xi_bounds is not None:                  # draws about mu, like those of a model, stay in the box
+            draws = np.where(walked, draws, self._clip_xi(draws.copy()))
+        psi_next[n:dim][:, rest] = draws
+        return np.where(self._walked, xi, np.moveaxis(psi_next[n:dim], 0, -1))
 
     def _update(self, psi: np.ndarray, u: np.ndarray, y: np.ndarray, e_v: np.ndarray,
                 psi_mean: np.ndarray | None, out: np.ndarray, work: np.ndarray,
@@ -493,13 +532,13 @@ class EnKF:
         return np.clip(xi, self.xi_bounds[0].reshape(shape), self.xi_bounds[1].reshape(shape), out=xi)
 
     def _project(self, filtered: np.ndarray, mean: np.ndarray, std: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Clip the xi rows of `filtered` (width, ..., M) (components) onto xi_bounds in place, and the
-        smoother's past draws; returns the filtered mean and spread (..., width) with those parts recomputed
-        from the projected members."""
-        p, first = self.model.p, self.d_slice.stop
+        """Clip the xi rows of `filtered` (width, ..., M) (components) onto xi_bounds in place, and the static
+        mean's and the smoother's past draws; returns the filtered mean and spread (..., width) with those
+        parts recomputed from the projected members."""
+        p, first = self.model.p, self.mu_slice.stop
         mean, std = mean.copy(), std.copy()
         past = [slice(first + j * p, first + (j + 1) * p) for j in range(self.lag)]
-        for rows in [slice(self.model.n, self.dim)] + past:
+        for rows in [slice(self.model.n, self.dim)] + [self.mu_slice] * self.static_mean + past:
             xi = self._clip_xi(filtered[rows])
             mean[..., rows] = np.moveaxis(xi.mean(axis=-1), 0, -1)
             std[..., rows] = np.moveaxis(xi.std(axis=-1, ddof=1), 0, -1)

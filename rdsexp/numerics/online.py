@@ -48,6 +48,7 @@ from .systems import AffineRandomSystem, MomentModel
 
 MEMORIES = ("window", "all", "exponential")
 OBSERVERS = ("random_walk", "model")
+STARTS = ("random_walk", "static_mean")
 REASONS = ("adopted", "adopted_unchecked", "not_stabilizing", "no_improvement", "not_robust", "waiting", "failed")
 
 
@@ -67,8 +68,10 @@ class OnlineSettings:
     "total" (plus their mean filtered covariance); observer: "random_walk" (the loop's EnKF keeps its own
     model of xi) or "model" (from a path's first re-design on, its EnKF draws xi i.i.d. from the path's
     latest modeled moments, adopted or not, as the offline loop's observer draws from the identified
-    ones: `observer_prior`; the random walk before); lag: the smoothing lag of the loop's EnKF (`EnKF.lag`,
-    set where that EnKF is built): the estimates modeled at k are then xi_{k-1-lag} given y up to k.
+    ones: `observer_prior`; `start` before); start: with observer "model", the loop's EnKF before a path's
+    first model: "random_walk" or "static_mean" (xi drawn about a mean the EnKF learns, `EnKF.static_mean`);
+    lag: the smoothing lag of the loop's EnKF (`EnKF.lag`); both set where that EnKF is built. The estimates
+    modeled at k are then xi_{k-1-lag} given y up to k.
     """
 
     warmup: int = 20
@@ -84,6 +87,7 @@ class OnlineSettings:
     min_blocks: int = 4
     covariance: str = "sample"
     observer: str = "random_walk"
+    start: str = "random_walk"
     lag: int = 0
 
     def check(self, system: AffineRandomSystem, horizon: int | None = None) -> OnlineSettings:
@@ -101,6 +105,8 @@ class OnlineSettings:
             raise ValueError(f"window: {self.window} is not allowed, longer than the horizon {horizon}")
         if self.observer not in OBSERVERS:
             raise ValueError(f"observer: {self.observer!r} is not allowed, expected one of {', '.join(OBSERVERS)}")
+        if self.start not in STARTS:
+            raise ValueError(f"start: {self.start!r} is not allowed, expected one of {', '.join(STARTS)}")
         if not isinstance(self.safeguard, bool):
             raise ValueError(f"safeguard: {self.safeguard!r} is not allowed, expected true or false")
         if self.covariance not in COVARIANCES:
@@ -436,5 +442,5 @@ class OnlineController:
         return [np.concatenate([self.F0[j][None], d.F[(d.path == j) & d.adopted]]) for j in range(self.P)]
 
 
-__all__ = ["Decisions", "MEMORIES", "METHODS", "OBSERVERS", "OnlineController", "OnlineSettings", "moment_factors",
-           "policy_iteration_batch", "rates", "weighted_moments"]
+__all__ = ["Decisions", "MEMORIES", "METHODS", "OBSERVERS", "OnlineController", "OnlineSettings", "STARTS",
+           "moment_factors", "policy_iteration_batch", "rates", "weighted_moments"]
