@@ -388,6 +388,7 @@ def hydra_context():
     ("controller=online controller.resamples=-1", "controller.resamples: -1 is not allowed"),
     ("controller=online controller.lag=-1", "controller.lag: -1 is not allowed"),
     ("controller=online controller.lag=1.5", "controller.lag: 1.5 is not allowed"),
+    ("controller=online controller.start=flat", "controller.start: 'flat' is not allowed, expected one of"),
     ("controller=online +controller.options.max_iter=-1", "controller.options: max_iter: -1 is not allowed"),
     ("controller.type=hybrid", "controller.type: 'hybrid' is not allowed"),
     ("+controller.period=5", "controller.period: not read by controller=offline"),
@@ -415,6 +416,26 @@ def test_lag_auto_reaches_every_component(tmp_path):
                                                      "controller=online", *extra]))
             lags[plant, bool(extra)] = exp.controller.online.lag
     assert lags == {("paper", False): 1, ("multiplicative", False): 1, ("x1_only", False): 2, ("x1_only", True): 0}
+
+
+def test_static_mean_start_acts_with_the_model_observer_only(hydra_context):
+    """controller.start is the loop's EnKF before a path's first model, which only observer=model draws from:
+    on the paper's plant (observer random_walk, the walk throughout) both starts give the same bytes and the
+    summary records the walk; on multiplicative (observer model) the static mean is the default, recorded,
+    and changes the loop."""
+    from rdsexp.experiment.pipeline import run_experiment
+    small = [o for o in SMALL if not o.startswith("closed_loop.horizon")] + [
+        "closed_loop.horizon=40", "controller=online", "controller.warmup=5", "controller.period=10",
+        "closed_loop.open_loop=false"]
+    out = {(plant, start): run_experiment(build(compose("config", overrides=small + [f"plant={plant}", *start])))
+           for plant in ("paper", "multiplicative") for start in ((), ("controller.start=random_walk",))}
+    assert [o.summary["online_initial"]["start"] for o in out.values()] == ["random_walk", "random_walk",
+                                                                             "static_mean", "random_walk"]
+    for name in ("controller", "trajectories", "paths"):
+        pd.testing.assert_frame_equal(out["paper", ()].tables[name], out["paper", ("controller.start=random_walk",)]
+                                      .tables[name], check_exact=True, obj=name)
+    online = [o.tables["trajectories"].query("experiment == 'online'") for o in out.values()]
+    assert not np.array_equal(online[2]["u[0]"], online[3]["u[0]"])       # the estimates x_{k|k-1} fed back
 
 
 def test_offline_is_the_default_and_online_builds(hydra_context):
@@ -469,11 +490,14 @@ def test_online_run_records_the_controller_table(tmp_path):
         assert all(d["description"] for d in frame.attrs["rdsexp"]["columns"].values()), frame.attrs["rdsexp"]
 
 
-def test_online_loop_does_not_depend_on_chunks_of_paths_or_workers(hydra_context):
+@pytest.mark.parametrize("plant", ["paper", "multiplicative"])
+def test_online_loop_does_not_depend_on_chunks_of_paths_or_workers(hydra_context, plant):
     """One controller per chunk of paths, chunks in worker processes as the offline loops' are: the
-    decisions, rows and metrics equal those of one batch, bit for bit."""
+    decisions, rows and metrics equal those of one batch, bit for bit; with the random walk (paper) and with
+    the static-mean start and draws from each path's model (multiplicative: observer model)."""
     from rdsexp.experiment.pipeline import run_experiment
-    small = [o for o in SMALL if not o.startswith("closed_loop.horizon")] + ["closed_loop.horizon=40"]
+    small = [o for o in SMALL if not o.startswith("closed_loop.horizon")] + ["closed_loop.horizon=40",
+                                                                              f"plant={plant}"]
     tables = [run_experiment(build(compose("config", overrides=small + [
         "controller=online", "controller.warmup=5", "controller.period=10", "closed_loop.open_loop=false", *chunk])))
         .tables for chunk in (["closed_loop.chunk_paths=4"], ["closed_loop.chunk_paths=3"],
