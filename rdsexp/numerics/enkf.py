@@ -88,7 +88,7 @@ projected onto xi_bounds with xi.
 Static-mean start (`static_mean`): the online controller's paths have no model of xi before their first
 re-design, so their EnKF walks (xi_{k+1|k} = xi_{k|k} + w), and a walk's spread grows with k where the
 outputs say little. With a static mean, psi = [x; xi; d; mu; past draws], mu a static component (no noise)
-started at N(xi_{0}, Q_xi), and each step draws xi_k = mu + w_xi i.i.d. about it (Assumption 1 with an
+started at N(the initial xi, Q's xi block), and each step draws xi_k = mu + w_xi i.i.d. about it (Assumption 1 with an
 unknown mean), moves x with that draw and keeps it, as the draws from known moments do (`xi_prior`): the
 update with y_{k+1} then learns mu through its sample covariance with y, and mu's spread shrinks with the
 data where the walk's grows. Components that reach an output only later (`output_delay` > 0) stay on the
@@ -330,14 +330,14 @@ class EnKF:
 
         path_prior: None, or per-path moments the predicted xi is drawn from i.i.d. (as `xi_prior` does for
         every path): (mean (P, p), square root of the covariance (P, p, p), active (P,) bool) for psi of
-        shape (P, M, width); paths not active keep the EnKF's own model of xi (the random walk). The online
+        shape (P, M, width); paths not active keep the EnKF's own model of xi (`_start`). The online
         controller's paths, each with its latest modeled moments (`OnlineController.observer_prior`)."""
         n, dim = self.model.n, self.dim
         x, xi = self.split(psi)
         np.matmul(self._Q_sqrt.T, e_w.swapaxes(-1, -2), out=out.swapaxes(-1, -2))    # w = Q^(1/2) e_w
         psi_next = components(out)
-        walk = self.xi_prior is None and self.model.p
-        rest = slice(None)                                  # the paths without a model of xi: all, or
+        walk = self.xi_prior is None and self.model.p > 0
+        rest = slice(None)                      # the paths without a model of xi: all, unless path_prior has some
         if walk and path_prior is not None and path_prior[2].any():
             mean, sqrt, active = path_prior
             e = components(e_w)[n:dim][:, active]                                      # (p, A, M)
