@@ -146,7 +146,6 @@ def _main() -> None:
     # an ignored SIGINT): Python's default handler raises KeyboardInterrupt, which ends the run
     # with run.json "interrupted" (`hydra_main`) and every finished file complete
     signal.signal(signal.SIGINT, signal.default_int_handler)
-    RUNNING.clear()
     for arg in sys.argv[1:]:
         # enkf.Q's default is the mapping {x, xi, matrix}: Hydra cannot merge a list into it and
         # would end with a stack of merge errors; say in one line where a matrix goes
@@ -218,6 +217,7 @@ def run_hydra_main() -> None:
     """hydra_main, with Hydra's errors raised here instead of printed by Hydra (HYDRA_FULL_ERROR=1
     while it runs): a key no config has and a YAML syntax error end with one line (exit 2), Ctrl-C
     with one line saying what completed (exit 130). HYDRA_FULL_ERROR=1 set by the user: the traceback."""
+    RUNNING.clear()                   # a Ctrl-C names this call's job, not one an earlier call in the process ran
     full_error = os.environ.get("HYDRA_FULL_ERROR")
     try:
         os.environ["HYDRA_FULL_ERROR"] = "1"

@@ -6,6 +6,7 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import pytest
 from conftest import SMALL, rdsexp, serial
@@ -182,6 +183,8 @@ def test_ctrl_c_that_breaks_hydras_cleanup_is_still_one_line_and_exit_130(monkey
             raise UnboundLocalError("cannot access local variable 'f' where it is not associated with a value")
     monkeypatch.setattr(cli, "hydra_main", interrupted_in_cleanup)
     monkeypatch.delenv("HYDRA_FULL_ERROR", raising=False)
+    # an earlier call in this process ran a sweep (relative to another directory): not this call's job
+    monkeypatch.setattr(cli, "RUNNING", {"run_dir": Path("gone/0"), "sweep_dir": Path("outputs/sweeps/gone")})
     with pytest.raises(RunExit) as stop:
         cli.run_hydra_main()
     assert stop.value.code == 130

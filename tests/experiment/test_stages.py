@@ -171,6 +171,22 @@ def test_two_writers_of_one_key_leave_one_entry(tmp_path):
     assert [p["first"] for p in parts] == [0, 4] and np.array_equal(parts[1]["values"], np.arange(2.0))
 
 
+def test_a_save_interrupted_mid_write_leaves_no_temporary_entry(tmp_path, monkeypatch):
+    """A Ctrl-C while a single-part entry is written (`StageCache.save`, e.g. a sweep's worker storing its
+    synthesis) drops the temporary directory and stores nothing; the next save stores the entry."""
+    cache = StageCache(tmp_path, "v", "run-a")
+    key = cache.key("synthesis", x=1)
+    def interrupted(self):
+        raise KeyboardInterrupt
+    with monkeypatch.context() as patch:
+        patch.setattr(stage_cache.EntryWriter, "commit", interrupted)
+        with pytest.raises(KeyboardInterrupt):
+            cache.save("synthesis", key, {"F": np.eye(2)})
+    assert not list((tmp_path / layout.STAGES).rglob("*"))[1:], list((tmp_path / layout.STAGES).rglob("*"))
+    cache.save("synthesis", key, {"F": np.eye(2)})
+    assert [e.name for e in (tmp_path / layout.STAGES / "synthesis").iterdir()] == [key]
+
+
 def test_a_reused_stage_is_said_in_the_summary_and_the_log_not_on_the_terminal(tmp_path):
     # the open loop is loaded under its progress bar, where console logging goes through tqdm: the
     # console handler's level (warnings) still holds there

@@ -317,8 +317,12 @@ class StageCache:
     def _store(self, stage: str, key: str, value) -> None:
         if self.dir is not None:
             writer = self.writer(stage, key)
-            writer.add(value)
-            writer.commit()
+            try:
+                writer.add(value)
+                writer.commit()
+            except BaseException:        # Ctrl-C mid-write (a sweep's worker): no temporary entry left behind
+                writer.abort()
+                raise
 
     def writer(self, stage: str, key: str) -> EntryWriter:
         """A writer of the entry's parts, one `add` at a time (a loop's chunks), then `commit` (without a
