@@ -13,6 +13,17 @@ def unmeasured_coupling(xi_scale=1.0):
                                  B=[[[1.0], [0.0]], [[0.0], [0.0]]], C=[[[1.0, 0.0]], [[0.0, 0.0]]])
 
 
+def assert_update_is_the_kalman_formula(enkf, pred, u, y, e_v, R):
+    """enkf.update (stochastic, output y = x1) of pred (P, M, width) against the formula written path by path:
+    z = x1 + sqrt(R) e_v, K = Cov(psi, z) Cov(z)^-1 from the members, every component psi + K (y - z)."""
+    a, M = enkf.update(pred, u, y, e_v), pred.shape[1]
+    for j in range(pred.shape[0]):
+        z = pred[j, :, :1] + np.sqrt(R) * e_v[j]
+        dpsi, dz = pred[j] - pred[j].mean(0), z - z.mean(0)
+        K = (dpsi.T @ dz / (M - 1)) @ np.linalg.inv(dz.T @ dz / (M - 1))
+        np.testing.assert_allclose(a.psi[j], pred[j] + (y[j] - z) @ K.T, rtol=1e-10, atol=1e-10)
+
+
 def test_smoother_step_equals_per_member_equations():
     """predict with lag 2 and a disturbance: x moves with the drawn xi, d walks, the first past-draw slot takes
     the filtered xi and the second the first's, both without noise; the update is the same Kalman formula on
@@ -36,12 +47,7 @@ def test_smoother_step_equals_per_member_equations():
             ref = np.concatenate([A @ x + B @ (u[j] + d) + 0.1 * e_w[j, i, :n], draws[j, i:i + 1],
                                   [d + np.sqrt(0.05) * e_w[j, i, n + p]], psi[j, i, n:n + p], psi[j, i, 4:5]])
             np.testing.assert_allclose(pred[j, i], ref, rtol=1e-13, atol=1e-13)
-    a = enkf.update(pred, u, y, e_v)
-    for j in range(P):
-        z = pred[j, :, :1] + np.sqrt(0.02) * e_v[j]                                  # C(xi) x = x1
-        dpsi, dz = pred[j] - pred[j].mean(0), z - z.mean(0)
-        K = (dpsi.T @ dz / (M - 1)) @ np.linalg.inv(dz.T @ dz / (M - 1))
-        np.testing.assert_allclose(a.psi[j], pred[j] + (y[j] - z) @ K.T, rtol=1e-10, atol=1e-10)
+    assert_update_is_the_kalman_formula(enkf, pred, u, y, e_v, R=0.02)
     boxed = EnKF(model, 0.01, 0.02, xi_prior=prior, lag=L, xi_bounds=([0.0], [1.0]))
     b = boxed.update(3.0 * boxed.predict(psi[..., :-1], u, e_w[..., :-1]), u, y, e_v)
     assert np.all((b.psi[..., 2:] >= 0) & (b.psi[..., 2:] <= 1))

@@ -2,6 +2,7 @@
 mean mu that the EnKF learns as a static component of psi."""
 import numpy as np
 import pytest
+from test_enkf_smoother import assert_update_is_the_kalman_formula
 
 import rdsexp as rx
 from rdsexp.numerics.enkf import EnKF, output_delay
@@ -49,12 +50,7 @@ def test_static_mean_step_equals_per_member_equations():
                 ref = np.concatenate([A[0] @ x + B[0] @ (u[j] + d) + 0.1 * e[:n], new,
                                       [d + np.sqrt(0.05) * e[4]], mu, xi])
                 np.testing.assert_allclose(pred[j, i], ref, rtol=1e-13, atol=1e-13)
-    a = enkf.update(pred, u, y, e_v)
-    for j in range(P):
-        z = pred[j, :, :1] + np.sqrt(0.02) * e_v[j]                                  # C(xi) x = x1
-        dpsi, dz = pred[j] - pred[j].mean(0), z - z.mean(0)
-        K = (dpsi.T @ dz / (M - 1)) @ np.linalg.inv(dz.T @ dz / (M - 1))
-        np.testing.assert_allclose(a.psi[j], pred[j] + (y[j] - z) @ K.T, rtol=1e-10, atol=1e-10)
+    assert_update_is_the_kalman_formula(enkf, pred, u, y, e_v, R=0.02)              # mu's rows too
     boxed = EnKF(model, 0.01, 0.02, lag=1, static_mean=True, xi_bounds=([0.0, 0.0], [1.0, 1.0]))
     wide = 3.0 * psi[..., [0, 1, 2, 3, 5, 6, 7, 8]]                          # no d: [x; xi; mu; past]
     pred = boxed.predict(wide, u, 10 * e_w[..., :8])
