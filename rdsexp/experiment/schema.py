@@ -148,7 +148,7 @@ COLUMNS: dict[str, dict[str, tuple[str, str | None]]] = {
         "adopted": ("whether the path adopted the designed gain (from step k + 1 on)", None),
         "reason": ("initial, adopted, adopted_unchecked, or why not: not_stabilizing, no_improvement, not_robust "
                    "(fails on a bootstrap resample), waiting (passes, but the window holds fewer than "
-                   "controller.min_blocks blocks and the gain in use is stable at some resample), failed: ... "
+                   "controller.min_blocks blocks), failed: ... "
                    "(the design's status)", None),
         "gain_index": ("index of the gain among the path's adopted gains (0: initial; -1: not adopted)", None),
         "rate_model": ("exact mean-square rate of the designed F on the current modeled moments", "1/step"),

@@ -271,7 +271,7 @@ def test_bootstrap_safeguard_reports_the_worst_rates_and_adopts_only_what_passes
     """With resamples: rate_worst / rate_current_worst are the largest exact rates (checked independently)
     over the moving-block resamples of the window; a gain is adopted only when it passes on the model and
     on the worst resample, `not_robust` when only the model passes, `waiting` when both pass on fewer than
-    min_blocks blocks and the gain in use is stable at some draw (rate_current_best, checked too); at the first re-design the adopted
+    min_blocks blocks (rate_current_best, the gain in use's best draw, checked too); at the first re-design the adopted
     paths are a subset of those the model-only safeguard adopts; the decisions repeat exactly."""
     rng = np.random.default_rng(11)
     checked = robust_refusals = waits = 0
@@ -299,8 +299,7 @@ def test_bootstrap_safeguard_reports_the_worst_rates_and_adopts_only_what_passes
             assert d.rate_current_best[i] == pytest.approx(min(at[1]), rel=1e-8)
             model_ok = d.rate_model[i] < 1 and d.rate_model[i] < d.rate_current[i]
             passes = worst[0] < 1 and worst[0] < worst[1]
-            # below min_blocks blocks only where the gain in use fails at every draw
-            enough = k + 1 - first >= settings.min_blocks * settings.block or min(at[1]) >= 1
+            enough = k + 1 - first >= settings.min_blocks * settings.block
             assert d.adopted[i] == (model_ok and passes and enough)
             assert d.reason[i] == ("adopted" if d.adopted[i] else "waiting" if model_ok and passes
                                    else "not_robust" if model_ok else d.reason[i])
@@ -344,6 +343,26 @@ def test_first_candidate_unstable_on_the_true_plant_is_rejected_on_the_bootstrap
     plain = first_decision(resamples=0)                                     # the model alone would take it
     assert plain.adopted[0] and plain.reason[0] == "adopted"
     np.testing.assert_array_equal(plain.F, d.F)
+
+
+def test_a_thin_window_waits_even_where_every_resample_calls_the_gain_in_use_unstable():
+    """x+ = (1.2 + xi) x + u from F = 0, ten estimates about the true law N(0.5, 0.25): every resample calls F = 0
+    unstable and the candidate passes the model and every resample, but ten estimates are two blocks: with
+    min_blocks 4 (the default) it waits, with min_blocks 2 it is adopted."""
+    system = rx.AffineRandomSystem(A=[np.array([[1.2]]), np.array([[1.0]])], B=[np.array([[1.0]]), np.zeros((1, 1))],
+                                   xi_dist=from_spec({"family": "normal", "mean": [0.5], "cov": [[0.25]]}))
+    z = np.random.default_rng(0).normal(size=10)
+    xi = 0.5 + 0.5 * (z - z.mean()) / z.std()
+    reasons = {}
+    for min_blocks in (4, 2):
+        ctrl = OnlineController(system, OnlineSettings(warmup=0, period=10, memory="window", window=10,
+                                                       min_blocks=min_blocks), np.zeros((1, 1)), paths=1, horizon=20)
+        for k in range(11):
+            ctrl.update(k, np.array([[0.0, xi[k - 1] if k else 0.0]]), np.ones(1, bool))
+        d = ctrl.decisions()
+        assert d.rate_current_best[0] >= 1 and d.rate_worst[0] < 1 and d.rate_model[0] < 1
+        reasons[min_blocks] = d.reason[0]
+    assert reasons == {4: "waiting", 2: "adopted"}
 
 
 def moments(xi, w):
