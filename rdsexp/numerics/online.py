@@ -64,14 +64,14 @@ class OnlineSettings:
     resamples: 0 (the window's model only) or B moving-block bootstrap resamples of the window (blocks
     of `block` consecutive estimates: xi_{k|k} are correlated in k), over which the candidate's worst
     rate must be < 1 and below the worst rate of the gain in use (else `not_robust`); min_blocks: below
-    this many blocks in the window a passing candidate waits (`waiting`); covariance: "sample" (eq. sample-mean of the estimates) or
-    "total" (plus their mean filtered covariance); observer: "random_walk" (the loop's EnKF keeps its own
-    model of xi) or "model" (from a path's first re-design on, its EnKF draws xi i.i.d. from the path's
-    latest modeled moments, adopted or not, as the offline loop's observer draws from the identified
-    ones: `observer_prior`; `start` before); start: with observer "model", the loop's EnKF before a path's
-    first model: "random_walk" or "static_mean" (xi drawn about a mean the EnKF learns, `EnKF.static_mean`);
-    lag: the smoothing lag of the loop's EnKF (`EnKF.lag`); both set where that EnKF is built. The estimates
-    modeled at k are then xi_{k-1-lag} given y up to k.
+    this many blocks in the window a passing candidate waits (`waiting`); covariance: "sample" (eq.
+    sample-mean of the estimates) or "total" (plus their mean filtered covariance); observer: "random_walk"
+    (the loop's EnKF keeps its own model of xi) or "model" (from a path's first re-design on, its EnKF draws
+    xi i.i.d. from the path's latest modeled moments, adopted or not, as the offline loop's observer draws
+    from the identified ones: `observer_prior`; `start` before); start: with observer "model", the loop's
+    EnKF before a path's first model: "random_walk" or "static_mean" (xi drawn about a mean the EnKF learns,
+    `EnKF.static_mean`); lag: the smoothing lag of the loop's EnKF (`EnKF.lag`); both set where that EnKF is
+    built. The estimates modeled at k are then xi_{k-1-lag} given y up to k.
     """
 
     warmup: int = 20
