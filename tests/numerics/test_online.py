@@ -271,8 +271,8 @@ def test_bootstrap_safeguard_reports_the_worst_rates_and_adopts_only_what_passes
     """With resamples: rate_worst / rate_current_worst are the largest exact rates (checked independently)
     over the moving-block resamples of the window; a gain is adopted only when it passes on the model and
     on the worst resample, `not_robust` when only the model passes, `waiting` when both pass on fewer than
-    min_blocks blocks (rate_current_best, the gain in use's best draw, checked too); at the first re-design the adopted
-    paths are a subset of those the model-only safeguard adopts; the decisions repeat exactly."""
+    min_blocks blocks (rate_current_best, the gain in use's best draw, checked too); at the first re-design
+    the adopted paths are a subset of those the model-only safeguard adopts; the decisions repeat exactly."""
     rng = np.random.default_rng(11)
     checked = robust_refusals = waits = 0
     for trial in range(4):
@@ -316,31 +316,41 @@ def test_bootstrap_safeguard_reports_the_worst_rates_and_adopts_only_what_passes
     assert checked > 0 and robust_refusals > 0 and waits > 0
 
 
+def scalar_plant():
+    """x+ = (1.2 + xi) x + u, xi ~ N(0.5, 0.25): open-loop unstable in mean square from F = 0."""
+    return rx.AffineRandomSystem(A=[np.array([[1.2]]), np.array([[1.0]])], B=[np.array([[1.0]]), np.zeros((1, 1))],
+                                 xi_dist=from_spec({"family": "normal", "mean": [0.5], "cov": [[0.25]]}))
+
+
+def first_decision(system, xi, **kw):
+    """The one decision of a controller from F = 0 fed the ten estimates xi (10,) (window 10, re-design at
+    k = 10) and settings kw."""
+    ctrl = OnlineController(system, OnlineSettings(warmup=0, period=10, memory="window", window=10, **kw),
+                            np.zeros((1, 1)), paths=1, horizon=20)
+    for k in range(11):
+        ctrl.update(k, np.array([[0.0, xi[k - 1] if k else 0.0]]), np.ones(1, bool))
+    d = ctrl.decisions()
+    assert len(d.k) == 1 and d.k[0] == 10 and d.estimates[0] == 10
+    return d
+
+
+def ten_estimates(mean, spread):
+    z = np.random.default_rng(0).normal(size=10)
+    return mean + spread * (z - z.mean()) / z.std()
+
+
 def test_first_candidate_unstable_on_the_true_plant_is_rejected_on_the_bootstrap_evidence():
     """Constructed: x+ = (1.2 + xi) x + u, xi ~ N(0.5, 0.25); ten estimates xi_{k|k} biased to mean -0.6 with
     spread 0.85 (a biased EnKF). The first candidate, designed on their model, has model rate 0.85 < 1, below
     the gain in use's (F = 0), and passes the model-only safeguard, but its exact rate on the true plant is
     1.21: with the default bootstrap evidence it is rejected (not_robust: its worst draw is >= 1)."""
-    system = rx.AffineRandomSystem(A=[np.array([[1.2]]), np.array([[1.0]])], B=[np.array([[1.0]]), np.zeros((1, 1))],
-                                   xi_dist=from_spec({"family": "normal", "mean": [0.5], "cov": [[0.25]]}))
-    z = np.random.default_rng(0).normal(size=10)
-    xi = -0.6 + 0.85 * (z - z.mean()) / z.std()
-
-    def first_decision(**kw):
-        ctrl = OnlineController(system, OnlineSettings(warmup=0, period=10, memory="window", window=10, **kw),
-                                np.zeros((1, 1)), paths=1, horizon=20)
-        for k in range(11):
-            ctrl.update(k, np.array([[0.0, xi[k - 1] if k else 0.0]]), np.ones(1, bool))
-        d = ctrl.decisions()
-        assert len(d.k) == 1 and d.k[0] == 10 and d.estimates[0] == 10
-        return d
-
-    d = first_decision()                                                    # the defaults: resamples 50
+    system, xi = scalar_plant(), ten_estimates(-0.6, 0.85)
+    d = first_decision(system, xi)                                          # the defaults: resamples 50
     assert d.rate_model[0] == pytest.approx(0.85, rel=1e-9) and d.rate_model[0] < d.rate_current[0]
     assert rx.ms_rate(system, None, d.F[0]) >= 1.2                          # unstable on the true plant
     assert not d.adopted[0] and d.reason[0] == "not_robust" and d.rate_worst[0] >= 1
     assert d.rate_current_best[0] <= d.rate_current_worst[0]
-    plain = first_decision(resamples=0)                                     # the model alone would take it
+    plain = first_decision(system, xi, resamples=0)                         # the model alone would take it
     assert plain.adopted[0] and plain.reason[0] == "adopted"
     np.testing.assert_array_equal(plain.F, d.F)
 
@@ -349,17 +359,10 @@ def test_a_thin_window_waits_even_where_every_resample_calls_the_gain_in_use_uns
     """x+ = (1.2 + xi) x + u from F = 0, ten estimates about the true law N(0.5, 0.25): every resample calls F = 0
     unstable and the candidate passes the model and every resample, but ten estimates are two blocks: with
     min_blocks 4 (the default) it waits, with min_blocks 2 it is adopted."""
-    system = rx.AffineRandomSystem(A=[np.array([[1.2]]), np.array([[1.0]])], B=[np.array([[1.0]]), np.zeros((1, 1))],
-                                   xi_dist=from_spec({"family": "normal", "mean": [0.5], "cov": [[0.25]]}))
-    z = np.random.default_rng(0).normal(size=10)
-    xi = 0.5 + 0.5 * (z - z.mean()) / z.std()
+    system, xi = scalar_plant(), ten_estimates(0.5, 0.5)
     reasons = {}
     for min_blocks in (4, 2):
-        ctrl = OnlineController(system, OnlineSettings(warmup=0, period=10, memory="window", window=10,
-                                                       min_blocks=min_blocks), np.zeros((1, 1)), paths=1, horizon=20)
-        for k in range(11):
-            ctrl.update(k, np.array([[0.0, xi[k - 1] if k else 0.0]]), np.ones(1, bool))
-        d = ctrl.decisions()
+        d = first_decision(system, xi, min_blocks=min_blocks)
         assert d.rate_current_best[0] >= 1 and d.rate_worst[0] < 1 and d.rate_model[0] < 1
         reasons[min_blocks] = d.reason[0]
     assert reasons == {4: "waiting", 2: "adopted"}
