@@ -645,7 +645,8 @@ def _flag(cfg, name: str) -> bool:
 
 CONTROLLERS = ("offline", "online")
 ONLINE_KEYS = {"type", "initial", "warmup", "period", "memory", "window", "forgetting", "method", "options",
-               "safeguard", "resamples", "block", "min_blocks", "covariance", "disturbance", "observer", "start", "lag"}
+               "safeguard", "resamples", "block", "min_blocks", "covariance", "disturbance", "observer", "start",
+               "start_spread", "lag"}
 
 
 def _controller(cfg, model: AffineRandomSystem, K: int) -> tuple[str, OnlineSettings | None, str | np.ndarray,
@@ -696,9 +697,11 @@ def _controller(cfg, model: AffineRandomSystem, K: int) -> tuple[str, OnlineSett
     start = plain(OmegaConf.select(cfg, "controller.start", default=OnlineSettings.start))
     if start not in STARTS:
         raise ConfigError(f"controller.start: {start!r} is not allowed, expected one of {', '.join(STARTS)}")
+    start_spread = _number(plain(OmegaConf.select(cfg, "controller.start_spread", default=OnlineSettings.start_spread)),
+                           "controller.start_spread", low=0, low_open=True)
     with key("controller.options"):
         settings = OnlineSettings(memory=memory, forgetting=forgetting, method=method, options=options,
-                                  covariance=covariance, observer=observer, start=start,
+                                  covariance=covariance, observer=observer, start=start, start_spread=start_spread,
                                   safeguard=safeguard, **ints).check(model, K)
     initial = get(cfg, "controller.initial")
     if isinstance(initial, list):

@@ -404,13 +404,16 @@ def online_loop(exp: Experiment, seed, keep: bool, sim: dict, sink, sample: list
     parts, controllers = [], []
     bar, _ = _progress("online", exp.loop.paths * (K + 1))
     settings = dict(F=F0, d=exp.loop.disturbance, seed=seed, filter_sees_d=exp.loop.filter_sees_disturbance, **sim)
-    make = partial(OnlineController, exp.model, exp.controller.online, F0, horizon=K)
+    # the prior guess, as the nominal gain sees it: a thin window acts only where it agrees (OnlineController)
+    A_guess, B_guess = exp.plant.at(np.asarray(exp.identification.xi_guess, float)[None])[:2]
+    make = partial(OnlineController, exp.model, exp.controller.online, F0, horizon=K, at_guess=(A_guess[0], B_guess[0]))
     enkf = loop_observer(exp, None)
     if enkf.disturbance is None and exp.controller.disturbance is not None:
         # controller.disturbance: the online loop's EnKF estimates an unknown input disturbance, which it
         # would otherwise read as a wrong xi, the data the controller models xi from
         enkf = dataclasses.replace(enkf, disturbance=exp.controller.disturbance)
-    enkf = dataclasses.replace(enkf, lag=exp.controller.online.lag, static_mean=info["start"] == "static_mean")
+    enkf = dataclasses.replace(enkf, lag=exp.controller.online.lag, static_mean=info["start"] == "static_mean",
+                               start_spread=exp.controller.online.start_spread)
     with bar, console_to_tqdm():
         for first, tr, controller in run_chunks(exp, settings, keep_members=keep, workers=exp.loop.workers,
                                                 progress=bar.update, controller=make, enkf=enkf):
@@ -462,6 +465,7 @@ def add_online_tables(exp: Experiment, stages: Stages, tables: dict, online, cho
                 "rate_worst": np.concatenate([np.full(count, np.nan), d.rate_worst]),
                 "rate_current_worst": np.concatenate([np.full(count, np.nan), d.rate_current_worst]),
                 "rate_current_best": np.concatenate([np.full(count, np.nan), d.rate_current_best]),
+                "rate_current_guess": np.concatenate([np.full(count, np.nan), d.rate_current_guess]),
                 "estimates": np.concatenate([np.zeros(count, int), d.estimates]),
                 "rate_plant": np.concatenate([initial_plant, rate_plant])}
         mean = np.concatenate([np.full((count, p), np.nan), d.mean])

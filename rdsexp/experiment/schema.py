@@ -148,7 +148,8 @@ COLUMNS: dict[str, dict[str, tuple[str, str | None]]] = {
         "adopted": ("whether the path adopted the designed gain (from step k + 1 on)", None),
         "reason": ("initial, adopted, adopted_unchecked, or why not: not_stabilizing, no_improvement, not_robust "
                    "(fails on a bootstrap resample), waiting (passes, but the window holds fewer than "
-                   "controller.min_blocks blocks), failed: ... "
+                   "controller.min_blocks blocks, and the gain in use is not unstable both at every resample and at "
+                   "the prior guess), failed: ... "
                    "(the design's status)", None),
         "gain_index": ("index of the gain among the path's adopted gains (0: initial; -1: not adopted)", None),
         "rate_model": ("exact mean-square rate of the designed F on the current modeled moments", "1/step"),
@@ -158,6 +159,9 @@ COLUMNS: dict[str, dict[str, tuple[str, str | None]]] = {
         "rate_current_worst": ("largest exact rate of the gain in use over the same resamples", "1/step"),
         "rate_current_best": ("smallest exact rate of the gain in use over the same resamples (>= 1: it fails "
                               "at every resample)", "1/step"),
+        "rate_current_guess": ("exact rate of the gain in use on the plant at the prior guess xi_guess (>= 1 with "
+                               "rate_current_best >= 1: a window of fewer than controller.min_blocks blocks acts)",
+                               "1/step"),
         "estimates": ("estimates xi_{k|k} in the modeling window (0 for the initial gain)", None),
         "rate_plant": ("exact rate of the designed F on the true plant distribution", "1/step"),
         "mean[i]": ("modeled mean of xi from the path's own estimates, component i", "xi"),

@@ -94,6 +94,9 @@ update with y_{k+1} then learns mu through its sample covariance with y, and mu'
 data where the walk's grows. Components that reach an output only later (`output_delay` > 0) stay on the
 walk: y_{k+1} does not see their draw, and their first models (from the smoother's estimates) come out too
 narrow to learn from (docs/online.md). mu is projected onto xi_bounds with xi (a mean of draws in the box).
+The draws stand for xi's own spread, which nothing has measured yet, not for a walk's step: `start_spread` c
+makes them mu + c w_xi. Draws narrower than the plant's xi leave the ensemble's x spread without the
+multiplicative uncertainty it must carry, so the filter trusts a wrong x and can diverge (docs/online.md).
 
 Ensembles returned by `predict` and `update` are stored component-major: they are (..., M, n+p)
 views of (n+p, ..., M) arrays, so each component of all paths and members is one contiguous block
@@ -178,7 +181,8 @@ class EnKF:
     of the random-walk increment of an unknown input disturbance estimated in psi = [x; xi; d];
     lag: steps each xi stays in the ensemble after its own, updated by later outputs (the fixed-lag
     smoother; 0: none); static_mean: paths without a per-path prior draw xi about a static mean in psi (the
-    online loop's start; module docstring) rather than walk.
+    online loop's start; module docstring) rather than walk; start_spread: those draws are mu + start_spread w,
+    w the xi part of the process noise (covariance start_spread^2 times Q's xi block).
     """
 
     model: AffineRandomSystem
@@ -192,6 +196,7 @@ class EnKF:
     disturbance: np.ndarray | None = None
     lag: int = 0
     static_mean: bool = False
+    start_spread: float = 1.0
 
     def __post_init__(self):
         if self.xi_prior is not None:
@@ -218,6 +223,8 @@ class EnKF:
             raise ValueError(f"lag: {self.lag!r} is not allowed, expected an integer >= 0")
         if not isinstance(self.static_mean, (bool, np.bool_)):
             raise ValueError(f"static_mean: {self.static_mean!r} is not allowed, expected true or false")
+        if not (_real(self.start_spread) and self.start_spread > 0):
+            raise ValueError(f"start_spread: {self.start_spread!r} is not allowed, expected a finite number > 0")
         # components on the walk in the static-mean start: those the next output does not see
         object.__setattr__(self, "_walked", output_delay(self.model) > 0 if self.static_mean else None)
         lags = self.width - Q_full.shape[0]                            # mu and the past draws: no noise
@@ -386,7 +393,10 @@ class EnKF:
             psi_next[n:dim][:, rest] += components(xi)[:, rest]
             return xi
         walked = self._walked.reshape((-1,) + (1,) * (psi_next.ndim - 1))
-        draws = psi_next[n:dim][:, rest] + components(np.where(self._walked, xi, psi[..., self.mu_slice]))[:, rest]
+        draws = psi_next[n:dim][:, rest]                                              # w
+        if self.start_spread != 1:                                  # skipped at 1 (bit-identical): the draws'
+            draws = draws * np.where(walked, 1.0, self.start_spread)               # spread, not the walk's step
+        draws = draws + components(np.where(self._walked, xi, psi[..., self.mu_slice]))[:, rest]
         if self.xi_bounds is not None:                  # draws about mu, like those of a model, stay in the box
             draws = np.where(walked, draws, self._clip_xi(draws.copy()))
         psi_next[n:dim][:, rest] = draws

@@ -19,11 +19,13 @@ consecutive xi_{k|k}, which are correlated in k). The candidate must beat the ga
 worst over the draws: max_b lam_b(F_new) < 1 and max_b lam_b(F_new) < max_b lam_b(F_k) (else
 `not_robust`). A window of fewer than `min_blocks` blocks gives too few distinct resamples for
 their spread to measure the uncertainty (with 2 blocks of 5 estimates, 21 distinct resamples):
-there a candidate that passes `waits`, also where the gain in use is unstable at every draw. Such a
-thin window's draws call gains unstable that the plant does not: on five draws of 30 random plants,
-74 of the 98 gains replaced on that evidence (the rule before) were stable on the plant, and 37 of
-their replacements were not (docs/online.md). No warm-up beyond `warmup` (the filter's) and
-`min_blocks` is needed.
+there a candidate that passes `waits`, unless the gain in use is unstable at every draw and also on
+the prior guess (`at_guess`, the system at xi_guess that the nominal gain is designed on): then two
+independent sources agree that waiting lets the path grow (F = 0 on an open-loop unstable plant). The
+draws alone misfire: on five draws of 30 random plants, 74 of the 98 gains replaced on them (a rule
+before) were stable on the plant, and 37 of their replacements were not; the nominal gain, stable at
+the guess by design, now always waits there (docs/online.md). No warm-up beyond `warmup` (the
+filter's) and `min_blocks` is needed.
 A candidate that the model or a draw does not certify below 1 is never adopted, not even where the
 gain in use fails: the model of a growing loop is biased, and such a candidate can be worse on the
 plant than the gain in use.
@@ -70,7 +72,8 @@ class OnlineSettings:
     xi i.i.d. from the path's latest modeled moments, adopted or not, as the offline loop's observer draws
     from the identified ones: `observer_prior`; `start` before); start: with observer "model", the loop's
     EnKF before a path's first model: "random_walk" or "static_mean" (xi drawn about a mean the EnKF learns,
-    `EnKF.static_mean`); lag: the smoothing lag of the loop's EnKF (`EnKF.lag`); both set where that EnKF is
+    `EnKF.static_mean`); start_spread: with static_mean, the draws about that mean are mu + start_spread w_xi
+    (`EnKF.start_spread`); lag: the smoothing lag of the loop's EnKF (`EnKF.lag`); all set where that EnKF is
     built. The estimates modeled at k are then xi_{k-1-lag} given y up to k.
     """
 
@@ -88,6 +91,7 @@ class OnlineSettings:
     covariance: str = "sample"
     observer: str = "random_walk"
     start: str = "random_walk"
+    start_spread: float = 1.0
     lag: int = 0
 
     def check(self, system: AffineRandomSystem, horizon: int | None = None) -> OnlineSettings:
@@ -107,6 +111,9 @@ class OnlineSettings:
             raise ValueError(f"observer: {self.observer!r} is not allowed, expected one of {', '.join(OBSERVERS)}")
         if self.start not in STARTS:
             raise ValueError(f"start: {self.start!r} is not allowed, expected one of {', '.join(STARTS)}")
+        if not (isinstance(self.start_spread, (int, float)) and not isinstance(self.start_spread, bool)
+                and np.isfinite(self.start_spread) and self.start_spread > 0):
+            raise ValueError(f"start_spread: {self.start_spread!r} is not allowed, expected a finite number > 0")
         if not isinstance(self.safeguard, bool):
             raise ValueError(f"safeguard: {self.safeguard!r} is not allowed, expected true or false")
         if self.covariance not in COVARIANCES:
@@ -260,8 +267,9 @@ class Decisions:
     the modeled moments; F (U, m, n): the designed gain (NaN if none); rate_model: its exact rate on
     the modeled moments; rate_current: the exact rate of the gain in use on the same moments;
     rate_worst / rate_current_worst: their maxima over the bootstrap resamples, rate_current_best the
-    minimum of the gain in use's (NaN without resamples); estimates: how many xi_{k|k} the window
-    holds; adopted and reason (REASONS; "failed: ..." with the method's error)."""
+    minimum of the gain in use's (NaN without resamples); rate_current_guess: the gain in use's rate on the
+    system at the prior guess (NaN without one); estimates: how many xi_{k|k} the window holds; adopted and
+    reason (REASONS; "failed: ..." with the method's error)."""
 
     k: np.ndarray
     path: np.ndarray
@@ -273,6 +281,7 @@ class Decisions:
     rate_worst: np.ndarray
     rate_current_worst: np.ndarray
     rate_current_best: np.ndarray
+    rate_current_guess: np.ndarray
     estimates: np.ndarray
     adopted: np.ndarray
     reason: np.ndarray
@@ -282,13 +291,19 @@ class OnlineController:
     """Per-path online re-design (the module docstring); pass it to `simulate(controller=...)`.
 
     system: the model the EnKF and the designs use (n, m, its xi of dimension p); F0: (m, n) or
-    (P, m, n) initial gains; horizon: K, the last step. Deterministic (draws no random numbers).
+    (P, m, n) initial gains; horizon: K, the last step; at_guess: None, or the system at the prior guess
+    (A (n, n), B (n, m)), on which a gain in use that every resample of a thin window calls unstable must
+    be unstable too for that window to act (module docstring). Deterministic (draws no random numbers).
     """
 
-    def __init__(self, system: AffineRandomSystem, settings: OnlineSettings, F0, *, paths: int, horizon: int):
+    def __init__(self, system: AffineRandomSystem, settings: OnlineSettings, F0, *, paths: int, horizon: int,
+                 at_guess: tuple[np.ndarray, np.ndarray] | None = None):
         self.system, self.settings = system, settings.check(system, horizon)
-        self.P, self.K = int(paths), int(horizon)
         n, m = system.n, system.m
+        # (1, n, n), (1, n, m): one term of `rates`' sum, the deterministic system at the guess
+        self.at_guess = None if at_guess is None else (np.reshape(np.asarray(at_guess[0], float), (1, n, n)),
+                                                       np.reshape(np.asarray(at_guess[1], float), (1, n, m)))
+        self.P, self.K = int(paths), int(horizon)
         self.F = np.broadcast_to(np.asarray(F0, dtype=float), (self.P, m, n)).copy()   # gains in use
         self.F0 = self.F.copy()
         self.xi = np.full((self.K + 1, self.P, system.p), np.nan)                  # xi_{k|k}, k = 0..K
@@ -338,6 +353,7 @@ class OnlineController:
             rate_new = rates(Abar, Bbar, np.nan_to_num(F_new))
             rate_new[failed != ""] = np.nan
             rate_cur = rates(Abar, Bbar, self.F[idx])
+            guess_cur = np.full(idx.size, np.nan) if self.at_guess is None else rates(*self.at_guess, self.F[idx])
         worst_new = worst_cur = best_cur = np.full(idx.size, np.nan)
         s = self.settings
         if s.safeguard and s.resamples:
@@ -350,10 +366,10 @@ class OnlineController:
             # does not call stabilizing can be worse on the plant than the gain in use, and is never adopted)
             model_ok = (failed == "") & (rate_new < 1) & (rate_new < rate_cur)
             robust = model_ok & (worst_new < 1) & (worst_new < worst_cur) if s.resamples else model_ok
-            # with fewer than min_blocks blocks the draws' spread says too little to act on, also where they
-            # all call the gain in use unstable (most such gains are stable on the plant: module docstring)
+            # with fewer than min_blocks blocks the draws' spread says too little to act on, unless they all
+            # call the gain in use unstable and so does the prior guess (the draws alone misfire: docstring)
             enough = samples.shape[0] >= s.min_blocks * s.block or not s.resamples
-            adopt = robust & enough
+            adopt = robust & (enough | (best_cur >= 1) & (guess_cur >= 1))
             reason = np.where(failed != "", failed, np.where(
                 adopt, "adopted", np.where(~(rate_new < 1), "not_stabilizing", np.where(
                     ~model_ok, "no_improvement", np.where(robust, "waiting", "not_robust")))))
@@ -362,7 +378,8 @@ class OnlineController:
             reason = np.where(adopt, "adopted_unchecked", failed)
         self._rows.append(dict(k=np.full(idx.size, k), path=idx, mean=mean, cov=cov, F=F_new, rate_model=rate_new,
                                rate_current=rate_cur, rate_worst=worst_new, rate_current_worst=worst_cur,
-                               rate_current_best=best_cur, estimates=np.full(idx.size, samples.shape[0]),
+                               rate_current_best=best_cur, rate_current_guess=guess_cur,
+                               estimates=np.full(idx.size, samples.shape[0]),
                                adopted=adopt, reason=reason.astype(object)))
         if self.settings.observer == "model":
             # the path's latest model, its gain adopted or not: a random walk left running in a loop whose state
@@ -431,6 +448,7 @@ class OnlineController:
             return Decisions(k=np.zeros(0, int), path=np.zeros(0, int), **{a: np.zeros(s) for a, s in empty.items()},
                              rate_model=np.zeros(0), rate_current=np.zeros(0), rate_worst=np.zeros(0),
                              rate_current_worst=np.zeros(0), rate_current_best=np.zeros(0),
+                             rate_current_guess=np.zeros(0),
                              estimates=np.zeros(0, int), adopted=np.zeros(0, bool),
                              reason=np.zeros(0, object))
         return Decisions(**{name: np.concatenate([r[name] for r in self._rows]) for name in self._rows[0]})

@@ -16,16 +16,17 @@ def seen_and_unseen():
                                  C=[[[1.0, 0.0]], [[0.0, 0.0]], [[0.0, 0.0]]])
 
 
-def test_static_mean_step_equals_per_member_equations():
-    """predict with the static mean, a disturbance and lag 1: xi_1 (seen at once) is drawn about mu_1 and moves
-    x with the draw, xi_2 (seen a step later) walks and x moves with its filtered value, mu stays, d walks,
-    the past-draw slot takes the filtered xi; a path with its own model draws from it. The update is the
-    same Kalman formula on every component, mu's included; the box projection clips mu and the draws about
-    it, not the walk's prediction."""
+@pytest.mark.parametrize("spread", [1.0, 2.5])
+def test_static_mean_step_equals_per_member_equations(spread):
+    """predict with the static mean, a disturbance and lag 1: xi_1 (seen at once) is drawn about mu_1, its draw
+    mu_1 + spread w_1 (start_spread), and moves x with the draw, xi_2 (seen a step later) walks (its step w_2,
+    whatever the spread) and x moves with its filtered value, mu stays, d walks, the past-draw slot takes the
+    filtered xi; a path with its own model draws from it. The update is the same Kalman formula on every
+    component, mu's included; the box projection clips mu and the draws about it, not the walk's prediction."""
     rng = np.random.default_rng(5)
     model, n, p, m = seen_and_unseen(), 2, 2, 1
     assert output_delay(model).tolist() == [0, 1]
-    enkf = EnKF(model, 0.01, 0.02, disturbance=0.05, lag=1, static_mean=True)
+    enkf = EnKF(model, 0.01, 0.02, disturbance=0.05, lag=1, static_mean=True, start_spread=spread)
     w = n + p + m + p + p
     assert (enkf.width, enkf.d_slice, enkf.mu_slice, enkf.xi_estimate) == (w, slice(4, 5), slice(5, 7), slice(7, 9))
     P, M = 3, 8
@@ -44,7 +45,8 @@ def test_static_mean_step_equals_per_member_equations():
                     new = mean[0] + sqrt[0] @ e[n:n + p]
                     moves = new
                 else:
-                    new = np.array([mu[0], xi[1]]) + 0.1 * e[n:n + p]      # mu_1 + w_1; xi_2 + w_2 (walk)
+                    new = np.array([mu[0], xi[1]]) + 0.1 * np.array([spread, 1.0]) * e[n:n + p]   # mu_1 + c w_1;
+                    # xi_2 + w_2 (the walk)
                     moves = np.array([new[0], xi[1]])
                 A, B, _, _ = model.at(moves[None])
                 ref = np.concatenate([A[0] @ x + B[0] @ (u[j] + d) + 0.1 * e[:n], new,
@@ -61,6 +63,45 @@ def test_static_mean_step_equals_per_member_equations():
     np.testing.assert_allclose(b.filt_mean[..., 4:6], b.psi[..., 4:6].mean(-2), rtol=1e-13)
     with pytest.raises(ValueError, match="static_mean: 1 is not allowed"):
         EnKF(model, 0.01, 0.02, static_mean=1)
+    for bad in (0.0, -1.0, np.inf, "wide"):
+        with pytest.raises(ValueError, match=f"start_spread: {bad!r} is not allowed, expected a finite number > 0"):
+            EnKF(model, 0.01, 0.02, static_mean=True, start_spread=bad)
+
+
+def predicted_x_nees(q_xi: float, spread: float, K=80, P=60, M=100, seed=7) -> float:
+    """The plant of `learned_mean` (xi_k ~ N(0.3, 0.1^2)) filtered with the static mean started at the true mean,
+    Q's xi block q_xi and start_spread `spread`: the mean over paths and steps k = 20..79 of the predicted x's
+    normalized squared error (x_{k+1} - mean)^2 / var over the members (1 where that spread is the error's)."""
+    rng = np.random.default_rng(seed)
+    model = rx.AffineRandomSystem(A=[[[0.5]], [[1.0]]], B=[[[1.0]], [[0.0]]], C=[[[1.0]], [[0.0]]])
+    enkf = EnKF(model, np.diag([1e-4, q_xi]), 0.01, static_mean=True, start_spread=spread)
+    x = np.zeros(P)
+    psi = np.zeros((P, M, enkf.width))
+    psi[..., enkf.mu_slice] = 0.3 + np.sqrt(q_xi) * rng.normal(size=(P, M, 1))
+    nees = []
+    for k in range(K):
+        u = rng.normal(size=(P, 1))
+        a = enkf.update(psi, u, (x + 0.1 * rng.normal(size=P))[:, None], rng.normal(size=(P, M, 1)))
+        x = (0.5 + 0.3 + 0.1 * rng.normal(size=P)) * x + u[:, 0]
+        psi = enkf.predict(a.psi, u, rng.normal(size=(P, M, enkf.width)))
+        if k >= 20:
+            nees.append((x - psi[..., 0].mean(-1)) ** 2 / psi[..., 0].var(-1, ddof=1))
+    return float(np.mean(nees))
+
+
+def test_draws_narrower_than_xi_make_the_filter_trust_a_wrong_x():
+    """The draws about mu carry xi's spread into x's: with Q's xi block a quarter of xi's variance, the
+    predicted x's spread understates its error (normalized squared error 3.5, measured); start_spread 2 makes
+    the draws' variance xi's own and the error matches the spread, as with Q's xi block at xi's variance. For
+    a calibrated Gaussian prediction the NEES is chi^2_1 (mean 1, sd sqrt 2): its mean over 3600
+    path-steps (about 1000 independent, the errors being correlated in k) has a Monte Carlo error near 0.05;
+    0.25 allows that at 4 sd plus the M = 100 members' own spread error (a few percent). Twice xi's spread is
+    underconfident (0.4, measured): wider is not calibrated either, the default is measured (docs/online.md)."""
+    true_var = 0.01
+    exact, narrow, widened = (predicted_x_nees(q, c) for q, c in ((true_var, 1), (true_var / 4, 1), (true_var / 4, 2)))
+    assert abs(exact - 1) < 0.25 and abs(widened - 1) < 0.25, (exact, widened)
+    assert narrow > 2.5, narrow
+    assert predicted_x_nees(true_var, 2) < 0.6
 
 
 def learned_mean(static_mean: bool, K=100, P=60, M=100, seed=7):

@@ -322,11 +322,11 @@ def scalar_plant():
                                  xi_dist=from_spec({"family": "normal", "mean": [0.5], "cov": [[0.25]]}))
 
 
-def first_decision(system, xi, **kw):
+def first_decision(system, xi, at_guess=None, **kw):
     """The one decision of a controller from F = 0 fed the ten estimates xi (10,) (window 10, re-design at
-    k = 10) and settings kw."""
+    k = 10), with the system at the prior guess `at_guess` and settings kw."""
     ctrl = OnlineController(system, OnlineSettings(warmup=0, period=10, memory="window", window=10, **kw),
-                            np.zeros((1, 1)), paths=1, horizon=20)
+                            np.zeros((1, 1)), paths=1, horizon=20, at_guess=at_guess)
     for k in range(11):
         ctrl.update(k, np.array([[0.0, xi[k - 1] if k else 0.0]]), np.ones(1, bool))
     d = ctrl.decisions()
@@ -355,17 +355,24 @@ def test_first_candidate_unstable_on_the_true_plant_is_rejected_on_the_bootstrap
     np.testing.assert_array_equal(plain.F, d.F)
 
 
-def test_a_thin_window_waits_even_where_every_resample_calls_the_gain_in_use_unstable():
+def test_a_thin_window_acts_only_where_the_prior_guess_also_calls_the_gain_in_use_unstable():
     """x+ = (1.2 + xi) x + u from F = 0, ten estimates about the true law N(0.5, 0.25): every resample calls F = 0
-    unstable and the candidate passes the model and every resample, but ten estimates are two blocks: with
-    min_blocks 4 (the default) it waits, with min_blocks 2 it is adopted."""
+    unstable and the candidate passes the model and every resample, but ten estimates are two blocks. With
+    min_blocks 4 (the default) it waits, unless the system at the prior guess calls F = 0 unstable too (the
+    guess xi = 0.5: rate 1.7); a guess at which F = 0 is stable (xi = -0.5: rate 0.7), or none, leaves it
+    waiting. With min_blocks 2 the window is enough and the candidate is adopted whatever the guess."""
     system, xi = scalar_plant(), ten_estimates(0.5, 0.5)
+    at = {guess: tuple(M[0] for M in system.at([guess])[:2]) for guess in (0.5, -0.5)}
     reasons = {}
     for min_blocks in (4, 2):
-        d = first_decision(system, xi, min_blocks=min_blocks)
-        assert d.rate_current_best[0] >= 1 and d.rate_worst[0] < 1 and d.rate_model[0] < 1
-        reasons[min_blocks] = d.reason[0]
-    assert reasons == {4: "waiting", 2: "adopted"}
+        for guess in (None, 0.5, -0.5):
+            d = first_decision(system, xi, None if guess is None else at[guess], min_blocks=min_blocks)
+            assert d.rate_current_best[0] >= 1 and d.rate_worst[0] < 1 and d.rate_model[0] < 1
+            expected = np.nan if guess is None else abs(1.2 + guess)
+            np.testing.assert_allclose(d.rate_current_guess[0], expected, rtol=1e-12)
+            reasons[min_blocks, guess] = d.reason[0]
+    assert reasons == {(4, None): "waiting", (4, 0.5): "adopted", (4, -0.5): "waiting",
+                       (2, None): "adopted", (2, 0.5): "adopted", (2, -0.5): "adopted"}
 
 
 def moments(xi, w):
@@ -411,6 +418,8 @@ def hydra_context():
     ("controller=online controller.lag=-1", "controller.lag: -1 is not allowed"),
     ("controller=online controller.lag=1.5", "controller.lag: 1.5 is not allowed"),
     ("controller=online controller.start=flat", "controller.start: 'flat' is not allowed, expected one of"),
+    ("controller=online controller.start_spread=0", "controller.start_spread: 0 is not allowed, expected a finite "
+                                                    "number > 0"),
     ("controller=online +controller.options.max_iter=-1", "controller.options: max_iter: -1 is not allowed"),
     ("controller.type=hybrid", "controller.type: 'hybrid' is not allowed"),
     ("+controller.period=5", "controller.period: not read by controller=offline"),
