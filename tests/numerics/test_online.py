@@ -469,6 +469,30 @@ def test_static_mean_start_acts_with_the_model_observer_only(hydra_context):
     assert not np.array_equal(online[2]["u[0]"], online[3]["u[0]"])       # the estimates x_{k|k-1} fed back
 
 
+def test_a_thin_window_acts_from_zero_on_an_open_loop_unstable_plant_and_waits_from_nominal(hydra_context):
+    """cart_pole is open-loop unstable at its guess (the plant file's mean). From F = 0 its first re-design
+    (k = 10: five estimates, one block) records rate_current_guess = the spectral radius of A(xi_guess),
+    computed here independently, and adopts where every resample also calls F = 0 unstable; from the nominal
+    gain, stable at the guess by design, the same thin window records a rate below 1 and waits."""
+    from rdsexp.experiment.pipeline import run_experiment
+    small = [o for o in SMALL if not o.startswith("closed_loop.horizon")] + [
+        "closed_loop.horizon=30", "plant=cart_pole", "controller=online", "controller.warmup=5",
+        "controller.period=5", "closed_loop.open_loop=false", "closed_loop.paths=6"]
+    first = {}
+    for start in ("zero", "nominal"):
+        exp = build(compose("config", overrides=small + [f"controller.initial={start}"]))
+        ctl = run_experiment(exp).tables["controller"]
+        first[start] = ctl[ctl["k"] == 10]
+        assert (first[start]["estimates"] == 5).all() and len(first[start]) == 6
+    A, _, _, _ = exp.plant.at(exp.identification.xi_guess)
+    zero, nominal = first["zero"], first["nominal"]
+    np.testing.assert_allclose(zero["rate_current_guess"], np.abs(np.linalg.eigvals(A)).max(), rtol=1e-9)
+    assert (zero["rate_current_guess"] > 1).all() and (nominal["rate_current_guess"] < 1).all()
+    urgent = (zero["rate_current_best"] >= 1) & zero["reason"].isin(["adopted", "waiting"])
+    assert urgent.any() and (zero["adopted"] == urgent).all(), zero[["reason", "rate_current_best"]]
+    assert not nominal["adopted"].any()
+
+
 def test_offline_is_the_default_and_online_builds(hydra_context):
     assert build(compose("config")).controller.kind == "offline"
     exp = build(compose("config", overrides=["controller=online"]))
