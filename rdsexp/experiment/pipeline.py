@@ -405,8 +405,8 @@ def online_loop(exp: Experiment, seed, keep: bool, sim: dict, sink, sample: list
     bar, _ = _progress("online", exp.loop.paths * (K + 1))
     settings = dict(F=F0, d=exp.loop.disturbance, seed=seed, filter_sees_d=exp.loop.filter_sees_disturbance, **sim)
     # the prior guess, as the nominal gain sees it: a thin window acts only where it agrees (OnlineController)
-    A_guess, B_guess = exp.plant.at(np.asarray(exp.identification.xi_guess, float)[None])[:2]
-    make = partial(OnlineController, exp.model, exp.controller.online, F0, horizon=K, at_guess=(A_guess[0], B_guess[0]))
+    A_guess, B_guess, _, _ = exp.plant.at(exp.identification.xi_guess)
+    make = partial(OnlineController, exp.model, exp.controller.online, F0, horizon=K, at_guess=(A_guess, B_guess))
     enkf = loop_observer(exp, None)
     if enkf.disturbance is None and exp.controller.disturbance is not None:
         # controller.disturbance: the online loop's EnKF estimates an unknown input disturbance, which it

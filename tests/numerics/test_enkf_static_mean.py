@@ -68,24 +68,33 @@ def test_static_mean_step_equals_per_member_equations(spread):
             EnKF(model, 0.01, 0.02, static_mean=True, start_spread=bad)
 
 
-def predicted_x_nees(q_xi: float, spread: float, K=80, P=60, M=100, seed=7) -> float:
-    """The plant of `learned_mean` (xi_k ~ N(0.3, 0.1^2)) filtered with the static mean started at the true mean,
-    Q's xi block q_xi and start_spread `spread`: the mean over paths and steps k = 20..79 of the predicted x's
-    normalized squared error (x_{k+1} - mean)^2 / var over the members (1 where that spread is the error's)."""
-    rng = np.random.default_rng(seed)
-    model = rx.AffineRandomSystem(A=[[[0.5]], [[1.0]]], B=[[[1.0]], [[0.0]]], C=[[[1.0]], [[0.0]]])
-    enkf = EnKF(model, np.diag([1e-4, q_xi]), 0.01, static_mean=True, start_spread=spread)
+SCALAR = rx.AffineRandomSystem(A=[[[0.5]], [[1.0]]], B=[[[1.0]], [[0.0]]], C=[[[1.0]], [[0.0]]])
+
+
+def filter_scalar_plant(enkf: EnKF, psi: np.ndarray, rng, K: int):
+    """The plant x_{k+1} = (0.5 + xi_k) x_k + u_k, y = x + v (R = 0.01), xi_k ~ N(0.3, 0.1^2) i.i.d., u_k ~ N(0, 1)
+    told to the filter (`SCALAR`), from x_0 = 0, filtered by enkf from psi (P, M, width): yields per step k the
+    analysis with y_k, the plant's x_{k+1} (P,) and the predicted ensemble psi_{k+1|k}."""
+    P, M = psi.shape[:2]
     x = np.zeros(P)
-    psi = np.zeros((P, M, enkf.width))
-    psi[..., enkf.mu_slice] = 0.3 + np.sqrt(q_xi) * rng.normal(size=(P, M, 1))
-    nees = []
     for k in range(K):
         u = rng.normal(size=(P, 1))
         a = enkf.update(psi, u, (x + 0.1 * rng.normal(size=P))[:, None], rng.normal(size=(P, M, 1)))
         x = (0.5 + 0.3 + 0.1 * rng.normal(size=P)) * x + u[:, 0]
         psi = enkf.predict(a.psi, u, rng.normal(size=(P, M, enkf.width)))
-        if k >= 20:
-            nees.append((x - psi[..., 0].mean(-1)) ** 2 / psi[..., 0].var(-1, ddof=1))
+        yield k, a, x, psi
+
+
+def predicted_x_nees(q_xi: float, spread: float, K=80, P=60, M=100, seed=7) -> float:
+    """`filter_scalar_plant` with the static mean started at the true mean, Q's xi block q_xi and start_spread
+    `spread`: the mean over paths and steps k = 20..79 of the predicted x's normalized squared error
+    (x_{k+1} - mean)^2 / var over the members (1 where that spread is the error's)."""
+    rng = np.random.default_rng(seed)
+    enkf = EnKF(SCALAR, np.diag([1e-4, q_xi]), 0.01, static_mean=True, start_spread=spread)
+    psi = np.zeros((P, M, enkf.width))
+    psi[..., enkf.mu_slice] = 0.3 + np.sqrt(q_xi) * rng.normal(size=(P, M, 1))
+    nees = [(x - pred[..., 0].mean(-1)) ** 2 / pred[..., 0].var(-1, ddof=1)
+            for k, _, x, pred in filter_scalar_plant(enkf, psi, rng, K) if k >= 20]
     return float(np.mean(nees))
 
 
@@ -105,22 +114,15 @@ def test_draws_narrower_than_xi_make_the_filter_trust_a_wrong_x():
 
 
 def learned_mean(static_mean: bool, K=100, P=60, M=100, seed=7):
-    """A plant x_{k+1} = (0.5 + xi_k) x_k + u_k, y = x + v (R = 0.01), xi_k ~ N(0.3, 0.1^2) i.i.d., u_k ~ N(0, 1)
-    told to the filter; the EnKF (Q's xi block 0.01, the true variance) guesses xi at 0 and starts mu at
-    N(0, 0.01), as `simulate` does. Returns the filtered mean and spread (P,) of mu after K steps (static
+    """`filter_scalar_plant` with the EnKF (Q's xi block 0.01, the true variance) guessing xi at 0 and starting
+    mu at N(0, 0.01), as `simulate` does. Returns the filtered mean and spread (P,) of mu after K steps (static
     mean) or of xi_{K|K} (the walk)."""
     rng = np.random.default_rng(seed)
-    model = rx.AffineRandomSystem(A=[[[0.5]], [[1.0]]], B=[[[1.0]], [[0.0]]], C=[[[1.0]], [[0.0]]])
-    enkf = EnKF(model, np.diag([1e-4, 0.01]), 0.01, static_mean=static_mean)
-    x = np.zeros(P)
+    enkf = EnKF(SCALAR, np.diag([1e-4, 0.01]), 0.01, static_mean=static_mean)
     psi = np.zeros((P, M, enkf.width))
     psi[..., enkf.mu_slice] = 0.1 * rng.normal(size=(P, M, enkf.mu_slice.stop - enkf.mu_slice.start))
     rows = enkf.mu_slice if static_mean else slice(1, 2)
-    for _ in range(K):
-        u = rng.normal(size=(P, 1))
-        a = enkf.update(psi, u, (x + 0.1 * rng.normal(size=P))[:, None], rng.normal(size=(P, M, 1)))
-        x = (0.5 + 0.3 + 0.1 * rng.normal(size=P)) * x + u[:, 0]
-        psi = enkf.predict(a.psi, u, rng.normal(size=(P, M, enkf.width)))
+    *_, (_, a, _, _) = filter_scalar_plant(enkf, psi, rng, K)
     return a.filt_mean[:, rows][:, 0], a.filt_std[:, rows][:, 0]
 
 
