@@ -605,3 +605,33 @@ def test_report_tables_the_controllers_sweep_per_plant(tmp_path):
     text = fig_online.verdict(settings.assign(matches=False), ["period"], 0.005, 0.02)
     assert "at none of 5 settings; closest in the final gains: period 100" in text
     assert "closest in the loop rate: period 5" in text
+
+
+def test_online_bound_models_are_unbiased_and_exact_draws_reach_the_optimum():
+    """experiments/online_bound.py: the per-path covariance of samples with noise r I, before its projection,
+    averages to the true covariance (to 4 standard errors over paths); from many exact draws (r = 0) the
+    per-path gains' median exact rate is the optimum (policy iteration on the true law) to 1e-3, and from few
+    noisy ones it is above it."""
+    import sys
+    sys.path.insert(0, str(REPO / "experiments"))
+    import online_bound
+
+    rng = np.random.default_rng(3)
+    system = random_system(rng, 3, 1, 2)
+    while rx.synthesize(system, None, "policy_iteration").lam >= 0.98:      # stabilizable with a margin
+        system = random_system(rng, 3, 1, 2)
+    dist, r = system.xi_dist, 0.3
+    samples = dist.sample(rng, (2000, 40)) + np.sqrt(r) * rng.normal(size=(2000, 40, 2))
+    mean = samples.mean(axis=1)
+    dev = samples - mean[:, None]
+    raw = np.einsum("ptj,ptk->pjk", dev, dev) / 39 - r * np.eye(2)                 # before the projection
+    se = raw.std(axis=0) / np.sqrt(2000)
+    assert np.all(np.abs(raw.mean(axis=0) - dist.cov) <= 4 * se)
+    _, projected = online_bound.path_models(samples, r)
+    psd = np.linalg.eigvalsh(raw).min(axis=1) >= 0
+    assert psd.any() and (~psd).any() and np.linalg.eigvalsh(projected).min() >= -1e-12
+    np.testing.assert_allclose(projected[psd], raw[psd], atol=1e-12, rtol=0)      # a PSD one is kept as it is
+    optimum = rx.synthesize(system, None, "policy_iteration").lam
+    exact = online_bound.median_rate(system, dist, np.random.default_rng(0), 20, 4000, 0.0)
+    assert exact == pytest.approx(optimum, abs=1e-3)
+    assert online_bound.median_rate(system, dist, np.random.default_rng(0), 20, 10, 1.0) > optimum + 1e-3
