@@ -59,8 +59,7 @@ def median_rate(system, dist, rng: np.random.Generator, paths: int, steps: int, 
         return np.inf
     samples = dist.sample(rng, (paths, steps)) + np.sqrt(r) * rng.normal(size=(paths, steps, system.p))
     mean, cov = path_models(samples, r)
-    true = dist.moments if hasattr(dist, "moments") else dist
-    A_true, B_true = moment_factors(system, true.mean[None], true.cov[None])
+    A_true, B_true = moment_factors(system, dist.mean[None], dist.cov[None])          # every family has both
     with np.errstate(all="ignore"):
         F = policy_iteration_batch(*moment_factors(system, mean, cov), np.zeros((paths, system.m, system.n)))
         exact = rates(np.repeat(A_true, paths, axis=0), np.repeat(B_true, paths, axis=0), np.nan_to_num(F))
@@ -74,7 +73,9 @@ def own_noise(run_dir: Path, p: int, window: tuple[int, int]) -> float:
     table = table[(table["experiment"] == "online") & table["k"].between(*window)]
     S, P = (table[names[i * p:(i + 1) * p]].to_numpy() ** 2 for i in (0, 1))
     with np.errstate(all="ignore"):
-        return float(np.nanmedian(np.where(S > P, S * P / (S - P), np.inf)))
+        r = np.where(S > P, S * P / (S - P), np.inf)
+    r[np.isnan(S) | np.isnan(P)] = np.nan                           # steps after a path failed
+    return float(np.nanmedian(r))
 
 
 def main(argv=None) -> int:
@@ -89,6 +90,8 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     if min(args.steps) < 2 or min(args.noise) < 0 or args.paths < 1:
         parser.error("--steps must be >= 2, --noise >= 0 and --paths >= 1")
+    if not args.csv.is_file():
+        parser.error(f"--csv {args.csv}: no such file")
     table = pd.read_csv(args.csv)
     if "offline_rate_plant" not in table:
         parser.error(f"{args.csv}: no offline_rate_plant column (run random_plants.py --override controller=online)")
@@ -103,6 +106,8 @@ def main(argv=None) -> int:
         system, dist = system_of(plant.content)
         noises = [(r, f"r {r:g}") for r in args.noise]
         if args.own_noise:
+            if not (Path(row["run_dir"]) / "trajectories.parquet").is_file():
+                parser.error(f"{name}: no trajectories in {row['run_dir']} (--own-noise reads the plant's run)")
             noises.append((own_noise(row["run_dir"], system.p, tuple(args.window)), "its own r"))
         for T in args.steps:
             for r, label in noises:
