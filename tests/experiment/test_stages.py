@@ -201,8 +201,8 @@ def test_a_reused_stage_is_said_in_the_summary_and_the_log_not_on_the_terminal(t
 
 def test_a_streamed_stage_is_stored_only_when_consumed_whole(tmp_path):
     """`Stages.streamed` stores a loop's parts as they are consumed: a consumer that stops early (an error,
-    Ctrl-C) leaves neither an entry nor a temporary directory; one that reads every part commits the
-    entry, and the next lookup replays the same parts."""
+    Ctrl-C), or before its first read, leaves neither an entry nor a temporary directory; one that reads
+    every part commits the entry, and the next lookup replays the same parts."""
     from contextlib import closing
 
     from rdsexp.experiment.pipeline import Stages
@@ -212,6 +212,9 @@ def test_a_streamed_stage_is_stored_only_when_consumed_whole(tmp_path):
             computed.append(first)
             yield {"first": first, "values": np.arange(first, first + 3.0)}
     stages = Stages(StageCache(tmp_path, "v", "run-a"))
+    never, _ = stages.streamed("open_loop", parts, x=1)          # a Ctrl-C before its consumer's first read
+    never.close()
+    assert not list((tmp_path / layout.STAGES).rglob("*")) and not computed
     chunks, reused = stages.streamed("open_loop", parts, x=1)
     with closing(chunks):
         assert next(chunks)["first"] == 0 and not reused

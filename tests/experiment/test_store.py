@@ -494,3 +494,26 @@ def test_run_record_types_run_json_and_makes_older_records_current(tmp_path):
     assert RunRecord.parse(current).seed == 1 and RunRecord.parse(current).sweep == record.sweep
     row = identity(sweep / "1", old)
     assert (row["sweep"], row["sweep_id"], row["job"], row["seed"], row["plant"]) == ("seed=0,1", "S", 1, 1, "paper")
+
+
+def test_settling_an_interrupt_removes_the_temporary_entries_of_ended_processes_only(tmp_path):
+    """After a Ctrl-C, `settle_interrupted` on a sweep also removes the stage cache's temporary entries
+    (directories ".<key>.<pid>.tmp", where a worker stopped mid-write leaves its entry) of this process and of
+    ended ones in the sweep's store, and keeps those of a process still running and complete entries."""
+    ended = subprocess.Popen([sys.executable, "-c", "pass"])
+    ended.wait()
+    stages = tmp_path / "outputs" / "stages" / "open_loop"
+    entries = {who: stages / f".{'ab' * 32}.{pid}.tmp" for who, pid in
+               (("ended", ended.pid), ("mine", os.getpid()), ("running", os.getppid()))}
+    complete = stages / ("cd" * 32)
+    for entry in [*entries.values(), complete]:
+        entry.mkdir(parents=True)
+        (entry / "0000.npz").write_bytes(b"part")
+    sweep = tmp_path / "outputs" / "sweeps" / "s"
+    sweep.mkdir(parents=True)
+    leftover = sweep / f".summary.parquet.{ended.pid}.tmp"               # a file of an ended process: removed too
+    leftover.write_bytes(b"")
+    assert store.settle_interrupted(sweep, wait=0) == []
+    assert not entries["ended"].exists() and not entries["mine"].exists()
+    assert entries["running"].is_dir() and (complete / "0000.npz").read_bytes() == b"part"
+    assert not leftover.exists()

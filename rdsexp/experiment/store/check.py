@@ -16,7 +16,7 @@ from ...errors import DamagedRecord, one_line
 from . import provenance
 from .files import TMP_SUFFIX
 from .index import _version, index_key, rebuild_index
-from .layout import INDEX, MULTIRUN, QUARANTINE, SUMMARY
+from .layout import INDEX, MULTIRUN, QUARANTINE, STAGES, SUMMARY
 from .run import read_run, read_runs, run_damage
 from .table import write_sweep_summary
 
@@ -63,8 +63,9 @@ def settle_interrupted(directory: Path, wait: float = 10.0) -> list[Path]:
     """After a Ctrl-C: every run under `directory` (a run or a sweep) whose run.json still says
     "incomplete" gets status "interrupted" once its process has ended (a sweep's workers are waited for
     up to `wait` seconds; a run whose process still runs after that is left as it is), the temporary
-    files (`files.tmp_name`, never a complete record) of this process and of ended ones are removed,
-    and a sweep's summary is rebuilt so that it agrees with its jobs. Returns the runs marked."""
+    files (`files.tmp_name`, never a complete record) of this process and of ended ones are removed, with
+    the stage cache's temporary entries in the same store, and a sweep's summary is rebuilt so that it
+    agrees with its jobs. Returns the runs marked."""
     from .writer import RunWriter
     directory = Path(directory)
     deadline = time.monotonic() + wait
@@ -79,13 +80,26 @@ def settle_interrupted(directory: Path, wait: float = 10.0) -> list[Path]:
         if not pending or time.monotonic() > deadline:
             break
         time.sleep(0.1)
-    for tmp in directory.rglob(f"*{TMP_SUFFIX}"):
+    # the run's or sweep's own files, and the stage cache's entries being written (directories) in the store
+    # it belongs to: a worker stopped mid-write leaves its temporary entry there, outside the sweep
+    root = _store_root(directory)
+    stage_entries = (root / STAGES).glob(f"*/.*{TMP_SUFFIX}") if root is not None else ()
+    for tmp in [*directory.rglob(f"*{TMP_SUFFIX}"), *stage_entries]:
         pid = _tmp_pid(tmp.name)
         if pid == os.getpid() or (pid is not None and not process_alive({"pid": pid, "host": socket.gethostname()})):
-            tmp.unlink(missing_ok=True)
+            if tmp.is_dir():
+                shutil.rmtree(tmp, ignore_errors=True)
+            else:
+                tmp.unlink(missing_ok=True)
     if directory.is_dir() and ((directory / SUMMARY).exists() or (directory / MULTIRUN).exists()):
         write_sweep_summary(directory)
     return marked
+
+
+def _store_root(directory: Path) -> Path | None:
+    """The store a run, a sweep or a sweep's job lies in (the nearest of it and its three parents that holds
+    the stage cache), or None."""
+    return next((d for d in [directory, *list(directory.parents)[:3]] if (d / STAGES).is_dir()), None)
 
 
 def _state(run_dir: Path) -> str:

@@ -341,7 +341,8 @@ class StageCache:
 
 class EntryWriter:
     """Writes one entry's parts into a temporary directory; `commit` renames it into place,
-    `abort` (or a failed write: a warning) drops it."""
+    `abort` (or a failed write: a warning) drops it. The directory is made by the first write, inside the
+    caller's guard, so that a Ctrl-C between making the writer and using it leaves nothing behind."""
 
     def __init__(self, cache: StageCache, stage: str, key: str):
         self.cache, self.stage, self.key = cache, stage, key
@@ -351,11 +352,14 @@ class EntryWriter:
             return
         self.final = stage_entry(cache.dir.parent, stage, key)
         self.tmp = self.final.with_name(f".{key}.{os.getpid()}.tmp")
-        try:
+        self._made = False
+
+    def _make(self) -> None:
+        """The temporary directory, made once (OSError to the caller)."""
+        if not self._made:
             shutil.rmtree(self.tmp, ignore_errors=True)
             self.tmp.mkdir(parents=True)
-        except OSError as err:
-            self._fail(err)
+            self._made = True
 
     def _fail(self, err) -> None:
         log.warning("stage cache: %s/%s not stored (%s)", self.stage, self.key[:12], err)
@@ -365,6 +369,7 @@ class EntryWriter:
         if not self.ok:
             return
         try:
+            self._make()
             arrays: dict = {}
             tree = json.dumps(pack(value, arrays), allow_nan=True).encode()
             buffer = io.BytesIO()
@@ -385,6 +390,7 @@ class EntryWriter:
         meta = {"format": FORMAT, "stage": self.stage, "key": self.key, "code": self.cache.code,
                 "run": self.cache.run, "inputs": self.cache._inputs.get(self.key, {}), "parts": self.parts}
         try:
+            self._make()
             (self.tmp / META).write_text(json.dumps(meta, indent=1) + "\n")
             os.rename(self.tmp, self.final)
         except OSError as err:
