@@ -92,9 +92,14 @@ def main(argv=None) -> int:
         parser.error("--steps must be >= 2, --noise >= 0 and --paths >= 1")
     if not args.csv.is_file():
         parser.error(f"--csv {args.csv}: no such file")
-    table = pd.read_csv(args.csv)
-    if "offline_rate_plant" not in table:
-        parser.error(f"{args.csv}: no offline_rate_plant column (run random_plants.py --override controller=online)")
+    try:
+        table = pd.read_csv(args.csv)
+    except (ValueError, UnicodeDecodeError) as err:              # pandas' ParserError is a ValueError
+        parser.error(f"--csv {args.csv}: not a table ({str(err).splitlines()[0]})")
+    missing = {"plant", "open_loop_rate", "offline_rate_plant", "run_dir"} - set(table.columns)
+    if missing:
+        parser.error(f"{args.csv}: no {', '.join(sorted(missing))} column (a table of random_plants.py "
+                     "--override controller=online)")
     table = table[table["offline_rate_plant"].notna()].set_index("plant")
     drawn = {p.name: p for p in draw_plants(max(int(name[2:]) for name in table.index) + 1, args.seed)}
     rows = []
