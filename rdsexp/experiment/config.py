@@ -21,6 +21,7 @@ from ..numerics.online import MEMORIES, OBSERVERS, STARTS, OnlineSettings
 from ..numerics.simulation import ESTIMATES, Recorded, check_estimate
 from ..numerics.synthesis import METHODS, check_options
 from ..numerics.systems import AffineRandomSystem, MomentModel
+from ..numerics.verdict import window_start
 from .data import RecordedData
 from .data import load as load_data
 
@@ -401,8 +402,12 @@ class ControllerSettings:
     disturbance: np.ndarray | None = None   # Q_d of the online loop's unknown-input estimate (None: enkf.disturbance)
 
     @classmethod
-    def from_config(cls, cfg, model: AffineRandomSystem, K: int) -> ControllerSettings:
-        return cls(*_controller(cfg, model, K))
+    def from_config(cls, cfg, model: AffineRandomSystem, loop: LoopSettings) -> ControllerSettings:
+        # probe_until: auto ends the probe where the verdict's rate window may start (the configured window's
+        # first step, else the first step after the disturbance: `window_start`), so the online loop's empirical
+        # rate measures its decay, not the probe
+        auto = loop.rate_window[0] if loop.rate_window is not None else window_start(loop.disturbance, model.n)
+        return cls(*_controller(cfg, model, loop.horizon, auto))
 
 
 @dataclass(frozen=True)
@@ -565,7 +570,7 @@ def build(cfg) -> Experiment:
     design = DesignSettings.from_config(cfg, model, reported)
     loop = LoopSettings.from_config(cfg, model, plant)
     tracking = TrackingSettings.from_config(cfg)
-    controller = ControllerSettings.from_config(cfg, model, loop.horizon)
+    controller = ControllerSettings.from_config(cfg, model, loop)
     return Experiment(plant=plant, model=model, plant_name=plant_name, model_name=model_name, reported=reported,
                       reference=reference, q0=q0, seed=seed, filter=filter_, identification=identification,
                       design=design, loop=loop, tracking=tracking, controller=controller)
@@ -592,7 +597,7 @@ def build_data_run(cfg, seed: int) -> Experiment:
     design = DesignSettings.from_config(cfg, model, reported)
     loop = LoopSettings.from_config(cfg, model, prior)
     tracking = TrackingSettings.from_config(cfg)
-    controller = ControllerSettings.from_config(cfg, model, loop.horizon)
+    controller = ControllerSettings.from_config(cfg, model, loop)
     if controller.kind == "online":
         raise ConfigError("controller: 'online' is not allowed in a data run (there is no plant to run it on)")
     if design.source == "reported" and reported is None:
@@ -646,13 +651,14 @@ def _flag(cfg, name: str) -> bool:
 CONTROLLERS = ("offline", "online")
 ONLINE_KEYS = {"type", "initial", "warmup", "period", "memory", "window", "forgetting", "method", "options",
                "safeguard", "resamples", "block", "min_blocks", "covariance", "disturbance", "observer", "start",
-               "start_spread", "lag"}
+               "start_spread", "lag", "probe", "probe_until"}
 
 
-def _controller(cfg, model: AffineRandomSystem, K: int) -> tuple[str, OnlineSettings | None, str | np.ndarray,
-                                                                 np.ndarray | None]:
+def _controller(cfg, model: AffineRandomSystem, K: int, probe_auto: int) -> tuple[
+        str, OnlineSettings | None, str | np.ndarray, np.ndarray | None]:
     """controller.type (offline | online; default offline), the online controller's settings, its initial
-    gain and the covariance of its loop's unknown-input estimate (controller.disturbance, None: off)."""
+    gain and the covariance of its loop's unknown-input estimate (controller.disturbance, None: off);
+    probe_auto: the step `controller.probe_until: auto` stands for."""
     node = plain(OmegaConf.select(cfg, "controller")) or {"type": "offline"}
     kind = node.get("type", "offline") if isinstance(node, dict) else node
     if kind not in CONTROLLERS:
@@ -699,10 +705,17 @@ def _controller(cfg, model: AffineRandomSystem, K: int) -> tuple[str, OnlineSett
         raise ConfigError(f"controller.start: {start!r} is not allowed, expected one of {', '.join(STARTS)}")
     start_spread = _number(plain(OmegaConf.select(cfg, "controller.start_spread", default=OnlineSettings.start_spread)),
                            "controller.start_spread", low=0, low_open=True)
+    probe = _number(plain(OmegaConf.select(cfg, "controller.probe", default=0.0)), "controller.probe", low=0)
+    probe_until = plain(OmegaConf.select(cfg, "controller.probe_until", default="auto"))
+    if probe_until == "auto":
+        probe_until = probe_auto
+    elif probe_until is not None and not (isinstance(probe_until, int) and not isinstance(probe_until, bool)
+                                          and probe_until >= 0):
+        raise ConfigError(f"controller.probe_until: {probe_until!r} is not allowed, expected auto, null or a step >= 0")
     with key("controller.options"):
         settings = OnlineSettings(memory=memory, forgetting=forgetting, method=method, options=options,
                                   covariance=covariance, observer=observer, start=start, start_spread=start_spread,
-                                  safeguard=safeguard, **ints).check(model, K)
+                                  safeguard=safeguard, probe=probe, probe_until=probe_until, **ints).check(model, K)
     initial = get(cfg, "controller.initial")
     if isinstance(initial, list):
         with key("controller.initial"):

@@ -30,6 +30,11 @@ A candidate that the model or a draw does not certify below 1 is never adopted, 
 gain in use fails: the model of a growing loop is biased, and such a candidate can be worse on the
 plant than the gain in use.
 
+The probe (`probe` > 0, off by default): u_k gets a known excitation probe * s_k, s_k in {-1, 1}^m white
+(`probe_signs`, the same on every path), until `probe_until`. Under feedback the state decays and y_k
+carries little of xi's spread; the probe keeps the state, and with it the outputs, moving (docs/online.md,
+an eighth round: white signs, not the identification's held M-sequence, which spread the paper's walk).
+
 No identification run. `OnlineController` is what `simulation.simulate(controller=...)` calls
 after filtering; every decision (adopted or not, and why) is kept in `decisions()`.
 The default method, policy iteration, is run batched over paths (stacked eigenproblems, warm-
@@ -74,7 +79,8 @@ class OnlineSettings:
     EnKF before a path's first model: "random_walk" or "static_mean" (xi drawn about a mean the EnKF learns,
     `EnKF.static_mean`); start_spread: with static_mean, the draws about that mean are mu + start_spread w_xi
     (`EnKF.start_spread`); lag: the smoothing lag of the loop's EnKF (`EnKF.lag`); all set where that EnKF is
-    built. The estimates modeled at k are then xi_{k-1-lag} given y up to k.
+    built. The estimates modeled at k are then xi_{k-1-lag} given y up to k. probe: the amplitude of the
+    known excitation added to u_k on every input (0: off), for k < probe_until (None: to the end).
     """
 
     warmup: int = 20
@@ -93,6 +99,8 @@ class OnlineSettings:
     start: str = "random_walk"
     start_spread: float = 1.0
     lag: int = 0
+    probe: float = 0.0
+    probe_until: int | None = None
 
     def check(self, system: AffineRandomSystem, horizon: int | None = None) -> OnlineSettings:
         """One-line ValueError naming the setting; returns self."""
@@ -114,6 +122,12 @@ class OnlineSettings:
         if not (isinstance(self.start_spread, (int, float)) and not isinstance(self.start_spread, bool)
                 and np.isfinite(self.start_spread) and self.start_spread > 0):
             raise ValueError(f"start_spread: {self.start_spread!r} is not allowed, expected a finite number > 0")
+        if not (isinstance(self.probe, (int, float)) and not isinstance(self.probe, bool) and np.isfinite(self.probe)
+                and self.probe >= 0):
+            raise ValueError(f"probe: {self.probe!r} is not allowed, expected a finite number >= 0")
+        until = self.probe_until
+        if not (until is None or isinstance(until, (int, np.integer)) and not isinstance(until, bool) and until >= 0):
+            raise ValueError(f"probe_until: {until!r} is not allowed, expected None or a step >= 0")
         if not isinstance(self.safeguard, bool):
             raise ValueError(f"safeguard: {self.safeguard!r} is not allowed, expected true or false")
         if self.covariance not in COVARIANCES:
@@ -125,6 +139,10 @@ class OnlineSettings:
     def updates(self, horizon: int) -> np.ndarray:
         """The steps k < horizon after whose filtering a re-design happens."""
         return np.arange(self.warmup + self.period, horizon, self.period)
+
+    def probe_signs(self, k: int, m: int) -> np.ndarray:
+        """(m,) signs +-1 of the probe at step k, from a generator seeded by k (the same on every path)."""
+        return np.where(np.random.default_rng([7, k]).random(m) < 0.5, -1.0, 1.0)
 
 
 # ------------------------------------------------------------------ batched moments and rates
@@ -314,6 +332,13 @@ class OnlineController:
         self._updates = set(settings.updates(self.K).tolist())
         # with observer = "model": per path, the moments of its latest model, for the EnKF's prediction
         self._prior = (np.zeros((self.P, system.p)), np.zeros((self.P, system.p, system.p)), np.zeros(self.P, bool))
+
+    def excitation(self, k: int) -> np.ndarray | None:
+        """The probe added to u_k on every path, (m,), or None (`OnlineSettings.probe`)."""
+        s = self.settings
+        if s.probe == 0 or (s.probe_until is not None and k >= s.probe_until):
+            return None
+        return s.probe * s.probe_signs(k, self.system.m)
 
     def observer_prior(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         """What `simulate` passes to the EnKF's prediction (`EnKF._predict(path_prior=...)`): per path the mean

@@ -102,7 +102,8 @@ class GainController(Protocol):
         """After filtering at step k: psi_{k|k} means (P, n+p) (the xi part: `EnKF.xi_estimate`, smoothed with a
         lag), alive (P,) and that xi's filtered covariance (P, p, p) -> None (no change) or (paths (U,) int,
         gains (U, m, n)): the gains those paths use from step k+1 on. Optionally observer_prior() -> None or
-        per-path moments the EnKF's prediction draws xi from (`EnKF._predict(path_prior=...)`)."""
+        per-path moments the EnKF's prediction draws xi from (`EnKF._predict(path_prior=...)`), and
+        excitation(k) -> None or a known input (m,) or (P, m) added to u_k (the EnKF is told it)."""
 
 
 @dataclass(frozen=True)
@@ -355,7 +356,9 @@ def simulate(plant: AffineRandomSystem | None, enkf: EnKF, *, F=None, d, q0, psi
                 x_hat = mean_pred
             # eq. (sf-enkf) + d_k, one product per path: the rounding of a single (P, n) @ (n, m)
             # product depends on P
-            u = source.input(k, (F @ x_hat[:, :model.n, None])[..., 0] + d[k])
+            u = (F @ x_hat[:, :model.n, None])[..., 0] + d[k]
+            probe = controller.excitation(k) if controller is not None and hasattr(controller, "excitation") else None
+            u = source.input(k, u if probe is None else u + probe)      # a controller's known excitation
             u_filter = u if filter_sees_d else u - d[k]
             if estimate == "predicted":
                 y = source.output(k, u)

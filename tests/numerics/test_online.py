@@ -420,6 +420,9 @@ def hydra_context():
     ("controller=online controller.start=flat", "controller.start: 'flat' is not allowed, expected one of"),
     ("controller=online controller.start_spread=0", "controller.start_spread: 0 is not allowed, expected a finite "
                                                     "number > 0"),
+    ("controller=online controller.probe=-1", "controller.probe: -1 is not allowed, expected a finite number >= 0"),
+    ("controller=online controller.probe_until=soon", "controller.probe_until: 'soon' is not allowed, expected "
+                                                      "auto, null or a step >= 0"),
     ("controller=online +controller.options.max_iter=-1", "controller.options: max_iter: -1 is not allowed"),
     ("controller.type=hybrid", "controller.type: 'hybrid' is not allowed"),
     ("+controller.period=5", "controller.period: not read by controller=offline"),
@@ -635,3 +638,29 @@ def test_online_bound_models_are_unbiased_and_exact_draws_reach_the_optimum():
     exact = online_bound.median_rate(system, dist, np.random.default_rng(0), 20, 4000, 0.0)
     assert exact == pytest.approx(optimum, abs=1e-3)
     assert online_bound.median_rate(system, dist, np.random.default_rng(0), 20, 10, 1.0) > optimum + 1e-3
+
+
+def test_probe_adds_its_signs_to_u_until_its_step_and_auto_ends_where_the_rate_window_may_start(hydra_context):
+    """controller.probe: u_k = F_k x_{k|k-1} + d_k + probe * s_k (s_k in {-1, 1}^m, `probe_signs`, white and the same
+    on every path) for k < probe_until, nothing after; probe_until: auto is the configured rate window's first step,
+    else the first step after the disturbance (`window_start`), null never stops."""
+    d = paper.disturbance(30)
+    for until in (None, 12):
+        ctrl = OnlineController(paper.model(), OnlineSettings(warmup=0, period=31, probe=2.0, probe_until=until),
+                                paper.F_proposed, paths=3, horizon=30)
+        tr = closed_loop(paper.F_proposed, paths=3, controller=ctrl)
+        probe = tr.u - (paper.F_proposed @ tr.x(tr.psi_pred_mean)[..., None])[..., 0] - d[:, None]   # (K+1, P, m)
+        signs = np.array([ctrl.settings.probe_signs(k, 1) for k in range(31)])                       # (K+1, m)
+        on = (np.arange(31) < (31 if until is None else until))[:, None, None]
+        np.testing.assert_allclose(probe, np.broadcast_to(2.0 * on * signs[:, None], probe.shape), atol=1e-9)
+    assert set(signs.ravel()) == {-1.0, 1.0} and abs(signs.mean()) < 0.5
+    assert np.mean(signs[1:] == signs[:-1]) < 0.8                        # white: not a held level
+    # the config: auto, a step, null; the probe is off by default and a run without it is the run before
+    online = ["controller=online", "controller.probe=10"]
+    assert build(compose("config", overrides=online)).controller.online.probe_until == 60     # paper: [0.6, 0.8]
+    auto = build(compose("config", overrides=online + ["closed_loop.rate_window=auto"])).controller.online
+    assert auto.probe_until == 50                                  # d_k = 10 for k < 50
+    for value, expected in (("30", 30), ("null", None)):
+        settings = build(compose("config", overrides=online + [f"controller.probe_until={value}"])).controller.online
+        assert settings.probe_until == expected and settings.probe == 10
+    assert build(compose("config", overrides=["controller=online"])).controller.online.probe == 0
