@@ -392,6 +392,8 @@ def online_loop(exp: Experiment, seed, keep: bool, sim: dict, sink, sample: list
             # the start applies before a path's first model, drawn from with observer = model only
             "start": exp.controller.online.start if exp.controller.online.observer == "model" else "random_walk",
             "lag": exp.controller.online.lag, "output_delay": output_delay(exp.model).tolist()}
+    if exp.controller.online.probe > 0:              # the known excitation on u: amplitude, last step (None: never)
+        info["probe"] = [exp.controller.online.probe, exp.controller.online.probe_until]
     F0 = exp.controller.initial if not isinstance(exp.controller.initial, str) else np.zeros((m, n))
     if isinstance(exp.controller.initial, str) and exp.controller.initial == "nominal":
         res = nominal_gain(exp.plant, exp.identification.xi_guess)

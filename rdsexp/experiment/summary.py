@@ -166,6 +166,13 @@ def summary_text(info: dict, run_dir: Path) -> str:
                      f"(10-90% {fmt(o['final_rate_plant_q10'])}-{fmt(o['final_rate_plant_q90'])}), "
                      f"{100 * o['final_stable_fraction']:.0f}% stable, {o['adoptions_per_path']:.1f} adoptions per "
                      f"path; offline gain {fmt(o['offline_rate_plant'])}, optimum {fmt(o['optimal_rate_plant'])}")
+        probe = (s.get("online_initial") or {}).get("probe")
+        if probe:                                         # controller.probe: say whether the window holds it
+            amplitude, until = probe
+            inside = until is None or (k_from is not None and until > k_from)
+            lines.append(f"  online probe: +-{amplitude:g} on u until " + ("the end" if until is None else f"k={until}")
+                         + ("; it reaches into the rate window, so the online rate measures the probed loop, not "
+                            "its decay" if inside else ""))
     reused = stages_reused_text(info)
     if reused:
         lines.append(f"  {reused}")

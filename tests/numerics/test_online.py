@@ -664,3 +664,19 @@ def test_probe_adds_its_signs_to_u_until_its_step_and_auto_ends_where_the_rate_w
         settings = build(compose("config", overrides=online + [f"controller.probe_until={value}"])).controller.online
         assert settings.probe_until == expected and settings.probe == 10
     assert build(compose("config", overrides=["controller=online"])).controller.online.probe == 0
+
+
+def test_the_summary_says_whether_the_probe_reaches_into_the_rate_window(tmp_path):
+    """With controller.probe the run's summary names it, and says so where it runs into the rate window (the
+    online loop's empirical rate then measures the probed loop); without the probe it says nothing."""
+    small = [*SMALL, "controller=online", "controller.warmup=5", "controller.period=5", "controller.probe=3",
+             "tracking=off"]
+    for until, inside in (("null", True), ("15", True), ("10", False), ("off", False)):
+        (tmp_path / until).mkdir()
+        if until == "off":
+            assert "online probe" not in rdsexp(*small[:-2], "tracking=off", cwd=tmp_path / until).stdout
+            continue
+        out = rdsexp(*small, f"controller.probe_until={until}", cwd=tmp_path / until).stdout
+        line = next(x for x in out.splitlines() if x.strip().startswith("online probe:"))
+        assert line.strip().startswith(f"online probe: +-3 on u until {'the end' if until == 'null' else 'k=' + until}")
+        assert ("measures the probed loop" in line) == inside, line
