@@ -141,7 +141,8 @@ class OnlineSettings:
         return np.arange(self.warmup + self.period, horizon, self.period)
 
     def probe_signs(self, k: int, m: int) -> np.ndarray:
-        """(m,) signs +-1 of the probe at step k, from a generator seeded by k (the same on every path)."""
+        """(m,) signs +-1 of the probe at step k, from a generator seeded by [7, k]: the same on every path and
+        in every chunk, so the controller stays deterministic."""
         return np.where(np.random.default_rng([7, k]).random(m) < 0.5, -1.0, 1.0)
 
 

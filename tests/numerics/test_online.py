@@ -655,7 +655,7 @@ def test_probe_adds_its_signs_to_u_until_its_step_and_auto_ends_where_the_rate_w
         np.testing.assert_allclose(probe, np.broadcast_to(2.0 * on * signs[:, None], probe.shape), atol=1e-9)
     assert set(signs.ravel()) == {-1.0, 1.0} and abs(signs.mean()) < 0.5
     assert np.mean(signs[1:] == signs[:-1]) < 0.8                        # white: not a held level
-    # the config: auto, a step, null; the probe is off by default and a run without it is the run before
+    # the config: auto, a step, null; the probe is off by default
     online = ["controller=online", "controller.probe=10"]
     assert build(compose("config", overrides=online)).controller.online.probe_until == 60     # paper: [0.6, 0.8]
     auto = build(compose("config", overrides=online + ["closed_loop.rate_window=auto"])).controller.online
@@ -669,14 +669,12 @@ def test_probe_adds_its_signs_to_u_until_its_step_and_auto_ends_where_the_rate_w
 def test_the_summary_says_whether_the_probe_reaches_into_the_rate_window(tmp_path):
     """With controller.probe the run's summary names it, and says so where it runs into the rate window (the
     online loop's empirical rate then measures the probed loop); without the probe it says nothing."""
-    small = [*SMALL, "controller=online", "controller.warmup=5", "controller.period=5", "controller.probe=3",
-             "tracking=off"]
-    for until, inside in (("null", True), ("15", True), ("10", False), ("off", False)):
+    small = [*SMALL, "controller=online", "controller.warmup=5", "controller.period=5", "tracking=off"]
+    for until, inside in (("null", True), ("15", True), ("10", False)):
         (tmp_path / until).mkdir()
-        if until == "off":
-            assert "online probe" not in rdsexp(*small[:-2], "tracking=off", cwd=tmp_path / until).stdout
-            continue
-        out = rdsexp(*small, f"controller.probe_until={until}", cwd=tmp_path / until).stdout
+        out = rdsexp(*small, "controller.probe=3", f"controller.probe_until={until}", cwd=tmp_path / until).stdout
         line = next(x for x in out.splitlines() if x.strip().startswith("online probe:"))
         assert line.strip().startswith(f"online probe: +-3 on u until {'the end' if until == 'null' else 'k=' + until}")
         assert ("measures the probed loop" in line) == inside, line
+    (tmp_path / "off").mkdir()
+    assert "online probe" not in rdsexp(*small, cwd=tmp_path / "off").stdout
