@@ -403,11 +403,7 @@ class ControllerSettings:
 
     @classmethod
     def from_config(cls, cfg, model: AffineRandomSystem, loop: LoopSettings) -> ControllerSettings:
-        # probe_until: auto ends the probe where the verdict's rate window may start (the configured window's
-        # first step, else the first step after the disturbance: `window_start`), so the online loop's empirical
-        # rate measures its decay, not the probe
-        auto = loop.rate_window[0] if loop.rate_window is not None else window_start(loop.disturbance, model.n)
-        return cls(*_controller(cfg, model, loop.horizon, auto))
+        return cls(*_controller(cfg, model, loop))
 
 
 @dataclass(frozen=True)
@@ -654,11 +650,11 @@ ONLINE_KEYS = {"type", "initial", "warmup", "period", "memory", "window", "forge
                "start_spread", "lag", "probe", "probe_until"}
 
 
-def _controller(cfg, model: AffineRandomSystem, K: int, probe_auto: int) -> tuple[
+def _controller(cfg, model: AffineRandomSystem, loop: LoopSettings) -> tuple[
         str, OnlineSettings | None, str | np.ndarray, np.ndarray | None]:
     """controller.type (offline | online; default offline), the online controller's settings, its initial
-    gain and the covariance of its loop's unknown-input estimate (controller.disturbance, None: off);
-    probe_auto: the step `controller.probe_until: auto` stands for."""
+    gain and the covariance of its loop's unknown-input estimate (controller.disturbance, None: off)."""
+    K = loop.horizon
     node = plain(OmegaConf.select(cfg, "controller")) or {"type": "offline"}
     kind = node.get("type", "offline") if isinstance(node, dict) else node
     if kind not in CONTROLLERS:
@@ -708,7 +704,9 @@ def _controller(cfg, model: AffineRandomSystem, K: int, probe_auto: int) -> tupl
     probe = _number(plain(OmegaConf.select(cfg, "controller.probe", default=0.0)), "controller.probe", low=0)
     probe_until = plain(OmegaConf.select(cfg, "controller.probe_until", default="auto"))
     if probe_until == "auto":
-        probe_until = probe_auto
+        # where the verdict's rate window may start (the configured window's first step, else the first step
+        # after the disturbance: `window_start`), so the online loop's empirical rate measures its decay
+        probe_until = loop.rate_window[0] if loop.rate_window is not None else window_start(loop.disturbance, model.n)
     elif probe_until is not None and not (isinstance(probe_until, int) and not isinstance(probe_until, bool)
                                           and probe_until >= 0):
         raise ConfigError(f"controller.probe_until: {probe_until!r} is not allowed, expected auto, null or a step >= 0")
