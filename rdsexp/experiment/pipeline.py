@@ -25,7 +25,7 @@ from ..errors import ConfigError, StageError, WriteError, one_line
 from ..numerics import observer_loop
 from ..numerics.analysis import empirical_rate_sq, exact_costs, ms_rate, rms_band, second_moments
 from ..numerics.distributions import ensemble_crps, expected_crps, interval_hits
-from ..numerics.enkf import output_delay, sqrtm_psd, truth_map
+from ..numerics.enkf import output_delay, sqrtm_psd, truth_map, xi_ends
 from ..numerics.modeling import model_distribution, moment_draws, nominal_gain, path_moment_draws
 from ..numerics.online import OnlineController, moment_factors, rates
 from ..numerics.simulation import Trajectories, bytes_per_path, path_generators, simulate
@@ -414,8 +414,11 @@ def online_loop(exp: Experiment, seed, keep: bool, sim: dict, sink, sample: list
         # controller.disturbance: the online loop's EnKF estimates an unknown input disturbance, which it
         # would otherwise read as a wrong xi, the data the controller models xi from
         enkf = dataclasses.replace(enkf, disturbance=exp.controller.disturbance)
+    # where the plant file's family fixes a component's law by its mean (a Bernoulli dropout), the static-mean
+    # start draws that law, not a Gaussian about mu (`EnKF.xi_ends`)
+    ends = xi_ends(exp.model, exp.plant) if enkf.xi_bounds is not None else None
     enkf = dataclasses.replace(enkf, lag=exp.controller.online.lag, static_mean=info["start"] == "static_mean",
-                               start_spread=exp.controller.online.start_spread)
+                               start_spread=exp.controller.online.start_spread, xi_ends=ends)
     with bar, console_to_tqdm():
         for first, tr, controller in run_chunks(exp, settings, keep_members=keep, workers=exp.loop.workers,
                                                 progress=bar.update, controller=make, enkf=enkf):

@@ -12,7 +12,8 @@ mean-square rates, synthesis) uses the family's exact mean and covariance as a `
   (any of these, nested `independent` included), e.g. a bernoulli dropout beside a uniform gain.
 
 Every family has `p`, `mean`, `cov`, `moments` (a MomentModel), `sample(rng, size)` -> size + (p,)
-and `support` -> (low (p,), high (p,)), the smallest box containing the support (+-inf if unbounded).
+and `support` -> (low (p,), high (p,)), the smallest box containing the support (+-inf if unbounded);
+`two_point` says which components take only that box's two ends.
 `expected_crps` scores a modeled Gaussian against draws of the true distribution (a proper score).
 """
 from __future__ import annotations
@@ -207,6 +208,19 @@ def _independent(specs) -> Independent:
         except ValueError as err:
             raise ValueError(f"components[{i}]: {err}") from None
     return Independent(parsed)          # an empty list is rejected there
+
+
+def two_point(dist) -> np.ndarray:
+    """(p,) bool: the components whose law puts all its mass on the two ends of `support` (a Bernoulli; a
+    discrete component of at most two values). Given its mean mu such a law is fixed:
+    P(xi_j = high_j) = (mu_j - low_j) / (high_j - low_j)."""
+    if isinstance(dist, Bernoulli):
+        return np.ones(dist.p, dtype=bool)
+    if isinstance(dist, Discrete):
+        return np.array([np.unique(column).size <= 2 for column in dist.values.T])
+    if isinstance(dist, Independent):
+        return np.concatenate([two_point(c) for c in dist.components])
+    return np.zeros(dist.p, dtype=bool)
 
 
 def expected_crps(mean, std, draws) -> np.ndarray:

@@ -97,6 +97,11 @@ narrow to learn from (docs/online.md). mu is projected onto xi_bounds with xi (a
 The draws stand for xi's own spread, which nothing has measured yet, not for a walk's step: `start_spread` c
 makes them mu + c w_xi. Draws narrower than the plant's xi leave the ensemble's x spread without the
 multiplicative uncertainty it must carry, so the filter trusts a wrong x and can diverge (docs/online.md).
+Where the plant file's family fixes a component's law by its mean (`xi_ends`: a Bernoulli dropout, a
+discrete component of two values), its spread is known once mu is: the draw is that two-point law,
+xi = high with probability (mu - low) / (high - low), else low, from the same w (xi = high where
+Phi(w / sd) is below it), in place of mu + c w (a dropout's variance mu (1 - mu) is 0.19 at mu = 0.75,
+where the Gaussian draws' is 0.08).
 
 Ensembles returned by `predict` and `update` are stored component-major: they are (..., M, n+p)
 views of (n+p, ..., M) arrays, so each component of all paths and members is one contiguous block
@@ -110,7 +115,9 @@ from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
+from scipy.special import ndtr
 
+from .distributions import two_point
 from .systems import AffineRandomSystem, MomentModel, _finite_array, affine_apply
 
 # an innovation covariance V with condition number above this is singular to working precision
@@ -182,7 +189,9 @@ class EnKF:
     lag: steps each xi stays in the ensemble after its own, updated by later outputs (the fixed-lag
     smoother; 0: none); static_mean: paths without a per-path prior draw xi about a static mean in psi (the
     online loop's start; module docstring) rather than walk; start_spread: those draws are mu + start_spread w,
-    w the xi part of the process noise (covariance start_spread^2 times Q's xi block).
+    w the xi part of the process noise (covariance start_spread^2 times Q's xi block); xi_ends: None or (p,)
+    bool, the components whose law takes only the two ends of xi_bounds (`xi_ends(model, plant)`), which that
+    start draws from their two-point law with mean mu instead.
     """
 
     model: AffineRandomSystem
@@ -197,6 +206,7 @@ class EnKF:
     lag: int = 0
     static_mean: bool = False
     start_spread: float = 1.0
+    xi_ends: np.ndarray | None = None
 
     def __post_init__(self):
         if self.xi_prior is not None:
@@ -227,6 +237,7 @@ class EnKF:
             raise ValueError(f"start_spread: {self.start_spread!r} is not allowed, expected a finite number > 0")
         # components on the walk in the static-mean start: those the next output does not see
         object.__setattr__(self, "_walked", output_delay(self.model) > 0 if self.static_mean else None)
+        object.__setattr__(self, "_ends", self._check_ends())
         lags = self.width - Q_full.shape[0]                            # mu and the past draws: no noise
         Q_full = np.block([[Q_full, np.zeros((len(Q_full), lags))], [np.zeros((lags, len(Q_full) + lags))]])
         object.__setattr__(self, "_Q_sqrt", sqrtm_psd(Q_full))
@@ -382,6 +393,30 @@ class EnKF:
             psi_next += mean
         return out
 
+    def _check_ends(self) -> tuple[np.ndarray, ...] | None:
+        """`xi_ends` validated (one-line ValueError), as the static-mean start uses it: None where it draws no
+        component from its two-point law, else (p,) each of: which it does (those the next output sees, whose
+        step sd is not 0), their two ends and sd."""
+        if self.xi_ends is None:
+            return None
+        ends = np.asarray(self.xi_ends)
+        if ends.shape != (self.model.p,) or ends.dtype != bool:
+            raise ValueError(f"xi_ends: {self.xi_ends!r} is not allowed, expected p = {self.model.p} booleans")
+        bounded = np.zeros(self.model.p, bool) if self.xi_bounds is None else \
+            np.isfinite(self.xi_bounds[0]) & np.isfinite(self.xi_bounds[1])
+        if np.any(ends & ~bounded):
+            raise ValueError(f"xi_ends: component {int(np.flatnonzero(ends & ~bounded)[0])} has no finite xi_bounds, "
+                             f"whose two ends its law would take")
+        if not (self.static_mean and ends.any()):
+            return None
+        sd = np.sqrt(np.diag(self.Q)[self.model.n:self.dim])
+        ends = ends & ~self._walked & (sd > 0) & (self.xi_bounds[1] > self.xi_bounds[0])   # (a point: the box keeps it)
+        if not ends.any():
+            return None
+        low, high = self.xi_bounds
+        # elsewhere any finite numbers: the Gaussian draw is kept there
+        return ends, np.where(ends, low, 0.0), np.where(ends, high, 1.0), np.where(ends, sd, 1.0)
+
     def _start(self, psi: np.ndarray, psi_next: np.ndarray, rest) -> np.ndarray:
         """The predicted xi of paths `rest` (a slice, or (P,) bool) that have no model of xi yet, added into
         psi_next's xi rows (p, ..., M) (components), which hold w: the random walk xi_{k|k} + w, or with the
@@ -392,11 +427,19 @@ class EnKF:
         if not self.static_mean:
             psi_next[n:dim][:, rest] += components(xi)[:, rest]
             return xi
-        walked = self._walked.reshape((-1,) + (1,) * (psi_next.ndim - 1))
-        draws = psi_next[n:dim][:, rest]                                              # w
+        shape = (-1,) + (1,) * (psi_next.ndim - 1)
+        walked = self._walked.reshape(shape)
+        w = draws = psi_next[n:dim][:, rest]
         if self.start_spread != 1:                                  # skipped at 1 (bit-identical): the draws'
             draws = draws * np.where(walked, 1.0, self.start_spread)               # spread, not the walk's step
-        draws = draws + components(np.where(self._walked, xi, psi[..., self.mu_slice]))[:, rest]
+        about = components(np.where(self._walked, xi, psi[..., self.mu_slice]))[:, rest]
+        draws = draws + about
+        if self._ends is not None:
+            # a component whose law its mean fixes (`xi_ends`) is drawn from that two-point law about mu, from the
+            # same w through its normal CDF (no other random numbers): xi = high if Phi(w / sd) < P(high)
+            ends, low, high, sd = (a.reshape(shape) for a in self._ends)
+            two = np.where(ndtr(w / sd) < (about - low) / (high - low), high, low)
+            draws = np.where(ends, two, draws)
         if self.xi_bounds is not None:                  # draws about mu, like those of a model, stay in the box
             draws = np.where(walked, draws, self._clip_xi(draws.copy()))
         psi_next[n:dim][:, rest] = draws
@@ -678,19 +721,42 @@ def xi_support(model: AffineRandomSystem, plant: AffineRandomSystem) -> tuple[np
     A component xi_i = t_i + T_ij s_j of a single plant parameter lies in t_i + T_ij [low_j, high_j];
     a component of several parameters, or of none (a constant the model does not know is one, as
     the paper's xi3 = 0.6), is left free (+-inf): only what the plant file states bounds the filter."""
+    truth = _one_parameter(model, plant)
+    if truth is None:
+        return None
+    t, T, single, j = truth
+    low_s, high_s = plant.xi_dist.support
+    low, high = np.full(model.p, -np.inf), np.full(model.p, np.inf)
+    for i in np.flatnonzero(single):
+        ends = t[i] + T[i, j[i]] * np.array([low_s[j[i]], high_s[j[i]]])
+        with np.errstate(invalid="ignore"):
+            low[i], high[i] = np.nanmin(ends), np.nanmax(ends)
+    return low, high
+
+
+def xi_ends(model: AffineRandomSystem, plant: AffineRandomSystem) -> np.ndarray | None:
+    """(p,) bool: the model's xi components whose law takes only the two ends of their `xi_support` box (one
+    plant parameter each, of a Bernoulli or two-valued family: `distributions.two_point`), for EnKF.xi_ends;
+    None where `xi_support` is None."""
+    truth = _one_parameter(model, plant)
+    if truth is None:
+        return None
+    _, _, single, j = truth
+    ends = np.zeros(model.p, dtype=bool)
+    ends[single] = two_point(plant.xi_dist)[j[single]]
+    return ends
+
+
+def _one_parameter(model: AffineRandomSystem, plant: AffineRandomSystem):
+    """(t (p,), T (p, p_s), single (p,) bool, j (p,) int) of the map xi = T s + t (`truth_map`): the model's
+    components that are one plant parameter each, s_j; None without a family or a map."""
     truth = truth_map(model, plant)
     if truth is None or plant.xi_dist is None:
         return None
     T, t = truth
-    low_s, high_s = plant.xi_dist.support
-    low, high = np.full(model.p, -np.inf), np.full(model.p, np.inf)
     T = np.where(np.abs(T) > 1e-12 * max(np.abs(T).max(initial=0.0), 1e-300), T, 0.0)    # least-squares dust
-    for i in np.flatnonzero(np.count_nonzero(T, axis=1) == 1):
-        j = int(np.flatnonzero(T[i])[0])
-        ends = t[i] + T[i, j] * np.array([low_s[j], high_s[j]])
-        with np.errstate(invalid="ignore"):
-            low[i], high[i] = np.nanmin(ends), np.nanmax(ends)
-    return low, high
+    j = np.argmax(T != 0, axis=1) if T.size else np.zeros(len(T), dtype=int)
+    return t, T, np.count_nonzero(T, axis=1) == 1, j
 
 
 def output_delay(model: AffineRandomSystem) -> np.ndarray:

@@ -148,6 +148,31 @@ def test_xi_support_follows_the_plant_file_through_the_truth_map():
     assert np.all(np.isinf(low)) and np.all(np.isinf(high))
 
 
+def test_xi_ends_marks_the_components_whose_law_takes_only_their_two_ends():
+    """`distributions.two_point` per family (a Bernoulli, a discrete column of two values; not a uniform, a normal
+    or a discrete column of three), and `xi_ends` through the truth map: xi_0 = 2 s_0 - 1 keeps it, a component
+    of two parameters does not."""
+    from rdsexp.numerics import distributions as D
+    from rdsexp.numerics.enkf import xi_ends
+    assert D.two_point(D.Bernoulli([0.9, 0.5])).tolist() == [True, True]
+    assert D.two_point(D.Uniform([0.0], [1.0])).tolist() == [False]
+    assert D.two_point(rx.MomentModel(mean=[0.0], cov=[[1.0]])).tolist() == [False]
+    two_three = D.Discrete(values=[[0.0, 1.0], [2.0, 2.0], [0.0, 3.0]], probs=[0.2, 0.3, 0.5])
+    assert D.two_point(two_three).tolist() == [True, False]
+    assert D.two_point(D.Independent([D.Uniform([0.0], [1.0]), two_three])).tolist() == [False, True, False]
+    A = [np.eye(2) * 0.5, np.diag([1.0, 0.0]), np.diag([0.0, 1.0])]
+    B = [np.array([[0.0], [1.0]]), np.zeros((2, 1)), np.zeros((2, 1))]
+    plant = rx.AffineRandomSystem(A=A, B=B, C=[np.eye(2)], D=None,
+                                  xi_dist=D.Independent([D.Bernoulli([0.9]), D.Uniform([-0.2], [0.3])]))
+    assert xi_ends(plant, plant).tolist() == [True, False]
+    M1 = (A[1] - A[2]) / 2                     # xi_0 = 2 s_0 - 1, xi_1 = s_0 + s_1 (as above)
+    model = rx.AffineRandomSystem(A=[A[0] + M1, M1, A[2]], B=B, C=[np.eye(2)], D=None)
+    assert xi_ends(model, plant).tolist() == [True, False]
+    swapped = rx.AffineRandomSystem(A=[A[0], A[2], A[1]], B=B, C=[np.eye(2)], D=None)     # xi_0 = s_1, xi_1 = s_0
+    assert xi_ends(swapped, plant).tolist() == [False, True]
+    assert not xi_ends(rx.paper.model(), rx.paper.plant()).any()
+
+
 def test_xi_prior_draws_the_predicted_xi_from_the_model():
     """With xi_prior the predicted xi of every member is mean + S^(1/2) e (the xi part of e_w) and its x
     part moves with that drawn xi (the coefficient the next output then estimates): the random walk's
