@@ -415,7 +415,7 @@ def online_loop(exp: Experiment, seed, keep: bool, sim: dict, sink, sample: list
         # would otherwise read as a wrong xi, the data the controller models xi from
         enkf = dataclasses.replace(enkf, disturbance=exp.controller.disturbance)
     # where the plant file's family fixes a component's law by its mean (a Bernoulli dropout), the static-mean
-    # start draws that law, not a Gaussian about mu (`EnKF.xi_ends`)
+    # start and each path's model draw that law, not a Gaussian (`EnKF.xi_ends`)
     ends = xi_ends(exp.model, exp.plant) if enkf.xi_bounds is not None else None
     enkf = dataclasses.replace(enkf, lag=exp.controller.online.lag, static_mean=info["start"] == "static_mean",
                                start_spread=exp.controller.online.start_spread, xi_ends=ends)

@@ -101,7 +101,9 @@ Where the plant file's family fixes a component's law by its mean (`xi_ends`: a 
 discrete component of two values), its spread is known once mu is: the draw is that two-point law,
 xi = high with probability (mu - low) / (high - low), else low, from the same w (xi = high where
 Phi(w / sd) is below it), in place of mu + c w (a dropout's variance mu (1 - mu) is 0.19 at mu = 0.75,
-where the Gaussian draws' is 0.08).
+where the Gaussian draws' is 0.08). A path's own model (`_predict`'s path_prior) draws such a component
+the same way at its modeled mean, not as a Gaussian of its modeled variance, which the estimates
+understate (docs/online.md, a ninth round).
 
 Ensembles returned by `predict` and `update` are stored component-major: they are (..., M, n+p)
 views of (n+p, ..., M) arrays, so each component of all paths and members is one contiguous block
@@ -191,7 +193,7 @@ class EnKF:
     online loop's start; module docstring) rather than walk; start_spread: those draws are mu + start_spread w,
     w the xi part of the process noise (covariance start_spread^2 times Q's xi block); xi_ends: None or (p,)
     bool, the components whose law takes only the two ends of xi_bounds (`xi_ends(model, plant)`), which that
-    start draws from their two-point law with mean mu instead.
+    start, and a path's own model, draw from their two-point law at the mean instead.
     """
 
     model: AffineRandomSystem
@@ -360,6 +362,12 @@ class EnKF:
             mean, sqrt, active = path_prior
             e = components(e_w)[n:dim][:, active]                                      # (p, A, M)
             draws = np.einsum("jil,ljm->ijm", sqrt[active], e) + mean[active].T[..., None]
+            if self._ends is not None:
+                # a component whose law its mean fixes (`xi_ends`): that two-point law at the modeled mean, from
+                # the same e (xi = high if Phi(e) < P(high)), not a Gaussian of the modeled variance
+                ends, low, high = (a.reshape(-1, 1, 1) for a in self._ends[:3])
+                two = np.where(ndtr(e) < (mean[active].T[..., None] - low) / (high - low), high, low)
+                draws = np.where(ends, two, draws)
             if self.xi_bounds is not None:
                 self._clip_xi(draws)
             psi_next[n:dim][:, active] = draws
@@ -394,9 +402,9 @@ class EnKF:
         return out
 
     def _check_ends(self) -> tuple[np.ndarray, ...] | None:
-        """`xi_ends` validated (one-line ValueError), as the static-mean start uses it: None where it draws no
-        component from its two-point law, else (p,) each of: which it does (those the next output sees, whose
-        step sd is not 0), their two ends and sd."""
+        """`xi_ends` validated (one-line ValueError): None where no component is drawn from its two-point law, else
+        (p,) each: which are (those with two distinct ends), their ends low and high, and which of them the
+        static-mean start draws so (those the next output sees, whose walk step w is not 0)."""
         if self.xi_ends is None:
             return None
         ends = np.asarray(self.xi_ends)
@@ -407,15 +415,14 @@ class EnKF:
         if np.any(ends & ~bounded):
             raise ValueError(f"xi_ends: component {int(np.flatnonzero(ends & ~bounded)[0])} has no finite xi_bounds, "
                              f"whose two ends its law would take")
-        if not (self.static_mean and ends.any()):
-            return None
-        sd = np.sqrt(np.diag(self.Q)[self.model.n:self.dim])
-        ends = ends & ~self._walked & (sd > 0) & (self.xi_bounds[1] > self.xi_bounds[0])   # (a point: the box keeps it)
         if not ends.any():
             return None
         low, high = self.xi_bounds
+        ends = ends & (high > low)                                        # (a point: the box keeps it)
+        sd = np.sqrt(np.diag(self.Q)[self.model.n:self.dim])
+        start = ends & (sd > 0) & (~self._walked if self.static_mean else False)
         # elsewhere any finite numbers: the Gaussian draw is kept there
-        return ends, np.where(ends, low, 0.0), np.where(ends, high, 1.0), np.where(ends, sd, 1.0)
+        return ends, np.where(ends, low, 0.0), np.where(ends, high, 1.0), start, np.where(start, sd, 1.0)
 
     def _start(self, psi: np.ndarray, psi_next: np.ndarray, rest) -> np.ndarray:
         """The predicted xi of paths `rest` (a slice, or (P,) bool) that have no model of xi yet, added into
@@ -434,12 +441,12 @@ class EnKF:
             draws = draws * np.where(walked, 1.0, self.start_spread)               # spread, not the walk's step
         about = components(np.where(self._walked, xi, psi[..., self.mu_slice]))[:, rest]
         draws = draws + about
-        if self._ends is not None:
+        if self._ends is not None and self._ends[3].any():
             # a component whose law its mean fixes (`xi_ends`) is drawn from that two-point law about mu, from the
             # same w through its normal CDF (no other random numbers): xi = high if Phi(w / sd) < P(high)
-            ends, low, high, sd = (a.reshape(shape) for a in self._ends)
+            _, low, high, start, sd = (a.reshape(shape) for a in self._ends)
             two = np.where(ndtr(w / sd) < (about - low) / (high - low), high, low)
-            draws = np.where(ends, two, draws)
+            draws = np.where(start, two, draws)
         if self.xi_bounds is not None:                  # draws about mu, like those of a model, stay in the box
             draws = np.where(walked, draws, self._clip_xi(draws.copy()))
         psi_next[n:dim][:, rest] = draws

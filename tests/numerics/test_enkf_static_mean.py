@@ -143,8 +143,9 @@ def test_static_mean_learns_a_mean_the_guess_is_off_from():
 def test_a_component_whose_mean_fixes_its_law_is_drawn_from_that_two_point_law():
     """xi_ends: the start draws xi_1 (a 0/1 component the next output sees) as 1 where Phi(w_1 / sd_1) < mu_1,
     else 0, from the same w as the Gaussian draw: the two-point law with mean mu_1. xi_2 (on the walk), mu and
-    the next x (moved by the drawn xi_1) are the same formula as without it; no component marked: the same
-    bytes. Over 8000 members about mu_1 = 0.3 the share of ones is 0.3 within 4 binomial standard errors."""
+    the next x (moved by the drawn xi_1) are the same formula as without it; a path's own model draws xi_1 the
+    same way at its modeled mean; no component marked: the same bytes. Over 8000 members about mu_1 = 0.3 the
+    share of ones is 0.3 within 4 binomial standard errors."""
     from scipy.special import ndtr
     rng = np.random.default_rng(3)
     model, n = seen_and_unseen(), 2
@@ -164,6 +165,14 @@ def test_a_component_whose_mean_fixes_its_law_is_drawn_from_that_two_point_law()
     A, B, _, _ = model.at(np.stack([drawn, psi[..., n + 1]], -1).reshape(-1, 2))
     x = (A @ psi[..., :n].reshape(-1, n, 1) + B @ np.repeat(u, M, axis=0)[..., None])[..., 0].reshape(P, M, n)
     np.testing.assert_allclose(b[..., :n], x + 0.1 * e_w[..., :n], rtol=1e-12, atol=1e-12)
+    # paths with a model of their own (the online observer): xi_1 from the two-point law at the modeled mean,
+    # xi_2 from the modeled Gaussian as before; the paths without one as above
+    mean, sqrt = np.tile([0.8, 0.1], (P, 1)), np.tile(0.1 * np.eye(2), (P, 1, 1))
+    prior = (mean, sqrt, np.array([True, True, False, False]))
+    a2, b2 = (f._predict(psi, u, e_w, out=np.empty_like(psi), path_prior=prior) for f in (plain, ends))
+    np.testing.assert_array_equal(b2[:2, :, n], np.where(ndtr(e_w[:2, :, n]) < 0.8, 1.0, 0.0))
+    np.testing.assert_array_equal(b2[:2, :, n + 1:], a2[:2, :, n + 1:])
+    np.testing.assert_array_equal(b2[2:], b[2:])
     none = EnKF(model, 0.01, 0.02, static_mean=True, start_spread=2.0, xi_bounds=bounds, xi_ends=np.zeros(2, bool))
     np.testing.assert_array_equal(none.predict(psi, u, e_w), a)
     with pytest.raises(ValueError, match="xi_ends: component 1 has no finite xi_bounds"):
