@@ -25,7 +25,7 @@ from ..errors import ConfigError, StageError, WriteError, one_line
 from ..numerics import observer_loop
 from ..numerics.analysis import empirical_rate_sq, exact_costs, ms_rate, rms_band, second_moments
 from ..numerics.distributions import ensemble_crps, expected_crps, interval_hits
-from ..numerics.enkf import output_delay, sqrtm_psd, truth_map, xi_ends
+from ..numerics.enkf import EnKF, output_delay, sqrtm_psd, truth_map, xi_ends
 from ..numerics.modeling import model_distribution, moment_draws, nominal_gain, path_moment_draws
 from ..numerics.online import OnlineController, moment_factors, rates
 from ..numerics.simulation import Trajectories, bytes_per_path, path_generators, simulate
@@ -409,16 +409,7 @@ def online_loop(exp: Experiment, seed, keep: bool, sim: dict, sink, sample: list
     # the prior guess, as the nominal gain sees it: a thin window acts only where it agrees (OnlineController)
     A_guess, B_guess, _, _ = exp.plant.at(exp.identification.xi_guess)
     make = partial(OnlineController, exp.model, exp.controller.online, F0, horizon=K, at_guess=(A_guess, B_guess))
-    enkf = loop_observer(exp, None)
-    if enkf.disturbance is None and exp.controller.disturbance is not None:
-        # controller.disturbance: the online loop's EnKF estimates an unknown input disturbance, which it
-        # would otherwise read as a wrong xi, the data the controller models xi from
-        enkf = dataclasses.replace(enkf, disturbance=exp.controller.disturbance)
-    # where the plant file's family fixes a component's law by its mean (a Bernoulli dropout), the static-mean
-    # start and each path's model draw that law, not a Gaussian (`EnKF.xi_ends`)
-    ends = xi_ends(exp.model, exp.plant) if enkf.xi_bounds is not None else None
-    enkf = dataclasses.replace(enkf, lag=exp.controller.online.lag, static_mean=info["start"] == "static_mean",
-                               start_spread=exp.controller.online.start_spread, xi_ends=ends)
+    enkf = online_observer(exp)
     with bar, console_to_tqdm():
         for first, tr, controller in run_chunks(exp, settings, keep_members=keep, workers=exp.loop.workers,
                                                 progress=bar.update, controller=make, enkf=enkf):
@@ -887,6 +878,23 @@ def rate_window(exp: Experiment, exact: pd.DataFrame, floor: Floor | None, close
     K = exp.loop.horizon
     return RateWindow(placed, "auto") if placed is not None else \
         RateWindow((min(start, K - 1), K), "auto", placed=False)
+
+
+def online_observer(exp: Experiment) -> EnKF:
+    """The online loop's EnKF: the loops' observer (`loop_observer`) with the online controller's unknown-input
+    estimate, smoother lag, start (static_mean with observer = model only) and two-point components."""
+    online = exp.controller.online
+    enkf = loop_observer(exp, None)
+    if enkf.disturbance is None and exp.controller.disturbance is not None:
+        # controller.disturbance: the online loop's EnKF estimates an unknown input disturbance, which it
+        # would otherwise read as a wrong xi, the data the controller models xi from
+        enkf = dataclasses.replace(enkf, disturbance=exp.controller.disturbance)
+    # where the plant file's family fixes a component's law by its mean (a Bernoulli dropout), the static-mean
+    # start and each path's model draw that law, not a Gaussian (`EnKF.xi_ends`)
+    ends = xi_ends(exp.model, exp.plant) if enkf.xi_bounds is not None else None
+    static_mean = online.observer == "model" and online.start == "static_mean"
+    return dataclasses.replace(enkf, lag=online.lag, static_mean=static_mean, start_spread=online.start_spread,
+                               xi_ends=ends)
 
 
 def loop_observer(exp: Experiment, moments):

@@ -273,3 +273,15 @@ def test_the_loop_keeps_the_identification_gain_where_the_designed_one_is_worse(
               "metrics": pd.DataFrame(columns=list(pipeline.METRIC_COLUMNS))}
     report = report_markdown(tables, summary)          # the recording's summary document says both
     assert "spread over 20 block-bootstrap draws" in report and "gain choice: **designed**" in report
+
+
+def test_the_online_observer_draws_a_dropout_from_its_two_point_law():
+    """`pipeline.online_observer` marks the dropout plant's Bernoulli xi (`EnKF.xi_ends`, its box [0, 1]) for its
+    static-mean start and its paths' models, and nothing on the paper's plant (a normal xi); with the walk as
+    the start it keeps the mark for the paths' models only."""
+    observer = pipeline.online_observer(experiment("plant=dropout", "controller=online"))
+    assert observer.static_mean and observer.xi_ends.tolist() == [True]
+    assert observer.xi_bounds[0].tolist() == [0.0] and observer.xi_bounds[1].tolist() == [1.0]
+    assert pipeline.online_observer(experiment("controller=online")).xi_ends is None
+    walk = pipeline.online_observer(experiment("plant=dropout", "controller=online", "controller.start=random_walk"))
+    assert not walk.static_mean and walk.xi_ends.tolist() == [True]
