@@ -366,8 +366,7 @@ class EnKF:
                 # a component whose law its mean fixes (`xi_ends`): that two-point law at the modeled mean, from
                 # the same e (xi = high if Phi(e) < P(high)), not a Gaussian of the modeled variance
                 ends, low, high = (a.reshape(-1, 1, 1) for a in self._ends[:3])
-                two = np.where(ndtr(e) < (mean[active].T[..., None] - low) / (high - low), high, low)
-                draws = np.where(ends, two, draws)
+                draws = np.where(ends, two_point_draw(e, mean[active].T[..., None], low, high), draws)
             if self.xi_bounds is not None:
                 self._clip_xi(draws)
             psi_next[n:dim][:, active] = draws
@@ -445,8 +444,7 @@ class EnKF:
             # a component whose law its mean fixes (`xi_ends`) is drawn from that two-point law about mu, from the
             # same w through its normal CDF (no other random numbers): xi = high if Phi(w / sd) < P(high)
             _, low, high, start, sd = (a.reshape(shape) for a in self._ends)
-            two = np.where(ndtr(w / sd) < (about - low) / (high - low), high, low)
-            draws = np.where(start, two, draws)
+            draws = np.where(start, two_point_draw(w / sd, about, low, high), draws)
         if self.xi_bounds is not None:                  # draws about mu, like those of a model, stay in the box
             draws = np.where(walked, draws, self._clip_xi(draws.copy()))
         psi_next[n:dim][:, rest] = draws
@@ -739,6 +737,12 @@ def xi_support(model: AffineRandomSystem, plant: AffineRandomSystem) -> tuple[np
         with np.errstate(invalid="ignore"):
             low[i], high[i] = np.nanmin(ends), np.nanmax(ends)
     return low, high
+
+
+def two_point_draw(z: np.ndarray, mean, low, high) -> np.ndarray:
+    """Draws of the law on {low, high} with the given mean from standard normal z (broadcast): high where
+    Phi(z) < P(high) = (mean - low) / (high - low), else low (`EnKF.xi_ends`)."""
+    return np.where(ndtr(z) < (mean - low) / (high - low), high, low)
 
 
 def xi_ends(model: AffineRandomSystem, plant: AffineRandomSystem) -> np.ndarray | None:
