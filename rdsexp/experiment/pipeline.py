@@ -408,8 +408,10 @@ def online_loop(exp: Experiment, seed, keep: bool, sim: dict, sink, sample: list
     settings = dict(F=F0, d=exp.loop.disturbance, seed=seed, filter_sees_d=exp.loop.filter_sees_disturbance, **sim)
     # the prior guess, as the nominal gain sees it: a thin window acts only where it agrees (OnlineController)
     A_guess, B_guess, _, _ = exp.plant.at(exp.identification.xi_guess)
-    make = partial(OnlineController, exp.model, exp.controller.online, F0, horizon=K, at_guess=(A_guess, B_guess))
     enkf = online_observer(exp)
+    # a component the EnKF draws from its two-point law is modeled with that law's variance too
+    make = partial(OnlineController, exp.model, exp.controller.online, F0, horizon=K, at_guess=(A_guess, B_guess),
+                   two_point=enkf.two_point)
     with bar, console_to_tqdm():
         for first, tr, controller in run_chunks(exp, settings, keep_members=keep, workers=exp.loop.workers,
                                                 progress=bar.update, controller=make, enkf=enkf):

@@ -365,7 +365,7 @@ class EnKF:
             if self._ends is not None:
                 # a component whose law its mean fixes (`xi_ends`): that two-point law at the modeled mean, from
                 # the same e (xi = high if Phi(e) < P(high)), not a Gaussian of the modeled variance
-                ends, low, high = (a.reshape(-1, 1, 1) for a in self._ends[:3])
+                ends, low, high = (a.reshape(-1, 1, 1) for a in self.two_point)
                 draws = np.where(ends, two_point_draw(e, mean[active].T[..., None], low, high), draws)
             if self.xi_bounds is not None:
                 self._clip_xi(draws)
@@ -399,6 +399,12 @@ class EnKF:
             psi_next *= self._rho
             psi_next += mean
         return out
+
+    @property
+    def two_point(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """(which (p,) bool, low (p,), high (p,)): the components drawn from their two-point law (`xi_ends` with
+        two distinct ends) and those ends; None where there are none. The online controller models them so."""
+        return None if self._ends is None else self._ends[:3]
 
     def _check_ends(self) -> tuple[np.ndarray, ...] | None:
         """`xi_ends` validated (one-line ValueError): None where no component is drawn from its two-point law, else

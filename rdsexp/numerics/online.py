@@ -26,6 +26,9 @@ draws alone misfire: on five draws of 30 random plants, 74 of the 98 gains repla
 before) were stable on the plant, and 37 of their replacements were not; the nominal gain, stable at
 the guess by design, now always waits there (docs/online.md). No warm-up beyond `warmup` (the
 filter's) and `min_blocks` is needed.
+A component whose law its mean fixes (`EnKF.two_point`: a Bernoulli dropout, a discrete component of two
+values) is modeled with that law's variance, (mu - low) (high - mu), not the window's sample variance: each
+xi_{k|k} is shrunk toward the filter's prior, so their spread understates xi's (`two_point_moments`).
 A candidate that the model or a draw does not certify below 1 is never adopted, not even where the
 gain in use fails: the model of a growing loop is biased, and such a candidate can be worse on the
 plant than the gain in use.
@@ -160,6 +163,28 @@ def weighted_moments(xi: np.ndarray, w: np.ndarray, xi_cov: np.ndarray | None = 
     cov = np.einsum("...t,...tjp,...tjq->...jpq", w, dev, dev)
     if xi_cov is not None:
         cov += np.einsum("...t,...tjpq->...jpq", w, xi_cov)
+    return mean, cov
+
+
+def two_point_moments(mean: np.ndarray, cov: np.ndarray, two_point) -> tuple[np.ndarray, np.ndarray]:
+    """mean (..., p) and cov (..., p, p) with the variance of each two-point component the one its mean fixes.
+
+    two_point: None (returned as they are) or (which (p,) bool, low (p,), high (p,)), `EnKF.two_point`. A
+    component on {low, high} with mean mu has variance (mu - low) (high - mu), mu clipped into [low, high];
+    its correlations with the other components are kept (its row and column rescaled), so cov stays PSD.
+    The window's sample variance of xi_{k|k} understates it (on seed 0's plant 7 of `random_plants.py`:
+    0.04-0.08 where the plant has 0.24), and so does a design on it (docs/online.md, a tenth round)."""
+    if two_point is None:
+        return mean, cov
+    which, low, high = two_point
+    var = np.diagonal(cov, axis1=-2, axis2=-1)
+    mu = np.clip(mean, low, high)
+    fixed = np.where(which, (mu - low) * (high - mu), var)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        scale = np.where(which, np.where(var > 0, np.sqrt(fixed / var), 0.0), 1.0)
+    cov = cov * scale[..., :, None] * scale[..., None, :]
+    diagonal = np.arange(cov.shape[-1])
+    cov[..., diagonal, diagonal] = fixed
     return mean, cov
 
 
@@ -312,16 +337,19 @@ class OnlineController:
     system: the model the EnKF and the designs use (n, m, its xi of dimension p); F0: (m, n) or
     (P, m, n) initial gains; horizon: K, the last step; at_guess: None, or the system at the prior guess
     (A (n, n), B (n, m)), on which a gain in use that every resample of a thin window calls unstable must
-    be unstable too for that window to act (module docstring). Deterministic (draws no random numbers).
+    be unstable too for that window to act (module docstring); two_point: None or `EnKF.two_point`, the
+    components modeled with the variance their mean fixes (`two_point_moments`). Deterministic (draws no
+    random numbers).
     """
 
     def __init__(self, system: AffineRandomSystem, settings: OnlineSettings, F0, *, paths: int, horizon: int,
-                 at_guess: tuple[np.ndarray, np.ndarray] | None = None):
+                 at_guess: tuple[np.ndarray, np.ndarray] | None = None, two_point=None):
         self.system, self.settings = system, settings.check(system, horizon)
         n, m = system.n, system.m
         # (1, n, n), (1, n, m): one term of `rates`' sum, the deterministic system at the guess
         self.at_guess = None if at_guess is None else (np.reshape(np.asarray(at_guess[0], float), (1, n, n)),
                                                        np.reshape(np.asarray(at_guess[1], float), (1, n, m)))
+        self.two_point = None if two_point is None else tuple(np.asarray(a).reshape(system.p) for a in two_point)
         self.P, self.K = int(paths), int(horizon)
         self.F = np.broadcast_to(np.asarray(F0, dtype=float), (self.P, m, n)).copy()   # gains in use
         self.F0 = self.F.copy()
@@ -372,7 +400,7 @@ class OnlineController:
         if idx.size == 0:
             return None
         with np.errstate(all="ignore"):
-            mean, cov = weighted_moments(samples[:, idx], w, None if covs is None else covs[:, idx])
+            mean, cov = self._moments(samples[:, idx], w, None if covs is None else covs[:, idx])
             Abar, Bbar = moment_factors(self.system, mean, cov)
         F_new, failed = self._design(idx, mean, cov, Abar, Bbar)
         with np.errstate(all="ignore"):
@@ -424,6 +452,11 @@ class OnlineController:
         from a generator seeded by (k, T), the same for every path, so the controller stays deterministic."""
         return block_bootstrap_steps(T, self.settings.resamples, self.settings.block, [k, T])
 
+    def _moments(self, samples: np.ndarray, w: np.ndarray, covs: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """The modeled moments, mean (..., U, p) and cov (..., U, p, p), of samples (..., T, U, p) with weights
+        w (..., T) and filtered covariances covs or None (`weighted_moments`, `two_point_moments`)."""
+        return two_point_moments(*weighted_moments(samples, w, covs), self.two_point)
+
     def _draw_rates(self, k: int, samples: np.ndarray, w: np.ndarray, covs: np.ndarray | None, F_new: np.ndarray,
                     F_cur: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The largest exact rates of F_new and F_cur (U, m, n) and the smallest of F_cur over B moving-block
@@ -431,7 +464,7 @@ class OnlineController:
         (T, U, p, p) or None (`resample_steps`): (U,) each."""
         steps = self.resample_steps(k, samples.shape[0])
         with np.errstate(all="ignore"):
-            mean, cov = weighted_moments(samples[steps], w[steps], None if covs is None else covs[steps])
+            mean, cov = self._moments(samples[steps], w[steps], None if covs is None else covs[steps])
             B, U, p = mean.shape
             Abar, Bbar = moment_factors(self.system, mean.reshape(B * U, p), cov.reshape(B * U, p, p))
             new, cur = (rates(Abar, Bbar, np.tile(F, (B, 1, 1))).reshape(B, U) for F in (F_new, F_cur))
@@ -487,4 +520,4 @@ class OnlineController:
 
 
 __all__ = ["Decisions", "MEMORIES", "METHODS", "OBSERVERS", "OnlineController", "OnlineSettings", "STARTS",
-           "moment_factors", "policy_iteration_batch", "rates", "weighted_moments"]
+           "moment_factors", "policy_iteration_batch", "rates", "two_point_moments", "weighted_moments"]

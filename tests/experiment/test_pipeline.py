@@ -285,3 +285,20 @@ def test_the_online_observer_draws_a_dropout_from_its_two_point_law():
     assert pipeline.online_observer(experiment("controller=online")).xi_ends is None
     walk = pipeline.online_observer(experiment("plant=dropout", "controller=online", "controller.start=random_walk"))
     assert not walk.static_mean and walk.xi_ends.tolist() == [True]
+
+
+def test_the_online_controller_models_a_dropout_with_the_variance_its_mean_fixes():
+    """The online loop's controller gets the observer's two-point components (`EnKF.two_point`): on the dropout
+    plant every modeled variance of its Bernoulli xi is mu (1 - mu) (`online.two_point_moments`), and on the
+    paper's plant (normal xi) the window's sample variance is left as it is."""
+    out = pipeline.run_experiment(experiment("plant=dropout", "controller=online", "closed_loop.horizon=50",
+                                             "closed_loop.open_loop=false"))
+    c = out.tables["controller"]
+    c = c[c["k"] >= 0]
+    assert (c["cov[0,0]"] > 0.05).any()
+    mu = c["mean[0]"].clip(0, 1)
+    np.testing.assert_allclose(c["cov[0,0]"], mu * (1 - mu), rtol=1e-12, atol=1e-15)
+    paper = pipeline.run_experiment(experiment("controller=online", "closed_loop.horizon=50",
+                                               "closed_loop.open_loop=false")).tables["controller"]
+    paper = paper[paper["k"] >= 0]
+    assert len(paper) > 0 and not np.allclose(paper["cov[0,0]"], paper["mean[0]"] * (1 - paper["mean[0]"]))

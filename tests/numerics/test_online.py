@@ -18,6 +18,7 @@ from rdsexp.numerics.online import (
     moment_factors,
     policy_iteration_batch,
     rates,
+    two_point_moments,
     weighted_moments,
 )
 from rdsexp.numerics.simulation import simulate
@@ -322,11 +323,11 @@ def scalar_plant():
                                  xi_dist=from_spec({"family": "normal", "mean": [0.5], "cov": [[0.25]]}))
 
 
-def first_decision(system, xi, at_guess=None, **kw):
+def first_decision(system, xi, at_guess=None, two_point=None, **kw):
     """The one decision of a controller from F = 0 fed the ten estimates xi (10,) (window 10, re-design at
-    k = 10), with the system at the prior guess `at_guess` and settings kw."""
+    k = 10), with the system at the prior guess `at_guess`, `two_point` and settings kw."""
     ctrl = OnlineController(system, OnlineSettings(warmup=0, period=10, memory="window", window=10, **kw),
-                            np.zeros((1, 1)), paths=1, horizon=20, at_guess=at_guess)
+                            np.zeros((1, 1)), paths=1, horizon=20, at_guess=at_guess, two_point=two_point)
     for k in range(11):
         ctrl.update(k, np.array([[0.0, xi[k - 1] if k else 0.0]]), np.ones(1, bool))
     d = ctrl.decisions()
@@ -353,6 +354,68 @@ def test_first_candidate_unstable_on_the_true_plant_is_rejected_on_the_bootstrap
     plain = first_decision(system, xi, resamples=0)                         # the model alone would take it
     assert plain.adopted[0] and plain.reason[0] == "adopted"
     np.testing.assert_array_equal(plain.F, d.F)
+
+
+def test_two_point_moments_give_a_two_point_component_the_variance_its_mean_fixes():
+    """Over batches of random moments: a marked component's variance is (mu - low)(high - mu) at mu clipped into
+    [low, high] (0 outside), its correlations with the rest are kept (0 where its variance was 0), every other
+    entry and the mean are unchanged and the covariance stays PSD; None changes nothing."""
+    rng = np.random.default_rng(5)
+    which, low, high = np.array([True, False, True]), np.array([0.0, -np.inf, -1.0]), np.array([1.0, np.inf, 2.0])
+    mean = rng.uniform(-1.5, 2.5, size=(40, 7, 3))
+    L = rng.normal(size=(40, 7, 3, 3)) * 0.4
+    cov = L @ L.swapaxes(-1, -2)
+    cov[0, 0, 0, :] = cov[0, 0, :, 0] = 0.0                           # a component whose estimates never moved
+    mean[0, 0, 0] = 0.3
+    new_mean, new = two_point_moments(mean, cov.copy(), (which, low, high))
+    assert new_mean is mean and two_point_moments(mean, cov, None)[1] is cov
+    for b, u in np.ndindex(40, 7):
+        mu, c, d = mean[b, u], cov[b, u], new[b, u]
+        for j in range(3):
+            expected = (min(max(mu[j], low[j]), high[j]) - low[j]) * (high[j] - min(max(mu[j], low[j]), high[j]))
+            assert d[j, j] == pytest.approx(expected if which[j] else c[j, j], rel=1e-12, abs=1e-15)
+        assert d[1, 1] == c[1, 1]
+        for i, j in ((0, 1), (0, 2), (1, 2)):
+            before = c[i, j] / np.sqrt(c[i, i] * c[j, j]) if c[i, i] * c[j, j] > 0 else 0.0
+            after = d[i, j] / np.sqrt(d[i, i] * d[j, j]) if d[i, i] * d[j, j] > 0 else 0.0
+            assert after == pytest.approx(before, abs=1e-12) or d[i, i] * d[j, j] == 0 and d[i, j] == 0
+            assert d[j, i] == pytest.approx(d[i, j], rel=1e-14)
+        assert np.linalg.eigvalsh(d).min() >= -1e-12
+    assert new[0, 0, 0, 0] > 0 and np.all(new[0, 0, 0, 1:] == 0)
+    outside = (mean[..., 0] < 0) | (mean[..., 0] > 1)
+    assert outside.any() and np.all(new[outside][:, 0, :] == 0)
+
+
+def dropout_plant():
+    """x+ = 1.5 x + xi u, xi ~ Bernoulli(0.75): the input arrives with probability 0.75."""
+    return rx.AffineRandomSystem(A=[np.array([[1.5]]), np.zeros((1, 1))], B=[np.zeros((1, 1)), np.array([[1.0]])],
+                                 xi_dist=from_spec({"family": "bernoulli", "prob": [0.75]}))
+
+
+def test_a_dropout_is_modeled_with_the_variance_its_mean_fixes_so_its_rate_is_the_plants():
+    """Constructed: x+ = 1.5 x + xi u, xi ~ Bernoulli(0.75); ten estimates with the right mean 0.75 but the shrunk
+    spread of filtered estimates (0.1, variance 0.01). Modeled as they are, the candidate's rate is 0.20 on its
+    model and 0.85 on the plant. With the component marked two-point on [0, 1], the model's variance is 0.1875
+    (the plant's): the candidate is the plant's optimum, its model rate its exact rate 0.75 (both independent),
+    and the bootstrap draws are modeled the same way (their worst rate, recomputed)."""
+    system, xi = dropout_plant(), ten_estimates(0.75, 0.1)
+    plain = first_decision(system, xi)
+    assert plain.cov[0, 0, 0] == pytest.approx(0.01, rel=1e-9) and plain.rate_model[0] < 0.21
+    assert rx.ms_rate(system, None, plain.F[0]) > 0.85                     # the model's 0.20 is not the plant's
+    marked = (np.array([True]), np.array([0.0]), np.array([1.0]))
+    d = first_decision(system, xi, two_point=marked)
+    assert d.cov[0, 0, 0] == pytest.approx(0.1875, rel=1e-12) and d.mean[0, 0] == pytest.approx(0.75, rel=1e-12)
+    assert d.F[0, 0, 0] == pytest.approx(-1.5 * 0.75 / 0.75, rel=1e-6)      # -a mu / E[xi^2], the plant's optimum
+    assert d.rate_model[0] == pytest.approx(0.75, rel=1e-6)
+    assert rx.ms_rate(system, None, d.F[0]) == pytest.approx(d.rate_model[0], rel=1e-6)
+    assert kron_rate(system, d.mean[0], d.cov[0], d.F[0]) == pytest.approx(d.rate_model[0], rel=1e-9)
+    ctrl = OnlineController(system, OnlineSettings(warmup=0, period=10, memory="window", window=10), np.zeros((1, 1)),
+                            paths=1, horizon=20, two_point=marked)
+    steps = ctrl.resample_steps(10, 10)
+    draws = [xi[s].mean() for s in steps]
+    worst = max(kron_rate(system, np.array([mu]), np.array([[min(max(mu, 0), 1) * (1 - min(max(mu, 0), 1))]]), d.F[0])
+                for mu in draws)
+    assert d.rate_worst[0] == pytest.approx(worst, rel=1e-9)
 
 
 def test_a_thin_window_acts_only_where_the_prior_guess_also_calls_the_gain_in_use_unstable():
