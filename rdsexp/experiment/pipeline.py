@@ -388,9 +388,10 @@ def online_loop(exp: Experiment, seed, keep: bool, sim: dict, sink, sample: list
     chunk), rows streamed to the sink with the gain in use (F[i,j]). Returns
     ((LoopSummary, [(first_path, controller)]), info for the summary)."""
     m, n = exp.model.m, exp.model.n
+    enkf = online_observer(exp)
     info = {"initial": exp.controller.initial if isinstance(exp.controller.initial, str) else "given",
-            # the start applies before a path's first model, drawn from with observer = model only
-            "start": exp.controller.online.start if exp.controller.online.observer == "model" else "random_walk",
+            # the start before a path's first model, as the loop's EnKF has it (static_mean with observer = model)
+            "start": "static_mean" if enkf.static_mean else "random_walk",
             "lag": exp.controller.online.lag, "output_delay": output_delay(exp.model).tolist()}
     if exp.controller.online.probe > 0:              # the known excitation on u: amplitude, last step (None: never)
         info["probe"] = [exp.controller.online.probe, exp.controller.online.probe_until]
@@ -408,7 +409,6 @@ def online_loop(exp: Experiment, seed, keep: bool, sim: dict, sink, sample: list
     settings = dict(F=F0, d=exp.loop.disturbance, seed=seed, filter_sees_d=exp.loop.filter_sees_disturbance, **sim)
     # the prior guess, as the nominal gain sees it: a thin window acts only where it agrees (OnlineController)
     A_guess, B_guess, _, _ = exp.plant.at(exp.identification.xi_guess)
-    enkf = online_observer(exp)
     # a component the EnKF draws from its two-point law is modeled with that law's variance too
     make = partial(OnlineController, exp.model, exp.controller.online, F0, horizon=K, at_guess=(A_guess, B_guess),
                    two_point=enkf.two_point)
