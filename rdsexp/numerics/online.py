@@ -156,13 +156,21 @@ def weighted_moments(xi: np.ndarray, w: np.ndarray, xi_cov: np.ndarray | None = 
 
     With equal weights this is eq. (sample-mean), the 1/N covariance of `MomentModel.from_samples`;
     with xi_cov (..., N, P, p, p), the EnKF's filtered covariances of the samples, their weighted mean
-    is added (the law of total variance, `modeling.model_distribution`)."""
+    is added (the law of total variance, `modeling.model_distribution`). The sums run over the samples
+    in order, one elementwise step each, so a path's moments are the same bits whatever other paths share
+    its batch (a chunk of one path, or of many); a reduction's order would follow the arrays' layout."""
     w = w / w.sum(axis=-1, keepdims=True)
-    mean = np.einsum("...t,...tjp->...jp", w, xi)
-    dev = xi - mean[..., None, :, :]
-    cov = np.einsum("...t,...tjp,...tjq->...jpq", w, dev, dev)
+    samples = range(xi.shape[-3])
+    mean = np.zeros(xi.shape[:-3] + xi.shape[-2:])
+    for t in samples:
+        mean += w[..., t, None, None] * xi[..., t, :, :]
+    cov = np.zeros(mean.shape + mean.shape[-1:])
+    for t in samples:
+        dev = xi[..., t, :, :] - mean
+        cov += w[..., t, None, None, None] * dev[..., :, None] * dev[..., None, :]
     if xi_cov is not None:
-        cov += np.einsum("...t,...tjpq->...jpq", w, xi_cov)
+        for t in samples:
+            cov += w[..., t, None, None, None] * xi_cov[..., t, :, :, :]
     return mean, cov
 
 
