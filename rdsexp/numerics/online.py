@@ -180,8 +180,8 @@ def two_point_moments(mean: np.ndarray, cov: np.ndarray, two_point) -> tuple[np.
     two_point: None (returned as they are) or (which (p,) bool, low (p,), high (p,)), `EnKF.two_point`. A
     component on {low, high} with mean mu has variance (mu - low) (high - mu), mu clipped into [low, high];
     its correlations with the other components are kept (its row and column rescaled), so cov stays PSD.
-    The window's sample variance of xi_{k|k} understates it (on seed 0's plant 7 of `random_plants.py`:
-    0.04-0.08 where the plant has 0.24), and so does a design on it (docs/online.md, a tenth round)."""
+    The window's sample variance of xi_{k|k} understates it (on seed 0's plant 7 of `random_plants.py`: a
+    median of 0.125 where the plant has 0.24), and so does a design on it (docs/online.md, a tenth round)."""
     if two_point is None:
         return mean, cov
     which, low, high = two_point
