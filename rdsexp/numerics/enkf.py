@@ -176,6 +176,18 @@ class AdaptiveInflation:
             raise ValueError(f"high: {self.high!r} is not allowed, expected a finite number >= low = {self.low}")
 
 
+class TwoPointLaws(NamedTuple):
+    """The components an EnKF draws from their two-point law (`EnKF.xi_ends`), (p,) each: which (those with two
+    distinct ends), their ends low and high (0 and 1 elsewhere), which of them the static-mean start draws so
+    (start: those the next output sees, whose walk step is not 0) and that step's standard deviation sd."""
+
+    which: np.ndarray
+    low: np.ndarray
+    high: np.ndarray
+    start: np.ndarray
+    sd: np.ndarray
+
+
 @dataclass(frozen=True, eq=False)
 class EnKF:
     """EnKF for `model`, process noise Q (n+p, n+p), output noise R (ny, ny) (module docstring).
@@ -404,12 +416,10 @@ class EnKF:
     def two_point(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         """(which (p,) bool, low (p,), high (p,)): the components drawn from their two-point law (`xi_ends` with
         two distinct ends) and those ends; None where there are none. The online controller models them so."""
-        return None if self._ends is None else self._ends[:3]
+        return None if self._ends is None else (self._ends.which, self._ends.low, self._ends.high)
 
-    def _check_ends(self) -> tuple[np.ndarray, ...] | None:
-        """`xi_ends` validated (one-line ValueError): None where no component is drawn from its two-point law, else
-        (p,) each: which are (those with two distinct ends), their ends low and high, and which of them the
-        static-mean start draws so (those the next output sees, whose walk step w is not 0)."""
+    def _check_ends(self) -> TwoPointLaws | None:
+        """`xi_ends` validated (one-line ValueError): None where no component is drawn from its two-point law."""
         if self.xi_ends is None:
             return None
         ends = np.asarray(self.xi_ends)
@@ -427,7 +437,7 @@ class EnKF:
         sd = np.sqrt(np.diag(self.Q)[self.model.n:self.dim])
         start = ends & (sd > 0) & (~self._walked if self.static_mean else False)
         # elsewhere any finite numbers: the Gaussian draw is kept there
-        return ends, np.where(ends, low, 0.0), np.where(ends, high, 1.0), start, np.where(start, sd, 1.0)
+        return TwoPointLaws(ends, np.where(ends, low, 0.0), np.where(ends, high, 1.0), start, np.where(start, sd, 1.0))
 
     def _start(self, psi: np.ndarray, psi_next: np.ndarray, rest) -> np.ndarray:
         """The predicted xi of paths `rest` (a slice, or (P,) bool) that have no model of xi yet, added into
@@ -446,7 +456,7 @@ class EnKF:
             draws = draws * np.where(walked, 1.0, self.start_spread)               # spread, not the walk's step
         about = components(np.where(self._walked, xi, psi[..., self.mu_slice]))[:, rest]
         draws = draws + about
-        if self._ends is not None and self._ends[3].any():
+        if self._ends is not None and self._ends.start.any():
             # a component whose law its mean fixes (`xi_ends`) is drawn from that two-point law about mu, from the
             # same w through its normal CDF (no other random numbers): xi = high if Phi(w / sd) < P(high)
             _, low, high, start, sd = (a.reshape(shape) for a in self._ends)
