@@ -27,7 +27,7 @@ from ..numerics.analysis import empirical_rate_sq, exact_costs, ms_rate, rms_ban
 from ..numerics.distributions import ensemble_crps, expected_crps, interval_hits
 from ..numerics.enkf import EnKF, output_delay, sqrtm_psd, truth_map, xi_ends
 from ..numerics.modeling import model_distribution, moment_draws, nominal_gain, path_moment_draws
-from ..numerics.online import OnlineController, moment_factors, rates
+from ..numerics.online import OnlineController, moment_factors, rates, two_point_moments
 from ..numerics.simulation import Trajectories, bytes_per_path, path_generators, simulate
 from ..numerics.synthesis import SynthesisResult, synthesize
 from ..numerics.systems import MomentModel
@@ -397,8 +397,8 @@ def online_loop(exp: Experiment, seed, keep: bool, sim: dict, sink, sample: list
         info["probe"] = [exp.controller.online.probe, exp.controller.online.probe_until]
     F0 = exp.controller.initial if not isinstance(exp.controller.initial, str) else np.zeros((m, n))
     if isinstance(exp.controller.initial, str) and exp.controller.initial == "nominal":
-        res = nominal_gain(exp.plant, exp.identification.xi_guess)
-        info |= {"method": res.method, "status": res.status, "rate_at_guess": res.lam}
+        res, law = online_nominal(exp, enkf)
+        info |= {"method": res.method, "status": res.status, "rate_at_guess": res.lam, "nominal_law": law}
         if res.F is not None and np.all(np.isfinite(res.F)) and res.lam < 1:
             F0 = res.F
         else:
@@ -880,6 +880,23 @@ def rate_window(exp: Experiment, exact: pd.DataFrame, floor: Floor | None, close
     K = exp.loop.horizon
     return RateWindow(placed, "auto") if placed is not None else \
         RateWindow((min(start, K - 1), K), "auto", placed=False)
+
+
+def online_nominal(exp: Experiment, enkf: EnKF) -> tuple[SynthesisResult, str]:
+    """The online loop's nominal gain and the law it was designed on: "start", the mean-square LQR at the
+    guess with the spread xi has in the loop's EnKF before any output (`EnKF.start_cov`; a two-point
+    component the variance its mean fixes), in the model's terms; or "guess", the deterministic design at
+    the guess (`nominal_gain`) where the start's law admits no stabilizing gain or the model's xi is not an
+    affine map of the plant's. The EnKF draws its start from that law, so a gain it destabilises leaves the
+    ensemble's spread growing without bound, and the state estimate with it (docs/online.md, an eleventh round)."""
+    truth = truth_map(exp.model, exp.plant)
+    if truth is None:
+        return nominal_gain(exp.plant, exp.identification.xi_guess), "guess"
+    n, dim = exp.model.n, enkf.dim
+    guess = truth[0] @ np.asarray(exp.identification.xi_guess, dtype=float) + truth[1]
+    mean, cov = two_point_moments(guess, enkf.start_cov(exp.filter.P0[n:dim, n:dim]), enkf.two_point)
+    res = nominal_gain(exp.model, mean, cov)
+    return res, "start" if res.method == "ms_lqr" and res.F is not None and res.lam < 1 else "guess"
 
 
 def online_observer(exp: Experiment) -> EnKF:

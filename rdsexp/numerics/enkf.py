@@ -412,6 +412,18 @@ class EnKF:
             psi_next += mean
         return out
 
+    def start_cov(self, P0_xi: np.ndarray) -> np.ndarray:
+        """(p, p): the covariance of the first xi the start draws, xi_1 before any output, for an initial
+        ensemble whose xi has covariance P0_xi (p, p) (module docstring). With the static mean: mu_0 ~ N(., Q_xi)
+        and the draw mu + start_spread w_xi, so (1 + start_spread^2) Q_xi; on the walk (every component without
+        the static mean, those the next output does not see with it): xi_0 + w_xi, so P0_xi + Q_xi. A two-point
+        component gets its Gaussian stand-in here; its law's variance is fixed by its mean (`two_point`)."""
+        p = self.model.p
+        Q = self.Q[self.model.n:self.dim, self.model.n:self.dim]
+        walked = np.ones(p, bool) if not self.static_mean else self._walked
+        step = np.where(walked, 1.0, self.start_spread)                   # the draws' w_xi, scaled
+        return step[:, None] * Q * step[None, :] + np.outer(~walked, ~walked) * Q + np.outer(walked, walked) * P0_xi
+
     @property
     def two_point(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         """(which (p,) bool, low (p,), high (p,)): the components drawn from their two-point law (`xi_ends` with

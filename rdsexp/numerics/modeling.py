@@ -125,22 +125,28 @@ def moment_draws(xi_filt_mean: np.ndarray, K0: int, K1: int, xi_filt_cov: np.nda
     return mean, cov
 
 
-def nominal_gain(model, xi_guess) -> SynthesisResult:
+def nominal_gain(model, xi_guess, cov=None) -> SynthesisResult:
     """A stabilizing gain for the model at the nominal guess xi = xi_guess (p,) (prior knowledge).
 
-    Used to identify an open-loop unstable plant under feedback, u_k = F x_{k|k-1} + d_k. The guess
-    says nothing about the spread of xi, so the design wants a stability margin rather than the
-    fastest rate at the guess (Theorem 2 on a deterministic model is often near dead-beat, which a
-    small deviation of xi destabilises): LQR with unit weights on A(xi_guess), B(xi_guess) first,
-    Theorem 2 at the guess if the Riccati equation has no solution. Returns the first design whose
-    exact rate at the guess is < 1, else the last one tried (status says why); never raises.
+    Used to identify an open-loop unstable plant under feedback, u_k = F x_{k|k-1} + d_k, and as the
+    online loop's first gain. The guess says nothing about the spread of xi, so the design wants a
+    stability margin rather than the fastest rate at the guess (Theorem 2 on a deterministic model is
+    often near dead-beat, which a small deviation of xi destabilises): LQR with unit weights on
+    A(xi_guess), B(xi_guess) first, Theorem 2 at the guess if the Riccati equation has no solution.
+    With cov (p, p), a spread about the guess (the online loop's start, `EnKF.start_cov`), the
+    mean-square LQR at N(xi_guess, cov) comes before them: a gain that spread does not destabilise,
+    where one exists. Returns the first design whose exact rate on its law (the guess, or N(xi_guess,
+    cov)) is < 1, else the last one tried (status says why); never raises.
     """
     from .synthesis import synthesize  # synthesis imports systems only; no cycle
     guess = MomentModel.deterministic(xi_guess)
+    designs = [(guess, "lqr_mean"), (guess, "proposed")]
+    if cov is not None:
+        designs.insert(0, (MomentModel(mean=np.asarray(xi_guess, dtype=float), cov=np.asarray(cov, dtype=float)), "ms_lqr"))
     result = None
-    for method in ("lqr_mean", "proposed"):
+    for law, method in designs:
         try:
-            result = synthesize(model, guess, method)
+            result = synthesize(model, law, method)
         except (ValueError, np.linalg.LinAlgError) as err:
             result = SynthesisResult(method, None, float("nan"), f"failed: {one_line(err)}", nbar=0)
             continue

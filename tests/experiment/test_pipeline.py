@@ -302,3 +302,25 @@ def test_the_online_controller_models_a_dropout_with_the_variance_its_mean_fixes
                                                "closed_loop.open_loop=false")).tables["controller"]
     paper = paper[paper["k"] >= 0]
     assert len(paper) > 0 and not np.allclose(paper["cov[0,0]"], paper["mean[0]"] * (1 - paper["mean[0]"]))
+
+
+def test_the_online_loops_nominal_gain_is_designed_on_the_law_its_enkf_starts_from():
+    """controller.initial=nominal is the mean-square LQR at the guess with the spread xi has in the online loop's
+    EnKF at its start (`pipeline.online_nominal`). On the dropout plant that law is the Bernoulli's own at its
+    mean (variance mu (1 - mu)): the gain in use before any re-design is that design, recomputed here from the
+    plant file, and its rate on the law (recorded) is its exact rate on the plant (the controller table's)."""
+    from rdsexp.numerics.synthesis import synthesize
+    from rdsexp.numerics.systems import MomentModel
+    exp = experiment("plant=dropout", "controller=online", "controller.initial=nominal", "closed_loop.horizon=20",
+                     "closed_loop.open_loop=false")
+    out = pipeline.run_experiment(exp)
+    info = out.summary["online_initial"]
+    assert (info["nominal_law"], info["method"]) == ("start", "ms_lqr") and info["rate_at_guess"] < 1
+    mu = float(np.asarray(exp.plant.xi_dist.mean).ravel()[0])
+    F = synthesize(exp.model, MomentModel(mean=np.array([mu]), cov=np.array([[mu * (1 - mu)]])), "ms_lqr").F
+    first = out.tables["controller"].query("k < 0")
+    np.testing.assert_allclose(first[[f"F[0,{j}]" for j in range(exp.model.n)]].to_numpy(), np.repeat(F, len(first), 0),
+                               rtol=1e-12)
+    np.testing.assert_allclose(first["rate_plant"], info["rate_at_guess"], rtol=1e-9)
+    det = synthesize(exp.model, MomentModel.deterministic([mu]), "lqr_mean").F
+    assert not np.allclose(F, det, rtol=1e-3)                       # not the deterministic design at the guess

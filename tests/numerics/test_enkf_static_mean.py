@@ -179,3 +179,33 @@ def test_a_component_whose_mean_fixes_its_law_is_drawn_from_that_two_point_law()
         EnKF(model, 0.01, 0.02, static_mean=True, xi_bounds=bounds, xi_ends=np.array([True, True]))
     with pytest.raises(ValueError, match="xi_ends: .* is not allowed, expected p = 2 booleans"):
         EnKF(model, 0.01, 0.02, static_mean=True, xi_bounds=bounds, xi_ends=[1, 0])
+
+
+def test_start_cov_is_the_covariance_of_the_first_draw_the_start_makes():
+    """EnKF.start_cov against the first prediction itself, 200,000 members from the initial ensemble the
+    simulation builds (x, xi_0 ~ N(., P0), mu_0 ~ N(., Q_xi)): xi_1 (seen at once) is mu_1 + c w_1, variance
+    (1 + c^2) Q_11; xi_2 (seen a step later) walks, P0_22 + Q_22; their covariance c Q_12 + P0 has no cross
+    term. Within 5 Monte Carlo standard errors of each entry; without the static mean every component walks."""
+    rng = np.random.default_rng(11)
+    model, n, p = seen_and_unseen(), 2, 2
+    Q = np.diag([0.01, 0.01, 0.03, 0.02])
+    Q[2, 3] = Q[3, 2] = 0.012
+    P0 = np.diag([0.0, 0.0, 0.05, 0.04])
+    P0[2, 3] = P0[3, 2] = 0.01
+    for static, c in ((True, 2.0), (True, 1.0), (False, 2.0)):
+        enkf = EnKF(model, Q, 0.02, static_mean=static, start_spread=c)
+        M = 200_000
+        start = rng.multivariate_normal(np.zeros(n + p), P0, size=M)
+        mu = rng.multivariate_normal(np.zeros(p), Q[n:, n:], size=M)
+        psi = np.concatenate([start, mu], axis=1)[None] if static else start[None]
+        e_w = rng.normal(size=(1, M, enkf.width))
+        xi = enkf._predict(psi, np.zeros((1, 1)), e_w, out=np.empty_like(psi))[0, :, n:n + p]
+        sample = np.cov(xi, rowvar=False)
+        expected = enkf.start_cov(P0[n:, n:])
+        var = np.diag(expected)
+        se = np.sqrt((np.outer(var, var) + expected ** 2) / M)
+        assert np.all(np.abs(sample - expected) < 5 * se), (static, c, sample, expected)
+    walked = EnKF(model, Q, 0.02, start_spread=2.0).start_cov(P0[n:, n:])
+    np.testing.assert_allclose(walked, P0[n:, n:] + Q[n:, n:], rtol=0, atol=1e-15)
+    static = EnKF(model, Q, 0.02, static_mean=True, start_spread=2.0).start_cov(P0[n:, n:])
+    np.testing.assert_allclose(static, [[5 * 0.03, 2 * 0.012], [2 * 0.012, 0.04 + 0.02]], rtol=1e-12)

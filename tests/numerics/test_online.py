@@ -760,3 +760,29 @@ def test_the_summary_says_whether_the_probe_reaches_into_the_rate_window(tmp_pat
         assert ("measures the probed loop" in line) == inside, line
     (tmp_path / "off").mkdir()
     assert "online probe" not in rdsexp(*small, cwd=tmp_path / "off").stdout
+
+
+def test_nominal_gain_with_a_spread_is_the_mean_square_design_that_spread_does_not_destabilise():
+    """x+ = 1.5 x + xi u about the guess xi = 1. The deterministic LQR (unit weights) is F = -1.5 P / (1 + P),
+    P = (2.25 + sqrt(2.25^2 + 4)) / 2 (the scalar Riccati equation), whose mean-square rate at N(1, v) is
+    sqrt((1.5 + F)^2 + v F^2) by hand: 1.028 at v = 0.75. With that spread, nominal_gain returns the mean-square
+    LQR, stable at that law (rate < 1, its rate the exact one, independently recomputed); where no gain
+    stabilizes the spread (v = 1.2: min over F of (1.5 + F)^2 + v F^2 = 2.25 v / (1 + v) > 1) it falls back to
+    the deterministic design, as without one."""
+    from rdsexp.numerics.modeling import nominal_gain
+    system = rx.AffineRandomSystem(A=[np.array([[1.5]]), np.zeros((1, 1))], B=[np.zeros((1, 1)), np.array([[1.0]])])
+    P = (2.25 + np.sqrt(2.25 ** 2 + 4)) / 2
+    F_det = -1.5 * P / (1 + P)
+    plain = nominal_gain(system, [1.0])
+    assert plain.method == "lqr_mean" and plain.F[0, 0] == pytest.approx(F_det, rel=1e-9)
+    v = 0.75
+    assert np.sqrt((1.5 + F_det) ** 2 + v * F_det ** 2) > 1.02
+    spread = nominal_gain(system, [1.0], cov=[[v]])
+    F = spread.F[0, 0]
+    exact = np.sqrt((1.5 + F) ** 2 + v * F ** 2)
+    assert spread.method == "ms_lqr" and exact < 1
+    assert spread.lam == pytest.approx(exact, rel=1e-9)
+    assert kron_rate(system, np.array([1.0]), np.array([[v]]), spread.F) == pytest.approx(exact, rel=1e-9)
+    assert np.sqrt(2.25 * 1.2 / 2.2) > 1
+    wide = nominal_gain(system, [1.0], cov=[[1.2]])
+    assert wide.method == "lqr_mean" and wide.F[0, 0] == pytest.approx(F_det, rel=1e-9)
