@@ -398,7 +398,7 @@ def online_loop(exp: Experiment, seed, keep: bool, sim: dict, sink, sample: list
     F0 = exp.controller.initial if not isinstance(exp.controller.initial, str) else np.zeros((m, n))
     if isinstance(exp.controller.initial, str) and exp.controller.initial == "nominal":
         res, law = online_nominal(exp, enkf)
-        info |= {"method": res.method, "status": res.status, "rate_at_guess": res.lam, "nominal_law": law}
+        info |= {"method": res.method, "status": res.status, "nominal_law": law, "rate_on_law": res.lam}
         if res.F is not None and np.all(np.isfinite(res.F)) and res.lam < 1:
             F0 = res.F
         else:
@@ -896,7 +896,7 @@ def online_nominal(exp: Experiment, enkf: EnKF) -> tuple[SynthesisResult, str]:
     guess = truth[0] @ np.asarray(exp.identification.xi_guess, dtype=float) + truth[1]
     mean, cov = two_point_moments(guess, enkf.start_cov(exp.filter.P0[n:dim, n:dim]), enkf.two_point)
     res = nominal_gain(exp.model, mean, cov)
-    return res, "start" if res.method == "ms_lqr" and res.F is not None and res.lam < 1 else "guess"
+    return res, "start" if res.method == "ms_lqr" else "guess"          # (nominal_gain returns it only if stable)
 
 
 def online_observer(exp: Experiment) -> EnKF:

@@ -315,12 +315,12 @@ def test_the_online_loops_nominal_gain_is_designed_on_the_law_its_enkf_starts_fr
                      "closed_loop.open_loop=false")
     out = pipeline.run_experiment(exp)
     info = out.summary["online_initial"]
-    assert (info["nominal_law"], info["method"]) == ("start", "ms_lqr") and info["rate_at_guess"] < 1
+    assert (info["nominal_law"], info["method"]) == ("start", "ms_lqr") and info["rate_on_law"] < 1
     mu = float(np.asarray(exp.plant.xi_dist.mean).ravel()[0])
     F = synthesize(exp.model, MomentModel(mean=np.array([mu]), cov=np.array([[mu * (1 - mu)]])), "ms_lqr").F
     first = out.tables["controller"].query("k < 0")
     np.testing.assert_allclose(first[[f"F[0,{j}]" for j in range(exp.model.n)]].to_numpy(), np.repeat(F, len(first), 0),
                                rtol=1e-12)
-    np.testing.assert_allclose(first["rate_plant"], info["rate_at_guess"], rtol=1e-9)
+    np.testing.assert_allclose(first["rate_plant"], info["rate_on_law"], rtol=1e-9)
     det = synthesize(exp.model, MomentModel.deterministic([mu]), "lqr_mean").F
     assert not np.allclose(F, det, rtol=1e-3)                       # not the deterministic design at the guess
