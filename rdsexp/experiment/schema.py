@@ -222,9 +222,10 @@ SUMMARY: dict[str, tuple[str, str | None]] = {
     "closed_loop_through_y": ("where the loop is not found stable although its gain stabilizes the true plant: the "
                               "exact rate of the loop through y with the best linear observer found", "1/step"),
     "online_initial": ("the online controller's initial gain and where it came from (nominal_law: start, the law "
-                       "its EnKF starts from, or guess, xi_guess alone; rate_on_law: the gain's exact rate there), its EnKF's start before a "
-                       "path's first model (controller.start), smoothing lag (controller.lag), the steps after "
-                       "which each xi first reaches an output and, with controller.probe, [probe, probe_until]", None),
+                       "its EnKF starts from, or guess, xi_guess alone; rate_on_law: the gain's exact rate there), "
+                       "its EnKF's start before a path's first model (controller.start), smoothing lag "
+                       "(controller.lag), the steps after which each xi first reaches an output and, with "
+                       "controller.probe, [probe, probe_until]", None),
     "online": ("the online controller's key numbers (adoptions, final gains' exact rates, ...)", None),
     "reference": ("the paper's reported numbers for this experiment, where it is the paper's", None),
     "data": ("a data run's data file: name, sha256, rows, paths, steps, identification and held-out paths", None),

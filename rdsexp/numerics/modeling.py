@@ -142,7 +142,8 @@ def nominal_gain(model, xi_guess, cov=None) -> SynthesisResult:
     guess = MomentModel.deterministic(xi_guess)
     designs = [(guess, "lqr_mean"), (guess, "proposed")]
     if cov is not None:
-        designs.insert(0, (MomentModel(mean=np.asarray(xi_guess, dtype=float), cov=np.asarray(cov, dtype=float)), "ms_lqr"))
+        spread = MomentModel(mean=np.asarray(xi_guess, dtype=float), cov=np.asarray(cov, dtype=float))
+        designs.insert(0, (spread, "ms_lqr"))
     result = None
     for law, method in designs:
         try:
