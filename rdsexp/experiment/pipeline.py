@@ -888,7 +888,8 @@ def online_nominal(exp: Experiment, enkf: EnKF) -> tuple[SynthesisResult, str]:
     component the variance its mean fixes), in the model's terms; or "guess", the deterministic design at
     the guess (`nominal_gain`) where the start's law admits no stabilizing gain or the model's xi is not an
     affine map of the plant's. The EnKF draws its start from that law, so a gain it destabilises leaves the
-    ensemble's spread growing without bound, and the state estimate with it (docs/online.md, an eleventh round)."""
+    ensemble's spread growing without bound, and the state estimate with it (docs/online-rounds.md, an
+    eleventh round)."""
     truth = truth_map(exp.model, exp.plant)
     if truth is None:
         return nominal_gain(exp.plant, exp.identification.xi_guess), "guess"

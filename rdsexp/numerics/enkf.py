@@ -93,17 +93,17 @@ unknown mean), moves x with that draw and keeps it, as the draws from known mome
 update with y_{k+1} then learns mu through its sample covariance with y, and mu's spread shrinks with the
 data where the walk's grows. Components that reach an output only later (`output_delay` > 0) stay on the
 walk: y_{k+1} does not see their draw, and their first models (from the smoother's estimates) come out too
-narrow to learn from (docs/online.md). mu is projected onto xi_bounds with xi (a mean of draws in the box).
+narrow to learn from (docs/online-rounds.md). mu is projected onto xi_bounds with xi (a mean of draws in the box).
 The draws stand for xi's own spread, which nothing has measured yet, not for a walk's step: `start_spread` c
 makes them mu + c w_xi. Draws narrower than the plant's xi leave the ensemble's x spread without the
-multiplicative uncertainty it must carry, so the filter trusts a wrong x and can diverge (docs/online.md).
+multiplicative uncertainty it must carry, so the filter trusts a wrong x and can diverge (docs/online-rounds.md).
 Where the plant file's family fixes a component's law by its mean (`xi_ends`: a Bernoulli dropout, a
 discrete component of two values), its spread is known once mu is: the draw is that two-point law,
 xi = high with probability (mu - low) / (high - low), else low, from the same w (xi = high where
 Phi(w / sd) is below it), in place of mu + c w (a dropout's variance mu (1 - mu) is 0.19 at mu = 0.75,
 where the Gaussian draws' is 0.08). A path's own model (`_predict`'s path_prior) draws such a component
 the same way at its modeled mean, not as a Gaussian of its modeled variance, which the estimates
-understate (docs/online.md, a ninth round).
+understate (docs/online-rounds.md, a ninth round).
 
 Ensembles returned by `predict` and `update` are stored component-major: they are (..., M, n+p)
 views of (n+p, ..., M) arrays, so each component of all paths and members is one contiguous block

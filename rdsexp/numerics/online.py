@@ -35,7 +35,7 @@ plant than the gain in use.
 
 The probe (`probe` > 0, off by default): u_k gets a known excitation probe * s_k, s_k in {-1, 1}^m white
 (`probe_signs`, the same on every path), until `probe_until`. Under feedback the state decays and y_k
-carries little of xi's spread; the probe keeps the state, and with it the outputs, moving (docs/online.md,
+carries little of xi's spread; the probe keeps the state, and with it the outputs, moving (docs/online-rounds.md,
 an eighth round: white signs, not the identification's held M-sequence, which spread the paper's walk).
 
 No identification run. `OnlineController` is what `simulation.simulate(controller=...)` calls
@@ -181,7 +181,7 @@ def two_point_moments(mean: np.ndarray, cov: np.ndarray, two_point) -> tuple[np.
     component on {low, high} with mean mu has variance (mu - low) (high - mu), mu clipped into [low, high];
     its correlations with the other components are kept (its row and column rescaled), so cov stays PSD.
     The window's sample variance of xi_{k|k} understates it (on seed 0's plant 7 of `random_plants.py`: a
-    median of 0.125 where the plant has 0.24), and so does a design on it (docs/online.md, a tenth round)."""
+    median of 0.125 where the plant has 0.24), and so does a design on it (docs/online-rounds.md, a tenth round)."""
     if two_point is None:
         return mean, cov
     which, low, high = two_point
