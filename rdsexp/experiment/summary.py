@@ -166,7 +166,9 @@ def summary_text(info: dict, run_dir: Path) -> str:
                      f"(10-90% {fmt(o['final_rate_plant_q10'])}-{fmt(o['final_rate_plant_q90'])}), "
                      f"{100 * o['final_stable_fraction']:.0f}% stable, {o['adoptions_per_path']:.1f} adoptions per "
                      f"path; offline gain {fmt(o['offline_rate_plant'])}, optimum {fmt(o['optimal_rate_plant'])}")
-        probe = (s.get("online_initial") or {}).get("probe")
+        start = s.get("online_initial") or {}
+        lines.append(f"  online start: {initial_gain(start)}")
+        probe = start.get("probe")
         if probe:                                         # controller.probe: say whether the window holds it
             amplitude, until = probe
             inside = until is None or (k_from is not None and until > k_from)
@@ -180,6 +182,17 @@ def summary_text(info: dict, run_dir: Path) -> str:
     if (run_dir / layout.RECORDING).exists():
         lines.append(f"  view: rerun {run_dir / layout.RECORDING}")
     return "\n".join(lines)
+
+
+def initial_gain(start: dict) -> str:
+    """The online loop's first gain, from the summary's `online_initial`: where it came from and, for the nominal
+    gain, the law it was designed on and its exact rate there."""
+    if start.get("initial") != "nominal":
+        return {"zero": "F = 0", "given": "the given gain"}.get(start.get("initial"), str(start.get("initial")))
+    if "used" in start:                                   # no stabilizing nominal design
+        return "F = 0 (no stabilizing nominal gain)"
+    law = {"start": "at the law its EnKF starts from", "guess": "at xi_guess"}.get(start.get("nominal_law"), "")
+    return f"the nominal gain, {start.get('method')} {law} (exact rate there {start.get('rate_on_law', np.nan):.4f})"
 
 
 def gap(s: dict) -> list[str]:

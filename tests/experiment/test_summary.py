@@ -1,5 +1,5 @@
 """The run summary's words about the loop: its controller and why its verdict differs from the gain's rate."""
-from rdsexp.experiment.summary import gap
+from rdsexp.experiment.summary import gap, initial_gain
 
 
 def summary(estimate, verdict="unstable", rate=0.6, reason="the loop grows"):
@@ -27,3 +27,12 @@ def test_the_gap_says_whether_the_outputs_or_the_enkf_fall_short():
     assert "the gap is the outputs'" in gap(s)[0] and "exact rate 1.0328 >= 1" in gap(s)[0]
     s["closed_loop_through_y"] = {"rate": 0.9361, "kalman_rate": 0.94}
     assert "the gap is the EnKF's" in gap(s)[0] and "exact rate 0.9361 < 1" in gap(s)[0]
+
+
+def test_the_online_start_names_the_law_its_nominal_gain_was_designed_on():
+    start = {"initial": "nominal", "method": "ms_lqr", "nominal_law": "start", "rate_on_law": 0.90483}
+    assert initial_gain(start) == "the nominal gain, ms_lqr at the law its EnKF starts from (exact rate there 0.9048)"
+    start |= {"method": "lqr_mean", "nominal_law": "guess", "rate_on_law": 0.5}
+    assert initial_gain(start) == "the nominal gain, lqr_mean at xi_guess (exact rate there 0.5000)"
+    assert initial_gain(start | {"used": "zero (no stabilizing nominal gain)"}) == "F = 0 (no stabilizing nominal gain)"
+    assert initial_gain({"initial": "zero"}) == "F = 0" and initial_gain({"initial": "given"}) == "the given gain"
