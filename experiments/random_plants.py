@@ -585,7 +585,9 @@ ONLINE_TOLERANCE = 0.005      # online "no worse": its final gains' median rate 
 def print_online(table: pd.DataFrame) -> None:
     """controller=online: per plant, the online loop's final gains' median exact rate on the true plant against
     the offline gain's, and the paths each loop lost; then how often online ends no worse (within
-    ONLINE_TOLERANCE, or better) and how often it loses more paths."""
+    ONLINE_TOLERANCE, or better) and how often it loses more paths, also among the plants whose offline loop
+    rdsexp calls `stable` (a plant that loses more paths online beside an offline loop it cannot call stable
+    is a different finding from one beside a stable loop)."""
     rows = table[table["online_final_rate"].map(lambda v: not _missing(v))
                  | table["online_failed_fraction"].map(lambda v: not _missing(v))]
     gap = rows["online_final_rate"].astype(float) - rows["offline_rate_plant"].astype(float)
@@ -598,15 +600,18 @@ def print_online(table: pd.DataFrame) -> None:
     none = rows["offline_rate_plant"].map(_missing).to_numpy()
     for r, g, on, off, gainless in zip(rows.itertuples(), gap, lost_on, lost_off, none):
         verdict = "  (no offline gain)" if gainless else (
-            ("  WORSE" if not g <= ONLINE_TOLERANCE else "") + ("  LOST MORE" if on > off else ""))
+            ("  WORSE" if not g <= ONLINE_TOLERANCE else "")
+            + (f"  LOST MORE (offline loop {'-' if _missing(r.verdict) else r.verdict})" if on > off else ""))
         print(f"  {r.plant}: online {_f(r.online_final_rate)} offline {_f(r.offline_rate_plant)} gap "
               f"{'-' if not np.isfinite(g) else format(g, '+.4f')}; lost {on:.2f} vs {off:.2f}{verdict}")
     compared = ~none
     no_worse = (gap <= ONLINE_TOLERANCE)[compared]
     more = (lost_on > lost_off)[compared]
+    stable = (rows["verdict"] == "stable").to_numpy()[compared]
     print(f"online ends no worse than offline (final median rate <= offline + {ONLINE_TOLERANCE}): "
           f"{int(no_worse.sum())}/{int(compared.sum())} ({no_worse.mean():.0%}); loses more paths: "
-          f"{int(more.sum())}/{int(compared.sum())}"
+          f"{int(more.sum())}/{int(compared.sum())}, {int((more & stable).sum())}/{int(stable.sum())} where the "
+          f"offline loop is stable"
           + (f"; no offline gain (not compared): {', '.join(rows.plant[none])}" if none.any() else ""))
 
 
