@@ -786,3 +786,32 @@ def test_nominal_gain_with_a_spread_is_the_mean_square_design_that_spread_does_n
     assert np.sqrt(2.25 * 1.2 / 2.2) > 1
     wide = nominal_gain(system, [1.0], cov=[[1.2]])
     assert wide.method == "lqr_mean" and wide.F[0, 0] == pytest.approx(F_det, rel=1e-9)
+
+
+def test_nominal_gain_reports_the_exact_rate_of_what_it_returns_on_random_and_degenerate_systems():
+    """Over 24 random systems (every other one with a rank-deficient spread and xi-free inputs), spreads from
+    narrow to wide: nominal_gain returns `ms_lqr` only when its gain is mean-square stable at N(guess, cov), and
+    its lam is then that gain's exact rate there (an independent Kronecker sum); otherwise the deterministic
+    design, whose lam is the spectral radius of the closed loop at the guess (or a status without a gain)."""
+    from rdsexp.numerics.modeling import nominal_gain
+    seen = set()
+    for seed in range(24):
+        rng = np.random.default_rng(100 + seed)
+        n, m, p = int(rng.integers(2, 5)), int(rng.integers(1, 3)), int(rng.integers(1, 4))
+        system = random_system(rng, n, m, p, degenerate=seed % 2 == 1)
+        guess = 0.3 * rng.normal(size=p)
+        L = rng.normal(size=(p, p)) * [0.05, 0.5, 2.0][seed % 3]
+        if seed % 2:
+            L[:, 0] = 0.0                                                # rank-deficient spread
+        cov = L @ L.T
+        res = nominal_gain(system, guess, cov=cov)
+        seen.add(res.method)
+        if res.method == "ms_lqr":
+            assert res.lam < 1
+            assert kron_rate(system, guess, cov, res.F) == pytest.approx(res.lam, rel=1e-7, abs=1e-9)
+        elif res.F is not None and np.all(np.isfinite(res.F)):
+            A, B, _, _ = system.at(guess[None])
+            radius = np.abs(np.linalg.eigvals(A[0] + B[0] @ res.F)).max()
+            assert res.lam == pytest.approx(radius, rel=1e-7, abs=1e-9)
+            assert not kron_rate(system, guess, cov, res.F) < res.lam - 1e-9     # the spread only adds
+    assert "ms_lqr" in seen and seen - {"ms_lqr"}                        # both branches taken
