@@ -6,7 +6,8 @@ the same plant samples and EnKF noise (a paired comparison). For each library pl
 each seed, one in-process run (`pipeline.run_experiment`, tracking off, no open loop: nothing of the
 comparison depends on it) gives one row:
 
-- lost_off / lost_on: paths the offline / online loop lost (diverged or failed), of --paths;
+- lost_off / lost_on: paths the offline / online loop lost (diverged or failed), of --paths; only_on /
+  only_off: the paths one loop alone lost;
 - rate_off: the offline gain's exact mean-square rate on the true plant;
 - rate_on: the median over paths of the online loop's final gains' exact rate on the true plant;
 - gap: rate_on - rate_off (negative: online ends better);
@@ -14,8 +15,10 @@ comparison depends on it) gives one row:
 - first_k: the median step of a path's first adoption (-: none adopted).
 
 Then one summary line per plant and start, over the seeds: lost paths (sum) online against offline,
-the gap's median and worst seed, the seeds within 0.005 (or better), the pooled gap (median over every
-path of every seed of its final rate minus its seed's offline rate) and whether both targets hold:
+the paired sign test of online losing more over every seed's paths (`verdict.paired_losses`; the
+discordant paths of independent seeds add up), the gap's median and worst seed, the seeds within
+0.005 (or better), the pooled gap (median over every path of every seed of its final rate minus its
+seed's offline rate) and whether both targets hold:
 online loses no more paths than offline in any seed, and the pooled gap is <= 0.005.
 
     python experiments/online_defaults.py [--seeds 10] [--paths 100] [--plants paper,dropout,...]
@@ -36,6 +39,8 @@ import pandas as pd
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from coverage import LIBRARY, experiment  # noqa: E402  (the validated Experiment of a plant)
+
+from rdsexp.numerics.verdict import sign_test  # noqa: E402
 
 TOLERANCE = 0.005        # the final gains' median rate may exceed the offline gain's by this much
 
@@ -58,6 +63,7 @@ def one_run(plant: str, start: str, seed: int, paths: int, overrides=()) -> tupl
     first = control[(control["k"] >= 0) & control["adopted"]].groupby("path")["k"].min()
     row = {"plant": plant, "start": start, "seed": seed, "lost_off": lost["closed_loop"], "lost_on": lost["online"],
            "rate_off": offline, "rate_on": float(np.nanmedian(final)), "gap": float(np.nanmedian(final)) - offline,
+           "only_on": int(online["lost_online_only"]), "only_off": int(online["lost_offline_only"]),
            "unstable": int(np.sum(final >= 1)), "adopt": float(online["adoptions_per_path"]),
            "first_k": float(first.median()) if len(first) else np.nan}
     return row, final - offline
@@ -67,8 +73,11 @@ def summarize(rows: pd.DataFrame, gaps: np.ndarray, paths: int) -> dict:
     """One plant and start over its seeds (see the module docstring)."""
     pooled = float(np.nanmedian(gaps))
     no_more_lost = bool((rows["lost_on"] <= rows["lost_off"]).all())
+    only_on, only_off = int(rows["only_on"].sum()), int(rows["only_off"].sum())
     return {"seeds": len(rows), "lost_on": int(rows["lost_on"].sum()), "lost_off": int(rows["lost_off"].sum()),
             "of": len(rows) * paths, "seeds_lost_more": int((rows["lost_on"] > rows["lost_off"]).sum()),
+            "only_on": only_on, "only_off": only_off,
+            "paired_p": sign_test(only_on, only_off),
             "gap_median": float(rows["gap"].median()), "gap_worst": float(rows["gap"].max()),
             "within": int((rows["gap"] <= TOLERANCE).sum()), "gap_pooled": pooled,
             "unstable": int(rows["unstable"].sum()), "adopt": float(rows["adopt"].mean()),
@@ -78,7 +87,8 @@ def summarize(rows: pd.DataFrame, gaps: np.ndarray, paths: int) -> dict:
 
 def summary_line(plant: str, start: str, s: dict) -> str:
     return (f"{plant:>14s} {start:>7s}: lost online {s['lost_on']}/{s['of']} vs offline {s['lost_off']}/{s['of']}"
-            f" (seeds losing more: {s['seeds_lost_more']}); gap median {s['gap_median']:+.4f}, worst seed "
+            f" (seeds losing more: {s['seeds_lost_more']}; alone {s['only_on']} vs {s['only_off']}, paired p "
+            f"{s['paired_p']:.3g}); gap median {s['gap_median']:+.4f}, worst seed "
             f"{s['gap_worst']:+.4f}, within {TOLERANCE} in {s['within']}/{s['seeds']}, pooled {s['gap_pooled']:+.4f}; "
             f"final gains unstable {s['unstable']}; adoptions/path {s['adopt']:.2f}; first adoption k "
             f"{s['first_k']:.0f}: {'MET' if s['met'] else 'NOT MET'}")

@@ -70,6 +70,7 @@ from rdsexp.numerics.distributions import from_spec
 from rdsexp.numerics.observer_loop import applies, best_observer
 from rdsexp.numerics.synthesis import synthesize
 from rdsexp.numerics.systems import AffineRandomSystem
+from rdsexp.numerics.verdict import PAIRED_LEVEL
 
 REPO = Path(__file__).resolve().parents[1]
 BASE_FAMILIES = ("normal", "uniform", "bernoulli", "discrete")
@@ -385,7 +386,8 @@ def read_record(outcome: Outcome) -> dict:
     row = {"run_status": None, "modeling_status": None, "synthesis_status": None, "rate_plant": None,
            "verdict": None, "verdict_reason": None, "closed_loop_status": None, "cl_rate": None, "cl_low": None,
            "cl_high": None, "failed_fraction": None, "run_seconds": None, "code_version": None,
-           "online_failed_fraction": None, "online_final_rate": None, "offline_rate_plant": None}
+           "online_failed_fraction": None, "online_final_rate": None, "offline_rate_plant": None,
+           "lost_online_only": None, "lost_offline_only": None, "lost_more_p": None}
     if outcome.run_dir is None:
         return row
     try:
@@ -424,7 +426,9 @@ def read_record(outcome: Outcome) -> dict:
                 online = online.iloc[0]
                 row.update(online_failed_fraction=float(online["failed_fraction"]),
                            online_final_rate=float(online["final_rate_plant_median"]),
-                           offline_rate_plant=float(online["offline_rate_plant"]))
+                           offline_rate_plant=float(online["offline_rate_plant"]),
+                           **{key: float(online[key]) for key in ("lost_online_only", "lost_offline_only",
+                                                                  "lost_more_p") if key in online.index})
         except Exception as err:                                # a damaged table is a finding, not a crash
             outcome.note = "; ".join(filter(None, [outcome.note, f"metrics unreadable: {type(err).__name__}: {err}"]))
     return row
@@ -585,32 +589,40 @@ ONLINE_TOLERANCE = 0.005      # online "no worse": its final gains' median rate 
 def print_online(table: pd.DataFrame) -> None:
     """controller=online: per plant, the online loop's final gains' median exact rate on the true plant against
     the offline gain's, and the paths each loop lost; then how often online ends no worse (within
-    ONLINE_TOLERANCE, or better) and how often it loses more paths, also among the plants whose offline loop
-    rdsexp calls `stable` (a plant that loses more paths online beside an offline loop it cannot call stable
-    is a different finding from one beside a stable loop)."""
+    ONLINE_TOLERANCE, or better) and how often it loses more paths: by the bare counts, and by the exact paired
+    test of the paths each loop lost alone (`verdict.paired_losses`, p < PAIRED_LEVEL: more than chance explains),
+    also among the plants whose offline loop rdsexp calls `stable` (a plant that loses more paths online beside an
+    offline loop it cannot call stable is a different finding from one beside a stable loop)."""
     rows = table[table["online_final_rate"].map(lambda v: not _missing(v))
                  | table["online_failed_fraction"].map(lambda v: not _missing(v))]
     gap = rows["online_final_rate"].astype(float) - rows["offline_rate_plant"].astype(float)
     lost_on = rows["online_failed_fraction"].astype(float)
     lost_off = rows["failed_fraction"].map(lambda v: 0.0 if _missing(v) else v).astype(float)
+    p = rows.get("lost_more_p", pd.Series(np.nan, index=rows.index)).map(lambda v: np.nan if _missing(v) else v)
     print("\nonline (learning-type) against offline, per plant: final gains' median exact rate, the offline gain's, "
-          "gap; paths lost (fraction)")
+          "gap; paths lost (fraction; paths lost by one loop alone, paired test of online losing more)")
     # an offline run with no gain (its identification or design failed) has no closed loop to compare with:
     # counted apart, neither as no worse nor as losing more
     none = rows["offline_rate_plant"].map(_missing).to_numpy()
-    for r, g, on, off, gainless in zip(rows.itertuples(), gap, lost_on, lost_off, none):
+    for r, g, on, off, gainless, pr in zip(rows.itertuples(), gap, lost_on, lost_off, none, p):
+        alone = "" if not np.isfinite(pr) or r.lost_online_only + r.lost_offline_only == 0 else \
+            f" ({r.lost_online_only:.0f} vs {r.lost_offline_only:.0f} alone, p = {pr:.3g})"
+        more = "LOST MORE" + (", beyond chance" if pr < PAIRED_LEVEL else ", within chance" if np.isfinite(pr) else "")
         verdict = "  (no offline gain)" if gainless else (
             ("  WORSE" if not g <= ONLINE_TOLERANCE else "")
-            + (f"  LOST MORE (offline loop {'-' if _missing(r.verdict) else r.verdict})" if on > off else ""))
+            + (f"  {more} (offline loop {'-' if _missing(r.verdict) else r.verdict})" if on > off else ""))
         print(f"  {r.plant}: online {_f(r.online_final_rate)} offline {_f(r.offline_rate_plant)} gap "
-              f"{'-' if not np.isfinite(g) else format(g, '+.4f')}; lost {on:.2f} vs {off:.2f}{verdict}")
+              f"{'-' if not np.isfinite(g) else format(g, '+.4f')}; lost {on:.2f} vs {off:.2f}{alone}{verdict}")
     compared = ~none
     no_worse = (gap <= ONLINE_TOLERANCE)[compared]
     more = (lost_on > lost_off)[compared]
+    beyond = (p < PAIRED_LEVEL)[compared]
     stable = (rows["verdict"] == "stable").to_numpy()[compared]
     print(f"online ends no worse than offline (final median rate <= offline + {ONLINE_TOLERANCE}): "
           f"{int(no_worse.sum())}/{int(compared.sum())} ({no_worse.mean():.0%}); loses more paths: "
           f"{int(more.sum())}/{int(compared.sum())}, {int((more & stable).sum())}/{int(stable.sum())} where the "
+          f"offline loop is stable; more than chance explains (paired sign test, p < {PAIRED_LEVEL}): "
+          f"{int(beyond.sum())}/{int(compared.sum())}, {int((beyond & stable).sum())}/{int(stable.sum())} where the "
           f"offline loop is stable"
           + (f"; no offline gain (not compared): {', '.join(rows.plant[none])}" if none.any() else ""))
 

@@ -31,7 +31,7 @@ from ..numerics.online import OnlineController, moment_factors, rates, two_point
 from ..numerics.simulation import Trajectories, bytes_per_path, path_generators, simulate
 from ..numerics.synthesis import SynthesisResult, synthesize
 from ..numerics.systems import MomentModel
-from ..numerics.verdict import FAILURES, Floor, judge_loop, place_window, rate_interval, window_start
+from ..numerics.verdict import FAILURES, Floor, judge_loop, paired_losses, place_window, rate_interval, window_start
 from .config import Experiment
 from .montecarlo import MEMORY_BUDGET, LoopSummary, chunk_starts, run_chunks
 
@@ -498,6 +498,11 @@ def add_online_tables(exp: Experiment, stages: Stages, tables: dict, online, cho
     offline = safe_rate(exp.plant, None, chosen.F) if chosen is not None and chosen.F is not None else np.nan
     window = tuple(summary["rate_window"])          # as the metrics stage resolved it
     q = np.nanpercentile(final, [10, 50, 90]) if np.isfinite(final).any() else [np.nan] * 3
+    # paths lost by one loop alone (the two loops share each path's plant samples) and whether online loses
+    # more than chance explains: the exact paired test (rare losses make two bare counts differ by chance)
+    offline_paths = paths[paths["experiment"] == "closed_loop"].sort_values("path")
+    lost = (paired_losses(loop.failed_at >= 0, offline_paths["failed_at"].to_numpy() >= 0)
+            if len(offline_paths) == P else (np.nan,) * 3)
     online_metrics = {"final_rate_plant_q10": q[0], "final_rate_plant_median": q[1], "final_rate_plant_q90": q[2],
                       "final_stable_fraction": float(np.mean(final < 1)),
                       "first_stable_k_median": float(np.median(first[first >= 0])) if (first >= 0).any() else np.nan,
@@ -508,7 +513,8 @@ def add_online_tables(exp: Experiment, stages: Stages, tables: dict, online, cho
                       "rate_not_diverged": empirical_rate_sq(*(loop.sq[k, loop.failed_at < 0] for k in window),
                                                              window[1] - window[0])[0]
                       if (loop.failed_at < 0).any() else np.nan,
-                      "offline_rate_plant": offline, "optimal_rate_plant": optimum.lam}
+                      "offline_rate_plant": offline, "optimal_rate_plant": optimum.lam,
+                      "lost_online_only": lost[0], "lost_offline_only": lost[1], "lost_more_p": lost[2]}
     metrics = tables["metrics"]
     for name, value in online_metrics.items():
         metrics[name] = np.where(metrics["experiment"] == "online", value, np.nan)

@@ -43,6 +43,7 @@ from ..numerics.analysis import rms_band
 from .schema import split_column
 from .store import RunStore, layout
 from .store.table import changed_params
+from .summary import lost_paths
 
 KEYS = ["experiment", "k", "path"]
 MEMBER_KEYS = ["experiment", "k", "path", "member"]
@@ -461,6 +462,8 @@ def report_markdown(tables: dict[str, pd.DataFrame], summary: dict) -> str:
                      f"{_fmt(o.get('final_rate_plant_q90'))}], {_fmt(o.get('final_stable_fraction'))} of paths "
                      f"stable; offline gain {_fmt(o.get('offline_rate_plant'))}, optimum "
                      f"{_fmt(o.get('optimal_rate_plant'))}; {_fmt(o.get('adoptions_per_path'))} adoptions per path")
+        if o.get("lost_more_p") is not None:
+            lines.append(f"- online paths lost: {lost_paths(o)}")
     gains = tables["gains"]
     chosen = gains[gains["selected"]]
     if len(chosen):

@@ -140,6 +140,11 @@ COLUMNS: dict[str, dict[str, tuple[str, str | None]]] = {
         "rate_not_diverged": ("online: empirical rate over the paths that did not diverge", "1/step"),
         "offline_rate_plant": ("online: exact rate of the offline design of the same seed, true plant", "1/step"),
         "optimal_rate_plant": ("online: optimal exact rate on the true plant (policy iteration)", "1/step"),
+        "lost_online_only": ("online: paths the online loop lost and the offline loop (same plant samples) kept",
+                             None),
+        "lost_offline_only": ("online: paths the offline loop lost and the online loop kept", None),
+        "lost_more_p": ("online: exact paired sign test of the online loop losing more paths than the offline "
+                        "loop, P(Bin(only online + only offline, 1/2) >= only online)", None),
     },
     "controller": {
         "path": _TRAJECTORY["path"],

@@ -6,7 +6,7 @@ from pathlib import Path
 import numpy as np
 
 from ..numerics.synthesis import status_meaning
-from ..numerics.verdict import ABOVE_FLOOR, AT_FLOOR, FAILURES
+from ..numerics.verdict import ABOVE_FLOOR, AT_FLOOR, FAILURES, PAIRED_LEVEL
 from .store import layout
 
 
@@ -168,6 +168,8 @@ def summary_text(info: dict, run_dir: Path) -> str:
                      f"path; offline gain {fmt(o['offline_rate_plant'])}, optimum {fmt(o['optimal_rate_plant'])}")
         start = s.get("online_initial") or {}
         lines.append(f"  online start: {initial_gain(start)}")
+        if o.get("lost_more_p") is not None:
+            lines.append(f"  online paths lost: {lost_paths(o)}")
         probe = start.get("probe")
         if probe:                                         # controller.probe: say whether the window holds it
             amplitude, until = probe
@@ -193,6 +195,16 @@ def initial_gain(start: dict) -> str:
         return "F = 0 (no stabilizing nominal gain)"
     law = {"start": "at the law its EnKF starts from", "guess": "at xi_guess"}.get(start.get("nominal_law"), "")
     return f"the nominal gain, {start.get('method')} {law} (exact rate there {start.get('rate_on_law', np.nan):.4f})"
+
+
+def lost_paths(o: dict) -> str:
+    """The paths the online and offline loops lost alone (the same plant samples per path), with the exact paired
+    test of "online loses more": a count that differs by a path or two says nothing on its own."""
+    only_on, only_off, p = int(o["lost_online_only"]), int(o["lost_offline_only"]), o["lost_more_p"]
+    if only_on + only_off == 0:
+        return "none by one loop alone"
+    more = "online loses more than chance explains" if p < PAIRED_LEVEL else "within chance"
+    return f"{only_on} by online alone, {only_off} by offline alone: {more} (paired sign test, p = {p:.3g})"
 
 
 def gap(s: dict) -> list[str]:

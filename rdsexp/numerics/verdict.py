@@ -42,12 +42,14 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.special import ndtr, ndtri
+from scipy.stats import binom
 
 VERDICTS = ("stable", "unstable", "undetermined", "failed")
 ABOVE_FLOOR = 10.0    # a placed window ends where the ideal loop's RMS is still 10 floors (one decade) up
 AT_REST = 2.0         # a loop whose mean square is below 2 floors' (its transient below the floor) is at rest
 AT_FLOOR = 3.0        # an automatic window ends where the loop's own RMS comes within 2 AT_FLOOR floors
 LEVEL = 0.95          # of every rate interval
+PAIRED_LEVEL = 0.05   # `paired_losses`: a loop loses more paths than another where p < this
 RESAMPLES = 999       # bootstrap resamples of the paths
 UPPER_SIGMA = 0.8413447460685429    # the standard normal's cdf at 1: its quantile of log v is mu + sigma
 BOOTSTRAP_SEED = 7    # one fixed stream: an interval is a function of its paths alone (the same bytes for any
@@ -244,6 +246,27 @@ def paths_needed(rate: float, low: float, high: float, paths: int) -> int | None
     distance = abs(np.log(rate))
     reach = np.log(high) - np.log(rate) if rate < 1 else np.log(rate) - np.log(low)     # towards 1: >= distance
     return int(np.ceil(paths * (reach / distance) ** 2))
+
+
+def paired_losses(lost_a: np.ndarray, lost_b: np.ndarray) -> tuple[int, int, float]:
+    """Whether loop a loses more paths than loop b, run on the same plant samples (path j of both draws
+    the same coefficients), as an exact test, not a comparison of two counts.
+
+    lost_a, lost_b (P,) bool. Returns (only_a, only_b, p): the paths lost by a alone and by b alone, and
+    the one-sided p-value of the exact sign (McNemar) test, P(Bin(only_a + only_b, 1/2) >= only_a). Under
+    "a loses a path no more often than b" each discordant path is a's with probability at most 1/2; paths
+    both lose or both keep say nothing. p = 1 when no path is discordant. A path lost now and then by
+    either loop makes the bare counts differ by chance (measured: docs/online.md); p says by how much.
+    """
+    lost_a, lost_b = np.asarray(lost_a, bool), np.asarray(lost_b, bool)
+    only_a, only_b = int(np.sum(lost_a & ~lost_b)), int(np.sum(lost_b & ~lost_a))
+    return only_a, only_b, sign_test(only_a, only_b)
+
+
+def sign_test(only_a: int, only_b: int) -> float:
+    """`paired_losses`'s p from the discordant counts, P(Bin(only_a + only_b, 1/2) >= only_a) (1 if only_a = 0);
+    the counts of independent runs (seeds) add up."""
+    return float(binom.sf(only_a - 1, only_a + only_b, 0.5)) if only_a else 1.0
 
 
 def judge_loop(sq: np.ndarray, *, failed_at: np.ndarray, failure: np.ndarray, window: tuple[int, int] | None,

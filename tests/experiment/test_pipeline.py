@@ -324,3 +324,21 @@ def test_the_online_loops_nominal_gain_is_designed_on_the_law_its_enkf_starts_fr
     np.testing.assert_allclose(first["rate_plant"], info["rate_on_law"], rtol=1e-9)
     det = synthesize(exp.model, MomentModel.deterministic([mu]), "lqr_mean").F
     assert not np.allclose(F, det, rtol=1e-3)                       # not the deterministic design at the guess
+
+
+def test_paths_the_online_loop_loses_alone_are_counted_path_by_path_and_tested_against_chance():
+    """A destabilising initial gain (u = 100 x_2 on the paper's plant: x_2 grows about 41-fold a step) loses every
+    online path before its first re-design, while the offline loop of the same plant samples keeps its own. The
+    online metrics count the paths each loop lost alone from the paths table, path by path, and the exact paired
+    test (`verdict.paired_losses`) gives p = 2^-P: more than chance explains."""
+    out = pipeline.run_experiment(experiment("controller=online", "controller.initial=[[0,100,0,0,0,0]]",
+                                             "closed_loop.paths=8", "closed_loop.open_loop=false"))
+    paths = out.tables["paths"]
+    lost = {e: paths[paths["experiment"] == e].sort_values("path")["failed_at"].to_numpy() >= 0
+            for e in ("online", "closed_loop")}
+    o = out.summary["online"]
+    assert lost["online"].all() and not lost["closed_loop"].any()
+    assert (o["lost_online_only"], o["lost_offline_only"]) == (8, 0) and o["lost_more_p"] == 2.0 ** -8
+    metrics = out.tables["metrics"].set_index("experiment").loc["online"]
+    assert (metrics["lost_online_only"], metrics["lost_more_p"]) == (8, 2.0 ** -8)
+    assert not undocumented(out.summary)

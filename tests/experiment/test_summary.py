@@ -1,5 +1,5 @@
 """The run summary's words about the loop: its controller and why its verdict differs from the gain's rate."""
-from rdsexp.experiment.summary import gap, initial_gain
+from rdsexp.experiment.summary import gap, initial_gain, lost_paths
 
 
 def summary(estimate, verdict="unstable", rate=0.6, reason="the loop grows"):
@@ -36,3 +36,14 @@ def test_the_online_start_names_the_law_its_nominal_gain_was_designed_on():
     assert initial_gain(start) == "the nominal gain, lqr_mean at xi_guess (exact rate there 0.5000)"
     assert initial_gain(start | {"used": "zero (no stabilizing nominal gain)"}) == "F = 0 (no stabilizing nominal gain)"
     assert initial_gain({"initial": "zero"}) == "F = 0" and initial_gain({"initial": "given"}) == "the given gain"
+
+
+def test_the_online_paths_lost_say_whether_more_than_chance_explains():
+    """The console's `online paths lost` line: the paths each loop lost alone and the paired test's verdict, at
+    PAIRED_LEVEL; a count that differs by a path or two is within chance."""
+    line = lambda on, off, p: lost_paths({"lost_online_only": on, "lost_offline_only": off, "lost_more_p": p})
+    assert line(0, 0, 1.0) == "none by one loop alone"
+    assert line(5, 0, 1 / 32) == ("5 by online alone, 0 by offline alone: online loses more than chance explains "
+                                  "(paired sign test, p = 0.0312)")
+    assert line(2, 0, 0.25) == "2 by online alone, 0 by offline alone: within chance (paired sign test, p = 0.25)"
+    assert line(1, 3, 0.9375).endswith("within chance (paired sign test, p = 0.938)")
