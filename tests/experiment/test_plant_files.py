@@ -327,3 +327,39 @@ def test_random_plants_counts_the_plants_losing_more_paths_online_apart_where_th
                                             "the offline loop is stable; no offline gain (not compared): d")
     random_plants.print_online(table.drop(columns=["lost_online_only", "lost_offline_only", "lost_more_p"]))
     assert "lost 0.10 vs 0.00  LOST MORE (offline loop stable)" in capsys.readouterr().out    # runs before the test
+
+
+def test_paired_null_redraws_only_the_loops_enkf_noise_and_tallies_each_comparison():
+    """experiments/paired_null.py: within `noise_drawn_anew` the loops' EnKF streams (spawn key (1,)) are new and
+    their plant streams, and every identification stream (spawn key (0,)), are the same numbers; `tally` counts,
+    per comparison, the plants losing more by the bare counts and by the paired test, and names them."""
+    sys.path.insert(0, str(REPO / "experiments"))
+    import json
+
+    import pandas as pd
+    import paired_null
+
+    from rdsexp.numerics import simulation
+    loops, ident = (np.random.SeedSequence(5, spawn_key=key) for key in ((1,), (0,)))
+    first = lambda seed, purpose: simulation.path_generators(seed, purpose, range(3))[2].standard_normal(4)
+    before = {(s, p): first(s, p) for s in (loops, ident) for p in (simulation.PLANT, simulation.ENKF)}
+    with paired_null.noise_drawn_anew():
+        during = {(s, p): first(s, p) for s in (loops, ident) for p in (simulation.PLANT, simulation.ENKF)}
+    assert not np.array_equal(during[loops, simulation.ENKF], before[loops, simulation.ENKF])
+    for key in ((loops, simulation.PLANT), (ident, simulation.PLANT), (ident, simulation.ENKF)):
+        np.testing.assert_array_equal(during[key], before[key])
+    np.testing.assert_array_equal(first(loops, simulation.ENKF), before[loops, simulation.ENKF])   # restored
+
+    lists = lambda *lost: [json.dumps(list(x)) for x in lost]
+    table = pd.DataFrame({"seed": [0, 0, 0], "plant": ["rp0", "rp1", "rp2"], "gain": [True, True, False],
+                          "verdict": ["stable", "undetermined", ""], "off": lists([], [1], []),
+                          "off_anew": lists([2], [1], []), "on": lists(range(6), [1, 3], range(9)),
+                          "on_anew": lists([0, 1], [], [])})
+    lines = paired_null.tally(table, 10)
+    assert lines[0].startswith("2 plants with an offline gain, 1 with an offline loop called stable")
+    counts = {line[2:30].strip(): line[30:].split() for line in lines[1:7]}
+    assert counts["offline anew vs offline"] == ["bare", "1", "(1)", "test", "0", "(0)"]
+    assert counts["online vs offline"] == ["bare", "2", "(1)", "test", "1", "(1)"]      # rp0: 6 vs 0, p = 1/64
+    assert counts["online vs online anew"] == ["bare", "2", "(1)", "test", "0", "(0)"]  # rp0: 4 vs 0, p = 1/16
+    assert lines[7] == ("  seed 0 rp0 (stable): lost offline 0 / 1 anew, online 6 / 2 anew; online vs offline alone "
+                        "6 vs 0 (p = 0.0156), 2 vs 1 (p = 0.5)")
