@@ -336,8 +336,8 @@ def test_paired_null_redraws_only_the_loops_enkf_noise_and_tallies_each_comparis
     sys.path.insert(0, str(REPO / "experiments"))
     import json
 
-    import pandas as pd
     import paired_null
+    import pandas as pd
 
     from rdsexp.numerics import simulation
     loops, ident = (np.random.SeedSequence(5, spawn_key=key) for key in ((1,), (0,)))
