@@ -116,21 +116,32 @@ def tally(table: pd.DataFrame, paths: int) -> list[str]:
 
 
 def seeds_of(text: str) -> list[int]:
-    """'0-9' or '0,3,5' (or a mix) as a list of seeds."""
+    """'0-9' or '0,3,5' (or a mix) as a list of seeds; argparse's one-line error otherwise."""
     out = []
     for part in filter(None, text.split(",")):
         low, _, high = part.partition("-")
+        if not (low.isdigit() and (high.isdigit() or not high)):
+            raise argparse.ArgumentTypeError(f"{text!r}: expected seeds as 0-9 or 0,3,5")
         out += list(range(int(low), int(high or low) + 1))
+    if not out:
+        raise argparse.ArgumentTypeError(f"{text!r}: no seed")
     return out
+
+
+def positive(text: str) -> int:
+    """An integer >= 1, else argparse's one-line error."""
+    if not text.isdigit() or int(text) < 1:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected an integer >= 1")
+    return int(text)
 
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0],
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--seeds", default="0-9", help="draws of random_plants.py (default 0-9)")
-    parser.add_argument("--n", type=int, default=30, help="plants per draw (default 30)")
-    parser.add_argument("--paths", type=int, default=100, help="closed_loop.paths (default 100)")
-    parser.add_argument("--jobs", type=int, default=2, help="plants at a time (default 2)")
+    parser.add_argument("--seeds", type=seeds_of, default="0-9", help="draws of random_plants.py (default 0-9)")
+    parser.add_argument("--n", type=positive, default=30, help="plants per draw (default 30)")
+    parser.add_argument("--paths", type=positive, default=100, help="closed_loop.paths (default 100)")
+    parser.add_argument("--jobs", type=positive, default=2, help="plants at a time (default 2)")
     parser.add_argument("--out", type=Path, help="CSV of the per-plant table")
     args = parser.parse_args(argv)
     rows = []
@@ -139,7 +150,7 @@ def main(argv=None):
     with tempfile.TemporaryDirectory() as tmp, concurrent.futures.ProcessPoolExecutor(args.jobs, mp_context=spawn) \
             as pool:
         futures = []
-        for seed in seeds_of(args.seeds):
+        for seed in args.seeds:
             config_dir = Path(tmp) / f"draw{seed}"
             for plant in draw_plants(args.n, seed):
                 write_plant(plant, config_dir, f"experiments/random_plants.py --seed {seed}")

@@ -259,6 +259,8 @@ def paired_losses(lost_a: np.ndarray, lost_b: np.ndarray) -> tuple[int, int, flo
     either loop makes the bare counts differ by chance (measured: docs/online.md); p says by how much.
     """
     lost_a, lost_b = np.asarray(lost_a, bool), np.asarray(lost_b, bool)
+    if lost_a.shape != lost_b.shape or lost_a.ndim != 1:
+        raise ValueError(f"paired_losses: lost_a {lost_a.shape} and lost_b {lost_b.shape}, expected two (P,) arrays")
     only_a, only_b = int(np.sum(lost_a & ~lost_b)), int(np.sum(lost_b & ~lost_a))
     return only_a, only_b, sign_test(only_a, only_b)
 

@@ -350,6 +350,11 @@ def test_paired_null_redraws_only_the_loops_enkf_noise_and_tallies_each_comparis
         np.testing.assert_array_equal(during[key], before[key])
     np.testing.assert_array_equal(first(loops, simulation.ENKF), before[loops, simulation.ENKF])   # restored
 
+    for bad in (["--seeds", "abc"], ["--seeds", "3-x"], ["--n", "0"]):     # a one-line error before any run
+        with pytest.raises(SystemExit):
+            paired_null.main(bad)
+    assert paired_null.seeds_of("0-2,5") == [0, 1, 2, 5]
+
     lists = lambda *lost: [json.dumps(list(x)) for x in lost]
     table = pd.DataFrame({"seed": [0, 0, 0], "plant": ["rp0", "rp1", "rp2"], "gain": [True, True, False],
                           "verdict": ["stable", "undetermined", ""], "off": lists([], [1], []),

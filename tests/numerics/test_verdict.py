@@ -220,6 +220,8 @@ def test_paired_losses_counts_the_discordant_paths_and_gives_the_exact_sign_test
     both = np.array([True, True, False, False])
     assert paired_losses(both, both) == (0, 0, 1.0)
     assert paired_losses(np.array([1, 1, 1, 1, 1, 0], bool), np.zeros(6, bool)) == (5, 0, 1 / 32)
+    with pytest.raises(ValueError, match="expected two"):
+        paired_losses(np.zeros(5, bool), np.zeros(6, bool))           # not the same paths
 
 
 @pytest.mark.parametrize("hazard", ["light", "heavy"])
