@@ -16,7 +16,10 @@ how many plants a loses more paths on by the bare counts, and how many the test 
 (p < PAIRED_LEVEL), also among the plants whose offline loop rdsexp calls `stable`; then the plants where any
 comparison loses more. docs/online.md shows its table for seeds 0-9 (about 30 minutes on two cores).
 
-    python experiments/paired_null.py [--seeds 0-9] [--n 30] [--paths 100] [--jobs 2] [--out CSV]
+    python experiments/paired_null.py [--seeds 0-9] [--n 30] [--paths 100] [--jobs 2] [--out CSV] [--override K=V ...]
+
+--override adds a config override to every run (repeatable), e.g. closed_loop.horizon=300: online's losses on some
+plants come after the default 100 steps (docs/online.md, "Over a longer horizon").
 """
 from __future__ import annotations
 
@@ -64,12 +67,17 @@ def noise_drawn_anew():
         simulation.path_generators = draw
 
 
-def lost_paths(config_dir: Path, plant: str, paths: int, anew: bool) -> dict:
+def run_overrides(paths: int, overrides=()) -> list[str]:
+    """The overrides of every run: controller=online, `paths` paths, no open loop, no recording, then `overrides`."""
+    return ["controller=online", f"closed_loop.paths={paths}", "closed_loop.open_loop=false", "tracking=off",
+            *overrides]
+
+
+def lost_paths(config_dir: Path, plant: str, paths: int, anew: bool, overrides=()) -> dict:
     """One run of `plant` with controller=online: the paths each loop lost, the offline loop's verdict."""
     from rdsexp.experiment.pipeline import run_experiment
     with noise_drawn_anew() if anew else contextlib.nullcontext():
-        tables = run_experiment(experiment(plant, config_dir, ["controller=online", f"closed_loop.paths={paths}",
-                                                               "closed_loop.open_loop=false", "tracking=off"])).tables
+        tables = run_experiment(experiment(plant, config_dir, run_overrides(paths, overrides))).tables
     ways, metrics = tables["paths"], tables["metrics"].set_index("experiment")
     lost = {loop: sorted(int(p) for p in ways[(ways["experiment"] == loop) & (ways["failed_at"] >= 0)]["path"])
             for loop in ("closed_loop", "online")}
@@ -78,11 +86,11 @@ def lost_paths(config_dir: Path, plant: str, paths: int, anew: bool) -> dict:
             "verdict": str(metrics.loc["closed_loop", "verdict"]) if gain else ""}
 
 
-def one_plant(config_dir: Path, seed: int, plant: str, paths: int) -> dict:
+def one_plant(config_dir: Path, seed: int, plant: str, paths: int, overrides=()) -> dict:
     """Both runs of one plant: its row (lost path lists as JSON)."""
     row = {"seed": seed, "plant": plant}
     try:
-        plain, anew = (lost_paths(config_dir, plant, paths, a) for a in (False, True))
+        plain, anew = (lost_paths(config_dir, plant, paths, a, overrides) for a in (False, True))
     except Exception as err:                    # noqa: BLE001 -- a failed run is a row, not the end of the table
         return row | {"error": f"{type(err).__name__}: {err}"[:300]}
     return row | {"gain": plain["gain"], "verdict": plain["verdict"], "off": json.dumps(plain["off"]),
@@ -143,6 +151,8 @@ def main(argv=None):
     parser.add_argument("--paths", type=positive, default=100, help="closed_loop.paths (default 100)")
     parser.add_argument("--jobs", type=positive, default=2, help="plants at a time (default 2)")
     parser.add_argument("--out", type=Path, help="CSV of the per-plant table")
+    parser.add_argument("--override", action="append", default=[], metavar="KEY=VALUE",
+                        help="extra config override for every run (repeatable)")
     args = parser.parse_args(argv)
     rows = []
     # spawned workers: the draw runs designs (BLAS threads) in this process, which a forked worker can deadlock on
@@ -154,7 +164,12 @@ def main(argv=None):
             config_dir = Path(tmp) / f"draw{seed}"
             for plant in draw_plants(args.n, seed):
                 write_plant(plant, config_dir, f"experiments/random_plants.py --seed {seed}")
-                futures.append(pool.submit(one_plant, config_dir, seed, plant.name, args.paths))
+                if not futures:         # the overrides checked on the first plant, before any run
+                    try:
+                        experiment(plant.name, config_dir, run_overrides(args.paths, args.override))
+                    except Exception as err:     # noqa: BLE001 -- Hydra's and the config's errors alike
+                        parser.error(f"--override: {str(err).strip().splitlines()[0]}")
+                futures.append(pool.submit(one_plant, config_dir, seed, plant.name, args.paths, args.override))
         for done in concurrent.futures.as_completed(futures):
             rows.append(done.result())
             print(f"\r{len(rows)}/{len(futures)} plants", end="", flush=True)

@@ -368,3 +368,37 @@ def test_paired_null_redraws_only_the_loops_enkf_noise_and_tallies_each_comparis
     assert counts["online vs online anew"] == ["bare", "2", "(1)", "test", "0", "(0)"]  # rp0: 4 vs 0, p = 1/16
     assert lines[7] == ("  seed 0 rp0 (stable): lost offline 0 / 1 anew, online 6 / 2 anew; online vs offline alone "
                         "6 vs 0 (p = 0.0156), 2 vs 1 (p = 0.5)")
+
+
+def test_paired_null_overrides_reach_both_runs_and_a_bad_one_stops_before_any(tmp_path, monkeypatch, capsys):
+    """experiments/paired_null.py --override: each run's experiment carries it after the script's own overrides
+    (here a 300-step horizon, where online loses paths on plants it keeps at 100); a bad one is argparse's
+    one-line error, checked on the first plant before any run is submitted."""
+    sys.path.insert(0, str(REPO / "experiments"))
+    import paired_null
+    from coverage import experiment
+    from random_plants import draw_plants, write_plant
+
+    import rdsexp.experiment.pipeline as pipeline
+    plant = draw_plants(1, 0)[0]
+    write_plant(plant, tmp_path, "test")
+    exp = experiment(plant.name, tmp_path, paired_null.run_overrides(5, ["closed_loop.horizon=300"]))
+    assert (exp.controller.kind, exp.loop.paths, exp.loop.disturbance.shape[0]) == ("online", 5, 301)
+
+    seen = []
+
+    def record(exp):                                    # lost_paths builds its run from the same overrides
+        seen.append(exp.loop.disturbance.shape[0])
+        raise RuntimeError("recorded")
+    monkeypatch.setattr(pipeline, "run_experiment", record)
+    for anew in (False, True):
+        with pytest.raises(RuntimeError, match="recorded"):
+            paired_null.lost_paths(tmp_path, plant.name, 5, anew, ["closed_loop.horizon=300"])
+    assert seen == [301, 301]
+
+    out = tmp_path / "table.csv"
+    with pytest.raises(SystemExit):
+        paired_null.main(["--seeds", "0", "--n", "1", "--out", str(out), "--override", "closed_loop.horizon=abc"])
+    error = capsys.readouterr().err.strip().splitlines()[-1]
+    assert error.endswith(": error: --override: closed_loop.horizon: 'abc' is not allowed, expected an integer >= 1")
+    assert seen == [301, 301] and not out.exists()
