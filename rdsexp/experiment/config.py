@@ -647,7 +647,7 @@ def _flag(cfg, name: str) -> bool:
 CONTROLLERS = ("offline", "online")
 ONLINE_KEYS = {"type", "initial", "warmup", "period", "memory", "window", "forgetting", "method", "options",
                "safeguard", "resamples", "block", "min_blocks", "covariance", "disturbance", "observer", "start",
-               "start_spread", "lag", "probe", "probe_until"}
+               "start_spread", "mean_spread", "lag", "probe", "probe_until"}
 
 
 def _controller(cfg, model: AffineRandomSystem, loop: LoopSettings) -> tuple[
@@ -699,8 +699,9 @@ def _controller(cfg, model: AffineRandomSystem, loop: LoopSettings) -> tuple[
     start = plain(OmegaConf.select(cfg, "controller.start", default=OnlineSettings.start))
     if start not in STARTS:
         raise ConfigError(f"controller.start: {start!r} is not allowed, expected one of {', '.join(STARTS)}")
-    start_spread = _number(plain(OmegaConf.select(cfg, "controller.start_spread", default=OnlineSettings.start_spread)),
-                           "controller.start_spread", low=0, low_open=True)
+    start_spread, mean_spread = (
+        _number(plain(OmegaConf.select(cfg, f"controller.{name}", default=getattr(OnlineSettings, name))),
+                f"controller.{name}", low=0, low_open=True) for name in ("start_spread", "mean_spread"))
     probe = _number(plain(OmegaConf.select(cfg, "controller.probe", default=0.0)), "controller.probe", low=0)
     probe_until = plain(OmegaConf.select(cfg, "controller.probe_until", default="auto"))
     if probe_until == "auto":
@@ -713,6 +714,7 @@ def _controller(cfg, model: AffineRandomSystem, loop: LoopSettings) -> tuple[
     with key("controller.options"):
         settings = OnlineSettings(memory=memory, forgetting=forgetting, method=method, options=options,
                                   covariance=covariance, observer=observer, start=start, start_spread=start_spread,
+                                  mean_spread=mean_spread,
                                   safeguard=safeguard, probe=probe, probe_until=probe_until, **ints).check(model, K)
     initial = get(cfg, "controller.initial")
     if isinstance(initial, list):

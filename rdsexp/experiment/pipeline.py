@@ -392,7 +392,8 @@ def online_loop(exp: Experiment, seed, keep: bool, sim: dict, sink, sample: list
     info = {"initial": exp.controller.initial if isinstance(exp.controller.initial, str) else "given",
             # the start before a path's first model, as the loop's EnKF has it (static_mean with observer = model)
             "start": "static_mean" if enkf.static_mean else "random_walk",
-            "lag": exp.controller.online.lag, "output_delay": output_delay(exp.model).tolist()}
+            "lag": exp.controller.online.lag, "output_delay": output_delay(exp.model).tolist(),
+            "start_scale": enkf.start_scale}
     if exp.controller.online.probe > 0:              # the known excitation on u: amplitude, last step (None: never)
         info["probe"] = [exp.controller.online.probe, exp.controller.online.probe_until]
     F0 = exp.controller.initial if not isinstance(exp.controller.initial, str) else np.zeros((m, n))
@@ -896,19 +897,64 @@ def online_nominal(exp: Experiment, enkf: EnKF) -> tuple[SynthesisResult, str]:
     affine map of the plant's. The EnKF draws its start from that law, so a gain it destabilises leaves the
     ensemble's spread growing without bound, and the state estimate with it (docs/online-rounds.md, an
     eleventh round)."""
+    law = start_law(exp, enkf)
+    if law is None:
+        return nominal_gain(exp.plant, exp.identification.xi_guess), "guess"
+    res = nominal_gain(exp.model, *law)
+    return res, "start" if res.method == "ms_lqr" else "guess"          # (nominal_gain returns it only if stable)
+
+
+def start_law(exp: Experiment, enkf: EnKF) -> tuple[np.ndarray, np.ndarray] | None:
+    """(mean (p,), cov (p, p)): the law of the first xi the online loop's EnKF draws, xi_guess with the start's
+    spread (`EnKF.start_cov`; a two-point component the variance its mean fixes), in the model's terms; None
+    where the model's xi is not an affine map of the plant's."""
     truth = truth_map(exp.model, exp.plant)
     if truth is None:
-        return nominal_gain(exp.plant, exp.identification.xi_guess), "guess"
+        return None
     n, dim = exp.model.n, enkf.dim
     guess = truth[0] @ np.asarray(exp.identification.xi_guess, dtype=float) + truth[1]
-    mean, cov = two_point_moments(guess, enkf.start_cov(exp.filter.P0[n:dim, n:dim]), enkf.two_point)
-    res = nominal_gain(exp.model, mean, cov)
-    return res, "start" if res.method == "ms_lqr" else "guess"          # (nominal_gain returns it only if stable)
+    return two_point_moments(guess, enkf.start_cov(exp.filter.P0[n:dim, n:dim]), enkf.two_point)
+
+
+START_HALVINGS = 10
+
+
+def stabilizable_start(exp: Experiment, enkf: EnKF) -> EnKF:
+    """enkf with its static-mean start law scaled (`EnKF.start_scale`) by the largest c of 1, 1/2, ..., 2^-10
+    at which the law admits a mean-square stabilizing gain (the mean-square LQR at it, `nominal_gain`'s first
+    design), if that gain holds the whole law no worse than the deterministic design at the guess does (their
+    exact rates there); unscaled where none does, the check fails or `start_law` is None.
+
+    The start's spread is an assumption, enkf.Q's xi block, not a measurement. Its members move x with their
+    draws under the gain in use; a law under which no gain is mean-square stable leaves the nominal gain
+    designed at the guess alone, which that law destabilises, and the ensemble's x spread grows until the
+    estimate fed back is worse than none (seed 6's random plant 19: 78 of 100 paths lost against none offline;
+    docs/online-rounds.md, a thirteenth round). The check: narrowing moves only the Gaussian components, not a
+    two-point one, whose spread its mean fixes; far from the plant's mean (seed 0's random plant 9, the guess one
+    standard deviation off) a law narrowed to 2^-8 admits a gain that leans on the Gaussian components'
+    certainty (exact rate 2.28 at the whole law, 3.25 on the plant, against the deterministic design's 1.42 and
+    1.35)."""
+    full = start_law(exp, enkf)
+    if full is None:
+        return enkf
+    for c in 0.5 ** np.arange(START_HALVINGS + 1):
+        scaled = dataclasses.replace(enkf, start_scale=float(c))
+        res = nominal_gain(exp.model, *start_law(exp, scaled))
+        if res.method != "ms_lqr":
+            continue
+        if c == 1:
+            return enkf
+        whole = MomentModel(mean=full[0], cov=full[1])
+        deterministic = nominal_gain(exp.model, full[0])
+        held = deterministic.F is None or ms_rate(exp.model, whole, res.F) <= ms_rate(exp.model, whole, deterministic.F)
+        return scaled if held else enkf
+    return enkf
 
 
 def online_observer(exp: Experiment) -> EnKF:
     """The online loop's EnKF: the loops' observer (`loop_observer`) with the online controller's unknown-input
-    estimate, smoother lag, start (static_mean with observer = model only) and two-point components."""
+    estimate, smoother lag, start (static_mean with observer = model only; its law narrowed where no gain keeps it
+    mean-square stable: `stabilizable_start`) and two-point components."""
     online = exp.controller.online
     enkf = loop_observer(exp, None)
     if enkf.disturbance is None and exp.controller.disturbance is not None:
@@ -919,8 +965,10 @@ def online_observer(exp: Experiment) -> EnKF:
     # start and each path's model draw that law, not a Gaussian (`EnKF.xi_ends`)
     ends = xi_ends(exp.model, exp.plant) if enkf.xi_bounds is not None else None
     static_mean = online.observer == "model" and online.start == "static_mean"
-    return dataclasses.replace(enkf, lag=online.lag, static_mean=static_mean, start_spread=online.start_spread,
-                               xi_ends=ends)
+    enkf = dataclasses.replace(enkf, lag=online.lag, static_mean=static_mean, start_spread=online.start_spread,
+                               mean_spread=online.mean_spread, xi_ends=ends)
+    # a start law no gain keeps mean-square stable is narrowed to one that some gain does
+    return stabilizable_start(exp, enkf) if static_mean else enkf
 
 
 def loop_observer(exp: Experiment, moments):

@@ -228,7 +228,8 @@ SUMMARY: dict[str, tuple[str, str | None]] = {
                               "exact rate of the loop through y with the best linear observer found", "1/step"),
     "online_initial": ("the online controller's initial gain and where it came from (nominal_law: start, the law "
                        "its EnKF starts from, or guess, xi_guess alone; rate_on_law: the gain's exact rate there), "
-                       "its EnKF's start before a path's first model (controller.start), smoothing lag "
+                       "its EnKF's start before a path's first model (controller.start; start_scale: the fraction of "
+                       "its law's spread kept, < 1 where no gain is mean-square stable at the full one), smoothing lag "
                        "(controller.lag), the steps after which each xi first reaches an output and, with "
                        "controller.probe, [probe, probe_until]", None),
     "online": ("the online controller's key numbers (adoptions, final gains' exact rates, ...)", None),

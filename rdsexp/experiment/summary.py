@@ -194,6 +194,9 @@ def initial_gain(start: dict) -> str:
     if "used" in start:                                   # no stabilizing nominal design
         return "F = 0 (no stabilizing nominal gain)"
     law = {"start": "at the law its EnKF starts from", "guess": "at xi_guess"}.get(start.get("nominal_law"), "")
+    scale = start.get("start_scale", 1.0)
+    if law and scale < 1:                                 # the start law narrowed (`pipeline.stabilizable_start`)
+        law += f" (its spread x {scale:g}: none is mean-square stable at the full one)"
     return f"the nominal gain, {start.get('method')} {law} (exact rate there {start.get('rate_on_law', np.nan):.4f})"
 
 

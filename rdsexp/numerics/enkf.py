@@ -88,12 +88,12 @@ projected onto xi_bounds with xi.
 Static-mean start (`static_mean`): the online controller's paths have no model of xi before their first
 re-design, so their EnKF walks (xi_{k+1|k} = xi_{k|k} + w), and a walk's spread grows with k where the
 outputs say little. With a static mean, psi = [x; xi; d; mu; past draws], mu a static component (no noise)
-started at N(the initial xi, Q's xi block), and each step draws xi_k = mu + w_xi i.i.d. about it (Assumption 1 with an
-unknown mean), moves x with that draw and keeps it, as the draws from known moments do (`xi_prior`): the
-update with y_{k+1} then learns mu through its sample covariance with y, and mu's spread shrinks with the
-data where the walk's grows. Components that reach an output only later (`output_delay` > 0) stay on the
-walk: y_{k+1} does not see their draw, and their first models (from the smoother's estimates) come out too
-narrow to learn from (docs/online-rounds.md). mu is projected onto xi_bounds with xi (a mean of draws in the box).
+started at N(the initial xi, `mean_spread`^2 Q's xi block), and each step draws xi_k = mu + w_xi i.i.d. about it
+(Assumption 1 with an unknown mean), moves x with that draw and keeps it, as the draws from known moments do
+(`xi_prior`): the update with y_{k+1} then learns mu through its sample covariance with y, and mu's spread
+shrinks with the data where the walk's grows. Components that reach an output only later (`output_delay` > 0)
+stay on the walk: y_{k+1} does not see their draw, and their first models (from the smoother's estimates) come
+out too narrow to learn from (docs/online-rounds.md). mu is projected onto xi_bounds with xi (a mean of draws in the box).
 The draws stand for xi's own spread, which nothing has measured yet, not for a walk's step: `start_spread` c
 makes them mu + c w_xi. Draws narrower than the plant's xi leave the ensemble's x spread without the
 multiplicative uncertainty it must carry, so the filter trusts a wrong x and can diverge (docs/online-rounds.md).
@@ -104,6 +104,13 @@ Phi(w / sd) is below it), in place of mu + c w (a dropout's variance mu (1 - mu)
 where the Gaussian draws' is 0.08). A path's own model (`_predict`'s path_prior) draws such a component
 the same way at its modeled mean, not as a Gaussian of its modeled variance, which the estimates
 understate (docs/online-rounds.md, a ninth round).
+mu's own spread is the prior's doubt about xi's mean, not xi's spread: each member keeps its mu for good, so
+members whose means differ move apart step after step through the open-loop dynamics (the input is the same
+for all), and on a plant y sees little of that spread grows faster than the outputs pull it back (seed 6's
+random plant 19: a predicted x spread of 2200 at k = 30 where the state is 130). `mean_spread` scales it apart
+from the draws' (docs/online-rounds.md, a thirteenth round). `start_scale` c in (0, 1] scales the whole start
+law, Q's xi block as the start uses it (mu's spread, the draws about it, the walked components' step): the online
+controller narrows a law under which no gain is mean-square stable (`pipeline.online_observer`).
 
 Ensembles returned by `predict` and `update` are stored component-major: they are (..., M, n+p)
 views of (n+p, ..., M) arrays, so each component of all paths and members is one contiguous block
@@ -203,7 +210,9 @@ class EnKF:
     lag: steps each xi stays in the ensemble after its own, updated by later outputs (the fixed-lag
     smoother; 0: none); static_mean: paths without a per-path prior draw xi about a static mean in psi (the
     online loop's start; module docstring) rather than walk; start_spread: those draws are mu + start_spread w,
-    w the xi part of the process noise (covariance start_spread^2 times Q's xi block); xi_ends: None or (p,)
+    w the xi part of the process noise (covariance start_spread^2 times Q's xi block); mean_spread: mu_0 ~
+    N(initial xi, mean_spread^2 Q's xi block); start_scale: with static_mean, Q's xi block as the start uses it
+    (mu_0's spread, the draws, the walked components' step) is start_scale times Q's; xi_ends: None or (p,)
     bool, the components whose law takes only the two ends of xi_bounds (`xi_ends(model, plant)`), which that
     start, and a path's own model, draw from their two-point law at the mean instead.
     """
@@ -220,6 +229,8 @@ class EnKF:
     lag: int = 0
     static_mean: bool = False
     start_spread: float = 1.0
+    mean_spread: float = 1.0
+    start_scale: float = 1.0
     xi_ends: np.ndarray | None = None
 
     def __post_init__(self):
@@ -247,10 +258,17 @@ class EnKF:
             raise ValueError(f"lag: {self.lag!r} is not allowed, expected an integer >= 0")
         if not isinstance(self.static_mean, (bool, np.bool_)):
             raise ValueError(f"static_mean: {self.static_mean!r} is not allowed, expected true or false")
-        if not (_real(self.start_spread) and self.start_spread > 0):
-            raise ValueError(f"start_spread: {self.start_spread!r} is not allowed, expected a finite number > 0")
+        for name in ("start_spread", "mean_spread"):
+            if not (_real(getattr(self, name)) and getattr(self, name) > 0):
+                raise ValueError(f"{name}: {getattr(self, name)!r} is not allowed, expected a finite number > 0")
+        if not (_real(self.start_scale) and 0 < self.start_scale <= 1):
+            raise ValueError(f"start_scale: {self.start_scale!r} is not allowed, expected a number in (0, 1]")
         # components on the walk in the static-mean start: those the next output does not see
         object.__setattr__(self, "_walked", output_delay(self.model) > 0 if self.static_mean else None)
+        # the start's w_xi scaled (p,): the walk's step on the walked components, start_spread on the drawn ones
+        step = None if not self.static_mean else \
+            np.sqrt(self.start_scale) * np.where(self._walked, 1.0, self.start_spread)
+        object.__setattr__(self, "_start_step", step)
         object.__setattr__(self, "_ends", self._check_ends())
         lags = self.width - Q_full.shape[0]                            # mu and the past draws: no noise
         Q_full = np.block([[Q_full, np.zeros((len(Q_full), lags))], [np.zeros((lags, len(Q_full) + lags))]])
@@ -414,15 +432,17 @@ class EnKF:
 
     def start_cov(self, P0_xi: np.ndarray) -> np.ndarray:
         """(p, p): the covariance of the first xi the start draws, xi_1 before any output, for an initial
-        ensemble whose xi has covariance P0_xi (p, p) (module docstring). With the static mean: mu_0 ~ N(., Q_xi)
-        and the draw mu + start_spread w_xi, so (1 + start_spread^2) Q_xi; on the walk (every component without
-        the static mean, those the next output does not see with it): xi_0 + w_xi, so P0_xi + Q_xi. A two-point
-        component gets its Gaussian stand-in here; its law's variance is fixed by its mean (`two_point`)."""
-        p = self.model.p
+        ensemble whose xi has covariance P0_xi (p, p) (module docstring). With the static mean, Q_xi scaled by
+        c = start_scale: mu_0 ~ N(., c mean_spread^2 Q_xi) and the draw mu + sqrt(c) start_spread w_xi, so
+        c (mean_spread^2 + start_spread^2) Q_xi; on the walk (every component without the static mean, those the
+        next output does not see with it): xi_0 + sqrt(c) w_xi, so P0_xi + c Q_xi (c = 1 without the static mean).
+        A two-point component gets its Gaussian stand-in here; its law's variance is fixed by its mean (`two_point`)."""
         Q = self.Q[self.model.n:self.dim, self.model.n:self.dim]
-        walked = np.ones(p, bool) if not self.static_mean else self._walked
-        step = np.where(walked, 1.0, self.start_spread)                   # the draws' w_xi, scaled
-        return step[:, None] * Q * step[None, :] + np.outer(~walked, ~walked) * Q + np.outer(walked, walked) * P0_xi
+        if not self.static_mean:
+            return Q + P0_xi
+        walked, step = self._walked, self._start_step
+        mean = self.start_scale * self.mean_spread ** 2 * np.outer(~walked, ~walked) * Q      # mu_0's spread
+        return step[:, None] * Q * step[None, :] + mean + np.outer(walked, walked) * P0_xi
 
     @property
     def two_point(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
@@ -464,8 +484,8 @@ class EnKF:
         shape = (-1,) + (1,) * (psi_next.ndim - 1)
         walked = self._walked.reshape(shape)
         w = draws = psi_next[n:dim][:, rest]
-        if self.start_spread != 1:                                  # skipped at 1 (bit-identical): the draws'
-            draws = draws * np.where(walked, 1.0, self.start_spread)               # spread, not the walk's step
+        if np.any(self._start_step != 1):                           # skipped at 1 (bit-identical): the draws'
+            draws = draws * self._start_step.reshape(shape)                       # spread, not the walk's step
         about = components(np.where(self._walked, xi, psi[..., self.mu_slice]))[:, rest]
         draws = draws + about
         if self._ends is not None and self._ends.start.any():

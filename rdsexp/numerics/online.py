@@ -81,9 +81,10 @@ class OnlineSettings:
     from the identified ones: `observer_prior`; `start` before); start: with observer "model", the loop's
     EnKF before a path's first model: "random_walk" or "static_mean" (xi drawn about a mean the EnKF learns,
     `EnKF.static_mean`); start_spread: with static_mean, the draws about that mean are mu + start_spread w_xi
-    (`EnKF.start_spread`); lag: the smoothing lag of the loop's EnKF (`EnKF.lag`); all set where that EnKF is
-    built. The estimates modeled at k are then xi_{k-1-lag} given y up to k. probe: the amplitude of the
-    known excitation added to u_k on every input (0: off), for k < probe_until (None: to the end).
+    (`EnKF.start_spread`); mean_spread: that mean starts at guess + mean_spread w_xi (`EnKF.mean_spread`);
+    lag: the smoothing lag of the loop's EnKF (`EnKF.lag`); all set where that EnKF is built. The estimates
+    modeled at k are then xi_{k-1-lag} given y up to k. probe: the amplitude of the known excitation added to u_k
+    on every input (0: off), for k < probe_until (None: to the end).
     """
 
     warmup: int = 20
@@ -101,6 +102,7 @@ class OnlineSettings:
     observer: str = "random_walk"
     start: str = "random_walk"
     start_spread: float = 1.0
+    mean_spread: float = 1.0
     lag: int = 0
     probe: float = 0.0
     probe_until: int | None = None
@@ -122,9 +124,11 @@ class OnlineSettings:
             raise ValueError(f"observer: {self.observer!r} is not allowed, expected one of {', '.join(OBSERVERS)}")
         if self.start not in STARTS:
             raise ValueError(f"start: {self.start!r} is not allowed, expected one of {', '.join(STARTS)}")
-        if not (isinstance(self.start_spread, (int, float)) and not isinstance(self.start_spread, bool)
-                and np.isfinite(self.start_spread) and self.start_spread > 0):
-            raise ValueError(f"start_spread: {self.start_spread!r} is not allowed, expected a finite number > 0")
+        for name in ("start_spread", "mean_spread"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and not isinstance(value, bool) and np.isfinite(value)
+                    and value > 0):
+                raise ValueError(f"{name}: {value!r} is not allowed, expected a finite number > 0")
         if not (isinstance(self.probe, (int, float)) and not isinstance(self.probe, bool) and np.isfinite(self.probe)
                 and self.probe >= 0):
             raise ValueError(f"probe: {self.probe!r} is not allowed, expected a finite number >= 0")

@@ -281,10 +281,11 @@ def simulate(plant: AffineRandomSystem | None, enkf: EnKF, *, F=None, d, q0, psi
     if md:                                           # [x; xi; d]: d_{0|-1} ~ N(0, Q_d)
         psi0 = np.concatenate([psi0, np.zeros(md)])
         P0 = np.block([[P0, np.zeros((dim, md))], [np.zeros((md, dim)), enkf.disturbance]])
-    if enkf.static_mean:                             # mu_0 ~ N(xi_{0|-1} mean, Q_xi): the guess, as uncertain as a step
+    if enkf.static_mean:                             # mu_0 ~ N(xi_{0|-1} mean, c mean_spread^2 Q_xi): the guess's doubt
         xi_rows = slice(model.n, dim)
         psi0 = np.concatenate([psi0, psi0[xi_rows]])
-        P0 = np.block([[P0, np.zeros((len(P0), model.p))], [np.zeros((model.p, len(P0))), enkf.Q[xi_rows, xi_rows]]])
+        P0_mu = enkf.start_scale * enkf.mean_spread ** 2 * enkf.Q[xi_rows, xi_rows]
+        P0 = np.block([[P0, np.zeros((len(P0), model.p))], [np.zeros((model.p, len(P0))), P0_mu]])
     if enkf.lag:                                     # the smoother's past draws start at the initial xi, fixed
         psi0 = np.concatenate([psi0, np.tile(psi0[model.n:dim], enkf.lag)])
         P0 = np.block([[P0, np.zeros((len(P0), width - len(P0)))], [np.zeros((width - len(P0), width))]])

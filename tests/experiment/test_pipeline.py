@@ -1,5 +1,6 @@
 """The stage pipeline: stages computed once per process for identical inputs, the same tables."""
 import copy
+import dataclasses
 
 import numpy as np
 import pandas as pd
@@ -324,6 +325,86 @@ def test_the_online_loops_nominal_gain_is_designed_on_the_law_its_enkf_starts_fr
     np.testing.assert_allclose(first["rate_plant"], info["rate_on_law"], rtol=1e-9)
     det = synthesize(exp.model, MomentModel.deterministic([mu]), "lqr_mean").F
     assert not np.allclose(F, det, rtol=1e-3)                       # not the deterministic design at the guess
+
+
+def test_a_start_law_no_gain_keeps_mean_square_stable_is_halved_until_one_does(tmp_path):
+    """x_{k+1} = (0.5 + xi_k) x_k + u_k, y = x: under N(mu, v) the best gain's mean-square rate is sqrt(v) (u = -0.5 x
+    cancels the mean), so a law is stabilizable exactly when v < 1. With enkf.Q's xi block 0.25, start_spread 2 and
+    mean_spread 0.3, the online loop's start law has v = (0.09 + 4) 0.25 = 1.0225: no gain is mean-square stable
+    there, and the start keeps half of it (`pipeline.stabilizable_start`), v = 0.511, where the nominal gain is the
+    mean-square LQR (recomputed here); with Q's xi block 0.2 (v = 0.818) nothing is narrowed."""
+    import yaml
+
+    from rdsexp.experiment.summary import initial_gain
+    from rdsexp.numerics.synthesis import synthesize
+    from rdsexp.numerics.systems import MomentModel
+    (tmp_path / "plant").mkdir()
+    plant = {"name": "scalar", "A": [[[0.5]], [[1.0]]], "B": [[[1.0]], [[0.0]]], "C": [[[1.0]], [[0.0]]],
+             "xi": {"family": "normal", "mean": [0.0], "cov": [[0.04]]}}
+    (tmp_path / "plant" / "scalar.yaml").write_text(yaml.safe_dump(plant))
+
+    def run(q_xi):
+        with initialize_config_module(config_module="rdsexp.conf", version_base="1.3"):
+            exp = build(compose("config", overrides=[
+                f"hydra.searchpath=[file://{tmp_path}]", "plant=scalar", "model=plant", *SMALL, "tracking=off",
+                "controller=online", "closed_loop.observer_xi=model", "controller.start_spread=2",
+                "controller.mean_spread=0.3", f"enkf.Q.xi={q_xi}", "closed_loop.open_loop=false"]))
+        return exp, pipeline.run_experiment(exp)
+
+    exp, out = run(0.25)
+    info = out.summary["online_initial"]
+    assert info["start_scale"] == 0.5 and (info["nominal_law"], info["method"]) == ("start", "ms_lqr")
+    v = 0.5 * (0.09 + 4) * 0.25
+    F = synthesize(exp.model, MomentModel(mean=np.zeros(1), cov=np.array([[v]])), "ms_lqr").F
+    first = out.tables["controller"].query("k < 0")
+    np.testing.assert_allclose(first["F[0,0]"], F[0, 0], rtol=1e-12)
+    np.testing.assert_allclose(info["rate_on_law"], np.sqrt((0.5 + F[0, 0]) ** 2 + v), rtol=1e-9)
+    assert "(its spread x 0.5: none is mean-square stable at the full one)" in initial_gain(info)
+    _, wide = run(0.2)
+    assert wide.summary["online_initial"]["start_scale"] == 1.0
+
+
+# seed 0's plant 9 of experiments/random_plants.py: a Bernoulli dropout on B, two Gaussian components on A
+RP9 = {"name": "rp9",
+       "A": [[[2.18394, 1.74588, 1.76272], [0.664008, -0.911092, -0.829603], [-1.14159, -0.331597, 0.253575]],
+             [[0.0, 0.348009, 0.0186337], [0.119678, 1.09308, 0.0], [0.0960303, 0.0, 0.631105]],
+             [[0.0, -1.5404, -0.302973], [0.0, -0.201918, 0.0], [1.75852, -1.23318, 0.0]],
+             [[-1.76868, -0.251144, -0.928984], [-1.42891, 0.750081, 0.891767], [-0.638366, 1.50206, -0.433374]]],
+       "B": [[[0.0, 0.0], [-1.09914, 0.31072], [0.0, 0.315335]],
+             [[0.434499, 0.0266773], [0.246123, -1.13077], [1.10395, 0.434411]],
+             [[0.0, 0.0], [0.0, 0.0], [0.0, 0.0]], [[0.0, 0.0], [1.63817, -0.4631], [0.0, -0.469978]]],
+       "C": [[[-0.407152, -0.248498, -0.878906], [0.669734, 0.0881912, -0.737345]]],
+       "xi": {"family": "independent", "components": [
+           {"family": "bernoulli", "prob": [0.825327]},
+           {"family": "normal", "mean": [0.651176, 0.670957], "cov": [[0.077627, 0.00842031], [0.00842031, 0.066362]]}]}}
+
+
+def test_a_narrowed_start_whose_gain_holds_the_whole_law_worse_than_the_guess_design_is_refused(tmp_path):
+    """With the guess one standard deviation off the plant's mean (the dropout at 0.446 for 0.825), the start's law
+    admits a mean-square stabilizing gain at 2^-8 of its spread (none above), where the Gaussian components are nearly
+    certain beside the dropout, whose spread its mean fixes: that gain's exact rate at the whole law is worse than
+    the deterministic design's (recomputed here), so the start is not narrowed (`pipeline.stabilizable_start`)
+    and the nominal gain is the design at the guess."""
+    import yaml
+
+    from rdsexp.numerics.analysis import ms_rate
+    from rdsexp.numerics.synthesis import synthesize
+    from rdsexp.numerics.systems import MomentModel
+    (tmp_path / "plant").mkdir()
+    (tmp_path / "plant" / "rp9.yaml").write_text(yaml.safe_dump(RP9))
+    with initialize_config_module(config_module="rdsexp.conf", version_base="1.3"):
+        exp = build(compose("config", overrides=[f"hydra.searchpath=[file://{tmp_path}]", "plant=rp9", "model=plant",
+                                                 *SMALL, "tracking=off", "controller=online",
+                                                 "identification.xi_guess=[0.44564,0.92979,0.41335]"]))
+    enkf = pipeline.online_observer(exp)
+    assert enkf.static_mean and enkf.start_scale == 1.0
+    assert pipeline.online_nominal(exp, enkf)[1] == "guess"
+    whole = MomentModel(*pipeline.start_law(exp, enkf))
+    narrow = MomentModel(*pipeline.start_law(exp, dataclasses.replace(enkf, start_scale=2.0 ** -8)))
+    stabilizing = synthesize(exp.model, narrow, "ms_lqr")
+    assert stabilizing.F is not None and ms_rate(exp.model, narrow, stabilizing.F) < 1
+    at_guess = synthesize(exp.model, MomentModel.deterministic(whole.mean), "lqr_mean")
+    assert ms_rate(exp.model, whole, stabilizing.F) > ms_rate(exp.model, whole, at_guess.F) > 1
 
 
 def test_paths_the_online_loop_loses_alone_are_counted_path_by_path_and_tested_against_chance():

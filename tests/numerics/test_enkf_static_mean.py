@@ -1,5 +1,7 @@
 """The online loop's static-mean start (EnKF.static_mean): before a path's first model, xi drawn i.i.d. about a
 mean mu that the EnKF learns as a static component of psi."""
+import re
+
 import numpy as np
 import pytest
 from test_enkf_smoother import assert_update_is_the_kalman_formula
@@ -183,20 +185,23 @@ def test_a_component_whose_mean_fixes_its_law_is_drawn_from_that_two_point_law()
 
 def test_start_cov_is_the_covariance_of_the_first_draw_the_start_makes():
     """EnKF.start_cov against the first prediction itself, 200,000 members from the initial ensemble the
-    simulation builds (x, xi_0 ~ N(., P0), mu_0 ~ N(., Q_xi)): xi_1 (seen at once) is mu_1 + c w_1, variance
-    (1 + c^2) Q_11; xi_2 (seen a step later) walks, P0_22 + Q_22; their covariance c Q_12 + P0 has no cross
-    term. Within 5 Monte Carlo standard errors of each entry; without the static mean every component walks."""
+    simulation builds (x, xi_0 ~ N(., P0), mu_0 ~ N(., s b^2 Q_xi), b = mean_spread, s = start_scale): xi_1 (seen at
+    once) is mu_1 + sqrt(s) c w_1, variance s (b^2 + c^2) Q_11; xi_2 (seen a step later) walks, P0_22 + s Q_22;
+    their covariance s c Q_12 + P0 has no cross term. Within 5 Monte Carlo standard errors of each entry; without
+    the static mean every component walks; exactly so at s = 1/2, b = 0.3. mean_spread and start_scale outside
+    their ranges are one-line errors."""
     rng = np.random.default_rng(11)
     model, n, p = seen_and_unseen(), 2, 2
     Q = np.diag([0.01, 0.01, 0.03, 0.02])
     Q[2, 3] = Q[3, 2] = 0.012
     P0 = np.diag([0.0, 0.0, 0.05, 0.04])
     P0[2, 3] = P0[3, 2] = 0.01
-    for static, c in ((True, 2.0), (True, 1.0), (False, 2.0)):
-        enkf = EnKF(model, Q, 0.02, static_mean=static, start_spread=c)
+    for static, c, b, s in ((True, 2.0, 1.0, 1.0), (True, 1.0, 1.0, 1.0), (False, 2.0, 1.0, 1.0),
+                            (True, 2.0, 0.3, 0.5)):
+        enkf = EnKF(model, Q, 0.02, static_mean=static, start_spread=c, mean_spread=b, start_scale=s)
         M = 200_000
         start = rng.multivariate_normal(np.zeros(n + p), P0, size=M)
-        mu = rng.multivariate_normal(np.zeros(p), Q[n:, n:], size=M)
+        mu = rng.multivariate_normal(np.zeros(p), s * b ** 2 * Q[n:, n:], size=M)     # as `simulate` starts it
         psi = np.concatenate([start, mu], axis=1)[None] if static else start[None]
         e_w = rng.normal(size=(1, M, enkf.width))
         xi = enkf._predict(psi, np.zeros((1, 1)), e_w, out=np.empty_like(psi))[0, :, n:n + p]
@@ -209,3 +214,10 @@ def test_start_cov_is_the_covariance_of_the_first_draw_the_start_makes():
     np.testing.assert_allclose(walked, P0[n:, n:] + Q[n:, n:], rtol=0, atol=1e-15)
     static = EnKF(model, Q, 0.02, static_mean=True, start_spread=2.0).start_cov(P0[n:, n:])
     np.testing.assert_allclose(static, [[5 * 0.03, 2 * 0.012], [2 * 0.012, 0.04 + 0.02]], rtol=1e-12)
+    narrowed = EnKF(model, Q, 0.02, static_mean=True, start_spread=2.0, mean_spread=0.3, start_scale=0.5)
+    np.testing.assert_allclose(narrowed.start_cov(P0[n:, n:]), [[0.5 * 4.09 * 0.03, 0.5 * 2 * 0.012],
+                                                                [0.5 * 2 * 0.012, 0.04 + 0.5 * 0.02]], rtol=1e-12)
+    for name, bad, expected in (("mean_spread", 0.0, "a finite number > 0"), ("mean_spread", np.inf, "a finite number > 0"),
+                                ("start_scale", 0.0, "a number in (0, 1]"), ("start_scale", 1.5, "a number in (0, 1]")):
+        with pytest.raises(ValueError, match=f"{name}: {bad!r} is not allowed, expected {re.escape(expected)}"):
+            EnKF(model, Q, 0.02, static_mean=True, **{name: bad})
