@@ -93,8 +93,8 @@ started at N(the initial xi, `mean_spread`^2 Q's xi block), and each step draws 
 (`xi_prior`): the update with y_{k+1} then learns mu through its sample covariance with y, and mu's spread
 shrinks with the data where the walk's grows. Components that reach an output only later (`output_delay` > 0)
 stay on the walk: y_{k+1} does not see their draw, and their first models (from the smoother's estimates) come
-out too narrow to learn from (docs/online-rounds.md). mu is projected onto xi_bounds with xi (a mean of draws in the box).
-The draws stand for xi's own spread, which nothing has measured yet, not for a walk's step: `start_spread` c
+out too narrow to learn from (docs/online-rounds.md). mu is projected onto xi_bounds with xi (a mean of draws in
+the box). The draws stand for xi's own spread, which nothing has measured yet, not for a walk's step: `start_spread` c
 makes them mu + c w_xi. Draws narrower than the plant's xi leave the ensemble's x spread without the
 multiplicative uncertainty it must carry, so the filter trusts a wrong x and can diverge (docs/online-rounds.md).
 Where the plant file's family fixes a component's law by its mean (`xi_ends`: a Bernoulli dropout, a
