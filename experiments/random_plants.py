@@ -42,7 +42,10 @@ directory, code version (the runs of one table should share it) and the reason o
 
     python experiments/random_plants.py [--n 50] [--seed 0] [--paths 20] [--jobs 2] [--timeout 600]
         [--store /tmp/random_plants/store-SEED] [--out CSV] [--keep-plants DIR]
-        [--override KEY=VALUE ...] [--only-draw]
+        [--override KEY=VALUE ...] [--only-draw] [--guess-off SD]
+
+--guess-off SD gives every run a prior guess of xi (identification.xi_guess, which the online loop's start and
+nominal gain are built on) SD standard deviations of each component off the plant file's mean (`wrong_guess`).
 """
 from __future__ import annotations
 
@@ -314,9 +317,22 @@ class Outcome:
     note: str = ""
 
 
+def wrong_guess(plant: Plant, seed: int, sds: float) -> np.ndarray:
+    """(p,): an identification.xi_guess `sds` standard deviations of each component of xi off the plant file's
+    mean, the sign alternating over the components (+ on the first where seed + the plant's index is even, - where
+    odd), kept 0.02 inside a bounded support: a prior guess wrong by a known amount (--guess-off)."""
+    _, dist = system_of(plant.content)
+    mean, sd = np.asarray(dist.mean, float), np.sqrt(np.diag(np.asarray(dist.cov, float)))
+    sign = np.where(np.arange(mean.size) % 2 == 0, 1.0, -1.0) * (1.0 if (seed + plant.index) % 2 == 0 else -1.0)
+    low, high = (np.asarray(b, float) for b in getattr(dist, "support", (-np.inf, np.inf)))
+    return np.clip(mean + sds * sign * sd, low + 0.02, high - 0.02)
+
+
 def _overrides(args, plant: str) -> list[str]:
     """The command line's overrides; the user's --override replaces a default of the same key."""
     items = {"plant": plant, "closed_loop.paths": str(args.paths), "store": str(args.store)}
+    if plant in getattr(args, "guesses", {}):                   # --guess-off
+        items["identification.xi_guess"] = "[" + ",".join(f"{v:.5g}" for v in args.guesses[plant]) + "]"
     for text in args.override:
         key, sep, value = text.partition("=")
         if not sep:
@@ -657,6 +673,9 @@ def main(argv=None):
     parser.add_argument("--override", action="append", default=[], metavar="KEY=VALUE",
                         help="extra override for every run (repeatable)")
     parser.add_argument("--only-draw", action="store_true", help="draw and write the plants, print them, run nothing")
+    parser.add_argument("--guess-off", type=float, default=0.0, metavar="SD",
+                        help="every run's identification.xi_guess SD standard deviations of each component off the "
+                             "plant file's mean, signs alternating (`wrong_guess`; default 0: the mean)")
     args = parser.parse_args(argv)
     if args.n < 1 or args.jobs < 1 or args.paths < 1:
         parser.error("--n, --jobs and --paths must be positive")
@@ -667,6 +686,7 @@ def main(argv=None):
         config_dir = (args.keep_plants or Path(tmp)).resolve()
         start = time.perf_counter()
         plants = draw_plants(args.n, args.seed)
+        args.guesses = {p.name: wrong_guess(p, args.seed, args.guess_off) for p in plants} if args.guess_off else {}
         header = f"rdsexp experiments/random_plants.py --seed {args.seed}: plant {{}} of the draw"
         paths = {p.name: write_plant(p, config_dir, header.format(p.index)) for p in plants}
         print_draw(plants, time.perf_counter() - start, config_dir, kept=args.keep_plants is not None)

@@ -289,6 +289,28 @@ def test_open_loop_identification_whose_estimate_diverges_is_run_again_under_fee
     assert s["modeling_status"] == ("ok" if not passes.get("passes") or passes["converged"] else "unsettled")
 
 
+def test_random_plants_guess_off_is_the_mean_moved_by_whole_standard_deviations():
+    """random_plants.py --guess-off SD: every run's identification.xi_guess is the plant file's mean moved by SD
+    standard deviations of each component, signs alternating (seed 0's rp9: seed + index odd, so - + -), kept 0.02
+    inside a Bernoulli's [0, 1]; a user's --override of the same key replaces it."""
+    import argparse
+    sys.path.insert(0, str(REPO / "experiments"))
+    import random_plants
+    rp9 = random_plants.draw_plants(10, 0)[9]
+    mean, sd = np.array([0.825327, 0.651176, 0.670957]), np.sqrt([0.825327 * (1 - 0.825327), 0.077627, 0.066362])
+    np.testing.assert_allclose(random_plants.wrong_guess(rp9, 0, 1.0), mean + [-1, 1, -1] * sd, rtol=1e-12)
+    np.testing.assert_allclose(random_plants.wrong_guess(rp9, 1, 3.0), [0.98, mean[1] - 3 * sd[1], mean[2] + 3 * sd[2]],
+                               rtol=1e-12)                                    # seed + index even: + - +, clipped
+    args = argparse.Namespace(paths=100, store="S", override=["controller=online"],
+                              guesses={"rp9": random_plants.wrong_guess(rp9, 0, 1.0)})
+    assert random_plants._overrides(args, "rp9") == ["plant=rp9", "closed_loop.paths=100", "store=S",
+                                                     "identification.xi_guess=[0.44564,0.92979,0.41335]",
+                                                     "controller=online"]
+    assert "identification.xi_guess" not in " ".join(random_plants._overrides(args, "rp8"))    # not drawn off
+    args.override = ["identification.xi_guess=[0.5,0.6,0.7]"]
+    assert random_plants._overrides(args, "rp9")[-1] == "identification.xi_guess=[0.5,0.6,0.7]"
+
+
 def test_random_plants_says_why_a_modeled_plant_has_no_loop():
     """experiments/random_plants.py: a plant modeled but given no gain (its identified model not mean-square
     stabilizable) is said so, not as an empty verdict; a loop that is not stable gives its verdict's reason."""

@@ -501,6 +501,8 @@ def hydra_context():
     ("controller=online controller.start=flat", "controller.start: 'flat' is not allowed, expected one of"),
     ("controller=online controller.start_spread=0", "controller.start_spread: 0 is not allowed, expected a finite "
                                                     "number > 0"),
+    ("controller=online controller.mean_spread=-0.5", "controller.mean_spread: -0.5 is not allowed, expected a finite "
+                                                       "number > 0"),
     ("controller=online controller.probe=-1", "controller.probe: -1 is not allowed, expected a finite number >= 0"),
     ("controller=online controller.probe_until=soon", "controller.probe_until: 'soon' is not allowed, expected "
                                                       "auto, null or a step >= 0"),
