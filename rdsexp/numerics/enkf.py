@@ -107,10 +107,11 @@ understate (docs/online-rounds.md, a ninth round).
 mu's own spread is the prior's doubt about xi's mean, not xi's spread: each member keeps its mu for good, so
 members whose means differ move apart step after step through the open-loop dynamics (the input is the same
 for all), and on a plant y sees little of that spread grows faster than the outputs pull it back (seed 6's
-random plant 19, its start's law narrowed: a predicted x spread of 2200 at k = 30 where the state is 130). `mean_spread` scales it apart
-from the draws' (docs/online-rounds.md, a thirteenth round). `start_scale` c in (0, 1] scales the whole start
-law, Q's xi block as the start uses it (mu's spread, the draws about it, the walked components' step): the online
-controller narrows a law under which no gain is mean-square stable (`pipeline.online_observer`).
+random plant 19, its start's law narrowed: a predicted x spread of 2200 at k = 30 where the state is 130).
+`mean_spread` scales it apart from the draws' (docs/online-rounds.md, a thirteenth round). `start_scale` c in
+(0, 1] scales the whole start law, Q's xi block as the start uses it (mu's spread, the draws about it, the walked
+components' step): the online controller narrows a law under which no gain is mean-square stable
+(`pipeline.online_observer`).
 
 Ensembles returned by `predict` and `update` are stored component-major: they are (..., M, n+p)
 views of (n+p, ..., M) arrays, so each component of all paths and members is one contiguous block
