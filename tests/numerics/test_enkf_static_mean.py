@@ -221,3 +221,22 @@ def test_start_cov_is_the_covariance_of_the_first_draw_the_start_makes():
                                 ("start_scale", 0.0, "a number in (0, 1]"), ("start_scale", 1.5, "a number in (0, 1]")):
         with pytest.raises(ValueError, match=f"{name}: {bad!r} is not allowed, expected {re.escape(expected)}"):
             EnKF(model, Q, 0.02, static_mean=True, **{name: bad})
+
+
+@pytest.mark.parametrize("mean_spread, start_scale", [(1.0, 1.0), (0.3, 0.5)])
+def test_simulate_starts_the_mean_at_its_configured_spread(mean_spread, start_scale):
+    """`simulate` starts mu_0 at N(guess, s b^2 Q_xi): the first predicted xi's spread, over 40 paths of 500 members,
+    is sqrt(start_cov) (s (b^2 + c^2) Q_xi, c = 2) to 3 standard errors of the pooled sample variance (relative
+    sqrt(2 / (P (M - 1)))); at s = 1/2 a mean started a whole step wide (b = 1) would be 22 of them off. The update
+    with y_0 does not move mu (y_0 does not depend on xi) beyond its sample noise."""
+    from rdsexp.numerics.simulation import simulate
+    plant = rx.AffineRandomSystem(SCALAR.A, SCALAR.B, SCALAR.C, xi_dist=rx.MomentModel(mean=[0.3], cov=[[0.01]]))
+    enkf = EnKF(SCALAR, np.diag([1e-4, 0.02]), 0.01, static_mean=True, start_spread=2.0, mean_spread=mean_spread,
+                start_scale=start_scale)
+    P, M = 40, 500
+    tr = simulate(plant, enkf, d=np.zeros((2, 1)), q0=np.zeros(1), psi0=np.array([0.0, 0.3]), ensemble_size=M,
+                  paths=P, seed=3)
+    var = np.mean(tr.psi_pred_std[1, :, 1] ** 2)
+    expected = enkf.start_cov(np.zeros((1, 1)))[0, 0]
+    assert expected == pytest.approx(start_scale * (mean_spread ** 2 + 4) * 0.02, rel=1e-12)
+    assert abs(var / expected - 1) < 3 * np.sqrt(2 / (P * (M - 1)))
