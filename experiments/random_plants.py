@@ -608,25 +608,32 @@ def print_online(table: pd.DataFrame) -> None:
     ONLINE_TOLERANCE, or better) and how often it loses more paths: by the bare counts, and by the exact paired
     test of the paths each loop lost alone (`verdict.paired_losses`, p < PAIRED_LEVEL: more than chance explains),
     also among the plants whose offline loop rdsexp calls `stable` (a plant that loses more paths online beside an
-    offline loop it cannot call stable is a different finding from one beside a stable loop)."""
+    offline loop it cannot call stable is a different finding from one beside a stable loop), and among those whose
+    offline gain's loop through y has no decaying linear observer (y_rate >= 1: there the outputs, not the online
+    design, are what no gain of either loop overcomes: on seeds 6 and 17's rp21 every gain, the nominal, the offline
+    and each online final one, has a y_rate in [1.048, 1.050] and [1.143, 1.145]; docs/online-rounds.md, a fourteenth
+    round)."""
     rows = table[table["online_final_rate"].map(lambda v: not _missing(v))
                  | table["online_failed_fraction"].map(lambda v: not _missing(v))]
     gap = rows["online_final_rate"].astype(float) - rows["offline_rate_plant"].astype(float)
     lost_on = rows["online_failed_fraction"].astype(float)
     lost_off = rows["failed_fraction"].map(lambda v: 0.0 if _missing(v) else v).astype(float)
     p = rows.get("lost_more_p", pd.Series(np.nan, index=rows.index)).map(lambda v: np.nan if _missing(v) else v)
+    y_rate = rows.get("y_rate", pd.Series(np.nan, index=rows.index)).map(lambda v: np.nan if _missing(v) else v)
     print("\nonline (learning-type) against offline, per plant: final gains' median exact rate, the offline gain's, "
           "gap; paths lost (fraction; paths lost by one loop alone, paired test of online losing more)")
     # an offline run with no gain (its identification or design failed) has no closed loop to compare with:
     # counted apart, neither as no worse nor as losing more
     none = rows["offline_rate_plant"].map(_missing).to_numpy()
-    for r, g, on, off, gainless, pr in zip(rows.itertuples(), gap, lost_on, lost_off, none, p):
+    for r, g, on, off, gainless, pr, yr in zip(rows.itertuples(), gap, lost_on, lost_off, none, p, y_rate):
         alone = "" if not np.isfinite(pr) or r.lost_online_only + r.lost_offline_only == 0 else \
             f" ({r.lost_online_only:.0f} vs {r.lost_offline_only:.0f} alone, p = {pr:.3g})"
         more = "LOST MORE" + (", beyond chance" if pr < PAIRED_LEVEL else ", within chance" if np.isfinite(pr) else "")
         verdict = "  (no offline gain)" if gainless else (
             ("  WORSE" if not g <= ONLINE_TOLERANCE else "")
-            + (f"  {more} (offline loop {'-' if _missing(r.verdict) else r.verdict})" if on > off else ""))
+            + (f"  {more} (offline loop {'-' if _missing(r.verdict) else r.verdict}"
+               + (f"; no linear observer holds its gain's loop through y: y_rate {yr:.4f}" if yr >= 1 else "")
+               + ")" if on > off else ""))
         print(f"  {r.plant}: online {_f(r.online_final_rate)} offline {_f(r.offline_rate_plant)} gap "
               f"{'-' if not np.isfinite(g) else format(g, '+.4f')}; lost {on:.2f} vs {off:.2f}{alone}{verdict}")
     compared = ~none
@@ -634,12 +641,14 @@ def print_online(table: pd.DataFrame) -> None:
     more = (lost_on > lost_off)[compared]
     beyond = (p < PAIRED_LEVEL)[compared]
     stable = (rows["verdict"] == "stable").to_numpy()[compared]
+    unobservable = (y_rate >= 1).to_numpy()[compared]
     print(f"online ends no worse than offline (final median rate <= offline + {ONLINE_TOLERANCE}): "
           f"{int(no_worse.sum())}/{int(compared.sum())} ({no_worse.mean():.0%}); loses more paths: "
           f"{int(more.sum())}/{int(compared.sum())}, {int((more & stable).sum())}/{int(stable.sum())} where the "
           f"offline loop is stable; more than chance explains (paired sign test, p < {PAIRED_LEVEL}): "
           f"{int(beyond.sum())}/{int(compared.sum())}, {int((beyond & stable).sum())}/{int(stable.sum())} where the "
-          f"offline loop is stable"
+          f"offline loop is stable, {int((beyond & unobservable).sum())}/{int(unobservable.sum())} where no linear "
+          f"observer holds the offline gain's loop (y_rate >= 1)"
           + (f"; no offline gain (not compared): {', '.join(rows.plant[none])}" if none.any() else ""))
 
 
