@@ -504,6 +504,14 @@ def add_online_tables(exp: Experiment, stages: Stages, tables: dict, online, cho
     offline_paths = paths[paths["experiment"] == "closed_loop"].sort_values("path")
     lost = (paired_losses(loop.failed_at >= 0, offline_paths["failed_at"].to_numpy() >= 0)
             if len(offline_paths) == P else (np.nan,) * 3)
+    # the gains the lost paths held (each acted from the step after its adoption, before the loss): all of them
+    # mean-square stable on the true plant says that what grew is the loop through the EnKF's estimate, not the
+    # ideal loop of any one gain (switching between stable gains is not covered by their rates)
+    failed_at = loop.failed_at[adopted["path"].to_numpy()]
+    held = adopted[(failed_at >= 0) & (adopted["k"].to_numpy() + 1 < failed_at)]
+    worst_held = held["rate_plant"].fillna(np.inf).groupby(held["path"]).max()    # a NaN rate counts as unstable
+    lost_held = {"lost_held_unstable": float((~(worst_held < 1)).sum()) if len(worst_held) else np.nan,
+                 "lost_held_rate_max": float(worst_held.max()) if len(worst_held) else np.nan}
     online_metrics = {"final_rate_plant_q10": q[0], "final_rate_plant_median": q[1], "final_rate_plant_q90": q[2],
                       "final_stable_fraction": float(np.mean(final < 1)),
                       "first_stable_k_median": float(np.median(first[first >= 0])) if (first >= 0).any() else np.nan,
@@ -515,7 +523,7 @@ def add_online_tables(exp: Experiment, stages: Stages, tables: dict, online, cho
                                                              window[1] - window[0])[0]
                       if (loop.failed_at < 0).any() else np.nan,
                       "offline_rate_plant": offline, "optimal_rate_plant": optimum.lam,
-                      "lost_online_only": lost[0], "lost_offline_only": lost[1], "lost_more_p": lost[2]}
+                      "lost_online_only": lost[0], "lost_offline_only": lost[1], "lost_more_p": lost[2], **lost_held}
     metrics = tables["metrics"]
     for name, value in online_metrics.items():
         metrics[name] = np.where(metrics["experiment"] == "online", value, np.nan)

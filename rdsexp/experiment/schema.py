@@ -145,6 +145,10 @@ COLUMNS: dict[str, dict[str, tuple[str, str | None]]] = {
         "lost_offline_only": ("online: paths the offline loop lost and the online loop kept", None),
         "lost_more_p": ("online: exact paired sign test of the online loop losing more paths than the offline "
                         "loop, P(Bin(only online + only offline, 1/2) >= only online)", None),
+        "lost_held_unstable": ("online: lost paths that held, before their loss, a gain whose exact rate on the true "
+                               "plant is >= 1 (NaN: no path lost)", None),
+        "lost_held_rate_max": ("online: the largest exact rate on the true plant of a gain a lost path held before "
+                               "its loss (NaN: no path lost)", "1/step"),
     },
     "controller": {
         "path": _TRAJECTORY["path"],

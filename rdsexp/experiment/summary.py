@@ -170,6 +170,8 @@ def summary_text(info: dict, run_dir: Path) -> str:
         lines.append(f"  online start: {initial_gain(start)}")
         if o.get("lost_more_p") is not None:
             lines.append(f"  online paths lost: {lost_paths(o)}")
+        if o.get("lost_held_unstable") is not None:
+            lines.append(f"    {held_gains(o)}")
         probe = start.get("probe")
         if probe:                                         # controller.probe: say whether the window holds it
             amplitude, until = probe
@@ -198,6 +200,17 @@ def initial_gain(start: dict) -> str:
     if law and scale < 1:                                 # the start law narrowed (`pipeline.stabilizable_start`)
         law += f" (its spread x {scale:g}: none is mean-square stable at the full one)"
     return f"the nominal gain, {start.get('method')} {law} (exact rate there {start.get('rate_on_law', np.nan):.4f})"
+
+
+def held_gains(o: dict) -> str:
+    """What the gains the online loop's lost paths held say of the loss: a gain unstable on the true plant, or only
+    gains stable there, in which case the loop that grew is the one through the EnKF's estimate."""
+    unstable, worst = int(o["lost_held_unstable"]), o["lost_held_rate_max"]
+    if unstable:
+        up_to = "not finite" if worst is None else f"up to {worst:.4f}"
+        return f"{unstable} lost path(s) held a gain unstable on the true plant before the loss (exact rate {up_to})"
+    return (f"every gain the lost paths held is mean-square stable on the true plant (exact rate up to {worst:.4f}): "
+            f"what grew is the loop through the EnKF's estimate, not the ideal loop of a gain")
 
 
 def lost_paths(o: dict) -> str:

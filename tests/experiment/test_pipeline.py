@@ -412,8 +412,9 @@ def test_paths_the_online_loop_loses_alone_are_counted_path_by_path_and_tested_a
     online path before its first re-design, while the offline loop of the same plant samples keeps its own. The
     online metrics count the paths each loop lost alone from the paths table, path by path, and the exact paired
     test (`verdict.paired_losses`) gives p = 2^-P: more than chance explains."""
-    out = pipeline.run_experiment(experiment("controller=online", "controller.initial=[[0,100,0,0,0,0]]",
-                                             "closed_loop.paths=8", "closed_loop.open_loop=false"))
+    exp = experiment("controller=online", "controller.initial=[[0,100,0,0,0,0]]", "closed_loop.paths=8",
+                     "closed_loop.open_loop=false")
+    out = pipeline.run_experiment(exp)
     paths = out.tables["paths"]
     lost = {e: paths[paths["experiment"] == e].sort_values("path")["failed_at"].to_numpy() >= 0
             for e in ("online", "closed_loop")}
@@ -422,4 +423,9 @@ def test_paths_the_online_loop_loses_alone_are_counted_path_by_path_and_tested_a
     assert (o["lost_online_only"], o["lost_offline_only"]) == (8, 0) and o["lost_more_p"] == 2.0 ** -8
     metrics = out.tables["metrics"].set_index("experiment").loc["online"]
     assert (metrics["lost_online_only"], metrics["lost_more_p"]) == (8, 2.0 ** -8)
+    # every lost path held the initial gain, unstable on the true plant: its exact rate, computed independently
+    from rdsexp.numerics.analysis import ms_rate
+    F0 = np.array([[0.0, 100.0, 0.0, 0.0, 0.0, 0.0]])
+    assert o["lost_held_unstable"] == 8 and o["lost_held_rate_max"] == pytest.approx(
+        ms_rate(exp.plant, None, F0), rel=1e-9)
     assert not undocumented(out.summary)

@@ -1,5 +1,5 @@
 """The run summary's words about the loop: its controller and why its verdict differs from the gain's rate."""
-from rdsexp.experiment.summary import gap, initial_gain, lost_paths
+from rdsexp.experiment.summary import gap, held_gains, initial_gain, lost_paths
 
 
 def summary(estimate, verdict="unstable", rate=0.6, reason="the loop grows"):
@@ -47,3 +47,13 @@ def test_the_online_paths_lost_say_whether_more_than_chance_explains():
                                   "(paired sign test, p = 0.0312)")
     assert line(2, 0, 0.25) == "2 by online alone, 0 by offline alone: within chance (paired sign test, p = 0.25)"
     assert line(1, 3, 0.9375).endswith("within chance (paired sign test, p = 0.938)")
+
+
+def test_the_gains_lost_paths_held_say_which_loop_grew():
+    """Beside the lost paths: a gain unstable on the true plant held before a loss is counted; where every gain held
+    is stable there, the line says the loop through the EnKF's estimate grew, not a gain's ideal loop."""
+    line = lambda unstable, worst: held_gains({"lost_held_unstable": unstable, "lost_held_rate_max": worst})
+    assert line(3.0, 1.2345) == "3 lost path(s) held a gain unstable on the true plant before the loss (exact rate up to 1.2345)"
+    assert line(1.0, None).endswith("(exact rate not finite)")
+    assert line(0.0, 0.92891) == ("every gain the lost paths held is mean-square stable on the true plant (exact rate up to "
+                                  "0.9289): what grew is the loop through the EnKF's estimate, not the ideal loop of a gain")
