@@ -210,7 +210,8 @@ def held_gains(o: dict) -> str:
         up_to = "not finite" if worst is None else f"up to {worst:.4f}"
         return f"{unstable} lost path(s) held a gain unstable on the true plant before the loss (exact rate {up_to})"
     return (f"every gain the lost paths held is mean-square stable on the true plant (exact rate up to {worst:.4f}): "
-            f"what grew is the loop through the EnKF's estimate, not the ideal loop of a gain")
+            f"what grew is the loop through the EnKF's estimate (or the switching between gains), not the ideal loop "
+            f"of any one gain")
 
 
 def lost_paths(o: dict) -> str:

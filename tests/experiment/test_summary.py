@@ -51,9 +51,11 @@ def test_the_online_paths_lost_say_whether_more_than_chance_explains():
 
 def test_the_gains_lost_paths_held_say_which_loop_grew():
     """Beside the lost paths: a gain unstable on the true plant held before a loss is counted; where every gain held
-    is stable there, the line says the loop through the EnKF's estimate grew, not a gain's ideal loop."""
+    is stable there, the line says the loop through the EnKF's estimate grew (or the switching), not one gain's
+    ideal loop."""
     line = lambda unstable, worst: held_gains({"lost_held_unstable": unstable, "lost_held_rate_max": worst})
     assert line(3.0, 1.2345) == "3 lost path(s) held a gain unstable on the true plant before the loss (exact rate up to 1.2345)"
     assert line(1.0, None).endswith("(exact rate not finite)")
     assert line(0.0, 0.92891) == ("every gain the lost paths held is mean-square stable on the true plant (exact rate up to "
-                                  "0.9289): what grew is the loop through the EnKF's estimate, not the ideal loop of a gain")
+                                  "0.9289): what grew is the loop through the EnKF's estimate (or the switching "
+                                  "between gains), not the ideal loop of any one gain")
