@@ -403,7 +403,7 @@ def read_record(outcome: Outcome) -> dict:
            "verdict": None, "verdict_reason": None, "closed_loop_status": None, "cl_rate": None, "cl_low": None,
            "cl_high": None, "failed_fraction": None, "run_seconds": None, "code_version": None,
            "online_failed_fraction": None, "online_final_rate": None, "offline_rate_plant": None,
-           "lost_online_only": None, "lost_offline_only": None, "lost_more_p": None}
+           "lost_online_only": None, "lost_offline_only": None, "lost_more_p": None, "lost_held_unstable": None}
     if outcome.run_dir is None:
         return row
     try:
@@ -444,7 +444,8 @@ def read_record(outcome: Outcome) -> dict:
                            online_final_rate=float(online["final_rate_plant_median"]),
                            offline_rate_plant=float(online["offline_rate_plant"]),
                            **{key: float(online[key]) for key in ("lost_online_only", "lost_offline_only",
-                                                                  "lost_more_p") if key in online.index})
+                                                                  "lost_more_p", "lost_held_unstable")
+                              if key in online.index})
         except Exception as err:                                # a damaged table is a finding, not a crash
             outcome.note = "; ".join(filter(None, [outcome.note, f"metrics unreadable: {type(err).__name__}: {err}"]))
     return row
@@ -612,7 +613,8 @@ def print_online(table: pd.DataFrame) -> None:
     offline gain's loop through y has no decaying linear observer (y_rate >= 1: there the outputs, not the online
     design, are what no gain of either loop overcomes: on seeds 6 and 17's rp21 every gain, the nominal, the offline
     and each online final one, has a y_rate in [1.048, 1.050] and [1.143, 1.145]; docs/online-rounds.md, a fourteenth
-    round)."""
+    round). Beside a plant losing more: whether online's lost paths held a gain unstable on the plant before their
+    loss (the run's `lost_held_unstable`), or only stable ones, where the loop through the estimate grew."""
     rows = table[table["online_final_rate"].map(lambda v: not _missing(v))
                  | table["online_failed_fraction"].map(lambda v: not _missing(v))]
     gap = rows["online_final_rate"].astype(float) - rows["offline_rate_plant"].astype(float)
@@ -620,12 +622,15 @@ def print_online(table: pd.DataFrame) -> None:
     lost_off = rows["failed_fraction"].map(lambda v: 0.0 if _missing(v) else v).astype(float)
     p = rows.get("lost_more_p", pd.Series(np.nan, index=rows.index)).map(lambda v: np.nan if _missing(v) else v)
     y_rate = rows.get("y_rate", pd.Series(np.nan, index=rows.index)).map(lambda v: np.nan if _missing(v) else v)
+    held = rows.get("lost_held_unstable", pd.Series(np.nan, index=rows.index)).map(
+        lambda v: np.nan if _missing(v) else v)
     print("\nonline (learning-type) against offline, per plant: final gains' median exact rate, the offline gain's, "
           "gap; paths lost (fraction; paths lost by one loop alone, paired test of online losing more)")
     # an offline run with no gain (its identification or design failed) has no closed loop to compare with:
     # counted apart, neither as no worse nor as losing more
     none = rows["offline_rate_plant"].map(_missing).to_numpy()
-    for r, g, on, off, gainless, pr, yr in zip(rows.itertuples(), gap, lost_on, lost_off, none, p, y_rate):
+    for r, g, on, off, gainless, pr, yr, unstable in zip(rows.itertuples(), gap, lost_on, lost_off, none, p, y_rate,
+                                                         held):
         alone = "" if not np.isfinite(pr) or r.lost_online_only + r.lost_offline_only == 0 else \
             f" ({r.lost_online_only:.0f} vs {r.lost_offline_only:.0f} alone, p = {pr:.3g})"
         more = "LOST MORE" + (", beyond chance" if pr < PAIRED_LEVEL else ", within chance" if np.isfinite(pr) else "")
@@ -633,6 +638,8 @@ def print_online(table: pd.DataFrame) -> None:
             ("  WORSE" if not g <= ONLINE_TOLERANCE else "")
             + (f"  {more} (offline loop {'-' if _missing(r.verdict) else r.verdict}"
                + (f"; no linear observer holds its gain's loop through y: y_rate {yr:.4f}" if yr >= 1 else "")
+               + ("" if not np.isfinite(unstable) else "; online's lost paths held only gains stable on the plant"
+                  if unstable == 0 else f"; {unstable:.0f} of online's lost paths held a gain unstable on the plant")
                + ")" if on > off else ""))
         print(f"  {r.plant}: online {_f(r.online_final_rate)} offline {_f(r.offline_rate_plant)} gap "
               f"{'-' if not np.isfinite(g) else format(g, '+.4f')}; lost {on:.2f} vs {off:.2f}{alone}{verdict}")

@@ -329,7 +329,7 @@ def test_random_plants_counts_the_plants_losing_more_paths_online_apart_where_th
     offline loop's verdict and whether the paired test finds more than chance explains; the counts say how many
     lose more by the bare counts and by the test, and how many of them have an offline loop called stable; a plant
     without an offline gain is counted in neither; one whose offline gain's loop through y no linear observer holds
-    (y_rate >= 1) is said so."""
+    (y_rate >= 1) is said so, and whether online's lost paths held a gain unstable on the plant."""
     sys.path.insert(0, str(REPO / "experiments"))
     import pandas as pd
     import random_plants
@@ -337,20 +337,23 @@ def test_random_plants_counts_the_plants_losing_more_paths_online_apart_where_th
                           "offline_rate_plant": [0.6, 0.69, 0.8, None], "online_failed_fraction": [0.1, 0.04, 0.0, 0.5],
                           "failed_fraction": [0.0, 0.02, 0.0, None], "verdict": ["stable", "undetermined", "stable", None],
                           "lost_online_only": [10, 3, 0, None], "lost_offline_only": [0, 1, 0, None],
-                          "lost_more_p": [2.0 ** -10, 5 / 16, 1.0, None], "y_rate": [0.9, 1.2, None, None]})
+                          "lost_more_p": [2.0 ** -10, 5 / 16, 1.0, None], "y_rate": [0.9, 1.2, None, None],
+                          "lost_held_unstable": [0.0, 2.0, None, None]})
     random_plants.print_online(table)
     out = capsys.readouterr().out
     assert ("a: online 0.5000 offline 0.6000 gap -0.1000; lost 0.10 vs 0.00 (10 vs 0 alone, p = 0.000977)  LOST MORE, "
-            "beyond chance (offline loop stable)") in out
+            "beyond chance (offline loop stable; online's lost paths held only gains stable on the plant)") in out
     assert ("lost 0.04 vs 0.02 (3 vs 1 alone, p = 0.312)  WORSE  LOST MORE, within chance (offline loop undetermined; "
-            "no linear observer holds its gain's loop through y: y_rate 1.2000)") in out
+            "no linear observer holds its gain's loop through y: y_rate 1.2000; 2 of online's lost paths held a gain "
+            "unstable on the plant)") in out
     assert "c: online 0.9000 offline 0.8000 gap +0.1000; lost 0.00 vs 0.00  WORSE" in out
     assert out.strip().splitlines()[-1] == ("online ends no worse than offline (final median rate <= offline + 0.005): "
                                             "1/3 (33%); loses more paths: 2/3, 1/2 where the offline loop is stable; "
                                             "more than chance explains (paired sign test, p < 0.05): 1/3, 1/2 where "
                                             "the offline loop is stable, 0/1 where no linear observer holds the "
                                             "offline gain's loop (y_rate >= 1); no offline gain (not compared): d")
-    random_plants.print_online(table.drop(columns=["lost_online_only", "lost_offline_only", "lost_more_p"]))
+    random_plants.print_online(table.drop(columns=["lost_online_only", "lost_offline_only", "lost_more_p",
+                                                   "lost_held_unstable"]))
     assert "lost 0.10 vs 0.00  LOST MORE (offline loop stable)" in capsys.readouterr().out    # runs before the test
 
 
