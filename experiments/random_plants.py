@@ -620,10 +620,9 @@ def print_online(table: pd.DataFrame) -> None:
     gap = rows["online_final_rate"].astype(float) - rows["offline_rate_plant"].astype(float)
     lost_on = rows["online_failed_fraction"].astype(float)
     lost_off = rows["failed_fraction"].map(lambda v: 0.0 if _missing(v) else v).astype(float)
-    p = rows.get("lost_more_p", pd.Series(np.nan, index=rows.index)).map(lambda v: np.nan if _missing(v) else v)
-    y_rate = rows.get("y_rate", pd.Series(np.nan, index=rows.index)).map(lambda v: np.nan if _missing(v) else v)
-    held = rows.get("lost_held_unstable", pd.Series(np.nan, index=rows.index)).map(
-        lambda v: np.nan if _missing(v) else v)
+    # columns records of earlier versions lack: NaN
+    p, y_rate, held = (rows.get(name, pd.Series(np.nan, index=rows.index)).map(lambda v: np.nan if _missing(v) else v)
+                       for name in ("lost_more_p", "y_rate", "lost_held_unstable"))
     print("\nonline (learning-type) against offline, per plant: final gains' median exact rate, the offline gain's, "
           "gap; paths lost (fraction; paths lost by one loop alone, paired test of online losing more)")
     # an offline run with no gain (its identification or design failed) has no closed loop to compare with:
