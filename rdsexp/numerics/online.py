@@ -28,7 +28,8 @@ the guess by design, now always waits there (docs/online.md). No warm-up beyond 
 filter's) and `min_blocks` is needed.
 A component whose law its mean fixes (`EnKF.two_point`: a Bernoulli dropout, a discrete component of two
 values) is modeled with that law's variance, (mu - low) (high - mu), not the window's sample variance: each
-xi_{k|k} is shrunk toward the filter's prior, so their spread understates xi's (`two_point_moments`).
+xi_{k|k} is shrunk toward the filter's prior, so their spread understates xi's (`two_point_moments`);
+its mean is kept off the ends by the add-half estimate of the window's size, which no window can rule out.
 A candidate that the model or a draw does not certify below 1 is never adopted, not even where the
 gain in use fails: the model of a growing loop is biased, and such a candidate can be worse on the
 plant than the gain in use.
@@ -178,19 +179,31 @@ def weighted_moments(xi: np.ndarray, w: np.ndarray, xi_cov: np.ndarray | None = 
     return mean, cov
 
 
-def two_point_moments(mean: np.ndarray, cov: np.ndarray, two_point) -> tuple[np.ndarray, np.ndarray]:
+def two_point_moments(mean: np.ndarray, cov: np.ndarray, two_point, estimates=None) -> tuple[np.ndarray, np.ndarray]:
     """mean (..., p) and cov (..., p, p) with the variance of each two-point component the one its mean fixes.
 
     two_point: None (returned as they are) or (which (p,) bool, low (p,), high (p,)), `EnKF.two_point`. A
     component on {low, high} with mean mu has variance (mu - low) (high - mu), mu clipped into [low, high];
     its correlations with the other components are kept (its row and column rescaled), so cov stays PSD.
     The window's sample variance of xi_{k|k} understates it (on seed 0's plant 7 of `random_plants.py`: a
-    median of 0.125 where the plant has 0.24), and so does a design on it (docs/online-rounds.md, a tenth round)."""
+    median of 0.125 where the plant has 0.24), and so does a design on it (docs/online-rounds.md, a tenth round).
+
+    estimates: None, or the number N of estimates the moments come from (a scalar, or an array broadcasting
+    against mean.shape[:-1]): the mean of such a component is then kept (high - low) / (2 (N + 1)) inside its
+    ends, the add-half estimate of N equal outcomes. N estimates cannot tell a probability below that from 0,
+    and a model at an end is deterministic there: its design can lean on an input that the end switches off
+    (gain entries of 1e16, a rate of 3e16 on the plant, certified by a window whose every estimate sat at the
+    end), and the EnKF that draws from it never draws the other end again (docs/online-rounds.md, a fifteenth round)."""
     if two_point is None:
         return mean, cov
     which, low, high = two_point
     var = np.diagonal(cov, axis1=-2, axis2=-1)
-    mu = np.clip(mean, low, high)
+    if estimates is None:
+        mu = np.clip(mean, low, high)
+    else:
+        margin = np.where(which, high - low, 0.0) / (2.0 * (np.asarray(estimates, dtype=float)[..., None] + 1.0))
+        mu = np.clip(mean, low + margin, high - margin)
+        mean = np.where(which, mu, mean)
     fixed = np.where(which, (mu - low) * (high - mu), var)
     with np.errstate(divide="ignore", invalid="ignore"):
         scale = np.where(which, np.where(var > 0, np.sqrt(fixed / var), 0.0), 1.0)
@@ -466,8 +479,10 @@ class OnlineController:
 
     def _moments(self, samples: np.ndarray, w: np.ndarray, covs: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
         """The modeled moments, mean (..., U, p) and cov (..., U, p, p), of samples (..., T, U, p) with weights
-        w (..., T) and filtered covariances covs or None (`weighted_moments`, `two_point_moments`)."""
-        return two_point_moments(*weighted_moments(samples, w, covs), self.two_point)
+        w (..., T) and filtered covariances covs or None (`weighted_moments`, `two_point_moments` with the
+        window's effective number of estimates, (sum w)^2 / sum w^2: T with equal weights)."""
+        n_eff = w.sum(axis=-1) ** 2 / (w ** 2).sum(axis=-1)
+        return two_point_moments(*weighted_moments(samples, w, covs), self.two_point, np.asarray(n_eff)[..., None])
 
     def _draw_rates(self, k: int, samples: np.ndarray, w: np.ndarray, covs: np.ndarray | None, F_new: np.ndarray,
                     F_cur: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

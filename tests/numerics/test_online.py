@@ -436,6 +436,51 @@ def test_a_dropout_is_modeled_with_the_variance_its_mean_fixes_so_its_rate_is_th
     assert d.rate_worst[0] == pytest.approx(worst, rel=1e-9)
 
 
+def test_two_point_means_stay_the_add_half_estimate_inside_their_ends():
+    """With the number of estimates N (scalar or per batch), a two-point component's mean is clipped into
+    [low + h, high - h], h = (high - low) / (2 (N + 1)), and its variance is the one that mean fixes; a mean
+    inside stays the same bits, and other components are untouched."""
+    rng = np.random.default_rng(11)
+    which, low, high = np.array([True, False, True]), np.array([0.0, -np.inf, -1.0]), np.array([1.0, np.inf, 2.0])
+    mean = rng.uniform(-1.5, 2.5, size=(6, 5, 3))
+    mean[0, 0] = [0.0, 0.0, 2.0]                                        # every estimate at an end
+    L = rng.normal(size=(6, 5, 3, 3)) * 0.4
+    cov = L @ L.swapaxes(-1, -2)
+    N = rng.integers(1, 60, size=6).astype(float)
+    new_mean, new = two_point_moments(mean, cov.copy(), (which, low, high), N[:, None])
+    for b, u in np.ndindex(6, 5):
+        for j in (0, 2):
+            h = (high[j] - low[j]) / (2 * (N[b] + 1))
+            mu = min(max(mean[b, u, j], low[j] + h), high[j] - h)
+            assert new_mean[b, u, j] == mu and new[b, u, j, j] == pytest.approx((mu - low[j]) * (high[j] - mu), rel=1e-12)
+        assert new_mean[b, u, 1] == mean[b, u, 1] and new[b, u, 1, 1] == cov[b, u, 1, 1]
+    assert new_mean[0, 0, 0] == 1 / (2 * (N[0] + 1)) and new_mean[0, 0, 2] == 2 - 3 / (2 * (N[0] + 1))
+    scalar_mean, scalar = two_point_moments(mean[1], cov[1].copy(), (which, low, high), N[1])
+    np.testing.assert_array_equal(scalar_mean, new_mean[1])
+    np.testing.assert_array_equal(scalar, new[1])
+
+
+def test_a_window_at_a_dropouts_end_certifies_no_gain_that_leans_on_the_switched_off_input():
+    """Constructed: x+ = 1.5 x + (1e-12 + xi) u, xi ~ Bernoulli(0.75), and ten estimates all at xi = 0 (an EnKF
+    that collapsed onto the end of the box). Modeled at the end, the law is deterministic with an input gain of
+    1e-12, and its design is a gain of about -1.5e12 with model rate ~0, unstable beyond 1e11 on the plant. Kept
+    the add-half estimate inside the end, the mean is 1/22 with the variance it fixes: the model rate is the exact
+    rate at that law (independent), >= 1 for every gain (no gain stabilises so rare an input), and nothing is
+    adopted."""
+    system = rx.AffineRandomSystem(A=[np.array([[1.5]]), np.zeros((1, 1))], B=[np.array([[1e-12]]), np.array([[1.0]])],
+                                   xi_dist=from_spec({"family": "bernoulli", "prob": [0.75]}))
+    at_end = first_decision(system, np.zeros(10), resamples=0)                    # unmarked: the law at the end
+    assert at_end.cov[0, 0, 0] == 0 and at_end.rate_model[0] < 1e-3 and abs(at_end.F[0, 0, 0]) > 1e11
+    assert rx.ms_rate(system, None, at_end.F[0]) > 1e11
+    marked = (np.array([True]), np.array([0.0]), np.array([1.0]))
+    d = first_decision(system, np.zeros(10), two_point=marked)
+    mu = 1 / 22
+    assert d.mean[0, 0] == mu and d.cov[0, 0, 0] == pytest.approx(mu * (1 - mu), rel=1e-12)
+    assert d.rate_model[0] == pytest.approx(kron_rate(system, d.mean[0], d.cov[0], d.F[0]), rel=1e-9)
+    assert d.rate_model[0] >= np.sqrt(2.25 * (1 - mu)) - 1e-9                  # the optimum at that law
+    assert not d.adopted[0] and d.reason[0] == "not_stabilizing"
+
+
 def test_a_thin_window_acts_only_where_the_prior_guess_also_calls_the_gain_in_use_unstable():
     """x+ = (1.2 + xi) x + u from F = 0, ten estimates about the true law N(0.5, 0.25): every resample calls F = 0
     unstable and the candidate passes the model and every resample, but ten estimates are two blocks. With
