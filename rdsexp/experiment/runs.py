@@ -28,7 +28,8 @@ from .store.table import KEY_METRICS, MISSING, as_text, changed_params, one_row_
 DEFAULT_ROOT = Path(layout.DEFAULT_ROOT)
 __all__ = ["DEFAULT_ROOT", "changed", "check", "compare_tables", "diff", "load", "main", "search", "verify"]
 IDENTITY_SHOWN = ["id", "sweep", "plant", "plant_hash", "seed", "overrides", "status"]   # `list`'s columns, then
-SHOWN = KEY_METRICS[:4]                                                        # its key metrics
+SHOWN = KEY_METRICS[:4]                                                        # its key metrics, and a tuning
+OBJECTIVE_SHOWN = ["metrics.objective_mean", "metrics.objective_se"]          # study's objective where it has one
 
 
 def search(root=DEFAULT_ROOT, where: str | None = None, copies: bool = False) -> pd.DataFrame:
@@ -431,7 +432,10 @@ def _command(args) -> int:
             cols = [column(table, c.strip()) for c in args.columns.split(",") if c.strip()]
             cols = list(dict.fromkeys([*cols, *varying]))
         else:
-            cols = [*IDENTITY_SHOWN, *varying, *(c for c in SHOWN if c in table.columns)]
+            # a trial's mean over its seeds and its standard error (on the trial's first run), and the held-out
+            # re-run's (on its last): what a study's objective is, beside the single runs' values
+            objective = [c for c in OBJECTIVE_SHOWN if c in table.columns and table[c].notna().any()]
+            cols = [*IDENTITY_SHOWN, *varying, *(c for c in SHOWN if c in table.columns), *objective]
             cols = [c for c in dict.fromkeys(cols) if c in table.columns]
         _print(table[cols], args.csv)
         return 0

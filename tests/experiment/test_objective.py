@@ -1,8 +1,10 @@
 """`objective=METRIC`: the job returns one float for an optimizing sweeper, and +sweep=tune_enkf runs Optuna."""
+import io
 import json
 import math
 
 import numpy as np
+import pandas as pd
 import pytest
 import yaml
 from conftest import SMALL, rdsexp
@@ -87,5 +89,10 @@ def test_tune_enkf_averages_each_trial_over_seeds_and_holds_out_the_best(tmp_pat
     from rdsexp.runs import search
     found = search(sweep, "objective_role == 'heldout'")
     assert sorted(found["seed"]) == [2, 3] and found["metrics.objective_mean"].dropna().tolist() == [held["mean"]]
+    listed = rdsexp("list", sweep, "--csv", module="rdsexp.runs", cwd=tmp_path).stdout      # the catalog's view
+    shown = pd.read_csv(io.StringIO(listed)).set_index("id")
+    assert shown.loc[best_id, "metrics.objective_mean"] == pytest.approx(means[best_id], rel=1e-9)
+    assert shown.loc[best_id, "metrics.objective_se"] == pytest.approx(runs[best_id.split("/")[1]]["objective"]["se"], rel=1e-9)
+    assert shown.loc[runs["heldout.seed3"]["id"], "metrics.objective_mean"] == pytest.approx(held["mean"], rel=1e-9)
     assert f"tuning: best trial {best_id}: closed_loop_rate {means[best_id]:.4f}" in proc.stdout
     assert "held out on fresh seeds [2, 3]" in proc.stdout and "exact counterpart rate_plant" in proc.stdout
