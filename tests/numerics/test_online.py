@@ -481,6 +481,21 @@ def test_a_window_at_a_dropouts_end_certifies_no_gain_that_leans_on_the_switched
     assert not d.adopted[0] and d.reason[0] == "not_stabilizing"
 
 
+def test_a_weighted_window_keeps_a_dropout_inside_its_ends_by_its_effective_number_of_estimates():
+    """With exponential memory (forgetting 0.8) ten estimates at a dropout's end count as (sum w)^2 / sum w^2 of
+    them, w = 0.8^(10 - t): the modeled mean is 1 / (2 (that + 1)), recomputed here from the weights."""
+    marked = (np.array([True]), np.array([0.0]), np.array([1.0]))
+    ctrl = OnlineController(dropout_plant(), OnlineSettings(warmup=0, period=10, memory="exponential", forgetting=0.8),
+                            np.zeros((1, 1)), paths=1, horizon=20, two_point=marked)
+    for k in range(11):
+        ctrl.update(k, np.array([[0.0, 1.0 if k else 0.5]]), np.ones(1, bool))
+    d = ctrl.decisions()
+    w = 0.8 ** (10 - np.arange(1, 11))
+    n_eff = w.sum() ** 2 / (w ** 2).sum()
+    assert 7 < n_eff < 8 and d.estimates[0] == 10
+    assert d.mean[0, 0] == pytest.approx(1 - 1 / (2 * (n_eff + 1)), rel=1e-12)
+
+
 def test_a_thin_window_acts_only_where_the_prior_guess_also_calls_the_gain_in_use_unstable():
     """x+ = (1.2 + xi) x + u from F = 0, ten estimates about the true law N(0.5, 0.25): every resample calls F = 0
     unstable and the candidate passes the model and every resample, but ten estimates are two blocks. With
