@@ -4,7 +4,8 @@ Stages (docs/design.md): identification -> modeling -> synthesis -> closed loop 
 noise floor (the closed loop at rest) -> metrics (rate window, verdicts). Seeds: the identification
 run uses SeedSequence(seed, spawn_key=(0,)), the closed and open loops SeedSequence(seed,
 spawn_key=(1,)) (the same plant samples, as in the paper's Figs. decay_proposed and decay_open), the
-loop at rest (2,); inside each, path j has its own plant and EnKF streams.
+loops at rest (2,) (the online loop's, with controller=online, too); inside each, path j has its own plant
+and EnKF streams.
 """
 from __future__ import annotations
 
@@ -245,16 +246,17 @@ def run_experiment(exp: Experiment, sink=None, cache=None) -> Outcome:
         if exp.controller.kind == "online":    # and the gain columns the online loop's rows bring
             rows = with_gains(rows, np.zeros((0, exp.model.m, exp.model.n)))
         sink.append("trajectories", rows)
-    floor = None
+    floors = {}                                # each loop's own noise floor: the same loop started at rest
     if "closed_loop" in loops and exp.loop.floor_paths > 0:
         with stages.timed("noise_floor"):
-            floor = noise_floor(exp, observer, chosen.F, root("noise_floor"), sim)
+            floors["closed_loop"] = noise_floor(exp, observer, chosen.F, root("noise_floor"), sim)
+    floor = floors.get("closed_loop")
 
     online = None
     if exp.controller.kind == "online":
         with stages.timed("online"):
-            online, summary["online_initial"] = online_loop(exp, root("online"), keep, sim, sink, sample,
-                                                            sample_members)
+            online, summary["online_initial"], floors["online"] = online_loop(
+                exp, root("online"), keep, sim, sink, sample, sample_members, root("noise_floor"))
             loops["online"] = online[0]
 
     with stages.timed("metrics"):
@@ -265,7 +267,7 @@ def run_experiment(exp: Experiment, sink=None, cache=None) -> Outcome:
             "paths": path_table({"identification": LoopSummary.of(ident, exp), **loops}),
             "model": model_table(exp, dist),
             "gains": gains_table(exp, designs, selected),
-            "metrics": metrics_table(exp, loops, window, floor, exact),
+            "metrics": metrics_table(exp, loops, window, floors, exact),
             "exact": exact,
         }
         summary.update(rate_window=list(window.k), rate_window_source=window.source if window.placed else "none",
@@ -381,12 +383,16 @@ class MemorySink:
         return {name: pd.concat(parts, ignore_index=True) for name, parts in self.parts.items()}
 
 
-def online_loop(exp: Experiment, seed, keep: bool, sim: dict, sink, sample: list, sample_members: list):
+def online_loop(exp: Experiment, seed, keep: bool, sim: dict, sink, sample: list, sample_members: list,
+                floor_seed=None):
     """The online (learning-type) closed loop: per-path gains re-designed from the path's own xi_{k|k}.
 
     In chunks of paths, and worker processes, like the other loops (`run_chunks`; one controller per
     chunk), rows streamed to the sink with the gain in use (F[i,j]). Returns
-    ((LoopSummary, [(first_path, controller)]), info for the summary)."""
+    ((LoopSummary, [(first_path, controller)]), info for the summary, its noise floor): the floor is the
+    same online loop started at rest (`noise_floor` with a controller of its own, seed floor_seed), None
+    with closed_loop.floor_paths 0. Its verdict is judged against it: the fixed-gain loop's floor says
+    nothing of a loop whose gains and observer are its own."""
     m, n = exp.model.m, exp.model.n
     enkf = online_observer(exp)
     info = {"initial": exp.controller.initial if isinstance(exp.controller.initial, str) else "given",
@@ -423,7 +429,10 @@ def online_loop(exp: Experiment, seed, keep: bool, sim: dict, sink, sample: list
                               in_use.reshape(count * (K + 1), m, n))
             parts.append(stream_chunk(exp, "online", tr, first, rows, sink, sample, sample_members))
             controllers.append((first, controller))
-    return (LoopSummary.concat(parts), controllers), info
+    floor = None
+    if exp.loop.floor_paths > 0:
+        floor = noise_floor(exp, enkf, F0, floor_seed, sim, make(paths=min(exp.loop.floor_paths, exp.loop.paths)))
+    return (LoopSummary.concat(parts), controllers), info, floor
 
 
 def with_gains(rows: pd.DataFrame, F: np.ndarray) -> pd.DataFrame:
@@ -993,18 +1002,19 @@ def loop_observer(exp: Experiment, moments):
     return enkf
 
 
-def noise_floor(exp: Experiment, enkf, F: np.ndarray, seed, sim: dict) -> Floor:
-    """The closed loop's noise floor: the loop with gain F and the EnKF observer started at rest (q_0 =
-    0) without disturbance, closed_loop.floor_paths paths; its mean square over the second half of the
-    horizon, whether it grows there, and which paths failed (`verdict.Floor`)."""
+def noise_floor(exp: Experiment, enkf, F: np.ndarray, seed, sim: dict, controller=None) -> Floor:
+    """A loop's noise floor: the loop with gain F (the initial gain of `controller`, which re-designs it,
+    if given: the online loop) and the EnKF observer started at rest (q_0 = 0) without disturbance,
+    closed_loop.floor_paths paths; its mean square over the second half of the horizon, whether it grows
+    there, and which paths failed (`verdict.Floor`)."""
     K = exp.loop.horizon
     tr = simulate(exp.plant, enkf, F=F, d=np.zeros((K + 1, exp.model.m)),
                   paths=min(exp.loop.floor_paths, exp.loop.paths), seed=seed, filter_sees_d=True,
-                  **dict(sim, q0=np.zeros(exp.plant.n)))
+                  controller=controller, **dict(sim, q0=np.zeros(exp.plant.n)))
     return Floor.of(np.sum(tr.q ** 2, axis=-1), tr.failed_at)
 
 
-def metrics_table(exp: Experiment, loops: dict[str, LoopSummary], window: RateWindow, floor: Floor | None,
+def metrics_table(exp: Experiment, loops: dict[str, LoopSummary], window: RateWindow, floors: dict[str, Floor],
                   exact: pd.DataFrame) -> pd.DataFrame:
     """Per loop: empirical rate over the rate window with its 95% interval (`verdict.rate_interval`), the
     ideal loop's exact rate over the same window, the noise floor, the verdict, its reason and the rate it
@@ -1015,12 +1025,12 @@ def metrics_table(exp: Experiment, loops: dict[str, LoopSummary], window: RateWi
     filtered x_{k|k}, xi_{k|k} against q_k and the true xi (k >= 1; the true xi at k is T s_{k-1} + t
     from `truth_map`, NaN when the model's xi has no value in the plant's terms); *_spread_error:
     sqrt(mean sum std^2) / RMSE (1: the ensemble spread matches its error). Means are over every
-    finite (step, path). The open loop's floor is 0 (its observer does not act on the plant); the
-    online loop is judged against the fixed-gain closed loop's floor."""
+    finite (step, path). floors: each loop's own noise floor, the same loop started at rest (none: not
+    measured); the open loop's is 0 (its observer does not act on the plant)."""
     k_from, k_to = window.k
     rows = []
     for name, loop in loops.items():
-        loop_floor = None if name == "open_loop" else floor
+        loop_floor = floors.get(name)
         ideal = exact.loc[exact["experiment"] == name, "rms"].to_numpy()
         verdict = judge_loop(loop.sq, failed_at=loop.failed_at, failure=loop.failure,
                              window=window.k if window.placed else None, exact_rms=ideal if ideal.size else None,
@@ -1399,7 +1409,7 @@ def loops_on_model(exp: Experiment, dist: MomentModel, chosen: SynthesisResult, 
     floor = noise_floor(sexp, observer, chosen.F, root("noise_floor"), sim) if exp.loop.floor_paths > 0 else None
     exact = exact_table(sexp, chosen)
     window = rate_window(sexp, exact, floor, loops.get("closed_loop"))
-    metrics = metrics_table(sexp, loops, window, floor, exact)
+    metrics = metrics_table(sexp, loops, window, {} if floor is None else {"closed_loop": floor}, exact)
     rename = lambda frame: frame.assign(experiment=frame["experiment"] + ON_MODEL)
     tables["metrics"], tables["exact"] = rename(metrics), rename(exact)
     tables["paths"] = pd.concat([tables["paths"], rename(path_table(loops))], ignore_index=True)

@@ -411,7 +411,8 @@ def test_paths_the_online_loop_loses_alone_are_counted_path_by_path_and_tested_a
     """A destabilising initial gain (u = 100 x_2 on the paper's plant: x_2 grows about 41-fold a step) loses every
     online path before its first re-design, while the offline loop of the same plant samples keeps its own. The
     online metrics count the paths each loop lost alone from the paths table, path by path, and the exact paired
-    test (`verdict.paired_losses`) gives p = 2^-P: more than chance explains."""
+    test (`verdict.paired_losses`) gives p = 2^-P: more than chance explains. Each loop is judged against its own
+    noise floor: the online loop started at rest diverges with that gain (floor inf), the offline one does not."""
     exp = experiment("controller=online", "controller.initial=[[0,100,0,0,0,0]]", "closed_loop.paths=8",
                      "closed_loop.open_loop=false")
     out = pipeline.run_experiment(exp)
@@ -423,6 +424,8 @@ def test_paths_the_online_loop_loses_alone_are_counted_path_by_path_and_tested_a
     assert (o["lost_online_only"], o["lost_offline_only"]) == (8, 0) and o["lost_more_p"] == 2.0 ** -8
     metrics = out.tables["metrics"].set_index("experiment").loc["online"]
     assert (metrics["lost_online_only"], metrics["lost_more_p"]) == (8, 2.0 ** -8)
+    floors = out.tables["metrics"].set_index("experiment")["floor_rms"]
+    assert floors["online"] == np.inf and 0 < floors["closed_loop"] < np.inf
     # every lost path held the initial gain, unstable on the true plant: its exact rate, computed independently
     from rdsexp.numerics.analysis import ms_rate
     F0 = np.array([[0.0, 100.0, 0.0, 0.0, 0.0, 0.0]])
