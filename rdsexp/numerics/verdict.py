@@ -129,6 +129,12 @@ class Floor:
         """sqrt of the floor's mean square (inf when a path of the run at rest failed)."""
         return float("inf") if self.failed > 0 else float(np.sqrt(np.mean(self.samples)))
 
+    @property
+    def holds(self) -> bool:
+        """Whether the run at rest keeps a floor: no path failed and its growth is not above 1 at 95% (else
+        `judge_loop` calls the loop itself unstable or failed)."""
+        return self.failed == 0 and not self.growth[1] > 1
+
 
 def rate_interval(b: np.ndarray, a: np.ndarray, span: int, floor: np.ndarray | None = None,
                   level: float = LEVEL) -> tuple[float, float, float]:

@@ -407,12 +407,35 @@ def test_a_narrowed_start_whose_gain_holds_the_whole_law_worse_than_the_guess_de
     assert ms_rate(exp.model, whole, stabilizing.F) > ms_rate(exp.model, whole, at_guess.F) > 1
 
 
+def test_the_online_loop_borrows_the_fixed_gain_loops_floor_only_where_it_holds(monkeypatch):
+    """The fixed-gain loop's run at rest is replaced by one that keeps a floor, then by one that grows: the online
+    row's floor_rms is that floor where it holds and NaN where it does not, and only the fixed-gain loop is called
+    unstable for a growth at rest that is its own (the online loop's gains and EnKF are not its)."""
+    from rdsexp.numerics.verdict import Floor
+    rng = np.random.default_rng(0)
+    K = 60
+    runs = {"holds": Floor.of(1e-4 * rng.exponential(1.0, (K + 1, 20)), np.full(20, -1)),
+            "grows": Floor.of(1e-4 * rng.exponential(1.0, (K + 1, 20)) * 1.1 ** (2 * np.arange(K + 1))[:, None],
+                              np.full(20, -1))}
+    assert runs["holds"].holds and not runs["grows"].holds
+    exp = experiment("controller=online", "closed_loop.paths=8", "closed_loop.open_loop=false")
+    for name, floor in runs.items():
+        monkeypatch.setattr(pipeline, "noise_floor", lambda *args, floor=floor: floor)
+        metrics = pipeline.run_experiment(exp).tables["metrics"].set_index("experiment")
+        closed, online = metrics.loc["closed_loop"], metrics.loc["online"]
+        assert closed["floor_rms"] == floor.rms
+        if name == "holds":
+            assert online["floor_rms"] == floor.rms
+        else:
+            assert np.isnan(online["floor_rms"]) and "at rest" not in online["verdict_reason"]
+            assert closed["verdict"] == "unstable" and "at rest" in closed["verdict_reason"]
+
+
 def test_paths_the_online_loop_loses_alone_are_counted_path_by_path_and_tested_against_chance():
     """A destabilising initial gain (u = 100 x_2 on the paper's plant: x_2 grows about 41-fold a step) loses every
     online path before its first re-design, while the offline loop of the same plant samples keeps its own. The
     online metrics count the paths each loop lost alone from the paths table, path by path, and the exact paired
-    test (`verdict.paired_losses`) gives p = 2^-P: more than chance explains. Each loop is judged against its own
-    noise floor: the online loop started at rest diverges with that gain (floor inf), the offline one does not."""
+    test (`verdict.paired_losses`) gives p = 2^-P: more than chance explains."""
     exp = experiment("controller=online", "controller.initial=[[0,100,0,0,0,0]]", "closed_loop.paths=8",
                      "closed_loop.open_loop=false")
     out = pipeline.run_experiment(exp)
@@ -424,8 +447,6 @@ def test_paths_the_online_loop_loses_alone_are_counted_path_by_path_and_tested_a
     assert (o["lost_online_only"], o["lost_offline_only"]) == (8, 0) and o["lost_more_p"] == 2.0 ** -8
     metrics = out.tables["metrics"].set_index("experiment").loc["online"]
     assert (metrics["lost_online_only"], metrics["lost_more_p"]) == (8, 2.0 ** -8)
-    floors = out.tables["metrics"].set_index("experiment")["floor_rms"]
-    assert floors["online"] == np.inf and 0 < floors["closed_loop"] < np.inf
     # every lost path held the initial gain, unstable on the true plant: its exact rate, computed independently
     from rdsexp.numerics.analysis import ms_rate
     F0 = np.array([[0.0, 100.0, 0.0, 0.0, 0.0, 0.0]])

@@ -123,6 +123,8 @@ def test_a_floor_that_grows_or_diverges_is_no_floor():
     diverged = Floor(samples=np.ones(10), growth=(1.0, 0.9, 1.1), failed=0.2)
     v = judge(sq, (5, 15), diverged)
     assert v.word == "failed" and "diverged on 20% of its paths" in v.reason and diverged.rms == np.inf
+    # `holds` is what judge_loop reads as a floor: neither of these is one, a steady run at rest is
+    assert steady.holds and not at_rest(0.01, growth=1.05).holds and not diverged.holds
 
 
 def test_never_stable_beside_an_exact_rate_at_or_above_1():
