@@ -1009,7 +1009,7 @@ def noise_floor(exp: Experiment, enkf, F: np.ndarray, seed, sim: dict) -> Floor:
     return Floor.of(np.sum(tr.q ** 2, axis=-1), tr.failed_at)
 
 
-def metrics_table(exp: Experiment, loops: dict[str, LoopSummary], window: RateWindow, floors: dict[str, Floor],
+def metrics_table(exp: Experiment, loops: dict[str, LoopSummary], window: RateWindow, floors: dict[str, Floor | None],
                   exact: pd.DataFrame) -> pd.DataFrame:
     """Per loop: empirical rate over the rate window with its 95% interval (`verdict.rate_interval`), the
     ideal loop's exact rate over the same window, the noise floor, the verdict, its reason and the rate it
@@ -1405,7 +1405,7 @@ def loops_on_model(exp: Experiment, dist: MomentModel, chosen: SynthesisResult, 
     floor = noise_floor(sexp, observer, chosen.F, root("noise_floor"), sim) if exp.loop.floor_paths > 0 else None
     exact = exact_table(sexp, chosen)
     window = rate_window(sexp, exact, floor, loops.get("closed_loop"))
-    metrics = metrics_table(sexp, loops, window, {} if floor is None else {"closed_loop": floor}, exact)
+    metrics = metrics_table(sexp, loops, window, {"closed_loop": floor}, exact)
     rename = lambda frame: frame.assign(experiment=frame["experiment"] + ON_MODEL)
     tables["metrics"], tables["exact"] = rename(metrics), rename(exact)
     tables["paths"] = pd.concat([tables["paths"], rename(path_table(loops))], ignore_index=True)

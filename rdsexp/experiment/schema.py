@@ -116,9 +116,9 @@ COLUMNS: dict[str, dict[str, tuple[str, str | None]]] = {
         "k_end": ("last step of verdict_rate: k_to, or the step before the loop is at rest (its mean square "
                   "below 2 noise floors'); -1 without a rate", "step"),
         "exact_rate": ("the ideal loop's (state feedback, true plant) exact rate over the same window", "1/step"),
-        "floor_rms": ("noise floor sqrt(E|q|^2) of the closed loop at rest, the loop is judged against (0 for the "
-                      "open loop; the online loop's: the closed loop's where it holds; inf if the loop at rest "
-                      "diverged; NaN: none)", "state"),
+        "floor_rms": ("the noise floor the loop is judged against: sqrt(E|q|^2) of the closed loop at rest (0 for "
+                      "the open loop; the online loop takes the closed loop's where it holds; inf if the loop at "
+                      "rest diverged; NaN: none)", "state"),
         "rms_k_to": ("sqrt(E|q_k_to|^2), compared with the floor", "state"),
         "paths": ("number of sample paths", None),
         "failed_fraction": ("fraction of paths that failed", None),
