@@ -27,9 +27,10 @@ from .store.table import KEY_METRICS, MISSING, as_text, changed_params, one_row_
 
 DEFAULT_ROOT = Path(layout.DEFAULT_ROOT)
 __all__ = ["DEFAULT_ROOT", "changed", "check", "compare_tables", "diff", "load", "main", "search", "verify"]
-IDENTITY_SHOWN = ["id", "sweep", "plant", "plant_hash", "seed", "overrides", "status"]   # `list`'s columns, then
-SHOWN = KEY_METRICS[:4]                                                        # its key metrics, and a tuning
-OBJECTIVE_SHOWN = ["metrics.objective_mean", "metrics.objective_se"]          # study's objective where it has one
+# `list`'s default columns: the run's identity, its key metrics and, in a tuning study, its objective
+IDENTITY_SHOWN = ["id", "sweep", "plant", "plant_hash", "seed", "overrides", "status"]
+SHOWN = KEY_METRICS[:4]
+OBJECTIVE_SHOWN = ["metrics.objective_mean", "metrics.objective_se"]
 
 
 def search(root=DEFAULT_ROOT, where: str | None = None, copies: bool = False) -> pd.DataFrame:
