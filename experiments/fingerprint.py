@@ -3,7 +3,7 @@
 Runs a fixed set of cases (the paper, every library plant, the online controller, data runs, fallbacks and
 variants), each with `python -m rdsexp ... tracking=summary` in a fresh store, and prints one JSON object:
 per case, the sha256 of every table (its columns, dtypes and values), of run.json's summary, of the console
-text (run directory and times taken out) and the stage keys. Compare two of them:
+text (run directory and times taken out). Compare two of them:
 
     python experiments/fingerprint.py > before.json      # at the old commit
     python experiments/fingerprint.py > after.json       # at the new one
@@ -73,7 +73,7 @@ def run_case(args: list[str]) -> dict:
         tables = {p.stem: table_hash(pd.read_parquet(p)) for p in sorted(run.glob("*.parquet"))}
         summary = record["summary"]
         return {"tables": tables, "summary": text_hash(summary), "console": text_hash(console),
-                "stage_keys": text_hash(record.get("stage_keys")), "status": record["status"],
+                "status": record["status"],
                 "summary_json": json.loads(json.dumps(summary, default=str)), "console_text": console}
 
 
@@ -88,9 +88,7 @@ def compare(before: dict, after: dict) -> int:
         diffs = [f"table {t}" for t in sorted(set(a.get("tables", {})) | set(b.get("tables", {})))
                  if a.get("tables", {}).get(t) != b.get("tables", {}).get(t)]
         diffs += [k for k in ("summary", "console", "status", "exit") if a.get(k) != b.get(k)]
-        info = " (stage keys differ: stored stages are not reused across the change)" \
-            if a.get("stage_keys") != b.get("stage_keys") else ""
-        print(f"{case}: {'identical' if not diffs else 'DIFFERS: ' + ', '.join(diffs)}{info}")
+        print(f"{case}: {'identical' if not diffs else 'DIFFERS: ' + ', '.join(diffs)}")
         if "summary" in diffs:
             sa, sb = a["summary_json"], b["summary_json"]
             for k in sorted(set(sa) | set(sb)):

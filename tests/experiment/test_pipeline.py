@@ -11,6 +11,7 @@ from hydra import compose, initialize_config_module
 from rdsexp.errors import ConfigError
 from rdsexp.experiment import pipeline
 from rdsexp.experiment.config import build
+from rdsexp.experiment.pipeline import design, identification, loops, online, record
 from rdsexp.experiment.store import stages
 
 
@@ -136,19 +137,19 @@ def test_iterated_identification_models_from_its_last_pass_and_stops_at_a_fixed_
     assert "identification_passes" not in pipeline.run_experiment(experiment()).summary
 
     exp = experiment("plant=dropout")
-    first = pipeline.simulate(exp.plant, exp.filter.enkf, F=None, d=exp.identification.input, paths=1, seed=1,
+    first = identification.simulate(exp.plant, exp.filter.enkf, F=None, d=exp.identification.input, paths=1, seed=1,
                               keep_xi_cov=True, **exp.simulation())
-    dist, failure = pipeline.identified_moments(exp, first)
+    dist, failure = identification.identified_moments(exp, first)
     assert failure == ""
-    _, same, _, info = pipeline.iterate_identification(exp, lambda enkf: first, first, dist, "",
+    _, same, _, info = identification.iterate_identification(exp, lambda enkf: first, first, dist, "",
                                                        exp.simulation()["psi0"])
     assert info == {"first": "random_walk", "passes": 1, "converged": True, "last_change": 0.0,
-                    "tolerance": pipeline.PASS_TOL}
+                    "tolerance": identification.PASS_TOL}
     np.testing.assert_array_equal(same.mean, dist.mean)
     failing = copy.copy(first)
     failing.failed_at = np.array([7])
     failing.failure = np.array(["filter_diverged"], dtype=object)
-    kept, model, why, info = pipeline.iterate_identification(exp, lambda enkf: failing, first, dist, "",
+    kept, model, why, info = identification.iterate_identification(exp, lambda enkf: failing, first, dist, "",
                                                             exp.simulation()["psi0"])
     assert kept is first and model is dist and why == "" and info["passes"] == 0
     assert info["failed"] == "identification failed at k = 7: the EnKF estimate diverged"
@@ -168,7 +169,7 @@ def test_xi_crps_scores_the_modeled_marginals_against_the_plant_file():
         return sd * (z * (2 * norm.cdf(z) - 1) + 2 * norm.pdf(z) - 1 / np.sqrt(np.pi))
 
     exact = gamma * crps(1.0) + (1 - gamma) * crps(0.0)
-    error = abs(crps(1.0) - crps(0.0)) * np.sqrt(gamma * (1 - gamma) / pipeline.CRPS_DRAWS)
+    error = abs(crps(1.0) - crps(0.0)) * np.sqrt(gamma * (1 - gamma) / record.CRPS_DRAWS)
     assert abs(s["xi_crps"] - exact) <= 4 * error
 
 
@@ -189,7 +190,7 @@ def test_disturbance_estimate_is_the_loops_not_identifications():
     tables keep the paper's columns (x and xi of n + p)."""
     exp = experiment("enkf.disturbance=0.5", "closed_loop.filter_sees_disturbance=false")
     assert exp.filter.enkf.disturbance is None and exp.filter.enkf.width == exp.filter.enkf.dim
-    observer = pipeline.loop_observer(exp, None)
+    observer = loops.loop_observer(exp, None)
     np.testing.assert_array_equal(observer.disturbance, 0.5 * np.eye(exp.model.m))
     assert observer.width == observer.dim + exp.model.m
     tables = pipeline.run_experiment(exp).tables
@@ -246,20 +247,20 @@ def test_the_loop_keeps_the_identification_gain_where_the_designed_one_is_worse(
     with initialize_config_module(config_module="rdsexp.conf", version_base="1.3"):
         exp = build(compose("config", overrides=[f"hydra.searchpath=[file://{tmp_path}]", "plant=unst3", "model=plant",
                                                  *SMALL, "identification.resamples=20", "tracking=off"]))
-    identified = pipeline.identify_and_model(exp, pipeline.Stages(), np.random.SeedSequence(0, spawn_key=(0,)),
-                                             exp.simulation(), False)
-    ident, dist, summary = identified["ident"], identified["dist"], identified["summary"]
-    draws = pipeline.moment_uncertainty(exp, ident, summary)
+    identified = identification.identify_and_model(exp, pipeline.Stages(), np.random.SeedSequence(0, spawn_key=(0,)),
+                                                   exp.simulation(), False)
+    dist, uncertainty = identified.moments, identification.moment_uncertainty(exp, identified)
+    summary = identified.summary() | uncertainty.summary()
+    draws = uncertainty.draws
     assert draws[0].shape == (20, 2) and len(summary["modeling_uncertainty"]["xi_mean_sd"]) == 2
     assert summary["identification_feedback"]["used"] == "nominal"
     F_id = np.array(summary["identification_feedback"]["F"])
-    np.testing.assert_array_equal(F_id, pipeline.identification_feedback(exp)[0])     # the gain it ran under
+    np.testing.assert_array_equal(F_id, identification.identification_feedback(exp)[0])     # the gain it ran under
     worst = lambda F: max(ms_rate(exp.model, MomentModel(mean=m, cov=c), F) for m, c in zip(*draws))
     zero = np.zeros((1, 3))                                        # no feedback: the plant grows
     designed = SynthesisResult("ms_lqr", zero, ms_rate(exp.model, dist, zero), "optimal", nbar=3)
-    kept = pipeline.safer_gain(exp, dist, designed, draws, summary)
-    choice = summary["gain_choice"]
-    assert kept is not None and kept.status == "kept" and kept.method == pipeline.KEPT_GAIN
+    choice, kept = design.safer_gain(exp, dist, designed, draws, F_id)
+    assert kept is not None and kept.status == "kept" and kept.method == design.KEPT_GAIN
     np.testing.assert_array_equal(kept.F, F_id)
     assert kept.lam == pytest.approx(ms_rate(exp.model, dist, F_id), rel=1e-12)
     assert choice["kept"] == "identification" and choice["draws"] == 20
@@ -267,8 +268,8 @@ def test_the_loop_keeps_the_identification_gain_where_the_designed_one_is_worse(
     assert choice["identification_worst"] == pytest.approx(worst(F_id), rel=1e-9)
     assert choice["identification_worst"] < choice["designed_worst"]
     same = SynthesisResult("ms_lqr", F_id.copy(), ms_rate(exp.model, dist, F_id), "optimal", nbar=3)
-    assert pipeline.safer_gain(exp, dist, same, draws, summary) is None      # a tie keeps the design
-    assert summary["gain_choice"]["kept"] == "designed"
+    summary["gain_choice"], kept = design.safer_gain(exp, dist, same, draws, F_id)
+    assert kept is None and summary["gain_choice"]["kept"] == "designed"       # a tie keeps the design
     from rdsexp.experiment.recording import report_markdown
     tables = {"gains": pd.DataFrame(columns=["distribution", "method", "status", "lam", "rate_plant", "selected"]),
               "metrics": pd.DataFrame(columns=list(pipeline.METRIC_COLUMNS))}
@@ -277,14 +278,14 @@ def test_the_loop_keeps_the_identification_gain_where_the_designed_one_is_worse(
 
 
 def test_the_online_observer_draws_a_dropout_from_its_two_point_law():
-    """`pipeline.online_observer` marks the dropout plant's Bernoulli xi (`EnKF.xi_ends`, its box [0, 1]) for its
+    """`pipeline.online.online_observer` marks the dropout plant's Bernoulli xi (`EnKF.xi_ends`, its box [0, 1]) for its
     static-mean start and its paths' models, and nothing on the paper's plant (a normal xi); with the walk as
     the start it keeps the mark for the paths' models only."""
-    observer = pipeline.online_observer(experiment("plant=dropout", "controller=online"))
+    observer = online.online_observer(experiment("plant=dropout", "controller=online"))
     assert observer.static_mean and observer.xi_ends.tolist() == [True]
     assert observer.xi_bounds[0].tolist() == [0.0] and observer.xi_bounds[1].tolist() == [1.0]
-    assert pipeline.online_observer(experiment("controller=online")).xi_ends is None
-    walk = pipeline.online_observer(experiment("plant=dropout", "controller=online", "controller.start=random_walk"))
+    assert online.online_observer(experiment("controller=online")).xi_ends is None
+    walk = online.online_observer(experiment("plant=dropout", "controller=online", "controller.start=random_walk"))
     assert not walk.static_mean and walk.xi_ends.tolist() == [True]
 
 
@@ -307,7 +308,7 @@ def test_the_online_controller_models_a_dropout_with_the_variance_its_mean_fixes
 
 def test_the_online_loops_nominal_gain_is_designed_on_the_law_its_enkf_starts_from():
     """controller.initial=nominal is the mean-square LQR at the guess with the spread xi has in the online loop's
-    EnKF at its start (`pipeline.online_nominal`). On the dropout plant that law is the Bernoulli's own at its
+    EnKF at its start (`pipeline.online.online_nominal`). On the dropout plant that law is the Bernoulli's own at its
     mean (variance mu (1 - mu)): the gain in use before any re-design is that design, recomputed here from the
     plant file, and its rate on the law (recorded) is its exact rate on the plant (the controller table's)."""
     from rdsexp.numerics.synthesis import synthesize
@@ -331,7 +332,7 @@ def test_a_start_law_no_gain_keeps_mean_square_stable_is_halved_until_one_does(t
     """x_{k+1} = (0.5 + xi_k) x_k + u_k, y = x: under N(mu, v) the best gain's mean-square rate is sqrt(v) (u = -0.5 x
     cancels the mean), so a law is stabilizable exactly when v < 1. With enkf.Q's xi block 0.25, start_spread 2 and
     mean_spread 0.3, the online loop's start law has v = (0.09 + 4) 0.25 = 1.0225: no gain is mean-square stable
-    there, and the start keeps half of it (`pipeline.stabilizable_start`), v = 0.511, where the nominal gain is the
+    there, and the start keeps half of it (`pipeline.online.stabilizable_start`), v = 0.511, where the nominal gain is the
     mean-square LQR (recomputed here); with Q's xi block 0.2 (v = 0.818) nothing is narrowed."""
     import yaml
 
@@ -383,7 +384,7 @@ def test_a_narrowed_start_whose_gain_holds_the_whole_law_worse_than_the_guess_de
     """With the guess one standard deviation off the plant's mean (the dropout at 0.446 for 0.825), the start's law
     admits a mean-square stabilizing gain at 2^-8 of its spread (none above), where the Gaussian components are nearly
     certain beside the dropout, whose spread its mean fixes: that gain's exact rate at the whole law is worse than
-    the deterministic design's (recomputed here), so the start is not narrowed (`pipeline.stabilizable_start`)
+    the deterministic design's (recomputed here), so the start is not narrowed (`pipeline.online.stabilizable_start`)
     and the nominal gain is the design at the guess."""
     import yaml
 
@@ -396,11 +397,11 @@ def test_a_narrowed_start_whose_gain_holds_the_whole_law_worse_than_the_guess_de
         exp = build(compose("config", overrides=[f"hydra.searchpath=[file://{tmp_path}]", "plant=rp9", "model=plant",
                                                  *SMALL, "tracking=off", "controller=online",
                                                  "identification.xi_guess=[0.44564,0.92979,0.41335]"]))
-    enkf = pipeline.online_observer(exp)
+    enkf = online.online_observer(exp)
     assert enkf.static_mean and enkf.start_scale == 1.0
-    assert pipeline.online_nominal(exp, enkf)[1] == "guess"
-    whole = MomentModel(*pipeline.start_law(exp, enkf))
-    narrow = MomentModel(*pipeline.start_law(exp, dataclasses.replace(enkf, start_scale=2.0 ** -8)))
+    assert online.online_nominal(exp, enkf)[1] == "guess"
+    whole = MomentModel(*online.start_law(exp, enkf))
+    narrow = MomentModel(*online.start_law(exp, dataclasses.replace(enkf, start_scale=2.0 ** -8)))
     stabilizing = synthesize(exp.model, narrow, "ms_lqr")
     assert stabilizing.F is not None and ms_rate(exp.model, narrow, stabilizing.F) < 1
     at_guess = synthesize(exp.model, MomentModel.deterministic(whole.mean), "lqr_mean")
@@ -420,7 +421,7 @@ def test_the_online_loop_borrows_the_fixed_gain_loops_floor_only_where_it_holds(
     assert runs["holds"].holds and not runs["grows"].holds
     exp = experiment("controller=online", "closed_loop.paths=8", "closed_loop.open_loop=false")
     for name, floor in runs.items():
-        monkeypatch.setattr(pipeline, "noise_floor", lambda *args, floor=floor: floor)
+        monkeypatch.setattr(pipeline.run, "noise_floor", lambda *args, floor=floor: floor)
         metrics = pipeline.run_experiment(exp).tables["metrics"].set_index("experiment")
         closed, online = metrics.loc["closed_loop"], metrics.loc["online"]
         assert closed["floor_rms"] == floor.rms

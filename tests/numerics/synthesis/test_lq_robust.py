@@ -370,14 +370,15 @@ def test_exact_costs_equal_the_single_cost_functions(seed):
 def test_gains_table_reports_the_box_width_bracket():
     from types import SimpleNamespace
 
-    from rdsexp.experiment.pipeline import gains_table
+    from rdsexp.experiment.pipeline.results import DesignSet
+    from rdsexp.experiment.pipeline.tables import gains_table
     rng = np.random.default_rng(7)
     system, dist = random_system(rng, 2, 1, 1)
     plant = rx.AffineRandomSystem(A=system.A, B=system.B, xi_dist=dist)
     exp = SimpleNamespace(model=system, plant=plant, q0=np.ones(2))
     designs = {("identified", m): (dist, rx.synthesize(system, dist, m, **opts))
                for m, opts in (("robust_box", {"width": 0.5, "find_max_width": True}), ("ms_lqr", {}))}
-    table = gains_table(exp, designs, ("identified", "robust_box")).set_index("method")
+    table = gains_table(exp, DesignSet(designs, ("identified", "robust_box"))).set_index("method")
     box = designs[("identified", "robust_box")][1]
     assert table.loc["robust_box", "max_width"] == box.info["max_width"]
     assert table.loc["robust_box", "min_infeasible_width"] == box.info["min_infeasible_width"]

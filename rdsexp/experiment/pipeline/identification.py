@@ -1,0 +1,208 @@
+"""Identification and modeling: the EnKF on psi = [x; xi] filters an identification run (simulated on the plant
+under an M-sequence input, or the recorded (u, y) of a data run), and the moments of xi are modeled from
+xi_{k|k} over the window k = K0..K0+K1 (the paper's Sec. IV), with their bootstrap uncertainty.
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from ...numerics.modeling import model_distribution, moment_draws, nominal_gain, path_moment_draws
+from ...numerics.simulation import Trajectories, bytes_per_path, simulate
+from ...numerics.systems import MomentModel
+from ...numerics.verdict import FAILURES
+from ..config import Experiment
+from ..montecarlo import MEMORY_BUDGET
+from .design import safe_rate
+from .results import Identified, Uncertainty
+from .stage import Stages
+
+UNCERTAINTY_STREAM = 3   # SeedSequence([seed, 3]): the modeling window's bootstrap (stages use spawn keys 0-2)
+PASS_TOL = 1e-3        # iterated identification: stop when the moments move less than this (relative)
+
+
+def identify_and_model(exp: Experiment, stages: Stages, seed, sim: dict, keep: bool) -> Identified:
+    """The identification run(s) on the plant and the moments they model: the identification stage's value
+    (the stage cache stores it whole)."""
+    F_id, info = identification_feedback(exp)
+    # the identification input is added on top of the feedback; the EnKF is told the applied input
+    total = exp.identification.covariance == "total"
+    identify = lambda F, enkf=exp.filter.enkf: simulate(
+        exp.plant, enkf, F=F, d=exp.identification.input, paths=1, seed=seed,
+        filter_sees_d=True, keep_members=keep, keep_xi_cov=total, **sim)
+    ident = identify(F_id)
+    if info.get("used") == "open_loop" and ident.failure[0] in ("diverged", "filter_diverged"):
+        # auto chose the open loop on the guess, which knows no spread of xi (the spread only raises
+        # the mean-square rate): the plant grew until it, or first the EnKF's estimate of it, diverged
+        # (random plants: 3 of 200 open-loop mean-square unstable plants stable at their mean),
+        # so identify again under nominal feedback
+        F_id, retry = identification_feedback(exp, force_nominal=True)
+        if F_id is not None:
+            info = retry | {"open_loop_diverged_at": int(ident.failed_at[0]),
+                            "open_loop_failure": str(ident.failure[0])}
+            ident = identify(F_id)
+    return model_moments(exp, stages, ident, lambda enkf: identify(F_id, enkf), sim, info)
+
+
+def model_moments(exp: Experiment, stages: Stages, ident: Trajectories, identify, sim: dict,
+                  feedback: dict) -> Identified:
+    """The modeling stage: the moments of xi from the identification's estimates (`identified_moments`), with
+    identification.xi_model: iterated the passes that filter again with each pass's prior (`identify(enkf)`)."""
+    passes = None
+    with stages.timed("modeling"):
+        dist, failure = identified_moments(exp, ident)
+        if exp.identification.xi_model == "iterated" and exp.model.p:     # (nothing to iterate without xi)
+            ident, dist, failure, passes = iterate_identification(exp, identify, ident, dist, failure,
+                                                                  sim["psi0"])
+    return Identified(ident, dist, failure, feedback, passes, exp.identification.covariance)
+
+
+def identified_moments(exp: Experiment, ident: Trajectories) -> tuple[MomentModel | None, str]:
+    """The moments modeled from an identification run's xi_{k|k} over the window K0..K0+K1
+    (identification.covariance), or (None, why not). Several recorded paths: the paths whose EnKF
+    estimate failed are left out (`usable_paths`; the summary says how many), unless every one failed."""
+    xi = ident.xi(ident.psi_filt_mean)                  # (K+1, P, p): one path simulated, or the recorded paths
+    K0, K1 = exp.identification.K0, exp.identification.K1
+    ok = usable_paths(exp, ident)
+    if xi.shape[1] > 1 and ok.any() and not ok.all():
+        ident = select_paths(ident, ok)
+        xi = xi[:, ok]
+    if ident.status != "ok" or not np.all(np.isfinite(xi[K0:K0 + K1 + 1])):
+        bad = np.flatnonzero((ident.failed_at >= 0) | ~np.all(np.isfinite(xi[K0:K0 + K1 + 1]), axis=(0, 2)))[0]
+        reason = ident.failure[bad] or "the filtered xi is not finite"
+        k_fail = ident.failed_at[bad] if ident.failed_at[bad] >= 0 else "window"
+        where = f" (path {bad})" if xi.shape[1] > 1 else ""
+        return None, f"identification failed at k = {k_fail}{where}: {FAILURES.get(reason, reason)}"
+    total = exp.identification.covariance == "total"
+    # the paths' windows pooled (model_distribution): one path's moments bit for bit as before
+    return model_distribution(xi, K0, K1, ident.xi_filt_cov if total else None), ""
+
+
+def usable_paths(exp: Experiment, ident: Trajectories) -> np.ndarray:
+    """(P,) bool: the identification paths that did not fail and whose filtered xi is finite over the window."""
+    K0, K1 = exp.identification.K0, exp.identification.K1
+    xi = ident.xi(ident.psi_filt_mean)[K0:K0 + K1 + 1]
+    return (ident.failed_at < 0) & np.all(np.isfinite(xi), axis=(0, 2))
+
+
+def select_paths(tr: Trajectories, keep: np.ndarray) -> Trajectories:
+    """The paths `keep` ((P,) bool) of tr (path axis 1 of the (K+1, P, ...) arrays, 0 of the per-path ones)."""
+    pick = lambda name, v: None if v is None else (v[keep] if name in ("failed_at", "failure") else v[:, keep])
+    return Trajectories(**{f.name: tr.n if f.name == "n" else pick(f.name, getattr(tr, f.name))
+                           for f in dataclasses.fields(Trajectories)})
+
+
+def iterate_identification(exp: Experiment, identify, ident, dist, failure: str, psi0: np.ndarray):
+    """identification.xi_model = iterated: passes whose EnKF draws each step's xi i.i.d. from the
+    previous pass's moments (Assumption 1, `EnKF.xi_prior`), so that the next output estimates it, and
+    whose modeled moments are the next pass's prior, until mean and standard deviations change by less
+    than PASS_TOL (relative to the largest standard deviation) or identification.passes are done: the
+    moments as a fixed point of their own estimation. Without a first model (the random-walk pass
+    failed) the first prior is xi at the initial ensemble's with enkf.Q's xi block as covariance.
+    Returns (the last successful pass's run, moments, failure, info for the summary)."""
+    n = exp.model.n
+    prior = dist if dist is not None else MomentModel(mean=psi0[n:], cov=exp.filter.enkf.Q[n:, n:])
+    info = {"first": "random_walk" if dist is not None else f"the prior guess ({failure})", "passes": 0,
+            "converged": False}
+    for _ in range(exp.identification.passes):
+        tr = identify(dataclasses.replace(exp.filter.enkf, xi_prior=prior))
+        new, why = identified_moments(exp, tr)
+        if new is None:
+            info["failed"] = why
+            break
+        info["passes"] += 1
+        ident, dist, failure = tr, new, ""
+        scale = max(np.sqrt(np.diag(new.cov)).max(initial=0.0), 1e-12)
+        change = max(np.abs(new.mean - prior.mean).max(),
+                     np.abs(np.sqrt(np.diag(new.cov)) - np.sqrt(np.diag(prior.cov))).max()) / scale
+        prior = new
+        info["last_change"], info["tolerance"] = float(change), PASS_TOL
+        if change < PASS_TOL:
+            info["converged"] = True
+            break
+    return ident, dist, failure, info
+
+
+def moment_uncertainty(exp: Experiment, identified: Identified) -> Uncertainty | None:
+    """The modeled moments' uncertainty: identification.resamples bootstrap draws of the modeling window of the
+    run the moments come from (`modeling.moment_draws`: moving blocks of one path's window; `path_moment_draws`:
+    over the recorded paths), seeded by the run's seed. None without resamples or without a model."""
+    settings, ident = exp.identification, identified.trajectories
+    if identified.moments is None or not settings.resamples or not exp.model.p:
+        return None
+    total = settings.covariance == "total"
+    ok = usable_paths(exp, ident)
+    if ident.failed_at.size > 1 and ok.any() and not ok.all():        # recorded paths whose estimate failed
+        ident = select_paths(ident, ok)
+    xi, xi_cov = ident.xi(ident.psi_filt_mean), ident.xi_filt_cov if total else None
+    if xi.shape[1] > 1:             # several (recorded) paths: a bootstrap over the paths
+        mean, cov = path_moment_draws(xi, settings.K0, settings.K1, xi_cov, resamples=settings.resamples,
+                                      seed=[exp.seed, UNCERTAINTY_STREAM])
+    else:
+        mean, cov = moment_draws(xi[:, 0], settings.K0, settings.K1, None if xi_cov is None else xi_cov[:, 0],
+                                 resamples=settings.resamples, block=settings.block,
+                                 seed=[exp.seed, UNCERTAINTY_STREAM])
+    return Uncertainty(mean, cov, settings.resamples, settings.block, "paths" if xi.shape[1] > 1 else "window blocks")
+
+
+def identification_feedback(exp: Experiment, force_nominal: bool = False) -> tuple[np.ndarray | None, dict]:
+    """The gain of the identification run (None: open loop) and what was decided, for the summary.
+
+    auto: open loop when the plant at the nominal guess xi_guess (prior knowledge, by default the mean
+    of the plant's distribution) is mean-square stable in open loop, else nominal: a stabilizing
+    gain designed on the plant at xi_guess (`nominal_gain`); force_nominal: nominal whatever the guess
+    (the second try when the open-loop plant diverged)."""
+    mode = exp.identification.feedback
+    info = {"mode": mode}
+    if mode == "none":
+        return None, info
+    if mode == "given":
+        return exp.identification.gain, info | {"used": "given", "F": exp.identification.gain.tolist()}
+    guess = MomentModel.deterministic(exp.identification.xi_guess)
+    with np.errstate(all="ignore"):
+        info["open_loop_rate_at_guess"] = safe_rate(exp.plant, guess, np.zeros((exp.plant.m, exp.plant.n)))
+    if mode == "auto" and info["open_loop_rate_at_guess"] < 1 and not force_nominal:
+        return None, info | {"used": "open_loop"}
+    res = nominal_gain(exp.plant, exp.identification.xi_guess)
+    info |= {"used": "nominal", "method": res.method, "status": res.status, "rate_at_guess": res.lam}
+    if res.F is None or not np.all(np.isfinite(res.F)) or not res.lam < 1:
+        info["used"] = "open_loop (no stabilizing nominal gain)"
+        return None, info
+    with np.errstate(all="ignore"):
+        info["rate_plant"] = safe_rate(exp.plant, None, res.F)
+    info["F"] = res.F.tolist()                   # the gain the plant is identified under (`design.safer_gain`)
+    return res.F, info
+
+
+def identify_recorded(exp: Experiment, recorded, seed, sim: dict, keep: bool, enkf=None,
+                      keep_forecast: bool = False) -> Trajectories:
+    """The identification EnKF run on recorded (u, y) (`simulate(recorded=...)`): batched over the recorded
+    paths, path j with the EnKF stream j of the identification's seed and the initial ensemble of a
+    simulated identification, so that a run's own record gives its estimates bit for bit. In chunks of
+    paths within the Monte Carlo's memory budget (`montecarlo.MEMORY_BUDGET`; every path has its own streams,
+    so the chunks change nothing), joined along the path axis."""
+    total = exp.identification.covariance == "total"
+    enkf = enkf or exp.filter.enkf
+    per_path = bytes_per_path(exp.model, enkf, ensemble_size=exp.filter.ensemble_size, horizon=recorded.steps - 1,
+                              keep_members=keep, block=16)
+    per_path += 8 * recorded.steps * exp.filter.ensemble_size * exp.model.ny if keep_forecast else 0
+    size = int(max(1, MEMORY_BUDGET // (3 * per_path)))
+    parts = [simulate(None, enkf, d=np.zeros((recorded.steps, exp.model.m)), paths=min(size, recorded.paths - first),
+                      first_path=first, seed=seed, filter_sees_d=True, keep_members=keep, keep_xi_cov=total,
+                      keep_forecast=keep_forecast, recorded=recorded.select(slice(first, first + size)),
+                      **dict(sim, q0=np.zeros(exp.model.n)))
+             for first in range(0, recorded.paths, size)]
+    return parts[0] if len(parts) == 1 else join_paths(parts)
+
+
+def join_paths(parts: list[Trajectories]) -> Trajectories:
+    """Trajectories of consecutive chunks of paths as one (path axis 1 of the (K+1, P, ...) arrays, 0 of the
+    per-path ones)."""
+    def join(name):
+        values = [getattr(part, name) for part in parts]
+        if values[0] is None:
+            return None
+        return np.concatenate(values, axis=0 if name in ("failed_at", "failure") else 1)
+    return Trajectories(**{f.name: parts[0].n if f.name == "n" else join(f.name)
+                           for f in dataclasses.fields(Trajectories)})

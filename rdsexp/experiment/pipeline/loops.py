@@ -1,0 +1,210 @@
+"""The loops' Monte Carlo and their verdicts: the closed loop u_k = F x_{k|k-1} + d_k with the EnKF as observer
+and the open loop (F = 0), in chunks of paths (montecarlo.py), the closed loop's noise floor (at rest), the rate
+window and each loop's empirical rate, interval and verdict against its ideal loop's exact rate.
+
+Seeds: the closed and open loops (and the online loop) use SeedSequence(seed, spawn_key=(1,)), the same plant
+samples, as in the paper's Figs. decay_proposed and decay_open; the loop at rest (2,); inside each, path j has
+its own plant and EnKF streams.
+"""
+from __future__ import annotations
+
+import dataclasses
+from contextlib import closing
+
+import numpy as np
+import pandas as pd
+
+from ...numerics.analysis import rms_band
+from ...numerics.simulation import Trajectories, simulate
+from ...numerics.verdict import Floor, judge_loop, place_window, rate_interval, window_start
+from ..config import Experiment
+from ..montecarlo import LoopSummary, chunk_starts, run_chunks
+from .results import JudgedLoops, RateWindow
+from .stage import Stages
+from .tables import carries_d, exact_table, members_table, trajectory_table, with_gains
+
+# the online loop shares the closed loop's seeds: the same plant samples and EnKF noise, a paired comparison
+SPAWN_KEYS = {"identification": (0,), "closed_loop": (1,), "open_loop": (1,), "online": (1,), "noise_floor": (2,)}
+
+
+def root_seed(exp: Experiment, stage: str) -> np.random.SeedSequence:
+    """The stage's root seed, SeedSequence(seed, spawn_key=SPAWN_KEYS[stage])."""
+    return np.random.SeedSequence(exp.seed, spawn_key=SPAWN_KEYS[stage])
+
+
+class Sample:
+    """The rows the recording shows: the first tracking.recorded_paths paths of each loop (and, tracking full,
+    their members), collected chunk by chunk."""
+
+    def __init__(self):
+        self.rows: list[pd.DataFrame] = []
+        self.members: list[pd.DataFrame] = []
+
+
+def simulate_loops(exp: Experiment, stages: Stages, F: np.ndarray, observer, sink, sample: Sample,
+                   suffix: str = "") -> dict[str, LoopSummary]:
+    """The closed loop with gain F (m, n) and, with closed_loop.open_loop, the open loop, each in chunks of
+    paths: rows to the sink chunk by chunk (named loop + suffix), the recorded paths to `sample`; returns a
+    LoopSummary per loop. The open loop is a cached stage (CACHED_LOOPS)."""
+    keep = exp.tracking.level == "full"
+    settings = dict(d=exp.loop.disturbance, filter_sees_d=exp.loop.filter_sees_disturbance, **exp.simulation())
+    loops = {}
+    for name, gain in [("closed_loop", F)] + ([("open_loop", None)] if exp.loop.open_loop else []):
+        with stages.timed(name + suffix), \
+                stages.progress(name.replace("_", " "), exp.loop.paths * exp.loop.disturbance.shape[0]) as progress:
+            parts = []
+            chunks = loop_chunks(exp, name, dict(settings, F=gain, seed=root_seed(exp, name)), observer, keep,
+                                 progress, stages if name in CACHED_LOOPS else Stages(cache=None))
+            with closing(chunks):
+                for first, tr in chunks:
+                    rows = trajectory_table(name + suffix, tr, first, d_columns=carries_d(exp))
+                    if exp.controller.kind == "online":     # the gain in use, as in the online rows
+                        rows = with_gains(rows, np.zeros((exp.model.m, exp.model.n)) if gain is None else gain)
+                    parts.append(stream_chunk(exp, name + suffix, tr, first, rows, sink, sample))
+                    tr = rows = None                    # free the chunk before the next
+            loops[name] = LoopSummary.concat(parts)
+    return loops
+
+
+def judge_loops(exp: Experiment, loops: dict[str, LoopSummary], floor: Floor | None,
+                F: np.ndarray | None) -> JudgedLoops:
+    """The ideal loops' exact curves (gain F), the rate window and every loop's metrics and verdict. The noise
+    floor each loop is judged against: the closed loop's own; the online loop's the closed loop's where that one
+    holds (`Floor.holds`: that it grows or fails at rest is a claim about that loop, not the online one, whose
+    own run at rest is a learning transient, not a floor); the open loop's is 0."""
+    exact = exact_table(exp, F)
+    window = rate_window(exp, exact, floor, loops.get("closed_loop"))
+    floors = {"closed_loop": floor, "online": floor if floor is not None and floor.holds else None}
+    return JudgedLoops(loops, floor, exact, window, metrics_table(exp, loops, window, floors, exact))
+
+
+CACHED_LOOPS = ("open_loop",)      # loops the stage cache keeps: the open loop does not depend on the gain, so
+                                   # every design of a seed shares it; a closed loop is its run's own
+
+
+def loop_chunks(exp: Experiment, name: str, settings: dict, observer, keep: bool, progress, stages: Stages):
+    """(first path, Trajectories) of the loop's chunks in path order: a stage keyed by exactly what
+    `simulate` reads (the plant, the observer, the settings with gain, disturbance, initial state and
+    seed, and the chunks of paths), simulated (`run_chunks`) or replayed from the stage cache."""
+    simulated = lambda: ({"first": first, "trajectories": tr} for first, tr, _ in run_chunks(
+        exp, settings, keep_members=keep, enkf=observer, workers=exp.loop.workers, progress=progress))
+    parts, reused = stages.streamed(name, simulated, plant=exp.plant, observer=observer, settings=settings,
+                                    chunks=chunk_starts(exp, keep_members=keep), keep_members=keep)
+    steps = exp.loop.disturbance.shape[0]
+    with closing(parts):
+        for part in parts:
+            if reused:
+                progress(part["trajectories"].q.shape[1] * steps)
+            yield part["first"], part["trajectories"]
+
+
+def stream_chunk(exp: Experiment, name: str, tr: Trajectories, first: int, rows: pd.DataFrame, sink,
+                 sample: Sample) -> LoopSummary:
+    """One chunk of a loop out of memory: its trajectory rows (and, tracking full, its members) to the
+    sink, the recorded paths' rows to `sample`; returns what the metrics keep."""
+    recorded = exp.tracking.recorded_paths
+    sink.append("trajectories", rows)
+    sample.rows.append(rows[rows["path"] < recorded])
+    if exp.tracking.level == "full":
+        members = members_table(name, tr, first)
+        sink.append("members", members)
+        sample.members.append(members[members["path"] < recorded])
+    return LoopSummary.of(tr, exp)
+
+
+def loop_observer(exp: Experiment, moments):
+    """The EnKF of the closed and open loops (and their noise floor) and, without moments, of the online
+    loop: the identification's, with its predicted xi drawn i.i.d. from the design moments
+    (EnKF.xi_prior) when closed_loop.observer_xi is `model`, the paper's random walk (`random_walk`) or
+    without moments; and with enkf.disturbance, an estimate of an unknown input disturbance in its state
+    (EnKF.disturbance), which identification, whose input the filter is told, does without."""
+    enkf = exp.filter.enkf
+    if exp.loop.observer_xi == "model" and moments is not None:
+        enkf = dataclasses.replace(enkf, xi_prior=moments)
+    if exp.filter.disturbance is not None:
+        enkf = dataclasses.replace(enkf, disturbance=exp.filter.disturbance)
+    return enkf
+
+
+def noise_floor(exp: Experiment, enkf, F: np.ndarray) -> Floor:
+    """The closed loop's noise floor: the loop with gain F and the EnKF observer started at rest (q_0 =
+    0) without disturbance, closed_loop.floor_paths paths; its mean square over the second half of the
+    horizon, whether it grows there, and which paths failed (`verdict.Floor`)."""
+    K = exp.loop.horizon
+    tr = simulate(exp.plant, enkf, F=F, d=np.zeros((K + 1, exp.model.m)),
+                  paths=min(exp.loop.floor_paths, exp.loop.paths), seed=root_seed(exp, "noise_floor"),
+                  filter_sees_d=True, **dict(exp.simulation(), q0=np.zeros(exp.plant.n)))
+    return Floor.of(np.sum(tr.q ** 2, axis=-1), tr.failed_at)
+
+
+def rate_window(exp: Experiment, exact: pd.DataFrame, floor: Floor | None, closed: LoopSummary | None) -> RateWindow:
+    """closed_loop.rate_window as configured, or (auto) placed on the exact RMS curve of the ideal
+    closed loop (of the open loop without a gain) from the end of the disturbance, above the noise
+    floor, where the closed loop's own RMS is above it too (numerics/verdict.py)."""
+    if exp.loop.rate_window is not None:
+        return RateWindow(exp.loop.rate_window, "config")
+    loop = "closed_loop" if (exact["experiment"] == "closed_loop").any() else "open_loop"
+    curve = exact.loc[exact["experiment"] == loop, "rms"].to_numpy()
+    start = window_start(exp.loop.disturbance, exp.model.n)
+    empirical = rms_band(closed.sq)[0] if closed is not None else None    # over the paths still finite
+    placed = place_window(curve, start, np.nan if floor is None else floor.rms, empirical)
+    K = exp.loop.horizon
+    return RateWindow(placed, "auto") if placed is not None else \
+        RateWindow((min(start, K - 1), K), "auto", placed=False)
+
+
+def metrics_table(exp: Experiment, loops: dict[str, LoopSummary], window: RateWindow, floors: dict[str, Floor | None],
+                  exact: pd.DataFrame) -> pd.DataFrame:
+    """Per loop: empirical rate over the rate window with its 95% interval (`verdict.rate_interval`), the
+    ideal loop's exact rate over the same window, the noise floor, the verdict, its reason and the rate it
+    was decided on (`judge_loop`: over k_from..k_end, k_end before k_to where the loop reached its floor,
+    the floor's mean square subtracted), failures, estimation quality.
+
+    x_error_rms: RMS of the predicted x_{k|k-1} against q_k (k >= 0); x_rmse, xi_rmse: RMS of the
+    filtered x_{k|k}, xi_{k|k} against q_k and the true xi (k >= 1; the true xi at k is T s_{k-1} + t
+    from `truth_map`, NaN when the model's xi has no value in the plant's terms); *_spread_error:
+    sqrt(mean sum std^2) / RMSE (1: the ensemble spread matches its error). Means are over every
+    finite (step, path). floors: the noise floor each loop is judged against (absent or None: none, floor_rms
+    NaN): the closed loop's own; the online loop's the closed loop's where that one holds (`Floor.holds`); the
+    open loop's is 0 (its observer does not act on the plant)."""
+    k_from, k_to = window.k
+    rows = []
+    for name, loop in loops.items():
+        loop_floor = floors.get(name)
+        ideal = exact.loc[exact["experiment"] == name, "rms"].to_numpy()
+        verdict = judge_loop(loop.sq, failed_at=loop.failed_at, failure=loop.failure,
+                             window=window.k if window.placed else None, exact_rms=ideal if ideal.size else None,
+                             floor=loop_floor, open_loop=name == "open_loop")
+        # the rate over the window as the paper measures it (no floor subtracted); the verdict's own rate is
+        # over k_from..k_end with the floor's mean square subtracted
+        interval = verdict.window_rate if np.isfinite(verdict.window_rate[0]) else \
+            rate_interval(loop.sq[k_from], loop.sq[k_to], k_to - k_from)
+        with np.errstate(all="ignore"):
+            exact_rate = (ideal[k_to] / ideal[k_from]) ** (1 / (k_to - k_from)) if ideal.size else np.nan
+            end_rms = float(np.sqrt(np.mean(loop.sq[k_to])))
+        x_rmse, xi_rmse = loop.rms_of("x_err"), loop.rms_of("xi_err")
+        rows.append({"experiment": name, "verdict": verdict.word, "verdict_reason": verdict.reason,
+                     "status": loop.status, "rate": interval[0], "rate_low": interval[1], "rate_high": interval[2],
+                     "k_from": k_from, "k_to": k_to, "verdict_rate": verdict.rate, "verdict_rate_low": verdict.low,
+                     "verdict_rate_high": verdict.high, "k_end": verdict.k_end, "exact_rate": exact_rate,
+                     "floor_rms": (0.0 if name == "open_loop" else np.nan) if loop_floor is None else loop_floor.rms,
+                     "rms_k_to": end_rms, "paths": loop.sq.shape[1],
+                     "failed_fraction": float(np.mean(loop.failed_at >= 0)),
+                     "x_error_rms": loop.rms_of("x_pred_err"),
+                     "q_rms_final": float(np.sqrt(np.mean(loop.sq[-1]))),
+                     "x_rmse": x_rmse, "x_spread_error": _ratio(loop.rms_of("x_var"), x_rmse),
+                     "xi_rmse": xi_rmse, "xi_spread_error": _ratio(loop.rms_of("xi_var"), xi_rmse)})
+    return pd.DataFrame(rows, columns=list(METRIC_COLUMNS))
+
+
+def _ratio(a: float, b: float) -> float:
+    """a / b, NaN when b is 0 (no error to compare the spread with, e.g. p = 0)."""
+    return a / b if b != 0 else float("nan")
+
+
+ESTIMATION = ("x_rmse", "x_spread_error", "xi_rmse", "xi_spread_error")
+
+
+METRIC_COLUMNS = ("experiment", "verdict", "verdict_reason", "status", "rate", "rate_low", "rate_high", "k_from",
+                  "k_to", "verdict_rate", "verdict_rate_low", "verdict_rate_high", "k_end", "exact_rate", "floor_rms",
+                  "rms_k_to", "paths", "failed_fraction", "x_error_rms", "q_rms_final", *ESTIMATION)

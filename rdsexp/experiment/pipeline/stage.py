@@ -1,0 +1,126 @@
+"""The one wrapper every stage of a run goes through: timing, the stage cache, errors and progress.
+
+`Stages.timed(name)` times a block into `timings[name]` and rdsexp.log and turns an unexpected exception
+into a StageError naming the stage; `cached` and `streamed` take a stage's value from the stage cache
+(store.stages.StageCache) when it holds a value computed from the same inputs; `progress` is the stage's bar.
+"""
+from __future__ import annotations
+
+import logging
+import sys
+import time
+from contextlib import contextmanager
+
+import pandas as pd
+from tqdm import tqdm
+from tqdm.contrib.logging import logging_redirect_tqdm
+
+from ...errors import ConfigError, StageError, WriteError
+
+log = logging.getLogger("rdsexp")
+
+
+@contextmanager
+def timed(timings: dict, stage: str):
+    """Time the block into timings[stage] and log the stage with its seconds (rdsexp.log); an
+    unexpected exception inside becomes a StageError naming the innermost stage."""
+    start = time.perf_counter()
+    log.info("%s ...", stage)
+    try:
+        yield
+    except (StageError, WriteError, ConfigError):   # named by an inner stage, or not a stage's failure
+        raise
+    except Exception as err:
+        raise StageError(stage, err) from err
+    timings[stage] = round(time.perf_counter() - start, 4)
+    log.info("%s done in %.3f s", stage, timings[stage])
+
+
+class Stages:
+    """The one wrapper every stage of a run goes through (docs/design.md: the two levels of reuse).
+
+    `timed(name)`: the stage's seconds into `timings[name]` and rdsexp.log; an unexpected exception
+    inside becomes a StageError naming the innermost stage. `cached(name, compute, **inputs)`: a
+    stage computed from exactly `inputs` (numerics objects, arrays, seeds: their digest is the key)
+    is taken from the stage cache when it holds that key (this process's memory, then the store's
+    entries), else computed and stored there; `streamed` is the same for a stage whose value is a
+    sequence of parts (a loop's chunks), stored part by part as they are computed.
+
+    cache: a store.stages.StageCache (a store's, or `StageCache.in_process()`), or None: every stage
+    is computed (`rdsexp-runs verify`)."""
+
+    def __init__(self, cache=None):
+        self.cache = cache
+        self.timings: dict = {}
+
+    def timed(self, name: str):
+        return timed(self.timings, name)
+
+    @staticmethod
+    @contextmanager
+    def progress(desc: str, total: int):
+        """A progress bar of `total` steps (silent when not on a terminal), yielding its update(steps);
+        console log lines go through it (`console_to_tqdm`) rather than breaking it."""
+        with tqdm(total=total, desc=desc, disable=None, leave=False, file=sys.stderr) as bar, console_to_tqdm():
+            yield bar.update
+
+    def cached(self, name: str, compute, *, label: str | None = None, **inputs) -> tuple[object, bool]:
+        """(the stage's value, whether it was reused rather than computed in this run)."""
+        if self.cache is None:
+            return compute(), False
+        key = self.cache.key(name, **inputs)
+        value = self.cache.load(name, key, label or name)
+        if value is not None:
+            return value, True
+        value = compute()
+        self.cache.save(name, key, value)
+        return value, False
+
+    def streamed(self, name: str, compute, *, label: str | None = None, **inputs):
+        """(an iterator of the stage's parts, whether they are reused); computed parts are stored as they
+        are consumed, the entry committed when the last one is, dropped if the consumer stops early."""
+        if self.cache is None:
+            return compute(), False
+        key = self.cache.key(name, **inputs)
+        stored = self.cache.load_parts(name, key, label or name)
+        if stored is not None:
+            return stored, True
+        return self._storing(self.cache.writer(name, key), compute()), False
+
+    @staticmethod
+    def _storing(writer, parts):
+        try:
+            for part in parts:
+                writer.add(part)
+                yield part
+        except BaseException:         # an error, Ctrl-C or a consumer that closed the iterator
+            writer.abort()
+            raise
+        writer.commit()
+
+
+@contextmanager
+def console_to_tqdm():
+    """Console log records through tqdm.write (they do not break a progress bar), at the console
+    handler's own level: tqdm's handler takes every level, which would put INFO lines on the terminal."""
+    console = [h for h in logging.root.handlers
+               if isinstance(h, logging.StreamHandler) and not isinstance(h, logging.FileHandler)]
+    before = list(logging.root.handlers)
+    with logging_redirect_tqdm():
+        for handler in logging.root.handlers:
+            if handler not in before and console:
+                handler.setLevel(console[0].level)
+        yield
+
+
+class MemorySink:
+    """Collects the streamed tables' rows in memory; `tables()` gives them whole (tests, tracking off)."""
+
+    def __init__(self):
+        self.parts: dict[str, list[pd.DataFrame]] = {}
+
+    def append(self, name: str, rows: pd.DataFrame) -> None:
+        self.parts.setdefault(name, []).append(rows)
+
+    def tables(self) -> dict[str, pd.DataFrame]:
+        return {name: pd.concat(parts, ignore_index=True) for name, parts in self.parts.items()}
