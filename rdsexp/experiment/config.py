@@ -427,12 +427,6 @@ class Experiment:
     controller: ControllerSettings
     data: DataSettings | None = None      # a data run: recorded (u, y) in place of the plant (plant None)
 
-    def simulation(self) -> dict:
-        """simulate()'s initial-state, filter and feedback-estimate arguments: q0, psi0, P0, ensemble_size,
-        estimate (every loop the controller closes uses the same estimate, identification's included)."""
-        f = self.filter
-        return dict(q0=self.q0, psi0=f.psi0, P0=f.P0, ensemble_size=f.ensemble_size, estimate=self.loop.estimate)
-
 
 @dataclass(frozen=True)
 class DataSettings:

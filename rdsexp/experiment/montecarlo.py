@@ -1,6 +1,7 @@
 """A loop's Monte Carlo in chunks of paths: bounded memory, rows streamed out, optional worker processes.
 
-A loop of P paths runs as chunks of at most `chunk_paths` paths (`simulate(first_path=...)`). Each
+A loop of P paths (a `Simulation`: one typed object with everything `simulate` reads) runs as chunks of at most
+`chunk_paths` paths (`simulate(first_path=...)`). Each
 chunk's table rows go to a sink as soon as the chunk is done, and what the metrics need is reduced
 to a few numbers per path (`LoopSummary`), so memory is bounded by the chunk, not by P. Every path
 has its own random streams, so the rows and the metrics do not depend on the chunk size or on the
@@ -13,60 +14,95 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..numerics.enkf import truth_map
+from ..numerics.enkf import EnKF, truth_map
 from ..numerics.simulation import Trajectories, bytes_per_path, simulate
+from ..numerics.systems import AffineRandomSystem
+from .config import FilterSettings
 
 MEMORY_BUDGET = 256 * 2 ** 20       # bytes of simulation arrays per chunk when chunk_paths is not set
 
 
-def chunk_size(exp, *, keep_members: bool) -> int:
-    """Paths per chunk: closed_loop.chunk_paths, else as many as fit the memory budget (at least 1)."""
-    if exp.loop.chunk_paths is not None:
-        return min(exp.loop.chunk_paths, exp.loop.paths)
-    per_path = bytes_per_path(exp.plant, exp.filter.enkf, ensemble_size=exp.filter.ensemble_size,
-                              horizon=exp.loop.disturbance.shape[0] - 1, keep_members=keep_members)
-    # the chunk's table rows and the worker's copy roughly double what simulate holds
-    return int(min(exp.loop.paths, max(1, MEMORY_BUDGET // (3 * per_path))))
+@dataclass(frozen=True)
+class Simulation:
+    """One simulation of a loop (or of an identification run), everything `simulate` reads, each field owned by
+    the part of the experiment that sets it: the plant (None: recorded data) and its initial state q0 (n,); the
+    observer (the EnKF) and its start (`config.FilterSettings`: ensemble size M, initial ensemble psi0 (n+p,),
+    P0 (n+p, n+p)); the loop: gain F (m, n) (None: open loop), input d (K+1, m), whether the EnKF is told it,
+    the estimate fed back, paths P and the chunks they run in; the root seed."""
+
+    plant: AffineRandomSystem | None
+    observer: EnKF
+    filter: FilterSettings
+    q0: np.ndarray
+    F: np.ndarray | None
+    d: np.ndarray
+    seed: np.random.SeedSequence
+    paths: int
+    filter_sees_d: bool = True
+    estimate: str = "predicted"
+    keep_members: bool = False
+    chunk_paths: int | None = None
+
+    @classmethod
+    def of(cls, exp, observer: EnKF, F: np.ndarray | None, seed, **changes) -> Simulation:
+        """The experiment's loop (closed_loop.*) observed by `observer` with gain F; `changes` replace fields."""
+        loop = exp.loop
+        return cls(**{"plant": exp.plant, "observer": observer, "filter": exp.filter, "q0": exp.q0, "F": F,
+                      "d": loop.disturbance, "seed": seed, "paths": loop.paths,
+                      "filter_sees_d": loop.filter_sees_disturbance, "estimate": loop.estimate,
+                      "keep_members": exp.tracking.level == "full", "chunk_paths": loop.chunk_paths, **changes})
+
+    def run(self, first: int = 0, count: int | None = None, *, controller=None, progress=None,
+            **keep) -> Trajectories:
+        """`simulate` of paths first..first+count-1 (every path by default); keep: keep_xi_cov, keep_forecast,
+        recorded (`numerics.simulation.simulate`)."""
+        f = self.filter
+        return simulate(self.plant, self.observer, F=self.F, d=self.d, q0=self.q0, psi0=f.psi0, P0=f.P0,
+                        ensemble_size=f.ensemble_size, paths=self.paths if count is None else count,
+                        first_path=first, seed=self.seed, filter_sees_d=self.filter_sees_d,
+                        keep_members=self.keep_members, estimate=self.estimate, controller=controller,
+                        progress=progress, **keep)
+
+    def chunks(self) -> list[tuple[int, int]]:
+        """The paths in chunks as (first path, number of paths), in path order: chunk_paths each, else as many
+        as fit the memory budget (at least 1)."""
+        if self.chunk_paths is not None:
+            size = min(self.chunk_paths, self.paths)
+        else:
+            per_path = bytes_per_path(self.plant, self.filter.enkf, ensemble_size=self.filter.ensemble_size,
+                                      horizon=self.d.shape[0] - 1, keep_members=self.keep_members)
+            # the chunk's table rows and the worker's copy roughly double what simulate holds
+            size = int(min(self.paths, max(1, MEMORY_BUDGET // (3 * per_path))))
+        return [(j, min(size, self.paths - j)) for j in range(0, self.paths, size)]
 
 
-def chunk_starts(exp, *, keep_members: bool) -> list[tuple[int, int]]:
-    """The loop's chunks as (first path, number of paths), in path order."""
-    size = chunk_size(exp, keep_members=keep_members)
-    return [(j, min(size, exp.loop.paths - j)) for j in range(0, exp.loop.paths, size)]
-
-
-def _simulate_chunk(plant, enkf, first: int, count: int, settings: dict, controller=None, progress=None):
+def _simulate_chunk(sim: Simulation, first: int, count: int, controller=None, progress=None):
     """One chunk of paths; `controller(paths=count)` makes the chunk's gain controller (None: fixed
     gains). Returns the trajectories and the controller with its decisions."""
     controller = controller(paths=count) if controller is not None else None
-    tr = simulate(plant, enkf, paths=count, first_path=first, controller=controller, progress=progress, **settings)
-    return tr, controller
+    return sim.run(first, count, controller=controller, progress=progress), controller
 
 
-def run_chunks(exp, settings: dict, *, keep_members: bool, workers: int = 1,
-               progress: Callable[[int], None] | None = None, controller: Callable | None = None,
-               enkf=None) -> Iterator[tuple[int, Trajectories, object]]:
-    """(first_path, Trajectories of that chunk, its controller) in path order; `settings` are
-    simulate's other arguments. controller: None (fixed gains), or a picklable factory of the
-    chunk's gain controller called as controller(paths=count) (the online controller: a path's
-    decisions depend on its own estimates only, so one controller per chunk gives the same results).
+def run_chunks(sim: Simulation, *, workers: int = 1, progress: Callable[[int], None] | None = None,
+               controller: Callable | None = None) -> Iterator[tuple[int, Trajectories, object]]:
+    """(first_path, Trajectories of that chunk, its controller) in path order. controller: None (fixed
+    gains), or a picklable factory of the chunk's gain controller called as controller(paths=count) (the
+    online controller: a path's decisions depend on its own estimates only, so one controller per chunk
+    gives the same results).
 
     workers > 1: the chunks run in joblib (loky) worker processes, results still yielded in path
     order, at most 2 * workers chunks in flight. progress(steps) is called with the number of
-    path-steps done. enkf: the loop's observer (default exp.filter.enkf)."""
-    enkf = exp.filter.enkf if enkf is None else enkf
-    starts = chunk_starts(exp, keep_members=keep_members)
-    steps = exp.loop.disturbance.shape[0]
-    settings = dict(settings, keep_members=keep_members)
+    path-steps done."""
+    starts = sim.chunks()
+    steps = sim.d.shape[0]
     if workers <= 1 or len(starts) == 1:
         for first, count in starts:
             step = (lambda k, c=count: progress(c)) if progress is not None else None
-            yield first, *_simulate_chunk(exp.plant, enkf, first, count, settings, controller, step)
+            yield first, *_simulate_chunk(sim, first, count, controller, step)
         return
     from joblib import Parallel, delayed
     parallel = Parallel(n_jobs=workers, backend="loky", return_as="generator", pre_dispatch="2*n_jobs")
-    results = parallel(delayed(_simulate_chunk)(exp.plant, enkf, first, count, settings, controller)
-                       for first, count in starts)
+    results = parallel(delayed(_simulate_chunk)(sim, first, count, controller) for first, count in starts)
     for (first, count), (tr, chunk_controller) in zip(starts, results, strict=True):
         if progress is not None:
             progress(count * steps)

@@ -196,7 +196,7 @@ def test_the_paper_keeps_its_loop_and_other_plants_get_theirs():
     paper = build(compose("config"))
     assert (paper.loop.filter_sees_disturbance, paper.loop.observer_xi, paper.loop.rate_window) == \
         (False, "random_walk", (60, 80))
-    assert paper.loop.estimate == paper.simulation()["estimate"] == "predicted"
+    assert paper.loop.estimate == "predicted"
     assert not paper.filter.psi0.any()
     for name in ("dropout", "two_carts"):
         exp = build(compose("config", overrides=[f"plant={name}"]))

@@ -11,7 +11,7 @@ from hydra import compose, initialize_config_module
 
 from rdsexp.errors import ConfigError
 from rdsexp.experiment.config import build
-from rdsexp.experiment.montecarlo import chunk_size
+from rdsexp.experiment.montecarlo import Simulation
 from rdsexp.experiment.pipeline import run_experiment
 from rdsexp.experiment.store import files
 
@@ -57,10 +57,11 @@ def test_recording_keeps_a_bounded_sample():
 
 
 def test_chunk_size_from_the_memory_budget():
-    exp = experiment("closed_loop.paths=100000", "tracking=summary")
-    size = chunk_size(exp, keep_members=False)
-    assert 1 <= size < 100000
-    assert chunk_size(experiment("closed_loop.chunk_paths=5"), keep_members=True) == 5
+    loop = lambda *extra: Simulation.of(exp := experiment(*extra), exp.filter.enkf, None, 0)
+    chunks = loop("closed_loop.paths=100000", "tracking=summary").chunks()
+    assert 1 <= chunks[0][1] < 100000 and sum(count for _, count in chunks) == 100000
+    assert [first for first, _ in chunks] == list(np.cumsum([0] + [count for _, count in chunks[:-1]]))
+    assert loop("closed_loop.paths=12", "closed_loop.chunk_paths=5", "tracking=full").chunks() == [(0, 5), (5, 5), (10, 2)]
 
 
 def test_parquet_sink_hash_equals_whole_table_hash(tmp_path, whole):

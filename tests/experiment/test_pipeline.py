@@ -11,6 +11,7 @@ from hydra import compose, initialize_config_module
 from rdsexp.errors import ConfigError
 from rdsexp.experiment import pipeline
 from rdsexp.experiment.config import build
+from rdsexp.experiment.montecarlo import Simulation
 from rdsexp.experiment.pipeline import design, identification, loops, online, record
 from rdsexp.experiment.store import stages
 
@@ -137,20 +138,18 @@ def test_iterated_identification_models_from_its_last_pass_and_stops_at_a_fixed_
     assert "identification_passes" not in pipeline.run_experiment(experiment()).summary
 
     exp = experiment("plant=dropout")
-    first = identification.simulate(exp.plant, exp.filter.enkf, F=None, d=exp.identification.input, paths=1, seed=1,
-                              keep_xi_cov=True, **exp.simulation())
+    first = Simulation.of(exp, exp.filter.enkf, None, 1, d=exp.identification.input, paths=1,
+                          filter_sees_d=True).run(keep_xi_cov=True)
     dist, failure = identification.identified_moments(exp, first)
     assert failure == ""
-    _, same, _, info = identification.iterate_identification(exp, lambda enkf: first, first, dist, "",
-                                                       exp.simulation()["psi0"])
+    _, same, _, info = identification.iterate_identification(exp, lambda enkf: first, first, dist, "")
     assert info == {"first": "random_walk", "passes": 1, "converged": True, "last_change": 0.0,
                     "tolerance": identification.PASS_TOL}
     np.testing.assert_array_equal(same.mean, dist.mean)
     failing = copy.copy(first)
     failing.failed_at = np.array([7])
     failing.failure = np.array(["filter_diverged"], dtype=object)
-    kept, model, why, info = identification.iterate_identification(exp, lambda enkf: failing, first, dist, "",
-                                                            exp.simulation()["psi0"])
+    kept, model, why, info = identification.iterate_identification(exp, lambda enkf: failing, first, dist, "")
     assert kept is first and model is dist and why == "" and info["passes"] == 0
     assert info["failed"] == "identification failed at k = 7: the EnKF estimate diverged"
 
@@ -247,8 +246,7 @@ def test_the_loop_keeps_the_identification_gain_where_the_designed_one_is_worse(
     with initialize_config_module(config_module="rdsexp.conf", version_base="1.3"):
         exp = build(compose("config", overrides=[f"hydra.searchpath=[file://{tmp_path}]", "plant=unst3", "model=plant",
                                                  *SMALL, "identification.resamples=20", "tracking=off"]))
-    identified = identification.identify_and_model(exp, pipeline.Stages(), np.random.SeedSequence(0, spawn_key=(0,)),
-                                                   exp.simulation(), False)
+    identified = identification.identify_and_model(exp, pipeline.Stages(), np.random.SeedSequence(0, spawn_key=(0,)))
     dist, uncertainty = identified.moments, identification.moment_uncertainty(exp, identified)
     summary = identified.summary() | uncertainty.summary()
     draws = uncertainty.draws

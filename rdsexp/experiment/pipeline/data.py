@@ -12,10 +12,10 @@ import pandas as pd
 
 from ...numerics.distributions import ensemble_crps, from_spec, interval_hits
 from ...numerics.enkf import sqrtm_psd
-from ...numerics.simulation import bytes_per_path, path_generators, simulate
+from ...numerics.simulation import bytes_per_path, path_generators
 from ...numerics.systems import AffineRandomSystem, MomentModel
 from ..config import Experiment
-from ..montecarlo import MEMORY_BUDGET
+from ..montecarlo import MEMORY_BUDGET, Simulation
 from .identification import usable_paths
 from .loops import Sample, judge_loops, loop_observer, noise_floor, simulate_loops
 from .results import DesignSet, Identified, Validation
@@ -73,15 +73,15 @@ def score_holdout(exp: Experiment, moments: MomentModel, k_from: int) -> tuple[n
     R_sqrt = sqrtm_psd(enkf.R)
     per_path = bytes_per_path(exp.model, enkf, ensemble_size=M, horizon=held.steps - 1) + 8 * 4 * held.steps * M * ny
     size = int(max(1, MEMORY_BUDGET // (3 * per_path)))
-    observer = dataclasses.replace(enkf, xi_prior=moments)
+    sim = Simulation.of(exp, dataclasses.replace(enkf, xi_prior=moments), None, seed,
+                        d=np.zeros((held.steps, exp.model.m)), q0=np.zeros(exp.model.n), paths=P, filter_sees_d=True,
+                        keep_members=False)
     sums = np.zeros((2 + len(VALIDATION_LEVELS), ny))      # crps, hits per level, count
     failed = 0
     for first in range(0, P, size):
         count = min(size, P - first)
         part = held.select(slice(first, first + count))
-        tr = simulate(None, observer, d=np.zeros((held.steps, exp.model.m)), paths=count, first_path=first,
-                      seed=seed, filter_sees_d=True, recorded=part, keep_forecast=True,
-                      **dict(exp.simulation(), q0=np.zeros(exp.model.n)))
+        tr = sim.run(first, count, recorded=part, keep_forecast=True)
         v = np.stack([g.standard_normal((steps, M, ny)) for g in path_generators(noise_seed, 0,
                                                                                  range(first, first + count))],
                      axis=1) @ R_sqrt.T                                          # (T, count, M, ny)

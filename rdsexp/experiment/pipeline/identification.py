@@ -9,11 +9,11 @@ import dataclasses
 import numpy as np
 
 from ...numerics.modeling import model_distribution, moment_draws, nominal_gain, path_moment_draws
-from ...numerics.simulation import Trajectories, bytes_per_path, simulate
+from ...numerics.simulation import Trajectories, bytes_per_path
 from ...numerics.systems import MomentModel
 from ...numerics.verdict import FAILURES
 from ..config import Experiment
-from ..montecarlo import MEMORY_BUDGET
+from ..montecarlo import MEMORY_BUDGET, Simulation
 from .design import safe_rate
 from .results import Identified, Uncertainty
 from .stage import Stages
@@ -22,15 +22,14 @@ UNCERTAINTY_STREAM = 3   # SeedSequence([seed, 3]): the modeling window's bootst
 PASS_TOL = 1e-3        # iterated identification: stop when the moments move less than this (relative)
 
 
-def identify_and_model(exp: Experiment, stages: Stages, seed, sim: dict, keep: bool) -> Identified:
+def identify_and_model(exp: Experiment, stages: Stages, seed) -> Identified:
     """The identification run(s) on the plant and the moments they model: the identification stage's value
     (the stage cache stores it whole)."""
     F_id, info = identification_feedback(exp)
     # the identification input is added on top of the feedback; the EnKF is told the applied input
     total = exp.identification.covariance == "total"
-    identify = lambda F, enkf=exp.filter.enkf: simulate(
-        exp.plant, enkf, F=F, d=exp.identification.input, paths=1, seed=seed,
-        filter_sees_d=True, keep_members=keep, keep_xi_cov=total, **sim)
+    identify = lambda F, enkf=exp.filter.enkf: Simulation.of(
+        exp, enkf, F, seed, d=exp.identification.input, paths=1, filter_sees_d=True).run(keep_xi_cov=total)
     ident = identify(F_id)
     if info.get("used") == "open_loop" and ident.failure[0] in ("diverged", "filter_diverged"):
         # auto chose the open loop on the guess, which knows no spread of xi (the spread only raises
@@ -42,19 +41,17 @@ def identify_and_model(exp: Experiment, stages: Stages, seed, sim: dict, keep: b
             info = retry | {"open_loop_diverged_at": int(ident.failed_at[0]),
                             "open_loop_failure": str(ident.failure[0])}
             ident = identify(F_id)
-    return model_moments(exp, stages, ident, lambda enkf: identify(F_id, enkf), sim, info)
+    return model_moments(exp, stages, ident, lambda enkf: identify(F_id, enkf), info)
 
 
-def model_moments(exp: Experiment, stages: Stages, ident: Trajectories, identify, sim: dict,
-                  feedback: dict) -> Identified:
+def model_moments(exp: Experiment, stages: Stages, ident: Trajectories, identify, feedback: dict) -> Identified:
     """The modeling stage: the moments of xi from the identification's estimates (`identified_moments`), with
     identification.xi_model: iterated the passes that filter again with each pass's prior (`identify(enkf)`)."""
     passes = None
     with stages.timed("modeling"):
         dist, failure = identified_moments(exp, ident)
         if exp.identification.xi_model == "iterated" and exp.model.p:     # (nothing to iterate without xi)
-            ident, dist, failure, passes = iterate_identification(exp, identify, ident, dist, failure,
-                                                                  sim["psi0"])
+            ident, dist, failure, passes = iterate_identification(exp, identify, ident, dist, failure)
     return Identified(ident, dist, failure, feedback, passes, exp.identification.covariance)
 
 
@@ -93,7 +90,7 @@ def select_paths(tr: Trajectories, keep: np.ndarray) -> Trajectories:
                            for f in dataclasses.fields(Trajectories)})
 
 
-def iterate_identification(exp: Experiment, identify, ident, dist, failure: str, psi0: np.ndarray):
+def iterate_identification(exp: Experiment, identify, ident, dist, failure: str):
     """identification.xi_model = iterated: passes whose EnKF draws each step's xi i.i.d. from the
     previous pass's moments (Assumption 1, `EnKF.xi_prior`), so that the next output estimates it, and
     whose modeled moments are the next pass's prior, until mean and standard deviations change by less
@@ -102,7 +99,7 @@ def iterate_identification(exp: Experiment, identify, ident, dist, failure: str,
     failed) the first prior is xi at the initial ensemble's with enkf.Q's xi block as covariance.
     Returns (the last successful pass's run, moments, failure, info for the summary)."""
     n = exp.model.n
-    prior = dist if dist is not None else MomentModel(mean=psi0[n:], cov=exp.filter.enkf.Q[n:, n:])
+    prior = dist if dist is not None else MomentModel(mean=exp.filter.psi0[n:], cov=exp.filter.enkf.Q[n:, n:])
     info = {"first": "random_walk" if dist is not None else f"the prior guess ({failure})", "passes": 0,
             "converged": False}
     for _ in range(exp.identification.passes):
@@ -175,23 +172,20 @@ def identification_feedback(exp: Experiment, force_nominal: bool = False) -> tup
     return res.F, info
 
 
-def identify_recorded(exp: Experiment, recorded, seed, sim: dict, keep: bool, enkf=None,
-                      keep_forecast: bool = False) -> Trajectories:
+def identify_recorded(exp: Experiment, recorded, seed, enkf=None) -> Trajectories:
     """The identification EnKF run on recorded (u, y) (`simulate(recorded=...)`): batched over the recorded
     paths, path j with the EnKF stream j of the identification's seed and the initial ensemble of a
     simulated identification, so that a run's own record gives its estimates bit for bit. In chunks of
     paths within the Monte Carlo's memory budget (`montecarlo.MEMORY_BUDGET`; every path has its own streams,
     so the chunks change nothing), joined along the path axis."""
     total = exp.identification.covariance == "total"
-    enkf = enkf or exp.filter.enkf
-    per_path = bytes_per_path(exp.model, enkf, ensemble_size=exp.filter.ensemble_size, horizon=recorded.steps - 1,
-                              keep_members=keep, block=16)
-    per_path += 8 * recorded.steps * exp.filter.ensemble_size * exp.model.ny if keep_forecast else 0
+    sim = Simulation.of(exp, enkf or exp.filter.enkf, None, seed, d=np.zeros((recorded.steps, exp.model.m)),
+                        q0=np.zeros(exp.model.n), paths=recorded.paths, filter_sees_d=True)
+    per_path = bytes_per_path(exp.model, sim.observer, ensemble_size=exp.filter.ensemble_size,
+                              horizon=recorded.steps - 1, keep_members=sim.keep_members, block=16)
     size = int(max(1, MEMORY_BUDGET // (3 * per_path)))
-    parts = [simulate(None, enkf, d=np.zeros((recorded.steps, exp.model.m)), paths=min(size, recorded.paths - first),
-                      first_path=first, seed=seed, filter_sees_d=True, keep_members=keep, keep_xi_cov=total,
-                      keep_forecast=keep_forecast, recorded=recorded.select(slice(first, first + size)),
-                      **dict(sim, q0=np.zeros(exp.model.n)))
+    parts = [sim.run(first, min(size, recorded.paths - first), keep_xi_cov=total,
+                     recorded=recorded.select(slice(first, first + size)))
              for first in range(0, recorded.paths, size)]
     return parts[0] if len(parts) == 1 else join_paths(parts)
 

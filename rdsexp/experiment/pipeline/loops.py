@@ -15,10 +15,10 @@ import numpy as np
 import pandas as pd
 
 from ...numerics.analysis import rms_band
-from ...numerics.simulation import Trajectories, simulate
+from ...numerics.simulation import Trajectories
 from ...numerics.verdict import Floor, judge_loop, place_window, rate_interval, window_start
 from ..config import Experiment
-from ..montecarlo import LoopSummary, chunk_starts, run_chunks
+from ..montecarlo import LoopSummary, Simulation, run_chunks
 from .results import JudgedLoops, RateWindow
 from .stage import Stages
 from .tables import carries_d, exact_table, members_table, trajectory_table, with_gains
@@ -46,14 +46,12 @@ def simulate_loops(exp: Experiment, stages: Stages, F: np.ndarray, observer, sin
     """The closed loop with gain F (m, n) and, with closed_loop.open_loop, the open loop, each in chunks of
     paths: rows to the sink chunk by chunk (named loop + suffix), the recorded paths to `sample`; returns a
     LoopSummary per loop. The open loop is a cached stage (CACHED_LOOPS)."""
-    keep = exp.tracking.level == "full"
-    settings = dict(d=exp.loop.disturbance, filter_sees_d=exp.loop.filter_sees_disturbance, **exp.simulation())
     loops = {}
     for name, gain in [("closed_loop", F)] + ([("open_loop", None)] if exp.loop.open_loop else []):
         with stages.timed(name + suffix), \
                 stages.progress(name.replace("_", " "), exp.loop.paths * exp.loop.disturbance.shape[0]) as progress:
             parts = []
-            chunks = loop_chunks(exp, name, dict(settings, F=gain, seed=root_seed(exp, name)), observer, keep,
+            chunks = loop_chunks(Simulation.of(exp, observer, gain, root_seed(exp, name)), name, exp.loop.workers,
                                  progress, stages if name in CACHED_LOOPS else Stages(cache=None))
             with closing(chunks):
                 for first, tr in chunks:
@@ -82,15 +80,14 @@ CACHED_LOOPS = ("open_loop",)      # loops the stage cache keeps: the open loop 
                                    # every design of a seed shares it; a closed loop is its run's own
 
 
-def loop_chunks(exp: Experiment, name: str, settings: dict, observer, keep: bool, progress, stages: Stages):
+def loop_chunks(sim: Simulation, name: str, workers: int, progress, stages: Stages):
     """(first path, Trajectories) of the loop's chunks in path order: a stage keyed by exactly what
-    `simulate` reads (the plant, the observer, the settings with gain, disturbance, initial state and
-    seed, and the chunks of paths), simulated (`run_chunks`) or replayed from the stage cache."""
-    simulated = lambda: ({"first": first, "trajectories": tr} for first, tr, _ in run_chunks(
-        exp, settings, keep_members=keep, enkf=observer, workers=exp.loop.workers, progress=progress))
-    parts, reused = stages.streamed(name, simulated, plant=exp.plant, observer=observer, settings=settings,
-                                    chunks=chunk_starts(exp, keep_members=keep), keep_members=keep)
-    steps = exp.loop.disturbance.shape[0]
+    `simulate` reads (the Simulation: plant, observer, gain, disturbance, initial state, seed and the chunks of
+    paths), simulated (`run_chunks`, in `workers` processes) or replayed from the stage cache."""
+    simulated = lambda: ({"first": first, "trajectories": tr}
+                         for first, tr, _ in run_chunks(sim, workers=workers, progress=progress))
+    parts, reused = stages.streamed(name, simulated, simulation=sim, chunks=sim.chunks())
+    steps = sim.d.shape[0]
     with closing(parts):
         for part in parts:
             if reused:
@@ -131,9 +128,9 @@ def noise_floor(exp: Experiment, enkf, F: np.ndarray) -> Floor:
     0) without disturbance, closed_loop.floor_paths paths; its mean square over the second half of the
     horizon, whether it grows there, and which paths failed (`verdict.Floor`)."""
     K = exp.loop.horizon
-    tr = simulate(exp.plant, enkf, F=F, d=np.zeros((K + 1, exp.model.m)),
-                  paths=min(exp.loop.floor_paths, exp.loop.paths), seed=root_seed(exp, "noise_floor"),
-                  filter_sees_d=True, **dict(exp.simulation(), q0=np.zeros(exp.plant.n)))
+    tr = Simulation.of(exp, enkf, F, root_seed(exp, "noise_floor"), d=np.zeros((K + 1, exp.model.m)),
+                       q0=np.zeros(exp.plant.n), paths=min(exp.loop.floor_paths, exp.loop.paths),
+                       filter_sees_d=True, keep_members=False).run()
     return Floor.of(np.sum(tr.q ** 2, axis=-1), tr.failed_at)
 
 

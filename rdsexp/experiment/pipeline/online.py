@@ -18,7 +18,7 @@ from ...numerics.synthesis import SynthesisResult
 from ...numerics.systems import MomentModel
 from ...numerics.verdict import paired_losses
 from ..config import Experiment
-from ..montecarlo import LoopSummary, run_chunks
+from ..montecarlo import LoopSummary, Simulation, run_chunks
 from .design import design, safe_rate
 from .loops import Sample, loop_observer, root_seed, stream_chunk
 from .results import OnlineResult
@@ -34,21 +34,18 @@ def online_loop(exp: Experiment, stages: Stages, sink, sample: Sample) -> Online
     In chunks of paths, and worker processes, like the other loops (`run_chunks`; one controller per
     chunk), rows streamed to the sink with the gain in use (F[i,j])."""
     m, n = exp.model.m, exp.model.n
-    keep = exp.tracking.level == "full"
     enkf = online_observer(exp)
     F0, info = initial_gain(exp, enkf)
     K = exp.loop.disturbance.shape[0] - 1
     parts, controllers = [], []
-    settings = dict(F=F0, d=exp.loop.disturbance, seed=root_seed(exp, "online"),
-                    filter_sees_d=exp.loop.filter_sees_disturbance, **exp.simulation())
+    sim = Simulation.of(exp, enkf, F0, root_seed(exp, "online"))
     # the prior guess, as the nominal gain sees it: a thin window acts only where it agrees (OnlineController)
     A_guess, B_guess, _, _ = exp.plant.at(exp.identification.xi_guess)
     # a component the EnKF draws from its two-point law is modeled with that law's variance too
     make = partial(OnlineController, exp.model, exp.controller.online, F0, horizon=K, at_guess=(A_guess, B_guess),
                    two_point=enkf.two_point)
     with stages.progress("online", exp.loop.paths * (K + 1)) as progress:
-        for first, tr, controller in run_chunks(exp, settings, keep_members=keep, workers=exp.loop.workers,
-                                                progress=progress, controller=make, enkf=enkf):
+        for first, tr, controller in run_chunks(sim, workers=exp.loop.workers, progress=progress, controller=make):
             count = tr.q.shape[1]
             history = controller.gain_history()
             in_use = np.stack([history[j][tr.gain_index[:, j]] for j in range(count)])     # (P, K+1, m, n)

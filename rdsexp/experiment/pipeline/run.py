@@ -63,11 +63,11 @@ def run_experiment(exp: Experiment, sink=None, cache=None) -> Outcome:
         cache = type(cache).in_process()
     stages, keep = Stages(cache), exp.tracking.level == "full"
     with stages.timed("identification"):      # with modeling (iterated identification runs the EnKF again)
-        seed, sim = root_seed(exp, "identification"), exp.simulation()
+        seed = root_seed(exp, "identification")
         identified, _ = stages.cached(
-            "identification", partial(identify_and_model, exp, stages, seed, sim, keep), result=Identified.__name__,
-            plant=exp.plant, model=exp.model, filter=exp.filter, identification=exp.identification,
-            simulation=sim, seed=seed, keep_members=keep)
+            "identification", partial(identify_and_model, exp, stages, seed), result=Identified.__name__,
+            plant=exp.plant, model=exp.model, filter=exp.filter, identification=exp.identification, q0=exp.q0,
+            estimate=exp.loop.estimate, seed=seed, keep_members=keep)
     uncertainty = moment_uncertainty(exp, identified)
     with stages.timed("synthesis"):
         designs = design_set(exp, stages, identified.moments, uncertainty, identified.feedback)
@@ -136,11 +136,11 @@ def run_on_data(exp: Experiment, sink=None, cache=None) -> Outcome:
     not either; one under feedback would, and a data run cannot reproduce that). cache: as `run_experiment`'s
     (the designs and loops on the model only: the recorded identification is the data file's own)."""
     stages, keep = Stages(cache), exp.tracking.level == "full"
-    seed, sim = root_seed(exp, "identification"), exp.simulation()
+    seed = root_seed(exp, "identification")
     with stages.timed("identification"):
-        identify = partial(identify_recorded, exp, exp.data.identification, seed, sim, keep)
+        identify = partial(identify_recorded, exp, exp.data.identification, seed)
         ident = identify()
-    identified = model_moments(exp, stages, ident, lambda enkf: identify(enkf=enkf), sim,
+    identified = model_moments(exp, stages, ident, lambda enkf: identify(enkf=enkf),
                                {"mode": "recorded", "used": "the recorded inputs"})
     dist, uncertainty = identified.moments, moment_uncertainty(exp, identified)
     with stages.timed("synthesis"):
