@@ -15,13 +15,43 @@ def summary_text(info: dict, run_dir: Path) -> str:
     (beside the reference numbers when the config carries them), plainly what failed, the run
     directory and how to view it."""
     s = info.get("summary", {})
+    lines = [*header_lines(info, s), *identification_lines(s), *model_lines(s), *gain_lines(s), *data_lines(s),
+             *design_lines(s), *loop_lines(s), *online_lines(s)]
+    reused = stages_reused_text(info)
+    if reused:
+        lines.append(f"  {reused}")
+    lines.append(f"  run directory: {run_dir}")
+    if (run_dir / layout.RECORDING).exists():
+        lines.append(f"  view: rerun {run_dir / layout.RECORDING}")
+    return "\n".join(lines)
+
+
+def fmt(v) -> str:
+    return "n/a" if v is None else (f"{v:.4f}" if isinstance(v, float) else str(v))
+
+
+def interval(r) -> str:
+    """A rate with its 95% interval, [rate, low, high]."""
+    return (f"{r[0]:.4f} [{r[1]:.4f}, {r[2]:.4f}]" if r and np.all(np.isfinite(r))
+            else "n/a (not every path reached the window)")
+
+
+def beside(s: dict, name: str) -> str:
+    """The reference's number for `name` (a paper's), in parentheses, where the config carries one."""
     ref = s.get("reference") or {}
-    fmt = lambda v: "n/a" if v is None else (f"{v:.4f}" if isinstance(v, float) else str(v))
-    interval = lambda r: (f"{r[0]:.4f} [{r[1]:.4f}, {r[2]:.4f}]" if r and np.all(np.isfinite(r))
-                          else "n/a (not every path reached the window)")
-    beside = lambda name: f" ({ref.get('source', 'paper')} {ref[name]})" if name in ref else ""
-    unstable = lambda rate: rate is not None and not rate < 1          # NaN too: not shown to be stable
-    k_from, k_to = s.get("rate_window") or (None, None)
+    return f" ({ref.get('source', 'paper')} {ref[name]})" if name in ref else ""
+
+
+def unstable(rate) -> bool:
+    return rate is not None and not rate < 1          # NaN too: not shown to be stable
+
+
+def vec(v) -> list:
+    return np.round(v, 4).tolist()
+
+
+def header_lines(info: dict, s: dict) -> list[str]:
+    """The run, its status, the plant and model or the data file, and the error of a failed run."""
     lines = [f"rdsexp run {info.get('id')}: {info.get('status')}" + (
         f" (reused run {info['reused_from']}: the same config and code version, nothing computed)"
         if info.get("reused_from") else "")]
@@ -34,6 +64,12 @@ def summary_text(info: dict, run_dir: Path) -> str:
                      f"model {s.get('model')}; no plant: every rate below is exact on the identified model")
     if info.get("error"):
         lines.append(f"  failed: {info['error']} (traceback in run.json and rdsexp.log)")
+    return lines
+
+
+def identification_lines(s: dict) -> list[str]:
+    """How the plant was driven, the recorded paths left out, the iterated identification's passes."""
+    lines = []
     ident = s.get("identification_feedback") or {}
     if ident.get("mode", "none") != "none":
         line = f"  identification feedback {ident['mode']}: {ident.get('used')}"
@@ -51,7 +87,6 @@ def summary_text(info: dict, run_dir: Path) -> str:
         f = s["identification_failed_paths"]
         lines.append(f"  {f['count']} of {f['of']} recorded paths left out of the modeling (their EnKF estimate "
                      f"failed: " + ", ".join(f"{r} {c}" for r, c in f["reasons"].items()) + ")")
-    vec = lambda v: np.round(v, 4).tolist()
     passes = s.get("identification_passes")
     if passes:
         line = (f"  identification iterated: from {passes['first']}, {passes['passes']} run(s) drawing xi i.i.d. "
@@ -62,9 +97,15 @@ def summary_text(info: dict, run_dir: Path) -> str:
         if passes.get("failed"):
             line += f"; a further run failed ({passes['failed']}), its previous moments kept"
         lines.append(line)
+    return lines
+
+
+def model_lines(s: dict) -> list[str]:
+    """The modeled moments of xi beside the plant file's law, or why there is no model."""
+    lines = []
     if s.get("modeling_status") in ("ok", "unsettled"):       # unsettled: moments, not a fixed point of the passes
-        lines.append(f"  modeling {s['modeling_status']}: xi mean {vec(s.get('xi_mean', []))}{beside('xi_mean')}, "
-                     f"nbar {s.get('nbar')}{beside('nbar')}")
+        lines.append(f"  modeling {s['modeling_status']}: xi mean {vec(s.get('xi_mean', []))}{beside(s, 'xi_mean')}, "
+                     f"nbar {s.get('nbar')}{beside(s, 'nbar')}")
         if "xi_std" in s:
             line = f"    modeled xi std {vec(s['xi_std'])}"
             if s.get("modeling_covariance") == "total":
@@ -77,6 +118,13 @@ def summary_text(info: dict, run_dir: Path) -> str:
     elif s.get("modeling_status") is not None:
         lines.append(f"  no model: {s.get('modeling_status')}" +
                      ("; no gain designed, no closed loop" if s.get("synthesis_status") is None else ""))
+    return lines
+
+
+def gain_lines(s: dict) -> list[str]:
+    """The loop's gain: the fallback, the choice against the identification's gain, the moments' spread, and
+    the gain's rates (a data run: every design's on the identified model)."""
+    lines = []
     if s.get("gain_fallback"):
         f = s["gain_fallback"]
         lines.append(f"  gain {f['instead_of']}: not_applicable ({f['because']}); the loop uses gain.fallback "
@@ -102,7 +150,7 @@ def summary_text(info: dict, run_dir: Path) -> str:
             lines.append(line)
     elif s.get("data") is None and s.get("synthesis_status") is not None:
         lines.append(f"  gain {s.get('gain_method')}: {s.get('synthesis_status')}, lambda {fmt(s.get('lam'))}"
-                     f"{beside('lam')}, exact rate on the true plant {fmt(s.get('rate_plant'))}")
+                     f"{beside(s, 'lam')}, exact rate on the true plant {fmt(s.get('rate_plant'))}")
         if s.get("rate_plant") is None:
             lines.append(f"  no stabilizing gain: {s.get('gain_method')} returned none "
                          f"({s.get('synthesis_status')}); no closed loop")
@@ -112,6 +160,12 @@ def summary_text(info: dict, run_dir: Path) -> str:
         elif unstable(s.get("rate_plant")):
             lines.append(f"  the gain does not stabilize the true plant: its exact rate there is "
                          f"{fmt(s.get('rate_plant'))} >= 1")
+    return lines
+
+
+def data_lines(s: dict) -> list[str]:
+    """A data run's held-out validation and its loops simulated on the identified model."""
+    lines = []
     if s.get("validation"):            # a data run's held-out paths: the modeled law against the nominal model
         v = s["validation"]
         law = lambda name: (f"{name} CRPS {v[name]['crps']:.4g}, coverage {v[name]['coverage_50']:.2f} (50%) "
@@ -125,6 +179,12 @@ def summary_text(info: dict, run_dir: Path) -> str:
             lines += [f"  {name.replace('_', ' ')} ({s['loops_on_model']['label']}), rate k={w[0]}..{w[1]}: "
                       f"{interval(r['rate'])}, ideal loop on the model {fmt(r['exact_rate'])}: {r['verdict']}",
                       f"    {r['verdict_reason']}"]
+    return lines
+
+
+def design_lines(s: dict) -> list[str]:
+    """The other designs whose status is not plain, and what each status shown means."""
+    lines = []
     others = {m: st for m, st in (s.get("designs") or {}).items()
               if m != s.get("gain_method") and st not in ("optimal", "designed")}
     if others and not s.get("design_rates"):          # a data run lists every design above
@@ -132,6 +192,13 @@ def summary_text(info: dict, run_dir: Path) -> str:
     statuses = [s["synthesis_status"]] if s.get("synthesis_status") is not None else []
     for status in dict.fromkeys(statuses + list(others.values())):     # what each status shown means
         lines.append(f"    {status}: {status_meaning(status)}")
+    return lines
+
+
+def loop_lines(s: dict) -> list[str]:
+    """The rate window, the loop's controller, and each loop's rate, interval, ideal rate and verdict."""
+    lines = []
+    k_from, k_to = s.get("rate_window") or (None, None)
     if k_from is not None and "closed_loop_status" in s:
         source = s.get("rate_window_source")
         measured = s.get("noise_floor") is not None and not np.isnan(s["noise_floor"])
@@ -153,39 +220,40 @@ def summary_text(info: dict, run_dir: Path) -> str:
             continue
         line = f"  {label} rate k={k_from}..{k_to}: {interval(s.get(f'{loop}_rate'))}"
         if loop == "closed_loop":
-            line += beside("closed_loop_rate")
+            line += beside(s, "closed_loop_rate")
         if s.get(f"{loop}_exact_rate") is not None and np.isfinite(s[f"{loop}_exact_rate"]):
             line += f", ideal loop {s[f'{loop}_exact_rate']:.4f}"
         lines += [f"{line}: {s.get(f'{loop}_verdict')}", f"    {s.get(f'{loop}_verdict_reason')}"]
         if loop == "closed_loop":
             lines += gap(s)
-    if s.get("online"):                                   # controller=online
-        o = s["online"]
-        fmt = lambda v: "nan" if v is None else f"{v:.4f}"
-        lines.append(f"  online final gains: exact rate on the true plant median {fmt(o['final_rate_plant_median'])} "
-                     f"(10-90% {fmt(o['final_rate_plant_q10'])}-{fmt(o['final_rate_plant_q90'])}), "
-                     f"{100 * o['final_stable_fraction']:.0f}% stable, {o['adoptions_per_path']:.1f} adoptions per "
-                     f"path; offline gain {fmt(o['offline_rate_plant'])}, optimum {fmt(o['optimal_rate_plant'])}")
-        start = s.get("online_initial") or {}
-        lines.append(f"  online start: {initial_gain(start)}")
-        if o.get("lost_more_p") is not None:
-            lines.append(f"  online paths lost: {lost_paths(o)}")
-        if o.get("lost_held_unstable") is not None:
-            lines.append(f"    {held_gains(o)}")
-        probe = start.get("probe")
-        if probe:                                         # controller.probe: say whether the window holds it
-            amplitude, until = probe
-            inside = until is None or (k_from is not None and until > k_from)
-            lines.append(f"  online probe: +-{amplitude:g} on u until " + ("the end" if until is None else f"k={until}")
-                         + ("; it reaches into the rate window, so the online rate measures the probed loop, not "
-                            "its decay" if inside else ""))
-    reused = stages_reused_text(info)
-    if reused:
-        lines.append(f"  {reused}")
-    lines.append(f"  run directory: {run_dir}")
-    if (run_dir / layout.RECORDING).exists():
-        lines.append(f"  view: rerun {run_dir / layout.RECORDING}")
-    return "\n".join(lines)
+    return lines
+
+
+def online_lines(s: dict) -> list[str]:
+    """controller=online: the final gains against the offline gain and the optimum, the start, the paths lost
+    and the probe."""
+    if not s.get("online"):
+        return []
+    o, k_from = s["online"], (s.get("rate_window") or (None, None))[0]
+    num = lambda v: "nan" if v is None else f"{v:.4f}"
+    lines = [f"  online final gains: exact rate on the true plant median {num(o['final_rate_plant_median'])} "
+             f"(10-90% {num(o['final_rate_plant_q10'])}-{num(o['final_rate_plant_q90'])}), "
+             f"{100 * o['final_stable_fraction']:.0f}% stable, {o['adoptions_per_path']:.1f} adoptions per "
+             f"path; offline gain {num(o['offline_rate_plant'])}, optimum {num(o['optimal_rate_plant'])}"]
+    start = s.get("online_initial") or {}
+    lines.append(f"  online start: {initial_gain(start)}")
+    if o.get("lost_more_p") is not None:
+        lines.append(f"  online paths lost: {lost_paths(o)}")
+    if o.get("lost_held_unstable") is not None:
+        lines.append(f"    {held_gains(o)}")
+    probe = start.get("probe")
+    if probe:                                         # controller.probe: say whether the window holds it
+        amplitude, until = probe
+        inside = until is None or (k_from is not None and until > k_from)
+        lines.append(f"  online probe: +-{amplitude:g} on u until " + ("the end" if until is None else f"k={until}")
+                     + ("; it reaches into the rate window, so the online rate measures the probed loop, not "
+                        "its decay" if inside else ""))
+    return lines
 
 
 def initial_gain(start: dict) -> str:
