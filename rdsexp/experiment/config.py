@@ -554,16 +554,21 @@ def build(cfg) -> Experiment:
     if reference is not None and not isinstance(reference, dict):
         raise ConfigError(f"plant.reference: {reference!r} is not allowed, expected null or a mapping")
 
-    check_objective(cfg)
+    return Experiment(plant=plant, model=model, plant_name=plant_name, model_name=model_name, reported=reported,
+                      reference=reference, q0=q0, seed=seed, **group_settings(cfg, model, plant, reported))
+
+
+def group_settings(cfg, model: AffineRandomSystem, plant: AffineRandomSystem, reported) -> dict:
+    """One validated settings object per config group (Experiment's fields filter, identification, design, loop,
+    tracking, controller); `plant`: the plant, or a data run's prior (the model with its xi as the guess)."""
+    check_objective(cfg)           # in this order: a config's first error is the one reported
     identification = IdentificationSettings.from_config(cfg, plant)
     filter_ = FilterSettings.from_config(cfg, model, plant, identification.xi_guess)
     design = DesignSettings.from_config(cfg, model, reported)
     loop = LoopSettings.from_config(cfg, model, plant)
-    tracking = TrackingSettings.from_config(cfg)
-    controller = ControllerSettings.from_config(cfg, model, loop)
-    return Experiment(plant=plant, model=model, plant_name=plant_name, model_name=model_name, reported=reported,
-                      reference=reference, q0=q0, seed=seed, filter=filter_, identification=identification,
-                      design=design, loop=loop, tracking=tracking, controller=controller)
+    return {"identification": identification, "filter": filter_, "design": design, "loop": loop,
+            "tracking": TrackingSettings.from_config(cfg),
+            "controller": ControllerSettings.from_config(cfg, model, loop)}
 
 
 def build_data_run(cfg, seed: int) -> Experiment:
@@ -581,26 +586,18 @@ def build_data_run(cfg, seed: int) -> Experiment:
             reported = model.check_distribution(MomentModel(mean=reported["mean"], cov=reported["cov"]))
     prior = model_prior(cfg, model)
     holdout = _number(get(cfg, "data.holdout"), "data.holdout", low=0, high=0.9)
-    check_objective(cfg)
-    identification = IdentificationSettings.from_config(cfg, prior)
-    filter_ = FilterSettings.from_config(cfg, model, prior, identification.xi_guess)
-    design = DesignSettings.from_config(cfg, model, reported)
-    loop = LoopSettings.from_config(cfg, model, prior)
-    tracking = TrackingSettings.from_config(cfg)
-    controller = ControllerSettings.from_config(cfg, model, loop)
-    if controller.kind == "online":
+    groups = group_settings(cfg, model, prior, reported)
+    if groups["controller"].kind == "online":
         raise ConfigError("controller: 'online' is not allowed in a data run (there is no plant to run it on)")
-    if design.source == "reported" and reported is None:
+    if groups["design"].source == "reported" and reported is None:
         raise ConfigError("gain.source: 'reported' needs model.reported")
-    K0, K1 = identification.K0, identification.K1
+    K0, K1 = groups["identification"].K0, groups["identification"].K1
     recorded = load_data(data_file(cfg), model.m, model.ny, K0 + K1 + 1)
-    settings = DataSettings(recorded, holdout, _flag(cfg, "data.loops"))
-    if settings.identification.paths < 1:
+    data = DataSettings(recorded, holdout, _flag(cfg, "data.loops"))
+    if data.identification.paths < 1:
         raise ConfigError(f"data.holdout: {holdout!r} leaves no recorded path for the identification")
     return Experiment(plant=None, model=model, plant_name="none (recorded data)", model_name=model_name,
-                      reported=reported, reference=None, q0=np.zeros(model.n), seed=seed, filter=filter_,
-                      identification=identification, design=design, loop=loop, tracking=tracking,
-                      controller=controller, data=settings)
+                      reported=reported, reference=None, q0=np.zeros(model.n), seed=seed, data=data, **groups)
 
 
 # metrics a job may return as its objective (config `objective`), all minimized

@@ -66,26 +66,30 @@ class Stages:
 
     def cached(self, name: str, compute, *, label: str | None = None, **inputs) -> tuple[object, bool]:
         """(the stage's value, whether it was reused rather than computed in this run)."""
-        if self.cache is None:
-            return compute(), False
-        key = self.cache.key(name, **inputs)
-        value = self.cache.load(name, key, label or name)
+        key, value = self._stored(name, label, inputs, parts=False)
         if value is not None:
             return value, True
         value = compute()
-        self.cache.save(name, key, value)
+        if key is not None:
+            self.cache.save(name, key, value)
         return value, False
 
     def streamed(self, name: str, compute, *, label: str | None = None, **inputs):
         """(an iterator of the stage's parts, whether they are reused); computed parts are stored as they
         are consumed, the entry committed when the last one is, dropped if the consumer stops early."""
-        if self.cache is None:
-            return compute(), False
-        key = self.cache.key(name, **inputs)
-        stored = self.cache.load_parts(name, key, label or name)
+        key, stored = self._stored(name, label, inputs, parts=True)
         if stored is not None:
             return stored, True
-        return self._storing(self.cache.writer(name, key), compute()), False
+        return (compute() if key is None else self._storing(self.cache.writer(name, key), compute())), False
+
+    def _stored(self, name: str, label: str | None, inputs: dict, parts: bool) -> tuple[str | None, object]:
+        """(the stage's key, its stored value or parts, None where the cache has none); (None, None) without a
+        cache."""
+        if self.cache is None:
+            return None, None
+        key = self.cache.key(name, **inputs)
+        load = self.cache.load_parts if parts else self.cache.load
+        return key, load(name, key, label or name)
 
     @staticmethod
     def _storing(writer, parts):
