@@ -13,7 +13,6 @@ the Monte Carlo time to the time numpy needs merely to draw the same standard no
 from __future__ import annotations
 
 import argparse
-import json
 import subprocess
 import sys
 import tempfile
@@ -21,6 +20,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from rdsexp import runs
 
 WRAPPER = """
 import resource, subprocess, sys
@@ -51,9 +52,9 @@ def run(paths: int, workers: int, tracking: str) -> dict:
             raise SystemExit(f"paths={paths}: exit {proc.returncode}\n{proc.stderr[-2000:]}")
         rss_kib = int(proc.stderr.strip().splitlines()[-1])
         (run_dir,) = (Path(tmp) / "outputs" / "runs").iterdir()
-        info = json.loads((run_dir / "run.json").read_text())
+        timings = runs.record(run_dir).timings
         on_disk = sum(f.stat().st_size for f in run_dir.rglob("*") if f.is_file())
-        mc = info["timings"]["closed_loop"] + info["timings"].get("open_loop", 0.0)
+        mc = timings["closed_loop"] + timings.get("open_loop", 0.0)
         return {"wall": wall, "mc": mc, "rss_mib": rss_kib / 1024, "disk_mib": on_disk / 2 ** 20,
                 "recording_mib": (run_dir / "recording.rrd").stat().st_size / 2 ** 20
                 if (run_dir / "recording.rrd").exists() else 0.0}

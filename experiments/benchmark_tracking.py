@@ -10,7 +10,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 import subprocess
 import sys
 import tempfile
@@ -21,6 +20,7 @@ from hydra import compose, initialize_config_module
 
 from rdsexp.experiment import pipeline, runner
 from rdsexp.experiment.config import build
+from rdsexp.experiment.store import RunStore
 
 COMPUTE = ("identification", "modeling", "synthesis", "closed_loop", "open_loop", "metrics")
 TRACKING = ("provenance", "tables", "recording")
@@ -58,7 +58,7 @@ def sweep_overhead(jobs: int) -> None:
                            cwd=tmp, check=True, capture_output=True)
             wall = time.perf_counter() - start
             (sweep,) = (Path(tmp) / "outputs" / "sweeps").iterdir()
-            seconds = [json.loads(p.read_text())["timings"] for p in sweep.glob("*/run.json")]
+            seconds = [run.record.timings for run in RunStore(sweep).runs()]
             compute = sum(sum(t[k] for k in COMPUTE if k in t) for t in seconds)
         print(f"sweep, {name:16s} {jobs} jobs: wall {wall:6.2f} s, compute {compute:5.2f} s, "
               f"overhead per job {(wall - compute) / jobs:5.2f} s (includes interpreter start and imports)")

@@ -12,7 +12,6 @@ pass only, so its moments differ.
 from __future__ import annotations
 
 import argparse
-import json
 import subprocess
 import sys
 import tempfile
@@ -21,6 +20,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import yaml
+
+from rdsexp import runs
 
 REPO = Path(__file__).resolve().parents[1]
 SMALL = ["closed_loop.paths=4", "enkf.ensemble_size=20", "closed_loop.horizon=30", "closed_loop.rate_window=[10,20]",
@@ -46,7 +47,7 @@ def round_trip(plant: str, tmp: Path) -> dict:
     rdsexp("--config-dir", str(cwd / "conf"), "data=d.csv", f"model={model}", f"plant={plant}", *SMALL, cwd=cwd)
     (data_run,) = [r for r in (cwd / "outputs" / "runs").iterdir() if r != original]
     a, b = (pd.read_parquet(r / "model.parquet")["value"].to_numpy() for r in (original, data_run))
-    feedback = json.loads((original / "run.json").read_text())["summary"]["identification_feedback"]
+    feedback = runs.record(original).summary.identification_feedback
     return {"plant": plant, "identification": feedback.get("used") or feedback.get("mode"),
             "max_difference": float(np.max(np.abs(a - b))) if a.shape == b.shape else float("nan")}
 

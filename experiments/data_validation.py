@@ -24,6 +24,7 @@ import numpy as np
 import pandas as pd
 import yaml
 
+from rdsexp import runs
 from rdsexp.experiment.data import write
 from rdsexp.numerics.analysis import ms_rate
 from rdsexp.numerics.distributions import from_spec
@@ -70,12 +71,12 @@ def validate(name: str, content: dict, tmp: Path, paths: int, seed: int) -> dict
     if proc.returncode != 0:
         return row | {"error": (proc.stderr.strip().splitlines() or ["?"])[-1]}
     (run_dir,) = list((conf / "outputs" / "runs").iterdir())
-    s = json.loads((run_dir / "run.json").read_text())["summary"]
-    v = s.get("validation")
-    if v is None:
-        return row | {"error": s.get("modeling_status")}
-    return row | {f"{law}_{k}": round(v[law][k], 4) for law in ("modeled", "nominal")
-                  for k in ("crps", "coverage_50", "coverage_90")} | {"modeled_better": v["modeled_better"]}
+    stored = runs.record(run_dir)          # the validation's numbers are catalog metrics validation_<law>_<number>
+    if "metrics.validation_modeled_better" not in stored.metrics:
+        return row | {"error": stored.summary.modeling_status}
+    return row | {f"{law}_{k}": round(stored.metric(f"validation_{law}_{k}"), 4) for law in ("modeled", "nominal")
+                  for k in ("crps", "coverage_50", "coverage_90")} | {"modeled_better": stored.metric(
+                      "validation_modeled_better")}
 
 
 def main() -> None:

@@ -38,7 +38,7 @@ def points(runs: list[report.Run]) -> pd.DataFrame:
         rows.append({"variant": r.get("enkf.variant"), "inflation": inflation(r.get("enkf.inflation")),
                      "relaxation": float(r.get("enkf.relaxation")),
                      "disturbance": disturbance(r.get("enkf.disturbance")), "M": int(r.get("enkf.ensemble_size")),
-                     "seed": r.get("seed"), "xi_crps": r.info.get("summary", {}).get("xi_crps", np.nan),
+                     "seed": r.get("seed"), "xi_crps": r.record.summary.xi_crps,
                      # no closed loop (no gain from the identified model) counts as diverged
                      **{c: (loop[c] if loop is not None else (1.0 if c == "failed_fraction" else np.nan))
                         for c in ("rate", "failed_fraction", "xi_rmse", "x_rmse", "xi_spread_error")}})

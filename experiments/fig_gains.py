@@ -61,7 +61,7 @@ def comparison_runs(root, plants: list[str] | None = None) -> dict[str, list[rep
     plant: the `paper` sweep), in --plants order (default: the paper's plant first, then by name)."""
     by_plant: dict[str, dict[str, list[report.Run]]] = {}
     for run in report.load_runs(root):
-        sweep = (run.info.get("sweep") or {}).get("name")
+        sweep = report.sweep_of(run)
         if sweep in SWEEPS:
             by_plant.setdefault(plant_name(run), {}).setdefault(sweep, []).append(run)
     out = {}
@@ -71,8 +71,8 @@ def comparison_runs(root, plants: list[str] | None = None) -> dict[str, list[rep
         if name is None:
             raise report.LineageError(f"no stored {' or '.join(SWEEPS)} sweep ran plant {plant!r}: run "
                                       f"python -m rdsexp +sweep=gain_methods plant={plant}")
-        latest = max(r.info["sweep"]["dir"] for r in sweeps[name])
-        out[plant] = [r for r in sweeps[name] if r.info["sweep"]["dir"] == latest]
+        latest = max(str(r.record.sweep.dir) for r in sweeps[name])
+        out[plant] = [r for r in sweeps[name] if str(r.record.sweep.dir) == latest]
     return out
 
 

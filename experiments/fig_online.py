@@ -93,7 +93,7 @@ def setting_table(runs: list[report.Run], tolerance: float, rate_tolerance: floa
     rows = []
     for r in runs:
         m = r.table("metrics").set_index("experiment")
-        t = r.info["timings"]
+        t = r.record.timings
         rows.append({**{k.split(".")[1]: str(r.get(k)) for k in SETTING},
                      "offline_rate": m.loc["closed_loop", "rate"], "online_rate": m.loc["online", "rate"],
                      "online_rate_not_diverged": m.loc["online"].get("rate_not_diverged", np.nan),
@@ -167,8 +167,8 @@ def main(argv=None):
     outputs, written = [], 0
     for plant, runs in sorted(report.latest_per_plant(stored, "controllers", (*SETTING, "seed")).items()):
         report.check_versions(runs, args.allow_mixed)
-        latest = max(r.info["sweep"]["dir"] for r in runs)          # the figure: the latest sweep's setting
-        shown = [r for r in runs if r.info["sweep"]["dir"] == latest]
+        latest = max(str(r.record.sweep.dir) for r in runs)          # the figure: the latest sweep's setting
+        shown = [r for r in runs if str(r.record.sweep.dir) == latest]
         fig, (left, right) = report.figure(report.PAGE_WIDTH, 2.6, 1, 2)
         decay(left, min(shown, key=lambda r: r.get("seed")))
         text = distribution(right, shown)

@@ -78,14 +78,14 @@ def ensure_sweeps(root, extra_overrides=(), jobs: int = 1) -> None:
 def stage_totals(runs: list[report.Run]) -> pd.Series:
     """Seconds per stage summed over the runs that computed (a reused job's timings are its original's,
     counted once), from run.json's timings; the total last."""
-    computed = [r for r in runs if not r.info.get("reused_from")]
+    computed = [r for r in runs if not r.record.reused_from]
     totals: dict[str, float] = {}
     for r in computed:
-        for stage, seconds in (r.info.get("timings") or {}).items():
+        for stage, seconds in r.record.timings.items():
             if isinstance(seconds, (int, float)):            # not the per-method breakdown of synthesis
                 totals[stage] = totals.get(stage, 0.0) + seconds
     series = pd.Series(totals, dtype=float).sort_values(ascending=False)
-    total = float(sum(r.info.get("seconds") or 0 for r in computed))
+    total = float(sum(r.record.seconds or 0 for r in computed))
     return pd.concat([series[series > 0], pd.Series({"total": total})])
 
 
@@ -130,7 +130,7 @@ def main(argv=None) -> None:
                    pole_sets):
         script.main(common)
     stored = report.load_runs(args.root)
-    if any((r.info.get("sweep") or {}).get("name") == robust_width.SWEEP for r in stored):
+    if any(report.sweep_of(r) == robust_width.SWEEP for r in stored):
         robust_width.main(common)
     if fig_filters.latest_per_plant(stored):         # the filters and online-control studies, when stored
         fig_filters.main(common)                     # (not run here: 200 runs per plant)
@@ -141,7 +141,7 @@ def main(argv=None) -> None:
     files.atomic_write_bytes(args.out / "index.md", index(args.out, counts).encode())
     print(counts.to_string())
     runs = [r for sweep in SWEEPS for r in report.load_runs(args.root, sweep)]
-    print(f"compute of the {sum(not r.info.get('reused_from') for r in runs)} runs behind the report, seconds "
+    print(f"compute of the {sum(not r.record.reused_from for r in runs)} runs behind the report, seconds "
           f"by stage:\n" + stage_totals(runs).round(1).to_string())
     print(f"report written to {args.out}/ (one page: {args.out}/index.md)")
 

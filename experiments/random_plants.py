@@ -51,7 +51,6 @@ from __future__ import annotations
 
 import argparse
 import concurrent.futures
-import json
 import math
 import os
 import re
@@ -68,6 +67,9 @@ import numpy as np
 import pandas as pd
 import yaml
 
+from rdsexp import runs
+from rdsexp.errors import DamagedRecord
+from rdsexp.experiment.store import RunStore, layout
 from rdsexp.numerics.analysis import ms_rate
 from rdsexp.numerics.distributions import from_spec
 from rdsexp.numerics.observer_loop import applies, best_observer
@@ -345,18 +347,10 @@ def _overrides(args, plant: str) -> list[str]:
 def _find_run_dir(output: str, store: Path, plant: str, before: set[Path]) -> Path | None:
     """The run directory the command line printed, else the one new run of this plant in the store."""
     found = re.findall(r"^\s*run directory: (.+)$", output, flags=re.M)
-    if found and (Path(found[-1].strip()) / "run.json").exists():
+    if found and layout.is_run(Path(found[-1].strip())):
         return Path(found[-1].strip())
-    new = []
-    for path in (store / "runs").glob("*/run.json") if (store / "runs").is_dir() else []:
-        if path.parent in before:
-            continue
-        try:
-            info = json.loads(path.read_text())
-        except (OSError, ValueError):
-            continue
-        if f"plant={plant}" in (info.get("overrides") or []):
-            new.append(path.parent)
+    stored = RunStore(store / "runs").runs(warn=False) if (store / "runs").is_dir() else []
+    new = [run.dir for run in stored if run.dir not in before and f"plant={plant}" in run.record.overrides]
     return sorted(new)[-1] if new else None
 
 
@@ -364,8 +358,8 @@ def run_plant(args, config_dir: Path, plant: str, log_dir: Path) -> Outcome:
     """One plant through the command line, its output into log_dir/<plant>.log."""
     cmd = [sys.executable, "-m", "rdsexp", "--config-dir", str(config_dir), *_overrides(args, plant)]
     log = log_dir / f"{plant}.log"
-    runs = args.store / "runs"
-    before = {p.parent for p in runs.glob("*/run.json")} if runs.is_dir() else set()
+    runs_dir = args.store / "runs"
+    before = {p for p in runs_dir.iterdir() if layout.is_run(p)} if runs_dir.is_dir() else set()
     start = time.perf_counter()
     note = ""
     with open(log, "w") as f:
@@ -398,7 +392,7 @@ def _last_error(output: str) -> str:
 
 
 def read_record(outcome: Outcome) -> dict:
-    """What the table shows from a run's run.json and metrics table (missing keys stay None)."""
+    """What the table shows from a run's record and metrics table (missing keys stay None)."""
     row = {"run_status": None, "modeling_status": None, "synthesis_status": None, "rate_plant": None,
            "verdict": None, "verdict_reason": None, "closed_loop_status": None, "cl_rate": None, "cl_low": None,
            "cl_high": None, "failed_fraction": None, "run_seconds": None, "code_version": None,
@@ -407,27 +401,21 @@ def read_record(outcome: Outcome) -> dict:
     if outcome.run_dir is None:
         return row
     try:
-        info = json.loads((outcome.run_dir / "run.json").read_text())
-    except (OSError, ValueError) as err:
+        stored = runs.open_run(outcome.run_dir)
+    except (OSError, LookupError, DamagedRecord) as err:
         outcome.note = "; ".join(filter(None, [outcome.note, f"run.json unreadable: {err}"]))
         return row
-    summary = info.get("summary") or {}
-    row.update(run_status=info.get("status"), run_seconds=info.get("seconds"),
-               code_version=(info.get("code") or {}).get("version"),
-               modeling_status=summary.get("modeling_status"), synthesis_status=summary.get("synthesis_status"),
-               rate_plant=summary.get("rate_plant"), verdict=summary.get("closed_loop_verdict"),
-               verdict_reason=summary.get("closed_loop_verdict_reason"),
-               closed_loop_status=summary.get("closed_loop_status"))
-    rate = summary.get("closed_loop_rate")
-    if isinstance(rate, (list, tuple)) and len(rate) == 3:
-        row.update(cl_rate=rate[0], cl_low=rate[1], cl_high=rate[2])
-    failed = summary.get("closed_loop_failed")
-    if isinstance(failed, dict):
-        row["failed_fraction"] = failed.get("fraction")
-    metrics_file = outcome.run_dir / "metrics.parquet"
-    if metrics_file.exists():
+    record, summary = stored.record, stored.record.summary
+    row.update(run_status=record.status, run_seconds=record.seconds, code_version=record.code_version,
+               modeling_status=summary.modeling_status, synthesis_status=summary.synthesis_status,
+               rate_plant=_value(summary.rate_plant), verdict=summary.verdict(),
+               verdict_reason=summary.verdict_reason(), closed_loop_status=summary.status())
+    if summary.status() is not None:            # the loop ran: its rate (NaNs where no window measured it)
+        row.update(zip(("cl_rate", "cl_low", "cl_high"), map(_value, summary.rate())))
+        row["failed_fraction"] = summary.failed_fraction()
+    if "metrics" in record.tables:
         try:
-            metrics = pd.read_parquet(metrics_file)
+            metrics = stored.table("metrics")
             loop = metrics[metrics["experiment"] == "closed_loop"]
             if len(loop):
                 loop = loop.iloc[0]
@@ -453,6 +441,11 @@ def read_record(outcome: Outcome) -> dict:
 
 def _missing(value) -> bool:
     return value is None or (isinstance(value, float) and math.isnan(value))
+
+
+def _value(number: float) -> float | None:
+    """A record's number as the table shows it: None where the record has none (NaN)."""
+    return None if _missing(number) else number
 
 
 # ------------------------------------------------------------------------------------------ output
@@ -503,14 +496,14 @@ def through_outputs(plant: Plant, run_dir: Path | None) -> float | None:
     plant (`observer_loop.best_observer`, the run's estimate x_{k|k} or x_{k|k-1}): below 1, a loop through
     the outputs with this gain can decay; None when there is no gain or the outputs depend on xi or u."""
     system, _ = system_of(plant.content)
-    if run_dir is None or applies(system) or not (run_dir / "gains.parquet").exists():
+    if run_dir is None or applies(system):
         return None
     try:
-        gains = pd.read_parquet(run_dir / "gains.parquet")
+        stored = runs.open_run(run_dir)
+        gains = stored.table("gains")
         selected = gains[gains["selected"]]
-        estimate = (json.loads((run_dir / "run.json").read_text()).get("summary") or {}).get("loop", {}).get(
-            "estimate", "filtered")
-    except Exception:                                    # a damaged record: no number, not a crash
+        estimate = stored.record.summary.fed_back
+    except Exception:                                    # a damaged record or no gains: no number, not a crash
         return None
     if not len(selected):
         return None

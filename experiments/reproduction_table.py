@@ -205,11 +205,11 @@ def row_for(key: str, paper, s: Sources):
                 "where a bisection stops (the paper's included) depends on the solver's tolerances")
         return compare_value(paper, s.gain("nominal_lmi", "lam"), 2e-3, f"status {status}")
     if path == "timing.seconds_per_closed_loop_path_k0_to_k100":
-        per_path = np.mean([r.info["timings"]["closed_loop"] / r.get("closed_loop.paths") for r in s.proposed])
+        per_path = np.mean([r.record.timings["closed_loop"] / r.get("closed_loop.paths") for r in s.proposed])
         return f"{per_path:.4f} s per path (all paths batched)", DIFFERS, \
             "different hardware and implementation: rdsexp computes the paths as one batch"
     if path == "timing.ms_per_control_cycle_upper":
-        per_cycle = np.mean([1e3 * r.info["timings"]["closed_loop"] / r.get("closed_loop.paths")
+        per_cycle = np.mean([1e3 * r.record.timings["closed_loop"] / r.get("closed_loop.paths")
                              / (r.get("closed_loop.horizon") + 1) for r in s.proposed])
         return f"{per_cycle:.4f} ms", REPRODUCED if per_cycle < paper else DIFFERS, ""
     return "", DIFFERS, "no rule for this number"

@@ -1,5 +1,5 @@
 """The run catalog as a public module: `rdsexp-runs ...` or `python -m rdsexp.runs ...` (see
-rdsexp.experiment.runs), and `plot`, a figure of any sweep (rdsexp.report.sweep_plot), which sits a
+rdsexp.experiment.catalog), and `plot`, a figure of any sweep (rdsexp.report.sweep_plot), which sits a
 layer above the store and is added here.
 
     rdsexp-runs plot SWEEP|--where "..." --x KEY [--x KEY2] --y METRIC [--hue KEY] [--logx] [--logy] [--out DIR]
@@ -10,10 +10,10 @@ import os
 import sys
 from pathlib import Path
 
-from .experiment.runs import *  # noqa: F403
-from .experiment.runs import DEFAULT_ROOT, locate_sweep, search
-from .experiment.runs import __all__ as _catalog
-from .experiment.runs import main as _main
+from .experiment.catalog import *  # noqa: F403
+from .experiment.catalog import DEFAULT_ROOT, locate_sweep, search
+from .experiment.catalog import __all__ as _catalog
+from .experiment.catalog import main as _main
 
 __all__ = [*_catalog, "cli", "plot"]
 
@@ -82,7 +82,7 @@ def _export_command(args) -> int:
         if args.out is None or args.mlflow is not None:
             print("rdsexp-runs export: --data RUN needs --out FILE (and no --mlflow)", file=sys.stderr)
             return 2
-        from .experiment.runs import export_data
+        from .experiment.catalog import export_data
         rows, note = export_data(args.data, args.out, root=args.root)
         print(f"{args.out}: {rows} rows ({note})")
         return 0

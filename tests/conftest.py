@@ -82,7 +82,7 @@ def in_process(module: str, args: list[str], cwd) -> subprocess.CompletedProcess
     from hydra.core.global_hydra import GlobalHydra
     from hydra.core.hydra_config import HydraConfig
 
-    from rdsexp.experiment import cli, runs
+    from rdsexp.experiment import catalog, cli
     out, err, code = io.StringIO(), io.StringIO(), 0
     saved = os.getcwd(), sys.argv, signal.getsignal(signal.SIGINT)
     GlobalHydra.instance().clear()                    # a compose() a test left initialized
@@ -91,7 +91,7 @@ def in_process(module: str, args: list[str], cwd) -> subprocess.CompletedProcess
         sys.argv = [module, *args]
         with redirect_stdout(out), redirect_stderr(err):
             try:
-                code = runs.main(args) if module == "rdsexp.runs" else cli.main()
+                code = catalog.main(args) if module == "rdsexp.runs" else cli.main()
             except SystemExit as exit_:
                 if isinstance(exit_.code, str):        # sys.exit("message"): printed, exit code 1
                     print(exit_.code, file=sys.stderr)
@@ -131,6 +131,6 @@ def linear_gaussian(seed, n=3, ny=2):
 
 
 def undocumented(summary: dict) -> list[str]:
-    """The keys of a run's summary that the data dictionary (`schema.SUMMARY`) does not describe."""
+    """The keys of a run's summary that the data dictionary (`schema.RUN_SUMMARY_KEYS`) does not describe."""
     from rdsexp.experiment.schema import summary_entry
     return [key for key in summary if summary_entry(key) is None]

@@ -24,6 +24,7 @@ from ..numerics.systems import AffineRandomSystem, MomentModel
 from ..numerics.verdict import window_start
 from .data import RecordedData
 from .data import load as load_data
+from .metrics import objectives
 
 TRACKING_LEVELS = ("off", "summary", "full")
 FEEDBACK_MODES = ("none", "nominal", "auto")     # identification.feedback, or a gain F (m x n)
@@ -600,17 +601,12 @@ def build_data_run(cfg, seed: int) -> Experiment:
                       reported=reported, reference=None, q0=np.zeros(model.n), seed=seed, data=data, **groups)
 
 
-# metrics a job may return as its objective (config `objective`), all minimized
-OBJECTIVES = ("lam", "rate_plant", "closed_loop_rate", "open_loop_rate", "online_rate", "closed_loop_exact_rate",
-              "xi_mean_error", "xi_std_error", "xi_crps", "closed_loop_failed_fraction", "seconds")
-
-
 def check_objective(cfg) -> None:
-    """`objective` is null or one of OBJECTIVES; `objective_penalty` a finite number >= 0; `objective_seeds` a
-    whole number >= 1."""
+    """`objective` is null or a metric the registry declares an objective (`metrics.objectives`);
+    `objective_penalty` a finite number >= 0; `objective_seeds` a whole number >= 1."""
     objective = OmegaConf.select(cfg, "objective")
-    if objective is not None and objective not in OBJECTIVES:
-        raise ConfigError(f"objective: {objective!r} is not allowed, expected null or one of {', '.join(OBJECTIVES)}")
+    if objective is not None and objective not in objectives():
+        raise ConfigError(f"objective: {objective!r} is not allowed, expected null or one of {', '.join(objectives())}")
     _number(OmegaConf.select(cfg, "objective_penalty", default=1.0), "objective_penalty", low=0)
     seeds = OmegaConf.select(cfg, "objective_seeds", default=1)
     if isinstance(seeds, bool) or not isinstance(seeds, int) or seeds < 1:

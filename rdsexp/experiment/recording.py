@@ -40,6 +40,7 @@ import rerun as rr
 import rerun.blueprint as rrb
 
 from ..numerics.analysis import rms_band
+from . import metrics as metric_registry
 from .schema import split_column
 from .store import RunStore, layout
 from .store.table import changed_params
@@ -535,17 +536,12 @@ def read_series(path, entity: str, index: str = "k") -> tuple[np.ndarray, np.nda
 
 
 # ------------------------------------------------------------------------------------ sweeps
-# Metrics drawn against the swept values, in this order: rates (lambda, exact and empirical), then fractions;
-# any other numeric metrics.*rate* (online: final_rate_plant_median, ...) and metrics.*_fraction follow.
-SWEEP_METRICS = ("metrics.lam", "metrics.rate_plant", "metrics.closed_loop_rate", "metrics.open_loop_rate",
-                 "metrics.closed_loop_exact_rate", "metrics.open_loop_exact_rate",
-                 "metrics.closed_loop_failed_fraction", "metrics.open_loop_failed_fraction")
+# Metrics drawn against the swept values: the registry's plotted ones first (`metrics.plotted`), rates then
+# fractions; any other numeric rate (online: final_rate_plant_median, ...) and fraction follow (`metrics.kind_of`).
 # One color per hue combination, in the order of its first job (fixed, so a sweep always looks the same).
 _HUE_COLORS = [(31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40), (148, 103, 189), (140, 86, 75),
                (227, 119, 194), (127, 127, 127), (188, 189, 34), (23, 190, 207)]
-# The jobs table's metrics (closed_loop_rate with its interval).
-_JOB_METRICS = ("metrics.lam", "metrics.rate_plant", "metrics.closed_loop_rate", "metrics.closed_loop_verdict",
-                "metrics.closed_loop_failed_fraction", "metrics.open_loop_rate")
+# The jobs table's metrics: the registry's per job (`metrics.per_job`; closed_loop_rate with its interval).
 _CORNERS = (rrb.Corner2D.RightBottom, rrb.Corner2D.RightTop, rrb.Corner2D.LeftTop, rrb.Corner2D.LeftBottom)
 _FRACTION_AXIS = (-0.03, 1.03)
 # The whole timeline (every x value, the margins of /sweep/x_range included), not a window around the cursor.
@@ -567,17 +563,18 @@ def _short(column: str) -> str:
 
 
 def _sweep_metrics(table: pd.DataFrame) -> tuple[list[str], list[str]]:
-    """(rates, fractions): the numeric metrics.* columns with a value, SWEEP_METRICS first. Rates are lam and
-    the names with a `rate` word (not the interval bounds _low/_high nor the quantiles _q10/_q90)."""
+    """(rates, fractions): the numeric metrics.* columns with a value, the registry's plotted metrics first
+    (`metrics.plotted`), each of the kind the registry gives it (`metrics.kind_of`)."""
     names = [c for c in table.columns if c.startswith("metrics.")]
+    first = [m.column for m in metric_registry.plotted()]
     rates, fractions = [], []
-    for c in [c for c in SWEEP_METRICS if c in names] + [c for c in names if c not in SWEEP_METRICS]:
+    for c in [c for c in first if c in names] + [c for c in names if c not in first]:
         if not _is_number(table[c]) or not table[c].notna().any():
             continue
-        name = _short(c)
-        if name.endswith("_fraction"):
+        kind = metric_registry.kind_of(c)
+        if kind == metric_registry.FRACTION:
             fractions.append(c)
-        elif name == "lam" or ("rate" in name.split("_") and not name.endswith(("_low", "_high", "_q10", "_q90"))):
+        elif kind == metric_registry.RATE:
             rates.append(c)
     return rates, fractions
 
@@ -706,7 +703,7 @@ def _jobs_markdown(table: pd.DataFrame, title: str, swept: list[str], axes: list
              f"**{', '.join(_short(c) for c in swept) or 'nothing'}**{seed}. Plots: x = the active timeline (bottom "
              f"bar): **{'**, **'.join(axes)}**; {hues}; line = mean over the runs at each x (the seeds), points = "
              "the runs.", ""]
-    metrics = [c for c in _JOB_METRICS if c in table.columns]
+    metrics = [m.column for m in metric_registry.per_job() if m.column in table.columns]
     cols = ["job", "status", *swept, *metrics]
     head = [{"metrics.closed_loop_rate": "closed_loop_rate [low, high]"}.get(c, _short(c)) for c in cols]
     lines += ["| " + " | ".join(head) + " |", "|" + "---|" * len(cols)]

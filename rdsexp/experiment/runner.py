@@ -19,9 +19,10 @@ from omegaconf import DictConfig, OmegaConf
 
 from ..errors import WriteError
 from .config import Experiment, build, check_overrides
+from .metrics import MAXIMIZE, REGISTRY, exact_counterpart
 from .pipeline import SPAWN_KEYS, TABLES, Outcome, run_experiment, timed
 from .schema import attach
-from .store import RunStore, RunWriter, StageCache, layout, provenance
+from .store import RunRecord, RunStore, RunWriter, StageCache, layout, provenance
 from .store.table import flat_params
 
 log = logging.getLogger("rdsexp")
@@ -160,11 +161,6 @@ def write_config(run_dir: Path, cfg: DictConfig) -> None:
     OmegaConf.save({k: v for k, v in OmegaConf.to_container(cfg, resolve=False).items() if k != "hydra"}, path)
 
 
-# a tuning objective that is a Monte Carlo estimate, and the exact number it estimates a function of
-EXACT_COUNTERPART = {"closed_loop_rate": "rate_plant", "online_rate": "rate_plant",
-                     "open_loop_rate": "open_loop_exact_rate"}
-
-
 def command_with(command: str, overrides: list[str]) -> str:
     """A run's command line (`python -m rdsexp [--config-dir DIR ...] OVERRIDES`) with other overrides: the
     command that repeats a tuning trial's other seed or a held-out re-run by itself: a single run, without
@@ -194,17 +190,17 @@ def objective_over(name: str, penalty: float, runs: list[dict], seeds: list[int]
     """run.json's `objective` of a trial (role "trial") or a held-out re-run ("heldout"): the metric of each
     run (`objective_value`), their mean and its standard error (std / sqrt(n); NaN for one seed, and for
     a run that did not give a finite value, whose value is inf), and the metric's exact counterpart
-    (EXACT_COUNTERPART) in the same runs."""
-    values = [objective_value(info, name, penalty) for info in runs]
+    (`metrics.exact_counterpart`) in the same runs. runs: their run.json contents."""
+    records = [RunRecord.parse(info) for info in runs]
+    values = [objective_value(record, name, penalty) for record in records]
     finite = np.all(np.isfinite(values))
     mean = float(np.mean(values)) if finite else float("inf")
     se = float(np.std(values, ddof=1) / np.sqrt(len(values))) if finite and len(values) > 1 else float("nan")
     out = {"role": role, "metric": name, "penalty": penalty, "seeds": list(seeds), "values": values, "mean": mean,
            "se": se, **more}
-    exact = EXACT_COUNTERPART.get(name)
+    exact = exact_counterpart(name)
     if exact is not None:
-        numbers = [(info.get("summary") or {}).get(exact) for info in runs]
-        numbers = [float(v) if v is not None else float("nan") for v in numbers]
+        numbers = [float(record.metric(exact)) for record in records]
         out["exact"] = {"metric": exact, "values": numbers, "mean": float(np.mean(numbers))}
     return out
 
@@ -228,21 +224,22 @@ def trial_seeds(cfg: DictConfig, run_dir: Path, failed) -> list[dict]:
     return runs
 
 
-def objective_value(info: dict, name: str, penalty: float = 1.0) -> float:
-    """The job's objective (config `objective`, minimized): the metric `name` of run.json's summary (a
-    rate's point estimate), plus penalty x the closed loop's failed fraction of paths; inf when the
-    run did not complete or the metric is not finite (e.g. a rate that no path window could measure)."""
-    s = info.get("summary") or {}
-    if info.get("status") != "complete":
+def objective_value(record: RunRecord | dict, name: str, penalty: float = 1.0) -> float:
+    """The job's objective (config `objective`, minimized): the catalog metric `name` of the run
+    (`RunRecord.metric`: a rate's point estimate; negated for a metric the registry maximizes), plus
+    penalty x the closed loop's failed fraction of paths (not added to that fraction itself); inf when
+    the run did not complete or the metric is not finite (e.g. a rate that no path window could measure).
+    record: the run's typed record, or its run.json content."""
+    record = record if isinstance(record, RunRecord) else RunRecord.parse(record)
+    if not record.complete:
         return float("inf")
-    failed = float((s.get("closed_loop_failed") or {}).get("fraction", 0.0))
+    value = record.metric(name)
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value):
+        return float("inf")
+    value = -float(value) if REGISTRY[name].objective == MAXIMIZE else float(value)
     if name == "closed_loop_failed_fraction":
-        return failed if "closed_loop_status" in s else float("inf")
-    value = info.get("seconds") if name == "seconds" else s.get(name)
-    value = value[0] if isinstance(value, list) else value
-    if value is None or not np.isfinite(value):
-        return float("inf")
-    return float(value) + penalty * failed
+        return value
+    return value + penalty * record.summary.failed_fraction()
 
 
 def store_of(cfg: DictConfig) -> RunStore:

@@ -21,6 +21,7 @@ from .config import build, check_overrides
 from .store import RunStore, layout, status_of, write_sweep_summary
 from .store.files import atomic_write_bytes
 from .store.layout import HYDRA_CONFIG, MULTIRUN, RESUMES, SUMMARY_CSV
+from .store.record import Objective, RunRecord
 from .store.table import as_text, sweep_results
 
 
@@ -237,7 +238,7 @@ class SweepSummary(Callback):
             print(as_text(sweep_results(table), max_rows=RESULT_ROWS))
             print(f"reused {int(table['reused_from'].notna().sum())} of {len(table)} jobs (same config hash and "
                   f"code version as a stored run)")
-            note = stage_cache_note([job.info for job in jobs])
+            note = stage_cache_note([job.record for job in jobs])
             if note:
                 print(note)
         status = table["status"] if "status" in table else pd.Series([], dtype=object)
@@ -260,23 +261,23 @@ def held_out(config: DictConfig, sweep_dir: Path) -> list[str]:
     within each other's standard error of the best, and the objective's exact counterpart."""
     from .runner import at_seed, command_with, execute, objective_over
     trials = [run for run in RunStore(sweep_dir).runs(warn=False)
-              if (run.info.get("objective") or {}).get("role") == "trial"]
+              if run.record.objective is not None and run.record.objective.role == "trial"]
     if not trials:
         return []
-    of = lambda run: run.info["objective"]                         # noqa: E731
-    best = min(trials, key=lambda run: of(run)["mean"])
-    name, penalty, n = of(best)["metric"], of(best)["penalty"], len(of(best)["seeds"])
-    used = [seed for run in trials for seed in of(run)["seeds"]]
+    of = lambda run: run.record.objective                          # noqa: E731
+    best = min(trials, key=lambda run: of(run).mean)
+    name, penalty, n = of(best).metric, of(best).penalty, len(of(best).seeds)
+    used = [seed for run in trials for seed in of(run).seeds]
     seeds = list(range(max(used) + 1, max(used) + 1 + n))
     cfg = OmegaConf.load(best.dir / HYDRA_CONFIG)
     runs = []
     for i, seed in enumerate(seeds):
         other = at_seed(cfg, seed)
         run_dir = sweep_dir / f"heldout.seed{seed}"
-        overrides = [o for o in best.info.get("overrides") or [] if not o.startswith("seed=")] + [f"seed={seed}"]
-        context = {"id": f"{sweep_dir.name}/{run_dir.name}", "command": command_with(best.info.get("command"),
-                                                                                       overrides),
-                   "overrides": overrides, "sweep": dict(best.info.get("sweep") or {}, job=None),
+        overrides = [o for o in best.record.overrides if not o.startswith("seed=")] + [f"seed={seed}"]
+        sweep = best.record.sweep
+        context = {"id": f"{sweep_dir.name}/{run_dir.name}", "command": command_with(best.record.command, overrides),
+                   "overrides": overrides, "sweep": sweep.as_recorded(job=None) if sweep is not None else {"job": None},
                    "objective": {"role": "heldout", "of": best.id}}
         last = i == len(seeds) - 1
         amend = (lambda info: info.update(objective=objective_over(
@@ -288,34 +289,34 @@ def held_out(config: DictConfig, sweep_dir: Path) -> list[str]:
             logging.disable(logging.NOTSET)
     result = runs[-1].get("objective") or objective_over(name, penalty, runs, seeds, "heldout", of=best.id)
     atomic_write_bytes(sweep_dir / HELD_OUT, json.dumps(result, indent=1).encode())
-    best_ = of(best)
-    lines = [f"tuning: best trial {best.id}: {name} {best_['mean']:.4f} +- {best_['se']:.4f} (standard error over "
-             f"seeds {best_['seeds']}); held out on fresh seeds {seeds}: {result['mean']:.4f} +- {result['se']:.4f}"]
+    best_, held = of(best), Objective.parse(result)
+    lines = [f"tuning: best trial {best.id}: {name} {best_.mean:.4f} +- {best_.se:.4f} (standard error over "
+             f"seeds {list(best_.seeds)}); held out on fresh seeds {seeds}: {held.mean:.4f} +- {held.se:.4f}"]
     close = [run.id for run in trials if run is not best
-             and abs(of(run)["mean"] - best_["mean"]) <= np.nan_to_num(of(run)["se"]) + np.nan_to_num(best_["se"])]
+             and abs(of(run).mean - best_.mean) <= np.nan_to_num(of(run).se) + np.nan_to_num(best_.se)]
     lines.append(f"tuning: {len(close)} other trial(s) within one standard error of the best ({', '.join(close)}): the "
                  f"study cannot tell them apart" if close else "tuning: no other trial is within one standard "
                  "error of the best")
-    exact = best_.get("exact")
+    exact = best_.exact
     if exact:
-        spread = [of(run)["exact"]["mean"] for run in trials]
+        spread = [of(run).exact["mean"] for run in trials]
         lines.append(f"tuning: {name} is a Monte Carlo estimate of a rate; its exact counterpart {exact['metric']} "
                      f"(the gain's exact rate on the true plant): best trial {exact['mean']:.4f}, held out "
-                     f"{result['exact']['mean']:.4f}, over the trials {min(spread):.4f} to {max(spread):.4f}")
+                     f"{held.exact['mean']:.4f}, over the trials {min(spread):.4f} to {max(spread):.4f}")
     return lines
 
 
-def stage_cache_note(infos: list[dict]) -> str:
+def stage_cache_note(records: list[RunRecord]) -> str:
     """How many of the jobs that computed loaded each stage from the stage cache (run.json
     `stages_reused`), e.g. "stage cache: identification reused in 60 of 70 jobs, designs 400 of 420,
     open loop 60 of 70"; "" when no job looked a stage up."""
-    computed = [info for info in infos if not info.get("reused_from") and info.get("stage_keys")]
+    computed = [record for record in records if not record.reused_from and record.stage_keys]
     if not computed:
         return ""
     counts: dict[str, list[int]] = {}
-    for info in computed:
-        reused = info.get("stages_reused") or {}
-        for label in info["stage_keys"]:
+    for record in computed:
+        reused = record.stages_reused
+        for label in record.stage_keys:
             stage = "designs" if label.startswith("synthesis") else label.replace("_", " ")
             hits = counts.setdefault(stage, [0, 0])
             hits[0] += label in reused

@@ -67,16 +67,23 @@ def of_shipped_sweep(run: Run, sweep: str) -> bool:
     user's `+sweep=NAME plant=mine`, or one that changes what a figure shows (another gain method, Q,
     disturbance), is not."""
     keys = swept_keys(sweep)
-    s = run.info.get("summary") or {}
+    record = run.record
     if keys is None:
         return True
-    if s.get("plant") != "paper" or s.get("model") != "paper":
+    if record.summary.plant != "paper" or record.summary.model != "paper":
         return False
-    for override in run.info.get("overrides") or []:
+    for override in record.overrides:
         key = override.split("=", 1)[0].lstrip("+~")
         if key != "sweep" and key not in keys and not any(key == k or key.startswith(f"{k}.") for k in SIZES):
             return False
     return True
+
+
+def sweep_of(run: Run) -> str | None:
+    """The name a run's sweep was launched with (`+sweep=NAME`, as run.json records it), None for a run that is
+    no sweep's job or a sweep launched without a name."""
+    sweep = run.record.sweep
+    return sweep.recorded_name if sweep is not None else None
 
 
 def load_runs(root: Path, sweep: str | None = None) -> list[Run]:
@@ -84,9 +91,9 @@ def load_runs(root: Path, sweep: str | None = None) -> list[Run]:
     sweep's experiment, `of_shipped_sweep`), the latest sweep of that name only. A damaged run
     (run.json or a table unreadable, missing or modified) is named in one warning line and left out."""
     runs = sorted(RunStore(root).runs(), key=lambda run: str(run.dir))
-    runs = [r for r in runs if r.info.get("status") == "complete" and r.info.get("tables")]
+    runs = [r for r in runs if r.record.complete and r.record.tables]
     if sweep is not None:
-        runs = [r for r in runs if (r.info.get("sweep") or {}).get("name") == sweep and of_shipped_sweep(r, sweep)]
+        runs = [r for r in runs if sweep_of(r) == sweep and of_shipped_sweep(r, sweep)]
     intact = []                     # the files of the selected runs only (each file hashed once per process)
     for r in runs:
         problems = r.damage()
@@ -96,8 +103,8 @@ def load_runs(root: Path, sweep: str | None = None) -> list[Run]:
             intact.append(r)
     runs = intact
     if sweep is not None and runs:
-        latest = max(r.info["sweep"]["dir"] for r in runs)
-        runs = [r for r in runs if r.info["sweep"]["dir"] == latest]
+        latest = max(str(r.record.sweep.dir) for r in runs)
+        runs = [r for r in runs if str(r.record.sweep.dir) == latest]
     return runs
 
 
@@ -115,9 +122,9 @@ def check_pooling(runs: list[Run], keys=()) -> None:
     (closed_loop.paths) differ, unless `keys` (what the figure varies) include closed_loop.paths."""
     by_plant: dict[str, list[Run]] = {}
     for r in runs:
-        by_plant.setdefault(str((r.info.get("summary") or {}).get("plant")), []).append(r)
+        by_plant.setdefault(str(r.record.summary.plant), []).append(r)
     for plant, members in by_plant.items():
-        hashes = sorted({(r.info.get("plant_hash") or "")[:12] for r in members} - {""})
+        hashes = sorted({(r.record.plant_hash or "")[:12] for r in members} - {""})
         if len(hashes) > 1:
             raise LineageError(f"runs of plant {plant} with {len(hashes)} different contents (plant_hash "
                                f"{', '.join(hashes)}) would be pooled: keep one plant file per name in the store")
@@ -144,8 +151,7 @@ def latest_per_plant(runs: list[Run], sweep: str, keys: tuple[str, ...]) -> dict
     and a later sweep replaces the earlier runs of the points it repeats. LineageError where one plant's
     runs differ in content or path count (`check_pooling`)."""
     latest = {}
-    for r in sorted((r for r in runs if (r.info.get("sweep") or {}).get("name") == sweep),
-                    key=lambda r: r.info["created"]):
+    for r in sorted((r for r in runs if sweep_of(r) == sweep), key=lambda r: r.record.created or ""):
         latest[(r.get("plant.name"), *(str(r.get(k)) for k in keys))] = r
     out: dict[str, list[Run]] = {}
     for point, r in latest.items():

@@ -1,6 +1,6 @@
 """A figure of any sweep from a runs table (`rdsexp.runs.search()` output, filtered by the caller).
 
-    from rdsexp.experiment.runs import search
+    from rdsexp.experiment.catalog import search
     from rdsexp.report import sweep_plot
     table = search("outputs", "sweep == 'ensemble_size'")
     sweep_plot.aggregate(table, "ensemble_size", "closed_loop_rate", hue="enkf.q_scale")   # the points
@@ -42,7 +42,7 @@ from matplotlib.transforms import ScaledTranslation, blended_transform_factory
 
 from .. import report
 from ..errors import LineageError, RecordWarning
-from ..experiment.runs import column
+from ..experiment.catalog import column
 from ..experiment.store import Run, files, layout
 from ..experiment.store.table import MISSING
 
@@ -244,13 +244,13 @@ def _lineage_entry(run_id, run_dir) -> dict:
     """A run drawn: id, dir, sha256 of its run.json, the metrics table's sha256 as run.json records
     it (and its code version, for the lineage's code_version)."""
     run = Run(Path(run_dir))                 # DamagedRecord (one line) if its run.json cannot be read
-    path, info = run.record_file, run.info
-    if info["id"] != run_id:
-        raise LineageError(f"{path}: names run {info['id']!r}, the runs table {run_id!r} (search the store again)")
+    path, record = run.record_file, run.record
+    if record.id != run_id:
+        raise LineageError(f"{path}: names run {record.id!r}, the runs table {run_id!r} (search the store again)")
     digest = hashlib.sha256(path.read_bytes()).hexdigest()
-    metrics = ((info.get("tables") or {}).get("metrics") or {}).get("sha256")
+    metrics = getattr(record.tables.get("metrics"), "sha256", None)
     return {"id": run_id, "dir": str(run_dir), "run_json_sha256": digest,
-            "tables": {"metrics": metrics} if metrics else {}, "code": (info.get("code") or {}).get("version")}
+            "tables": {"metrics": metrics} if metrics else {}, "code": record.code_version}
 
 
 # --- drawing

@@ -1,6 +1,6 @@
 """Stored rdsexp runs on an MLflow tracking server: `rdsexp-runs export --mlflow URI SWEEP|--where ...`.
 
-    from rdsexp.experiment.runs import search
+    from rdsexp.experiment.catalog import search
     from rdsexp.report import to_mlflow
     to_mlflow.export(search("outputs", "enkf.q_scale >= 1"), "http://127.0.0.1:5000")
     to_mlflow.export("my_sweep", "http://127.0.0.1:5000", experiment="tuning")   # a sweep by name
@@ -47,9 +47,10 @@ import numpy as np
 import pandas as pd
 
 from ..errors import DamagedRecord, one_line
-from ..experiment.runs import DEFAULT_ROOT, locate, locate_sweep, query, search
+from ..experiment import metrics as registry
+from ..experiment.catalog import DEFAULT_ROOT, locate, locate_sweep, query, search
 from ..experiment.store import Run, layout
-from ..experiment.store.table import changed_params, run_metrics, run_params
+from ..experiment.store.table import changed_params, run_params
 from ..numerics.analysis import rms_band
 
 DEFAULT_EXPERIMENT = "rdsexp"
@@ -57,8 +58,6 @@ MAX_KEY, MAX_PARAM, MAX_TAG = 250, 6000, 8000      # MLflow's limits (mlflow.uti
 RUN_KEY, SWEEP_KEY, DONE = "rdsexp.run_id", "rdsexp.sweep_id", "rdsexp.export"
 STATUS = {"complete": "FINISHED", "interrupted": "KILLED"}     # any other final status: FAILED
 TRUNCATED = "...[truncated]"
-# logged first: the metric MLflow's compare view (parallel coordinates) draws until another is chosen
-FIRST = ("closed_loop_rate", "lam", "rate_plant", "closed_loop_failed_fraction")
 
 
 @dataclass
@@ -233,27 +232,30 @@ def _one(client, experiment_id: str, row: pd.Series, report: Report, existing: d
         report.already.append(run_id)
         report.runs[run_id] = there.info.run_id
         return
+    status = row.get("status")
+    if status == "incomplete":
+        report.skipped[run_id] = "incomplete (still running, or its process died)"
+        return
     try:
-        run = Run(run_dir)
+        run = Run(run_dir)        # its files (tables, recording) and what the row has no column for
     except DamagedRecord as err:
         report.skipped[run_id] = f"damaged ({err})"
         return
-    info = run.info
-    if info.get("status") == "incomplete":
-        report.skipped[run_id] = "incomplete (still running, or its process died)"
-        return
-    damage = run.damage() if info.get("status") == "complete" else []
+    record = run.record
+    damage = run.damage() if status == "complete" else []
     if damage:
         report.skipped[run_id] = "damaged: " + "; ".join(damage)
         return
-    params, truncated = _params(run_params(run_dir, info))
-    stamp = _millis(info.get("finished") or info.get("created")) or int(dt.datetime.now(dt.UTC).timestamp() * 1000)
-    metrics, words = _scalars(run_metrics(info))
-    tags = _tags(row, info, run_dir, parent, name) | words
+    # params from the record: the table's params.* columns are shared by all its runs (a key one run lacks makes
+    # the column float for every run, and 40 would read 40.0)
+    params, truncated = _params(run_params(run_dir, record.params))
+    stamp = _millis(record.finished or record.created) or int(dt.datetime.now(dt.UTC).timestamp() * 1000)
+    metrics, words = _scalars({k: v for k, v in row.items() if str(k).startswith("metrics.")})
+    tags = _tags(row, run, parent, name) | words
     if truncated:
         tags["rdsexp.truncated_params"] = ", ".join(truncated)[:MAX_TAG]
-    curves = _curves(run_dir, info)
-    start = _millis(info.get("created"))
+    curves = _curves(run)
+    start = _millis(record.created)
     if there is None:
         mlflow_id = client.create_run(experiment_id, start_time=start, tags=_tag_values(tags)).info.run_id
         have_params, have_metrics, have_files = {}, {}, set()
@@ -269,7 +271,7 @@ def _one(client, experiment_id: str, row: pd.Series, report: Report, existing: d
         steps = {m.step for m in client.get_metric_history(mlflow_id, key)} if key in have_metrics else set()
         points += [Metric(key, v, stamp, k) for k, v in curve.items() if k not in steps]
     client.log_batch(mlflow_id, metrics=points)
-    for source, artifact in _artifacts(run_dir, info, tables):
+    for source, artifact in _artifacts(run, tables):
         if artifact not in have_files:
             client.log_artifact(mlflow_id, str(source))
     plant = _plant_file(run_dir)
@@ -277,8 +279,8 @@ def _one(client, experiment_id: str, row: pd.Series, report: Report, existing: d
         with tempfile.TemporaryDirectory() as tmp:
             (Path(tmp) / PLANT_FILE).write_text(plant)
             client.log_artifact(mlflow_id, str(Path(tmp) / PLANT_FILE))
-    end = _millis(info.get("finished")) or (start + int(1000 * (info.get("seconds") or 0)) if start else None)
-    client.set_terminated(mlflow_id, STATUS.get(info.get("status"), "FAILED"), end_time=end)
+    end = _millis(record.finished) or (start + int(1000 * (record.seconds or 0)) if start else None)
+    client.set_terminated(mlflow_id, STATUS.get(status, "FAILED"), end_time=end)
     client.set_tag(mlflow_id, DONE, "complete")
     (report.exported if there is None else report.completed).append(run_id)
     report.runs[run_id] = mlflow_id
@@ -311,30 +313,29 @@ def _params(params: dict) -> tuple[dict[str, str], list[str]]:
 
 
 def _scalars(metrics: dict) -> tuple[dict[str, float], dict[str, str]]:
-    """The summary's numbers as {MLflow metric key: value} (NaN: no value, left out) and its words
-    (verdicts, statuses) as tags summary.<name>."""
+    """The row's metrics.* (the summary's numbers and words) as {MLflow metric key: value} (NaN: no value, left
+    out), the registry's `mlflow_first` first, and its words (verdicts, statuses) as tags summary.<name>."""
     numbers_, words = {}, {}
-    first = [f"metrics.{name}" for name in FIRST if f"metrics.{name}" in metrics]
+    first = [m.column for m in registry.mlflow_first() if m.column in metrics]
     for name in [*first, *(m for m in metrics if m not in first)]:
         value, name = metrics[name], name.removeprefix("metrics.")
         if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Number):
-            if value is not None:
+            if value is not None and value is not pd.NA:
                 words[mlflow_key(f"summary.{name}", words)] = str(value)[:MAX_TAG]
         elif not math.isnan(value):
             numbers_[mlflow_key(name, numbers_)] = float(value)
     return numbers_, words
 
 
-def _curves(run_dir: Path, info: dict) -> dict[str, dict[int, float]]:
+def _curves(run: Run) -> dict[str, dict[int, float]]:
     """{rms/<loop>: {k: sqrt(E||q_k||^2)}} over the paths of the trajectories table (the mean over the
     paths where q_k is finite, `analysis.rms_band`) and {rms/<loop>_exact: {k: rms}} of the exact table;
     a table the run lacks (a run that failed) gives no curve."""
     import pyarrow as pa
     import pyarrow.parquet as pq
-    stored = info.get("tables") or {}
     curves = {}
     try:        # a complete run's bytes were checked against run.json (run_damage)
-        path = run_dir / stored["trajectories"]["file"]
+        path = run.file("trajectories")
         columns = [c for c in pq.read_schema(path).names if re.fullmatch(r"q\[\d+\]", c)]
         frame = pd.read_parquet(path, columns=["experiment", "k", "path", *columns])
         frame["sq"] = np.sum(frame[columns].to_numpy(dtype=float) ** 2, axis=1)
@@ -345,7 +346,7 @@ def _curves(run_dir: Path, info: dict) -> dict[str, dict[int, float]]:
     except (OSError, KeyError, TypeError, ValueError, pa.ArrowException):
         pass
     try:
-        exact = pd.read_parquet(run_dir / stored["exact"]["file"])
+        exact = pd.read_parquet(run.file("exact"))
         for loop, rows in exact.groupby("experiment", sort=False):
             curves[f"rms/{loop}_exact"] = {int(k): float(v) for k, v in zip(rows["k"], rows["rms"]) if np.isfinite(v)}
     except (OSError, KeyError, TypeError, ValueError, pa.ArrowException):
@@ -353,45 +354,46 @@ def _curves(run_dir: Path, info: dict) -> dict[str, dict[int, float]]:
     return {mlflow_key(k, {}): v for k, v in curves.items() if v}
 
 
-def _tags(row: pd.Series, info: dict, run_dir: Path, parent: str | None, name: str) -> dict:
-    code = info.get("code") or {}
-    summary = info.get("summary") or {}
-    tags = {RUN_KEY: row["id"], "rdsexp.kind": "run", "rdsexp.code": code.get("version"),
-            "rdsexp.config_hash": info.get("config_hash"), "rdsexp.plant_hash": info.get("plant_hash"),
-            "rdsexp.data_sha256": (info.get("data") or {}).get("sha256"),
-            "rdsexp.status": info.get("status"),
+def _tags(row: pd.Series, run: Run, parent: str | None, name: str) -> dict:
+    """The run's tags: its identity from the row, from its record what the row has no column for (the whole
+    plant hash, the data file's hash, the error, the rate window, the commit)."""
+    record, run_dir = run.record, run.dir.resolve()
+    window = record.summary.rate_window
+    tags = {RUN_KEY: row["id"], "rdsexp.kind": "run", "rdsexp.code": row.get("code"),
+            "rdsexp.config_hash": row.get("config_hash"), "rdsexp.plant_hash": record.plant_hash,
+            "rdsexp.data_sha256": (record.data or {}).get("sha256"),
+            "rdsexp.status": row.get("status"),
             "rdsexp.plant": row.get("plant"), "rdsexp.model": row.get("model"), "rdsexp.method": row.get("method"),
             "rdsexp.sweep": row.get("sweep"), SWEEP_KEY: row.get("sweep_id"), "rdsexp.job": row.get("job"),
             "rdsexp.seed": row.get("seed"), "rdsexp.overrides": row.get("overrides") or None,
-            "rdsexp.reused_from": row.get("reused_from"), "rdsexp.created": info.get("created"),
-            "rdsexp.dir": str(run_dir), "rdsexp.error": info.get("error"),
-            "rdsexp.rate_window": ",".join(map(str, summary["rate_window"])) if summary.get("rate_window") else None,
-            "mlflow.runName": name, "mlflow.parentRunId": parent, "mlflow.source.git.commit": code.get("commit")}
-    recording = run_dir / ((info.get("recording") or {}).get("file") or layout.RECORDING)
-    if info.get("recording") and recording.exists():
-        tags["rdsexp.recording"] = str(recording)
-    tags["mlflow.note.content"] = _note(row, info, run_dir, tags.get("rdsexp.recording"))
+            "rdsexp.reused_from": row.get("reused_from"), "rdsexp.created": row.get("created"),
+            "rdsexp.dir": str(run_dir), "rdsexp.error": record.error,
+            "rdsexp.rate_window": ",".join(map(str, window)) if window else None,
+            "mlflow.runName": name, "mlflow.parentRunId": parent, "mlflow.source.git.commit": record.code_commit}
+    recording = run.recording_file
+    if recording is not None and recording.exists():
+        tags["rdsexp.recording"] = str(recording.resolve())
+    tags["mlflow.note.content"] = _note(row, record.command, run_dir, tags.get("rdsexp.recording"))
     return tags
 
 
-def _note(row: pd.Series, info: dict, run_dir: Path, recording: str | None) -> str:
-    lines = [f"rdsexp run `{row['id']}`: status {info.get('status')}, code `{(info.get('code') or {}).get('version')}`",
+def _note(row: pd.Series, command: str | None, run_dir: Path, recording: str | None) -> str:
+    lines = [f"rdsexp run `{row['id']}`: status {row.get('status')}, code `{row.get('code')}`",
              "", f"- directory: `{run_dir}`"]
-    if info.get("command"):
-        lines.append(f"- command: `{info['command']}`")
+    if command:
+        lines.append(f"- command: `{command}`")
     if recording:
         lines.append(f"- recording (not copied): `{recording}`; open it with `rdsexp-runs view {run_dir}` "
                      f"or `rerun {recording}`")
     return "\n".join(lines)
 
 
-def _artifacts(run_dir: Path, info: dict, tables: bool) -> list[tuple[Path, str]]:
+def _artifacts(run: Run, tables: bool) -> list[tuple[Path, str]]:
     """(file, its name among the run's artifacts): run.json, config.yaml and the stored tables."""
-    record = Run(run_dir, info).record_file
-    files = [(record, record.name), (run_dir / layout.HYDRA_CONFIG, "config.yaml")]
+    run_dir = run.dir.resolve()
+    files = [(run_dir / run.record_file.name, run.record_file.name), (run_dir / layout.HYDRA_CONFIG, "config.yaml")]
     if tables:
-        files += [(run_dir / meta["file"], Path(meta["file"]).name) for meta in (info.get("tables") or {}).values()
-                  if isinstance(meta, dict) and isinstance(meta.get("file"), str)]
+        files += [(run_dir / stored.file, Path(stored.file).name) for stored in run.record.tables.values()]
     return [(source, name) for source, name in files if source.is_file()]
 
 
@@ -436,7 +438,7 @@ def _parent(client, experiment_id: str, sweep_id: str, jobs: list[pd.Series], sw
 def _finished(run_dir: Path) -> int | None:
     """When a run ended (run.json's `finished`, ms), None when it has no readable record of it."""
     try:
-        return _millis(Run(run_dir).info.get("finished"))
+        return _millis(Run(run_dir).record.finished)
     except (DamagedRecord, OSError):
         return None
 

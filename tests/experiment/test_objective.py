@@ -25,7 +25,7 @@ def info(status="complete", rate=0.9, failed=None, **summary):
     s = {"closed_loop_status": "ok", "closed_loop_rate": [rate, rate - 0.01, rate + 0.01], "lam": 0.8} | summary
     if failed is not None:
         s["closed_loop_failed"] = {"fraction": failed}
-    return {"status": status, "summary": s, "seconds": 4.0}
+    return {"id": "run", "status": status, "summary": s, "seconds": 4.0}
 
 
 @pytest.mark.parametrize("record, name, penalty, expected", [

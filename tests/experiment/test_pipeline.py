@@ -100,7 +100,7 @@ def test_lmi_designs_above_the_size_limit_are_not_applicable_and_the_loop_falls_
                                         (["plant=cart_pole", "model=plant"], "gain_choice")],
                          ids=["paper", "online", "user_plant"])
 def test_every_summary_key_is_in_the_data_dictionary(extra, key):
-    """A summary number a stage adds is documented (schema.SUMMARY, docs/data_dictionary.md): the paper's run,
+    """A summary number a stage adds is documented (schema.RUN_SUMMARY_KEYS, docs/data_dictionary.md): the paper's run,
     the online controller (online_*), a user plant (identification passes, the gain choice)."""
     summary = pipeline.run_experiment(experiment(*extra)).summary
     assert key in summary and undocumented(summary) == []

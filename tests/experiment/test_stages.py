@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from conftest import SMALL, rdsexp
 
-from rdsexp.experiment import runs
+from rdsexp.experiment import catalog
 from rdsexp.experiment.store import layout
 from rdsexp.experiment.store import stages as stage_cache
 from rdsexp.experiment.store.stages import StageCache, digest, pack, unpack
@@ -111,7 +111,7 @@ def test_verify_computes_everything(cached, monkeypatch):
         raise AssertionError("verify read the stage cache")
     monkeypatch.setattr(StageCache, "key", refuse)
     monkeypatch.setattr(StageCache, "load_parts", refuse)
-    ok, lines = runs.verify(run_dir)
+    ok, lines = catalog.verify(run_dir)
     assert ok, lines
 
 

@@ -24,7 +24,7 @@ from conftest import REPO, SERIAL, SMALL, rdsexp
 
 from rdsexp import report
 from rdsexp.errors import warnings_as_lines
-from rdsexp.experiment import runs, store
+from rdsexp.experiment import catalog, store
 
 TINY = [*SMALL, "model.reported=null", "tracking.recording=false"]
 SWEEP = ["+sweep=seeds", "seed=range(0,3)", *TINY, SERIAL]
@@ -209,7 +209,7 @@ FAULTS = [
 
 
 def call(capsys, *argv) -> tuple[int, str, str]:
-    rc = runs.main([str(a) for a in argv])
+    rc = catalog.main([str(a) for a in argv])
     out, err = capsys.readouterr()
     assert "Traceback" not in out + err
     return rc, out, err
@@ -462,9 +462,10 @@ def test_scalar_config_resolves_selects_as_omegaconf_does(tmp_path, text, fast):
 
 def test_run_metrics_flattens_lists_inside_summary_dicts():
     """A summary number is a scalar column: lists one level down (the moments' spread) by component."""
-    from rdsexp.experiment.store.table import run_metrics
-    row = run_metrics({"summary": {"modeling_uncertainty": {"resamples": 200, "xi_mean_sd": [0.1, 0.2]},
-                                   "closed_loop_rate": [0.9, 0.8, 1.0], "xi_mean": [0.5]}, "seconds": 1.0})
+    from rdsexp.experiment.store import RunRecord
+    row = RunRecord.parse({"id": "r", "status": "complete", "seconds": 1.0, "summary": {
+        "modeling_uncertainty": {"resamples": 200, "xi_mean_sd": [0.1, 0.2]}, "closed_loop_rate": [0.9, 0.8, 1.0],
+        "xi_mean": [0.5]}}).metrics
     assert row == {"metrics.modeling_uncertainty_resamples": 200, "metrics.modeling_uncertainty_xi_mean_sd[0]": 0.1,
                    "metrics.modeling_uncertainty_xi_mean_sd[1]": 0.2, "metrics.closed_loop_rate": 0.9,
                    "metrics.closed_loop_rate_low": 0.8, "metrics.closed_loop_rate_high": 1.0,
@@ -492,7 +493,7 @@ def test_run_record_types_run_json_and_makes_older_records_current(tmp_path):
     assert dict(record.summary) == old["summary"] and record.raw is old
     current = dict(old, seed={"root": 1}, sweep={"dir": str(sweep), "job": 1, "name": "seed=0,1", "resumes": None})
     assert RunRecord.parse(current).seed == 1 and RunRecord.parse(current).sweep == record.sweep
-    row = identity(sweep / "1", old)
+    row = identity(sweep / "1", record)
     assert (row["sweep"], row["sweep_id"], row["job"], row["seed"], row["plant"]) == ("seed=0,1", "S", 1, 1, "paper")
 
 

@@ -309,13 +309,15 @@ def _has_matrix(node) -> bool:
 
 
 class Run:
-    """A stored run directory: its run.json (`info`, read safely on construction: DamagedRecord if it
-    cannot be), its composed config and its tables, each checked against run.json's hash on first
-    use. `used` collects {table name: sha256} of the tables read, for a figure's lineage."""
+    """A stored run directory: its run.json (read safely on construction: DamagedRecord if it cannot be;
+    typed as `record`), its composed config and its tables, each checked against run.json's hash on
+    first use. `used` collects {table name: sha256} of the tables read, for a figure's lineage.
+
+    The raw run.json is private to the store (`_info`): every other module reads `record`'s fields."""
 
     def __init__(self, directory: Path, info: dict | None = None):
         self.dir = Path(directory)
-        self.info = read_run(self.dir) if info is None else info
+        self._info = read_run(self.dir) if info is None else info
         self.used: dict[str, str] = {}
 
     def __repr__(self) -> str:
@@ -338,11 +340,11 @@ class Run:
     @cached_property
     def record(self) -> RunRecord:
         """run.json, typed (`record.RunRecord`: older records made current)."""
-        return RunRecord.parse(self.info)
+        return RunRecord.parse(self._info)
 
     @property
     def id(self) -> str:
-        return self.info["id"]
+        return self._info["id"]
 
     @property
     def record_file(self) -> Path:
@@ -352,7 +354,7 @@ class Run:
     @property
     def code(self) -> str | None:
         """The code version the run was made with."""
-        return (self.info.get("code") or {}).get("version")
+        return (self._info.get("code") or {}).get("version")
 
     def get(self, key: str):
         """Config value at a dotted key (None where the config has none); scalars from the cached
@@ -370,7 +372,7 @@ class Run:
     def rate_window(self) -> tuple[int, int]:
         """The closed-loop rate window (k_from, k_to) in steps, as the run resolved it (the config may
         give fractions of the horizon)."""
-        k_from, k_to = self.info["summary"]["rate_window"]
+        k_from, k_to = self._info["summary"]["rate_window"]
         return int(k_from), int(k_to)
 
     def table(self, name: str, columns: list[str] | None = None, check_hash: bool = True,
@@ -379,11 +381,11 @@ class Run:
         checks it against run.json's hash; DamagedRecord if it is missing, unreadable or modified.
         described: with its schema metadata in attrs (the data dictionary's descriptions)."""
         if name in self.used:
-            table = pd.read_parquet(self.dir / self.info["tables"][name]["file"], columns=columns)
+            table = pd.read_parquet(self.dir / self._info["tables"][name]["file"], columns=columns)
         else:
-            table = read_table(self.dir, self.info, name, check_hash=check_hash)
+            table = read_table(self.dir, self._info, name, check_hash=check_hash)
             if check_hash:
-                self.used[name] = self.info["tables"][name].get("sha256")
+                self.used[name] = self._info["tables"][name].get("sha256")
             table = table if columns is None else table[columns]
         # the schema metadata stays in the file: in attrs, pandas deep-copies it into every derived frame
         # (seconds of every report call)
@@ -391,6 +393,23 @@ class Run:
             table.attrs = {}
         return table
 
+    def file(self, name: str) -> Path | None:
+        """The stored file of table `name` (as run.json records it), None when the run has no such table;
+        for a reader that takes some columns of a file whose bytes `damage` checked (a table is read with
+        `table`)."""
+        stored = self.record.tables.get(name)
+        return self.dir / stored.file if stored is not None else None
+
+    @property
+    def recording_file(self) -> Path | None:
+        """The run's recording (.rrd) as run.json records it; None without one."""
+        return self.dir / self.record.recording.file if self.record.recording is not None else None
+
+    def shown(self) -> dict:
+        """run.json as `rdsexp-runs show` prints it: every entry but the environment, the traceback and the
+        params (the config, shown by `diff` and `list --columns`)."""
+        return {k: v for k, v in self._info.items() if k not in ("environment", "traceback", "params")}
+
     def damage(self) -> list[str]:
         """What is wrong with the run's files, one line each; [] when intact (see `run_damage`)."""
-        return run_damage(self.dir, self.info)
+        return run_damage(self.dir, self._info)

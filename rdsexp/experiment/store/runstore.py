@@ -45,7 +45,7 @@ class RunStore:
         path = Path(run)
         if layout.is_run(path):
             return path
-        matches = [r.dir for r in self.runs() if r.info.get("id") == run or r.dir.name == run]
+        matches = [r.dir for r in self.runs() if r.id == run or r.dir.name == run]
         if len(matches) != 1:
             raise LookupError(f"{'no' if not matches else 'more than one'} run {run!r} under {self.root}")
         return matches[0]
@@ -60,12 +60,12 @@ class RunStore:
         if layout.is_sweep(Path(sweep)):
             return Path(sweep)
         runs = self.runs()
-        dirs = [r.dir.parent for r in runs if str(r.info.get("id") or "").startswith(f"{sweep}/")]
+        dirs = [r.dir.parent for r in runs if str(r.id).startswith(f"{sweep}/")]
         if not dirs:            # by name: `+sweep=NAME`'s, or a `-m` sweep's overrides (the name `list` shows)
             names = {}
             for r in runs:
-                if isinstance(r.info.get("sweep"), dict) and r.dir.parent not in names:
-                    names[r.dir.parent] = r.info["sweep"].get("name") or sweep_name(r.dir.parent)
+                if isinstance(r._info.get("sweep"), dict) and r.dir.parent not in names:
+                    names[r.dir.parent] = r._info["sweep"].get("name") or sweep_name(r.dir.parent)
             dirs = [d for d, name in names.items() if name == sweep]
         return dirs[-1] if dirs else None
 

@@ -1,8 +1,8 @@
 """The runs table: one row per stored run, built in one place for the catalog, search and sweep summaries.
 
 Columns: the run's identity (IDENTITY), then `metrics.<name>` (the key numbers and statuses of
-run.json's summary, flattened) and, on request, `params.<dotted.key>` (every resolved scalar of its
-composed config).
+run.json's summary, flattened as the metric registry `rdsexp.experiment.metrics` says) and, on
+request, `params.<dotted.key>` (every resolved scalar of its composed config).
 """
 from __future__ import annotations
 
@@ -14,6 +14,7 @@ import numpy as np
 import pandas as pd
 
 from ...errors import WriteError
+from ..metrics import per_job
 from . import files
 from .layout import SUMMARY, SUMMARY_CSV, SUMMARY_LOCK
 from .record import RunRecord
@@ -22,28 +23,24 @@ from .run import MATRIX, read_runs, scalar_config, scalars_only
 IDENTITY = ["id", "sweep", "sweep_id", "resumes", "job", "objective_role", "seed", "status", "plant", "plant_hash",
             "model", "method", "overrides", "reused_from", "created", "code", "config_hash", "dir"]
 MISSING = "-"       # how every view shows a missing value, e.g. the sweep of a run that is no sweep's job (None)
-# summary entries that are settings or nested records rather than numbers of the run
-NOT_METRICS = ("plant", "model", "gain_method", "rate_window", "reference", "designs", "identification_feedback",
-               "data", "no_plant", "design_rates")
 
 
-def identity(run_dir: Path, info: dict) -> dict:
-    """The identity columns of a run (IDENTITY) from its run.json (`record.RunRecord`): sweep is the
+def identity(run_dir: Path, record: RunRecord) -> dict:
+    """The identity columns of a run (IDENTITY) from its typed run.json (`record.RunRecord`): sweep is the
     `+sweep=NAME` config, else the command-line overrides of the `-m` run (`sweep_name`); plant is the plant
     file's `name:`, else its file name (the runner records it so; from the config where a run ended before
     its summary), plant_hash the first 12 hex digits of run.json's `plant_hash` (the plant's content: two
     files of one name that differ have different hashes). A data run has no plant: its identity is its data
     file, shown as plant `data:NAME` and the first 12 hex digits of the file's sha256 as plant_hash."""
-    record = RunRecord.parse(info)
     sweep, s = record.sweep, record.summary
     if record.data is not None:
         plant, plant_hash = f"data:{record.data.get('name')}", str(record.data.get("sha256") or "")[:12] or None
     else:
-        plant = s.plant or (record.raw.get("params") or {}).get("plant.name")
+        plant = s.plant or (record.params or {}).get("plant.name")
         plant_hash = (record.plant_hash or "")[:12] or None
     return {"id": record.id, "sweep": sweep and sweep.name, "sweep_id": sweep and sweep.id,
             "resumes": sweep and sweep.resumes, "job": sweep and sweep.job,
-            "objective_role": (record.raw.get("objective") or {}).get("role"), "seed": record.seed,
+            "objective_role": record.objective.role if record.objective else None, "seed": record.seed,
             "status": record.status, "plant": plant, "plant_hash": plant_hash, "model": s.model,
             "method": s.gain_method,
             "overrides": " ".join(o for o in record.overrides if not o.startswith("+sweep=")),
@@ -51,43 +48,9 @@ def identity(run_dir: Path, info: dict) -> dict:
             "config_hash": record.config_hash, "dir": str(run_dir)}
 
 
-def run_metrics(info: dict) -> dict:
-    """{"metrics.<name>": value}: the key numbers and statuses of run.json's summary, flattened
-    (closed_loop_rate, _low, _high; xi_mean[i]; closed_loop_failed_fraction, ...), a tuning trial's
-    objective_mean, _se and _seeds (run.json `objective`), and seconds."""
-    s = info.get("summary") or {}
-    out = {}
-    for name, value in s.items():
-        if name in NOT_METRICS:
-            continue
-        if name.endswith("_rate") and isinstance(value, list) and len(value) == 3:
-            out[name], out[f"{name}_low"], out[f"{name}_high"] = value
-        elif isinstance(value, dict):             # one level down, its lists by component (xi_mean_sd[i])
-            for k, v in value.items():
-                if isinstance(v, dict):               # two levels (a data run's validation by law)
-                    out |= {f"{name}_{k}_{kk}": vv for kk, vv in v.items() if not isinstance(vv, (list, dict))}
-                else:
-                    out |= {f"{name}_{k}[{i}]": x for i, x in enumerate(v)} if isinstance(v, list) else \
-                        {f"{name}_{k}": v}
-        elif isinstance(value, list):
-            out |= {f"{name}[{i}]": v for i, v in enumerate(value)}
-        else:
-            out[name] = value
-    for loop in ("closed_loop", "open_loop"):
-        if f"{loop}_status" in s:
-            out.setdefault(f"{loop}_failed_fraction", 0.0)
-    objective = info.get("objective") or {}      # a tuning trial's (or held-out re-run's) mean over its seeds
-    if "mean" in objective:
-        out |= {"objective_mean": objective["mean"], "objective_se": objective["se"],
-                "objective_seeds": len(objective.get("seeds") or [])}
-    out["seconds"] = info.get("seconds")
-    return {f"metrics.{k}": (np.nan if v is None else v) for k, v in out.items()}
-
-
-def run_params(run_dir: Path, info: dict | None = None) -> dict:
+def run_params(run_dir: Path, params: dict | None = None) -> dict:
     """{"params.<dotted.key>": value} for every resolved scalar of the run's config: run.json's
-    `params` (written with the run), else from .hydra/config.yaml (`run.scalar_config`)."""
-    params = (info or {}).get("params")
+    `params` (written with the run, `RunRecord.params`), else from .hydra/config.yaml (`run.scalar_config`)."""
     if not isinstance(params, dict):
         params = flat_params(scalar_config(run_dir))
     return {f"params.{k}": v for k, v in params.items()}
@@ -110,14 +73,11 @@ def flat_params(config: dict) -> dict:
     return out
 
 
-KEY_METRICS = ["metrics.lam", "metrics.rate_plant", "metrics.closed_loop_rate", "metrics.closed_loop_verdict",
-               "metrics.closed_loop_failed_fraction"]
-
-
 def sweep_results(table: pd.DataFrame) -> pd.DataFrame:
     """A sweep's results from its runs table (with params): per job, the swept values (the params that
-    vary), the status, the key metrics and the run it reused, if any."""
-    cols = ["job", *changed_params(table), "status", *(c for c in KEY_METRICS if c in table.columns), "reused_from"]
+    vary), the status, the metrics shown per job (`metrics.per_job`) and the run it reused, if any."""
+    shown = [m.column for m in per_job() if m.column in table.columns]
+    cols = ["job", *changed_params(table), "status", *shown, "reused_from"]
     return table.sort_values("job", kind="stable")[[c for c in dict.fromkeys(cols) if c in table.columns]]
 
 
@@ -142,7 +102,8 @@ def changed_params(table: pd.DataFrame) -> list[str]:
 def runs_table(runs: list[tuple[Path, dict]], params: bool = False) -> pd.DataFrame:
     """One row per (run directory, run.json), in the given order: IDENTITY, metrics.* and, with
     `params`, params.* (sorted)."""
-    rows = [identity(d, info) | run_metrics(info) | (run_params(d, info) if params else {}) for d, info in runs]
+    records = [(d, RunRecord.parse(info)) for d, info in runs]
+    rows = [identity(d, r) | r.metrics | (run_params(d, r.params) if params else {}) for d, r in records]
     table = pd.DataFrame(rows, columns=IDENTITY if not rows else None)
     if len(table):
         metrics = [c for c in table.columns if c.startswith("metrics.")]

@@ -21,16 +21,15 @@ import numpy as np
 import pandas as pd
 
 from ..errors import DamagedRecord, warnings_as_lines
-from . import schema
-from .store import Run, RunStore, layout, provenance
-from .store.table import KEY_METRICS, MISSING, as_text, changed_params, one_row_per_run, sweep_results
+from . import metrics, schema
+from .store import Run, RunRecord, RunStore, layout, provenance
+from .store.table import MISSING, as_text, changed_params, one_row_per_run, sweep_results
 
 DEFAULT_ROOT = Path(layout.DEFAULT_ROOT)
-__all__ = ["DEFAULT_ROOT", "changed", "check", "compare_tables", "diff", "load", "main", "search", "verify"]
-# `list`'s default columns: the run's identity, its key metrics and, in a tuning study, its objective
+__all__ = ["DEFAULT_ROOT", "changed", "check", "compare_tables", "diff", "load", "main", "open_run", "record", "search",
+           "verify"]
+# `list`'s default columns: the run's identity, then the metrics the registry lists (`metrics.listed`)
 IDENTITY_SHOWN = ["id", "sweep", "plant", "plant_hash", "seed", "overrides", "status"]
-SHOWN = KEY_METRICS[:4]
-OBJECTIVE_SHOWN = ["metrics.objective_mean", "metrics.objective_se"]
 
 
 def search(root=DEFAULT_ROOT, where: str | None = None, copies: bool = False) -> pd.DataFrame:
@@ -96,14 +95,12 @@ def load(run, table: str, long: bool = False, root=DEFAULT_ROOT) -> pd.DataFrame
     long form, one row per (experiment, path, [member,] k, quantity, index) with its `value`
     (quantity "x_filt_mean", index i of the column "x_filt_mean[i]"; the gain in use "F[i,j]": quantity
     "F<i>", index j)."""
-    run_dir = Path(run["dir"]) if isinstance(run, pd.Series) else locate(str(run), Path(root))
-    stored = Run(run_dir)
-    info = stored.info
-    tables = info.get("tables") or {}
+    stored = open_run(run, root)
+    tables = stored.record.tables
     if table not in tables:
-        raise ValueError(f"table {table!r}: run {info.get('id')} has {', '.join(tables) or 'no tables'}")
+        raise ValueError(f"table {table!r}: run {stored.id} has {', '.join(tables) or 'no tables'}")
     frame = stored.table(table, described=True)      # checked against run.json's hash
-    frame.insert(0, "run", info.get("id"))
+    frame.insert(0, "run", stored.id)
     if not long:
         return frame
     if table not in ("trajectories", "identification", "members"):
@@ -117,6 +114,18 @@ def load(run, table: str, long: bool = False, root=DEFAULT_ROOT) -> pd.DataFrame
     return out[[*order, "quantity", "index", "value"]]       # column by column, as melted
 
 
+def open_run(run, root=DEFAULT_ROOT) -> Run:
+    """The stored run `run` (a run directory, an id, or a row of `search`): its typed record (`.record`:
+    identity, summary, objective, timings, ...) and its tables (`.table(name)`, checked against run.json's
+    hashes). LookupError if there is no such run, DamagedRecord if its run.json cannot be read."""
+    return Run(Path(run["dir"]) if isinstance(run, pd.Series) else locate(str(run), Path(root)))
+
+
+def record(run, root=DEFAULT_ROOT) -> RunRecord:
+    """The typed run.json of `run` (see `open_run`): `record(run).summary.rate()`, `.status`, `.timings`, ..."""
+    return open_run(run, root).record
+
+
 def export_data(run, out, root=DEFAULT_ROOT) -> tuple[int, str]:
     """`rdsexp-runs export --data RUN --out FILE`: the run's identification inputs and outputs (u_k, y_k of
     every identification path) in the data format (long form CSV or parquet: path, k, u[i], y[i]; `data.py`),
@@ -128,8 +137,7 @@ def export_data(run, out, root=DEFAULT_ROOT) -> tuple[int, str]:
     and the file holds the last pass's record only (a data run re-filters it, it cannot re-run the plant)."""
     from .data import write
     frame = load(run, "identification", root=root)
-    feedback = ((Run(Path(run["dir"]) if isinstance(run, pd.Series) else locate(str(run), Path(root)))
-                 .info.get("summary") or {}).get("identification_feedback") or {})
+    feedback = record(run, root).summary.identification_feedback
     m = sum(1 for c in frame.columns if c.startswith("u["))
     ny = sum(1 for c in frame.columns if c.startswith("y["))
     frame = frame.sort_values(["path", "k"], kind="stable")
@@ -172,9 +180,9 @@ def diff(a: str, b: str, root=DEFAULT_ROOT) -> pd.DataFrame:
     rows = _diff_rows(one.iloc[0], two.iloc[0], ["plant_hash", *sorted(keys, key=lambda c: not c.startswith(
         "params.")), "code"], skip=("metrics.seconds",))
     rows += config_entries(*(Run(locate(x, root)) for x in (a, b)), shown={r["key"] for r in rows})
-    tables = {x: Run(locate(x, root)).info.get("tables") or {} for x in (a, b)}
+    tables = {x: Run(locate(x, root)).record.tables for x in (a, b)}
     for name in sorted(set(tables[a]) | set(tables[b])):
-        ha, hb = ((tables[x].get(name) or {}).get("sha256") for x in (a, b))
+        ha, hb = (getattr(tables[x].get(name), "sha256", None) for x in (a, b))
         if ha != hb:
             rows.append({"what": "table", "key": name, "a": (ha or "missing")[:12], "b": (hb or "missing")[:12]})
     return pd.DataFrame(rows, columns=["what", "key", "a", "b"])
@@ -308,23 +316,23 @@ def verify(run_dir: Path) -> tuple[bool, list[str]]:
     from .config import build
     from .pipeline import run_experiment
     run = Run(run_dir)
-    info, damaged = run.info, run.damage()
+    stored, damaged = run.record, run.damage()
     lines = [f"damaged: {run_dir / problem}" for problem in damaged]
     if not (run_dir / layout.HYDRA_CONFIG).is_file():
         return False, [*lines, f"verify: cannot re-run without {layout.HYDRA_CONFIG} (damaged)"]
     from omegaconf import OmegaConf
     cfg = OmegaConf.load(run_dir / layout.HYDRA_CONFIG)
     code = provenance.code_version()["version"]
-    if code != (info.get("code") or {}).get("version"):
-        lines.append(f"note: the run was made with code {(info.get('code') or {}).get('version')}, this is {code}")
+    if code != stored.code_version:
+        lines.append(f"note: the run was made with code {stored.code_version}, this is {code}")
     exp = build(cfg)
-    recorded_data = info.get("data")
+    recorded_data = stored.data
     if recorded_data and exp.data is not None and exp.data.data.sha256 != recorded_data.get("sha256"):
         return False, [*lines, f"verify: the data file {exp.data.data.file} has changed since the run (sha256 "
                                f"{exp.data.data.sha256[:12]}, the run's {str(recorded_data.get('sha256'))[:12]})"]
     outcome = run_experiment(exp)
     ok = not damaged
-    for name in (info.get("tables") or {}):
+    for name in stored.tables:
         fresh = outcome.tables.get(name)
         try:        # a modified table is reported damaged above; its differences are shown too
             stored = run.table(name, check_hash=False)
@@ -433,10 +441,7 @@ def _command(args) -> int:
             cols = [column(table, c.strip()) for c in args.columns.split(",") if c.strip()]
             cols = list(dict.fromkeys([*cols, *varying]))
         else:
-            # a trial's mean over its seeds and its standard error (on the trial's first run), and the held-out
-            # re-run's (on its last): what a study's objective is, beside the single runs' values
-            objective = [c for c in OBJECTIVE_SHOWN if c in table.columns and table[c].notna().any()]
-            cols = [*IDENTITY_SHOWN, *varying, *(c for c in SHOWN if c in table.columns), *objective]
+            cols = [*IDENTITY_SHOWN, *varying, *listed_columns(table)]
             cols = [c for c in dict.fromkeys(cols) if c in table.columns]
         _print(table[cols], args.csv)
         return 0
@@ -463,23 +468,30 @@ def _command(args) -> int:
         from omegaconf import OmegaConf
 
         from .store.table import identity
-        info = run.info
-        who = identity(run_dir, info)                   # the catalog's identity of the run, first
+        who = identity(run_dir, run.record)             # the catalog's identity of the run, first
         job = f" job {who['job']}" if who["job"] is not None else ""
         reused = f", reused from {who['reused_from']}" if who["reused_from"] else ""
         plant = who["plant"] if not who["plant_hash"] else f"{who['plant']}@{who['plant_hash'][:6]}"
         print(f"run {who['id']}: plant {plant} (model {who['model']}), sweep {who['sweep'] or MISSING}{job}, "
               f"seed {who['seed']}, overrides {who['overrides'] or '(none)'}{reused}")
-        print(OmegaConf.to_yaml({k: v for k, v in info.items() if k not in ("environment", "traceback", "params")}))
-        for problem in run.damage() if info.get("status") == "complete" else []:
+        print(OmegaConf.to_yaml(run.shown()))
+        for problem in run.damage() if run.record.complete else []:
             print(f"damaged: {run_dir / problem}")
-        if "metrics" in (info.get("tables") or {}):
+        if "metrics" in run.record.tables:
             try:
                 print(run.table("metrics").to_string(index=False))
             except DamagedRecord:
                 pass                                  # named above
         return 0
     return _report(verify(run_dir))
+
+
+def listed_columns(table: pd.DataFrame) -> list[str]:
+    """The registry's listed metrics (`metrics.listed`) among the table's columns: a run's own wherever the
+    column is; a tuning trial's objective (mean over its seeds and standard error, on the trial's first run,
+    and the held-out re-run's on its last) only where a run of the table has one."""
+    return [m.column for m in metrics.listed() if m.column in table.columns
+            and (m.source != metrics.OBJECTIVE or table[m.column].notna().any())]
 
 
 def _print(table: pd.DataFrame, csv: bool) -> None:
