@@ -258,11 +258,16 @@ LOOPS = ("closed_loop", "open_loop", "online")
 
 
 def summary_entry(key: str) -> tuple[str, str | None] | None:
-    """(description, unit) of a summary key (a {loop}_... key for any loop of LOOPS), None if undocumented."""
+    """(description, unit) of a summary key (a {loop}_... key for any loop of LOOPS; else a metric the registry
+    declares, read from the summary: its label and unit), None if undocumented."""
     if key in RUN_SUMMARY_KEYS:
         return RUN_SUMMARY_KEYS[key]
     loop = next((name for name in LOOPS if key.startswith(f"{name}_")), None)
-    return None if loop is None else RUN_SUMMARY_KEYS.get("{loop}_" + key.removeprefix(f"{loop}_"))
+    entry = None if loop is None else RUN_SUMMARY_KEYS.get("{loop}_" + key.removeprefix(f"{loop}_"))
+    metric = metrics.REGISTRY.get(key)
+    if entry is None and metric is not None and metric.source == metrics.SUMMARY:
+        return metric.label, metric.unit
+    return entry
 
 
 # a value column: QUANTITY[i] (a vector component) or QUANTITY[i,j] (a matrix entry)
