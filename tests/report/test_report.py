@@ -218,8 +218,11 @@ def test_a_sweep_that_fails_ends_the_report_with_one_line_saying_how_to_resume(t
 
 
 def test_report_refuses_mixed_code_versions(root, tmp_path):
+    from rdsexp.experiment.store import Run
     runs = report.load_runs(root, "paper")
-    runs[0].info["code"]["version"] = "another"
+    other = json.loads(runs[0].record_file.read_text())
+    other["code"]["version"] = "another"
+    runs[0] = Run(runs[0].dir, other)
     with pytest.raises(report.LineageError, match="2 code versions"):
         report.check_versions(runs)
     assert report.check_versions(runs, allow_mixed=True).startswith("mixed:")
@@ -348,7 +351,8 @@ def test_stage_totals_count_each_computation_once():
     infos = [{"timings": {"synthesis": 2.0, "closed_loop": 1.0, "synthesis_by_method": {"a": 2.0}}, "seconds": 3.5},
              {"timings": {"synthesis": 0.5, "closed_loop": 3.0}, "seconds": 4.0},
              {"timings": {"synthesis": 2.0, "closed_loop": 1.0}, "seconds": 3.5, "reused_from": "x"}]
-    totals = paper.stage_totals([Run(Path(f"/nowhere/{i}"), info) for i, info in enumerate(infos)])
+    totals = paper.stage_totals([Run(Path(f"/nowhere/{i}"), {"id": str(i), "status": "complete", **info})
+                                 for i, info in enumerate(infos)])
     assert totals.to_dict() == {"closed_loop": 4.0, "synthesis": 2.5, "total": 7.5}
 
 
@@ -362,7 +366,7 @@ def test_a_report_refuses_to_pool_plant_contents_or_path_counts(tmp_path):
         d = tmp_path / f"r{job}"
         (d / ".hydra").mkdir(parents=True)
         (d / ".hydra" / "config.yaml").write_text(f"closed_loop:\n  paths: {paths}\nseed: {job}\n")
-        return Run(d, {"id": d.name, "summary": {"plant": "paper"}, "plant_hash": plant_hash})
+        return Run(d, {"id": d.name, "status": "complete", "summary": {"plant": "paper"}, "plant_hash": plant_hash})
     same = [run(0, "a" * 64, 40), run(1, "a" * 64, 40)]
     report.check_pooling(same)
     with pytest.raises(LineageError, match="plant paper with 2 different contents"):
