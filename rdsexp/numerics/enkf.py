@@ -120,7 +120,6 @@ numbers of each member. Inputs may be stored in any layout.
 """
 from __future__ import annotations
 
-import weakref
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -134,9 +133,6 @@ from .systems import AffineRandomSystem, MomentModel, _finite_array, affine_appl
 # (1 / (45 eps)); a merely large spread of the outputs stays well below it
 V_COND_LIMIT = 1e14
 VARIANTS = ("stochastic", "etkf", "enkf_n")
-# the adaptive inflation rho_{k-1} (...,) of each run, keyed by id() of the scratch buffer `work` that
-# `simulate` passes to every `_update` of the run (module docstring); an entry is dropped with its buffer
-_CARRIED: dict[int, np.ndarray] = {}
 
 
 def check_covariance(name: str, value, dim: int) -> np.ndarray:
@@ -503,8 +499,8 @@ class EnKF:
                 psi_mean: np.ndarray | None, out: np.ndarray, work: np.ndarray,
                 inflation: np.ndarray | None = None) -> Analysis:
         """`update` with the filtered ensemble written into `out` (..., M, width) and `work`
-        (..., M, width+ny+1) as scratch, both component-major; neither may overlap psi. With adaptive
-        inflation and inflation=None, rho_{k-1} is the one kept with `work` (module docstring)."""
+        (..., M, width+ny+1) as scratch, both component-major; neither may overlap psi. inflation: as in
+        `update`, rho_{k-1} (...,) that the caller carries from the previous update (None: the start)."""
         d, ny, M = self.width, self.model.ny, psi.shape[-2]
         x, xi = self.split(psi)
         # the forecast anomalies are scaled per path before the analysis: by the EnKF-N's lambda or
@@ -529,7 +525,7 @@ class EnKF:
         np.subtract(components(psi), components(psi_mean)[..., None], out=dpsi)
         factor = None
         if scaled:
-            factor = self._forecast_inflation(Xb[..., d:-1, :], y - z_mean, work, inflation)
+            factor = self._forecast_inflation(Xb[..., d:-1, :], y - z_mean, inflation)
             X[:-1] *= factor[..., None]
             if self.variant == "stochastic":     # z^(i) = h(psi^(i)) + v^(i) of the inflated members
                 v = self._R_sqrt.T @ e_v.swapaxes(-1, -2)                              # (..., ny, M)
@@ -571,12 +567,11 @@ class EnKF:
         return Analysis(psi=out, ok=ok, pred_mean=psi_mean, pred_std=pred_std, filt_mean=filt_mean, filt_std=filt_std,
                         inflation=factor)
 
-    def _forecast_inflation(self, Y: np.ndarray, delta: np.ndarray, work: np.ndarray,
-                            previous: np.ndarray | None) -> np.ndarray:
+    def _forecast_inflation(self, Y: np.ndarray, delta: np.ndarray, previous: np.ndarray | None) -> np.ndarray:
         """The factor (...,) on this update's forecast anomalies (module docstring): the EnKF-N's
         lambda = sqrt((N-1) / zeta_a) or the adaptive rho_k. Y: (..., ny, M) output anomalies without
-        perturbations, delta = y - z_mean (..., ny); previous: rho_{k-1} (...,), or None for the one
-        kept with `work`. Non-finite moments give 1 (enkf_n) or rho_{k-1} (adaptive)."""
+        perturbations, delta = y - z_mean (..., ny); previous: rho_{k-1} (...,), or None at the start (1,
+        clipped to [low, high]). Non-finite moments give 1 (enkf_n) or rho_{k-1} (adaptive)."""
         M = Y.shape[-1]
         finite = np.all(np.isfinite(Y), axis=(-2, -1)) & np.all(np.isfinite(delta), axis=-1)
         Y, delta = np.where(finite[..., None, None], Y, 0.0), np.where(finite[..., None], delta, 0.0)
@@ -585,11 +580,7 @@ class EnKF:
             b = (E.swapaxes(-1, -2) @ (self._R_isqrt @ delta[..., None]))[..., 0]     # E^T R^(-1/2) delta
             zeta = enkf_n_zeta(np.clip(mu, 0.0, None), b * b, M)
             return np.where(finite, np.sqrt((M - 1) / zeta), 1.0)
-        settings, carried = self.inflation, previous is None
-        if carried:
-            previous = _CARRIED.get(id(work))
-            if previous is None:                         # a new run: forget the estimate with its buffer
-                weakref.finalize(work, _CARRIED.pop, id(work), None)
+        settings = self.inflation
         start = min(max(1.0, settings.low), settings.high)
         previous = np.broadcast_to(start if previous is None else previous, finite.shape)
         spread = path_sum(Y * Y, 2) / (M - 1)                                          # tr(V_z)
@@ -598,10 +589,7 @@ class EnKF:
         a = settings.smoothing
         smoothed = a * previous ** 2 + (1 - a) * estimate
         keep = ~(finite & (spread > 0) & np.isfinite(smoothed))
-        rho = np.sqrt(np.clip(np.where(keep, previous ** 2, smoothed), settings.low ** 2, settings.high ** 2))
-        if carried:
-            _CARRIED[id(work)] = rho
-        return rho
+        return np.sqrt(np.clip(np.where(keep, previous ** 2, smoothed), settings.low ** 2, settings.high ** 2))
 
     def _transform(self, U: np.ndarray, V_z: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """ETKF: (K, L, ok) with K = U (V_z + R)^-1 (..., n+p, ny) for the mean and L (..., n+p, ny)

@@ -297,6 +297,9 @@ def simulate(plant: AffineRandomSystem | None, enkf: EnKF, *, F=None, d, q0, psi
     n_q = model.n if recorded is not None else plant.n
     # ensembles psi_{k|k-1}, psi_{k|k} and the EnKF's scratch, reused at every step (see EnKF._predict)
     psi, filtered, work = (component_major((P, M, c)) for c in (width, width, width + ny + 1))
+    # the adaptive inflation rho_{k-1} (P,) this run carries from one update to the next (None: every path
+    # starts at 1, clipped to [low, high]); this loop holds it, so that each run and chunk has its own
+    inflation = None
     psi[...] = psi0 + np.stack([g.standard_normal((M, width)) for g in enkf_rngs]) @ sqrtm_psd(P0)
 
     nan = lambda *shape: np.full((K + 1, P) + shape, np.nan)
@@ -351,7 +354,8 @@ def simulate(plant: AffineRandomSystem | None, enkf: EnKF, *, F=None, d, q0, psi
             psi[~alive], mean_pred[~alive] = 0.0, 0.0                    # no overflow on failed paths
             if estimate == "filtered":              # D = 0: y_k first, then u_k = F x_{k|k} + d_k
                 y = source.output(k)
-                a = enkf._update(psi, None, y, e_v, mean_pred, out=filtered, work=work)   # D = 0: no u
+                a = enkf._update(psi, None, y, e_v, mean_pred, out=filtered, work=work,   # D = 0: no u
+                                  inflation=inflation)
                 x_hat = a.filt_mean
             else:
                 x_hat = mean_pred
@@ -363,7 +367,8 @@ def simulate(plant: AffineRandomSystem | None, enkf: EnKF, *, F=None, d, q0, psi
             u_filter = u if filter_sees_d else u - d[k]
             if estimate == "predicted":
                 y = source.output(k, u)
-                a = enkf._update(psi, u_filter, y, e_v, mean_pred, out=filtered, work=work)
+                a = enkf._update(psi, u_filter, y, e_v, mean_pred, out=filtered, work=work, inflation=inflation)
+            inflation = a.inflation                 # rho_k (adaptive inflation; enkf_n's lambda is not read back)
             fail(~a.ok, k, "singular_innovation")
             keep = alive[:, None]
             if keep_forecast:                       # psi still holds psi_{k|k-1} (the update wrote `filtered`)

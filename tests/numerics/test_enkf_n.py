@@ -150,8 +150,8 @@ def test_adaptive_inflation_converges_to_a_known_deflation(variant):
     paths. After K steps (the start's weight a^K is ~1e-9) the smoothed estimate rho_K^2 of each path has
     variance var(Delta^o) (1 - a) / (1 + a); their mean over P paths must lie within 4.5 standard
     errors of c^2, and so must the mean of rho_k^2 over the last K/2 steps and all paths
-    (variance ~ var(Delta^o) / (P K/2)). The estimate carried with the scratch buffer (as in
-    `simulate`) equals the one passed explicitly through `update`."""
+    (variance ~ var(Delta^o) / (P K/2)). The update into reused buffers (as `simulate` makes it) equals
+    `update`'s into fresh arrays, each carrying its own rho_{k-1}."""
     rng = np.random.default_rng(1 if variant == "etkf" else 2)
     n, ny, M, P, K, c, a = 3, 2, 30, 200, 400, 1.5, 0.95
     C, L = rng.normal(size=(ny, n)), rng.normal(size=(n, n))
@@ -163,16 +163,16 @@ def test_adaptive_inflation_converges_to_a_known_deflation(variant):
     filtered, work = component_major((P, M, n)), component_major((P, M, n + ny + 1))
     psi = np.zeros((P, M, n))
     rho = np.empty((K, P))
-    explicit = None
+    carried = explicit = None
     for k in range(K):
         psi = enkf.predict(psi, u, _whitened(rng, (P, M, n)))
         y = (rng.normal(size=(P, n)) @ np.linalg.cholesky(Q).T) @ C.T + rng.normal(size=(P, ny)) @ np.sqrt(R)
         e_v = rng.normal(size=(P, M, ny)) if variant == "stochastic" else None
-        analysis = enkf._update(psi, u, y, e_v, None, out=filtered, work=work)
+        analysis = enkf._update(psi, u, y, e_v, None, out=filtered, work=work, inflation=carried)
         same = enkf.update(psi, u, y, e_v, inflation=explicit)
         np.testing.assert_array_equal(same.inflation, analysis.inflation)
         np.testing.assert_array_equal(same.psi, analysis.psi)
-        explicit, rho[k], psi = same.inflation, analysis.inflation, analysis.psi.copy()
+        explicit, carried, rho[k], psi = same.inflation, analysis.inflation, analysis.inflation, analysis.psi.copy()
     HQH = C @ Q @ C.T
     S = HQH + R
     var = 2 * np.trace(S @ S) / (np.trace(HQH) / c ** 2) ** 2
@@ -180,6 +180,45 @@ def test_adaptive_inflation_converges_to_a_known_deflation(variant):
     assert abs(final.mean() - c ** 2) < 4.5 * np.sqrt(var * (1 - a) / (1 + a) / P), final.mean()
     assert abs(np.mean(rho[K // 2:] ** 2) - c ** 2) < 4.5 * np.sqrt(var / (P * K / 2)), np.mean(rho[K // 2:] ** 2)
     assert np.all((rho > 0.1) & (rho < 10))                          # the bounds never acted
+
+
+def _adaptive_run(enkf, seed, steps, P, M, work=None, filtered=None):
+    """A filtering loop of the adaptive EnKF on the paper's model as a generator: one (rho_k (P,), filtered
+    ensemble (P, M, 9)) per step, rho_{k-1} held here (the caller's state, as in `simulate`); scratch and
+    output buffers `work`, `filtered` (component-major) shared with whoever passes the same ones."""
+    rng = np.random.default_rng(seed)
+    width, ny = enkf.width, enkf.model.ny
+    work = component_major((P, M, width + ny + 1)) if work is None else work
+    filtered = component_major((P, M, width)) if filtered is None else filtered
+    psi, u, rho = rng.normal(size=(P, M, width)), np.zeros((P, enkf.model.m)), None
+    for _ in range(steps):
+        y = 3 * rng.normal(size=(P, ny))                 # outputs far from the forecast: rho moves
+        e_v = rng.normal(size=(P, M, ny)) if enkf.variant == "stochastic" else None
+        a = enkf._update(psi, u, y, e_v, None, out=filtered, work=work, inflation=rho)
+        rho, members = a.inflation, a.psi.copy()           # a.psi is `filtered`, which the other run reuses
+        yield rho.copy(), members
+        psi = enkf.predict(members, u, rng.normal(size=(P, M, width)))
+
+
+@pytest.mark.parametrize("variant", ["etkf", "stochastic"])
+def test_adaptive_inflation_is_the_callers_state(variant):
+    """Two runs stepped in turn through one EnKF and the same scratch buffers each carry their own rho_{k-1}:
+    every step of each equals that of the run alone, exactly, and the two runs' rho differ (so a state shared
+    between them would show). The EnKF keeps nothing between updates."""
+    enkf = EnKF(paper.model(), paper.Q, paper.R, variant=variant, inflation=AdaptiveInflation(0.8, 1.0, 3.0))
+    steps, P, M = 12, 3, 8
+    before = dict(vars(enkf))
+    alone = [list(_adaptive_run(enkf, seed, steps, P, M)) for seed in (5, 6)]
+    work, filtered = component_major((P, M, enkf.width + enkf.model.ny + 1)), component_major((P, M, enkf.width))
+    shared = [_adaptive_run(enkf, seed, steps, P, M, work, filtered) for seed in (5, 6)]
+    for k, (first, second) in enumerate(zip(*shared)):
+        for run, (rho, psi) in enumerate((first, second)):
+            np.testing.assert_array_equal(rho, alone[run][k][0], err_msg=f"run {run} step {k}")
+            np.testing.assert_array_equal(psi, alone[run][k][1], err_msg=f"run {run} step {k}")
+    rho_first, rho_second = (np.array([r for r, _ in run]) for run in alone)
+    assert not np.allclose(rho_first, rho_second)
+    assert np.ptp(rho_first) > 0.1                                  # rho moved from its start
+    assert vars(enkf).keys() == before.keys() and all(vars(enkf)[key] is value for key, value in before.items())
 
 
 def test_adaptive_inflation_scales_the_forecast_anomalies_and_keeps_the_bounds():
