@@ -1,122 +1,34 @@
 """Ensemble Kalman filter on the augmented state psi = [x; xi] (paper Sec. III-A, III-B).
 
 Simulation model (eqs. f-A-B, h-C-D): psi_k = [A(xi) x + B(xi) u; xi] + w_k, z_k = C(xi) x + D(xi) u + v_k,
-w ~ N(0, Q), v ~ N(0, R). Ensembles are arrays (..., M, n+p) (n+p+m with `disturbance`) with any leading batch axes
-(paths); every step is a few batched matrix products, never a loop over members. Noise comes in
-as standard normal draws so that the caller owns the random streams (one per path).
+w ~ N(0, Q), v ~ N(0, R). `predict` is eq. (state-pred2), `update` eqs. (output-pred2), (filtering)-(kalman-v).
+Ensembles are arrays (..., M, width) with any leading batch axes (paths), width = n+p plus the optional parts
+below (`EnKF.width`); every step is a few batched matrix products, never a loop over members. Noise comes in
+as standard normal draws, so that the caller owns the random streams (one per path), and the filter keeps
+nothing between calls: what one step hands to the next (the ensemble, the adaptive inflation's rho_{k-1}) is
+passed in and returned.
 
-Variants (`EnKF.variant`), both batched the same way:
-- "stochastic": the paper's EnKF with perturbed outputs z^(i) = h(psi^(i)) + v^(i) (eq. output-pred2),
-  gain K = U V^-1 from the sample moments of eqs. (kalman-u), (kalman-v).
-- "etkf": the ensemble transform Kalman filter (deterministic square root, symmetric transform;
-  Hunt, Kostelich & Szunyogh 2007). No output perturbations are drawn. With the output anomalies
-  Y = [h(psi^(i)) - z_mean] (ny, M) and S = R^(-1/2) Y / sqrt(M-1), the analysis anomalies are
-  X (I + S^T S)^(-1/2) (the symmetric root keeps the mean, as S 1 = 0) and the mean moves by
-  K (y - z_mean), K = U (V_z + R)^-1. With S S^T = R^(-1/2) V_z R^(-1/2) = E diag(lam) E^T
-  (ny x ny, not M x M) this is X + U R^(-1/2) E diag(g(lam)) E^T R^(-1/2) Y with
-  g(lam) = ((1 + lam)^(-1/2) - 1) / lam = -1 / (sqrt(1 + lam) (1 + sqrt(1 + lam))): the same
-  [coefficients, correction] @ [Y; 1] product as the stochastic update, and the analysis sample
-  covariance is exactly Cov(psi_{k|k-1}) - U (V_z + R)^-1 U^T, the Kalman update of the forecast
-  ensemble's moments.
-- "enkf_n": the finite-size EnKF (Bocquet 2011) in the dual form of Bocquet, Raanes & Hannart 2015:
-  the ETKF with the prior's scale integrated out under Jeffreys' hyperprior, so that it has no
-  inflation to tune. With N = M, eps_N = 1 + 1/N, unscaled anomalies X = [psi^(i) - mean] (n+p, M),
-  Y = [h(psi^(i)) - z_mean] (ny, M) and delta = y - z_mean, the analysis w minimises
-  J(w) = 1/2 |delta - Y w|^2_(R^-1) + N/2 ln(eps_N + w^T w), whose dual over a scalar zeta is
-  D(zeta) = 1/2 delta^T (R + Y Y^T / zeta)^-1 delta + eps_N zeta / 2 + N/2 ln(N / zeta) - N/2,
-  minimised over 0 < zeta <= N / eps_N. With its minimiser zeta_a, w_a = (Y^T R^-1 Y + zeta_a I)^-1
-  Y^T R^-1 delta, the mean moves to mean + X w_a and the anomalies become
-  sqrt(N-1) X (Y^T R^-1 Y + zeta_a I)^(-1/2) (the Hessian without its rank-one term): exactly the
-  ETKF above applied to the forecast ensemble with its anomalies scaled by lambda = sqrt((N-1) / zeta_a),
-  which is how it is computed. With R^(-1/2) Y Y^T R^(-1/2) = E diag(mu) E^T (ny x ny) and
-  b = E^T R^(-1/2) delta, D(zeta) = 1/2 sum_i zeta b_i^2 / (zeta + mu_i) + eps_N zeta / 2 - N/2 ln zeta
-  + const, one scalar problem per path, solved for all paths at once (`enkf_n_zeta`). Its
-  stationarity condition sum_i b_i^2 mu_i zeta / (zeta + mu_i)^2 + eps_N zeta = N holds somewhere in
-  (0, N / eps_N], so the bound is never active but at b = 0 (lambda^2 = (N-1)(N+1)/N^2 then).
-Options for small ensembles: `inflation` rho >= 1 scales the forecast anomalies psi^(i) - mean by
-rho after each prediction (stochastic, etkf); `relaxation` alpha in [0, 1] relaxes the analysis
-spread to the prior spread per component (RTPS, Whitaker & Hamill 2012):
-sigma_a <- alpha sigma_f + (1 - alpha) sigma_a, by scaling the analysis anomalies.
-Adaptive inflation (`inflation` = "adaptive" or an `AdaptiveInflation`; stochastic, etkf): rho is
-estimated per path and step from the innovations with the observation-space statistics of Miyoshi
-2011: with d = y - z_mean (outputs without perturbations), E[d^T d] = Delta tr(H P^f H^T) + tr R for
-the covariance inflation Delta = rho^2, so Delta^o_k = (d^T d - tr R) / tr(V_z), V_z the sample
-covariance of the predicted outputs. It is smoothed in time with a fixed weight a (the temporal
-smoothing of Li, Kalnay & Miyoshi 2009, where Miyoshi 2011 weighs by Gaussian variances instead):
-Delta_k = a Delta_{k-1} + (1 - a) Delta^o_k, clipped to [low^2, high^2] (a step with tr(V_z) = 0 or
-non-finite moments keeps Delta_{k-1}), and rho_k = sqrt(Delta_k) scales the forecast anomalies of
-step k before its analysis (the stochastic variant's output perturbations are drawn after it).
-Delta^o_k estimates the inflation of the forecast as `predict` made it, so Delta_k is the total
-inflation the forecast needs, not an increment. rho_{k-1} is carried from one update to the next:
-`update(..., inflation=...)` takes it explicitly (`Analysis.inflation` of the previous update);
-`simulate` reuses one scratch buffer `work` per run, and the estimate is kept with that buffer
-(dropped when it is freed), so a run, and each chunk of paths, starts at rho = 1 (clipped to
-[low, high]) and every path has its own estimate.
-Support of xi (`xi_bounds`): a linear update moves members anywhere, but a Bernoulli coefficient
-outside [0, 1] or a uniform one outside [low, high] is a plant that cannot occur, and propagating
-the state with it (eq. state-pred2) can make the estimate diverge. With xi_bounds = (low, high)
-(p,) the xi part of every analysed member is projected onto the box (clipped, the Euclidean
-projection onto a box), after RTPS and before the next prediction, and the reported filtered mean
-and spread are those of the projected ensemble. Infinite bounds leave a component free.
-xi drawn from a known distribution (`xi_prior`): the paper's xi part is a random walk,
-xi_{k+1|k} = xi_{k|k} + w, which is how the identification run learns xi. Once a model of the
-distribution (mean mu, covariance S) is known, as in the closed loop after identification, the
-observer can use it as Assumption 1 states it: xi_k i.i.d., so every member draws a fresh
-xi_k = mu + S^(1/2) e (the xi part of e_w), moves its x part with it and keeps it, so that the update
-with y_{k+1} estimates the coefficient of the step that produced y_{k+1} (the filtered xi at k+1 is
-xi_k's posterior; the next prediction draws afresh). The ensemble's x spread then carries the
-multiplicative uncertainty of the random dynamics, and no xi can drift away where x, and with it
-xi, is unobservable. The draws are projected onto xi_bounds too.
-Unknown input disturbance (`disturbance`): a disturbance d_k added on the input u_k that the filter is
-not told (the paper's step d_k of Fig. wcontroller, external to the controller) is explained by the
-EnKF as a wrong xi and a wrong x, whose error the feedback u_k = F x_{k|k-1} then amplifies. With
-disturbance = Q_d (m, m), the ensemble carries an estimate of it: psi = [x; xi; d] (n+p+m), d a
-random walk d_{k+1} = d_k + w_d, w_d ~ N(0, Q_d), entering eqs. (f-A-B), (h-C-D) like the input:
-x_{k+1} = A(xi) x_k + B(xi) (u_k + d_k), z_k = C(xi) x_k + D(xi) (u_k + d_k) (the standard augmented
-state of unknown-input estimation). The d part starts at one step of its walk from 0, N(0, Q_d), and is
-updated with the rest of psi by the same gain. `dim` stays n + p (the paper's psi, the part reported
-as the filtered x and xi); `width` = n + p + m is the ensembles' last axis, and the d part is psi[..., d_slice].
+Variants (`EnKF.variant`), batched the same way:
+- "stochastic": the paper's, perturbed outputs (eq. output-pred2), K = U V^-1 (eqs. kalman-u, kalman-v);
+- "etkf": the ensemble transform Kalman filter (Hunt, Kostelich & Szunyogh 2007), symmetric square root, no
+  output perturbations, computed in the ny x ny eigenbasis of R^(-1/2) V_z R^(-1/2) (`_transform`);
+- "enkf_n": the finite-size EnKF (Bocquet 2011; dual form of Bocquet, Raanes & Hannart 2015), the ETKF with the
+  forecast anomalies scaled by lambda = sqrt((N-1) / zeta_a), one scalar problem per path (`enkf_n_zeta`):
+  no inflation to tune.
+Options, each for what a small ensemble or the random dynamics need:
+- `inflation`: rho >= 1 on the forecast anomalies, or adaptive (`AdaptiveInflation`, Miyoshi 2011's innovation
+  estimate smoothed in time); `relaxation`: RTPS (Whitaker & Hamill 2012);
+- `xi_bounds`: analysed xi projected onto its box, as a coefficient outside its support is a plant that cannot
+  occur and can make the estimate diverge;
+- `xi_prior`: xi_k drawn i.i.d. from known moments (Assumption 1) instead of the paper's random walk;
+- `disturbance`: an unknown input disturbance d estimated in psi = [x; xi; d], not read as a wrong xi;
+- `lag`: a fixed-lag smoother keeping past draws, for components of xi that reach an output only later;
+- `static_mean`: the online controller's start, xi_k drawn about a static mean mu in psi that the outputs learn.
+docs/enkf.md derives each (equations and why) and tells how the start's defaults were found.
 
-Fixed-lag smoother (`lag` L >= 1): a draw xi_k that moves only states y does not measure is invisible to
-y_{k+1}, so updated once its posterior is its prior (`output_delay`). With a lag, the ensemble keeps each
-step's xi for L more steps as passive components, psi = [x; xi; d; xi_{k-1}; ...; xi_{k-L}], that later
-outputs update through their sample covariance with y, like every other component (the standard augmented
-state of fixed-lag smoothing). Prediction moves them down one slot, without noise; the oldest,
-xi_{k-1-L} given y up to k (`xi_estimate`), is what the online controller models xi from. They are
-projected onto xi_bounds with xi.
-
-Static-mean start (`static_mean`): the online controller's paths have no model of xi before their first
-re-design, so their EnKF walks (xi_{k+1|k} = xi_{k|k} + w), and a walk's spread grows with k where the
-outputs say little. With a static mean, psi = [x; xi; d; mu; past draws], mu a static component (no noise)
-started at N(the initial xi, `mean_spread`^2 Q's xi block), and each step draws xi_k = mu + w_xi i.i.d. about it
-(Assumption 1 with an unknown mean), moves x with that draw and keeps it, as the draws from known moments do
-(`xi_prior`): the update with y_{k+1} then learns mu through its sample covariance with y, and mu's spread
-shrinks with the data where the walk's grows. Components that reach an output only later (`output_delay` > 0)
-stay on the walk: y_{k+1} does not see their draw, and their first models (from the smoother's estimates) come
-out too narrow to learn from (docs/online-rounds.md). mu is projected onto xi_bounds with xi (a mean of draws in
-the box). The draws stand for xi's own spread, which nothing has measured yet, not for a walk's step: `start_spread` c
-makes them mu + c w_xi. Draws narrower than the plant's xi leave the ensemble's x spread without the
-multiplicative uncertainty it must carry, so the filter trusts a wrong x and can diverge (docs/online-rounds.md).
-Where the plant file's family fixes a component's law by its mean (`xi_ends`: a Bernoulli dropout, a
-discrete component of two values), its spread is known once mu is: the draw is that two-point law,
-xi = high with probability (mu - low) / (high - low), else low, from the same w (xi = high where
-Phi(w / sd) is below it), in place of mu + c w (a dropout's variance mu (1 - mu) is 0.19 at mu = 0.75,
-where the Gaussian draws' is 0.08). A path's own model (`_predict`'s path_prior) draws such a component
-the same way at its modeled mean, not as a Gaussian of its modeled variance, which the estimates
-understate (docs/online-rounds.md, a ninth round).
-mu's own spread is the prior's doubt about xi's mean, not xi's spread: each member keeps its mu for good, so
-members whose means differ move apart step after step through the open-loop dynamics (the input is the same
-for all), and on a plant y sees little of that spread grows faster than the outputs pull it back (seed 6's
-random plant 19, its start's law narrowed: a predicted x spread of 2200 at k = 30 where the state is 130).
-`mean_spread` scales it apart from the draws' (docs/online-rounds.md, a thirteenth round). `start_scale` c in
-(0, 1] scales the whole start law, Q's xi block as the start uses it (mu's spread, the draws about it, the walked
-components' step): the online controller narrows a law under which no gain is mean-square stable
-(`pipeline.online_observer`).
-
-Ensembles returned by `predict` and `update` are stored component-major: they are (..., M, n+p)
-views of (n+p, ..., M) arrays, so each component of all paths and members is one contiguous block
-and the elementwise work runs as single long loops instead of short strided ones over the n+p
-numbers of each member. Inputs may be stored in any layout.
+Ensembles returned by `predict` and `update` are stored component-major: (..., M, width) views of
+(width, ..., M) arrays, so each component of all paths and members is one contiguous block and the
+elementwise work runs as single long loops instead of short strided ones over the numbers of each member.
 """
 from __future__ import annotations
 
@@ -162,10 +74,11 @@ def sqrtm_psd(S: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class AdaptiveInflation:
-    """Settings of the adaptive multiplicative inflation (module docstring; Miyoshi 2011's estimate):
-    Delta_k = smoothing Delta_{k-1} + (1 - smoothing) Delta^o_k per path, rho_k = sqrt(Delta_k) kept in
-    [low, high]. smoothing in [0, 1] (0: each step's own estimate; 1: rho stays at its start, 1
-    clipped to [low, high]); 0 < low <= high."""
+    """Settings of the adaptive multiplicative inflation (docs/enkf.md): Miyoshi 2011's estimate of the
+    covariance inflation from the innovation d = y - z_mean, Delta^o_k = (d^T d - tr R) / tr(V_z) (V_z the
+    predicted outputs' sample covariance), smoothed as Delta_k = smoothing Delta_{k-1} + (1 - smoothing)
+    Delta^o_k per path, rho_k = sqrt(Delta_k) kept in [low, high]. smoothing in [0, 1] (0: each step's own
+    estimate; 1: rho stays at its start, 1 clipped to [low, high]); 0 < low <= high."""
 
     smoothing: float = 0.95
     low: float = 1.0
@@ -194,7 +107,7 @@ class TwoPointLaws(NamedTuple):
 
 @dataclass(frozen=True, eq=False)
 class EnKF:
-    """EnKF for `model`, process noise Q (n+p, n+p), output noise R (ny, ny) (module docstring).
+    """EnKF for `model`, process noise Q (n+p, n+p), output noise R (ny, ny) (docs/enkf.md).
 
     Q and R may be given as scalars (times I) or diagonals. variant: "stochastic" (the paper's,
     perturbed outputs), "etkf" or "enkf_n" (both need R positive definite); inflation: rho >= 1 of the
@@ -206,7 +119,7 @@ class EnKF:
     of the random-walk increment of an unknown input disturbance estimated in psi = [x; xi; d];
     lag: steps each xi stays in the ensemble after its own, updated by later outputs (the fixed-lag
     smoother; 0: none); static_mean: paths without a per-path prior draw xi about a static mean in psi (the
-    online loop's start; module docstring) rather than walk; start_spread: those draws are mu + start_spread w,
+    online loop's start; docs/enkf.md) rather than walk; start_spread: those draws are mu + start_spread w,
     w the xi part of the process noise (covariance start_spread^2 times Q's xi block); mean_spread: mu_0 ~
     N(initial xi, mean_spread^2 Q's xi block); start_scale: with static_mean, Q's xi block as the start uses it
     (mu_0's spread, the draws, the walked components' step) is start_scale times Q's; xi_ends: None or (p,)
@@ -429,7 +342,7 @@ class EnKF:
 
     def start_cov(self, P0_xi: np.ndarray) -> np.ndarray:
         """(p, p): the covariance of the first xi the start draws, xi_1 before any output, for an initial
-        ensemble whose xi has covariance P0_xi (p, p) (module docstring). With the static mean, Q_xi scaled by
+        ensemble whose xi has covariance P0_xi (p, p) (docs/enkf.md). With the static mean, Q_xi scaled by
         c = start_scale: mu_0 ~ N(., c mean_spread^2 Q_xi) and the draw mu + sqrt(c) start_spread w_xi, so
         c (mean_spread^2 + start_spread^2) Q_xi; on the walk (every component without the static mean, those the
         next output does not see with it): xi_0 + sqrt(c) w_xi, so P0_xi + c Q_xi (c = 1 without the static mean).
@@ -471,7 +384,7 @@ class EnKF:
     def _start(self, psi: np.ndarray, psi_next: np.ndarray, rest) -> np.ndarray:
         """The predicted xi of paths `rest` (a slice, or (P,) bool) that have no model of xi yet, added into
         psi_next's xi rows (p, ..., M) (components), which hold w: the random walk xi_{k|k} + w, or with the
-        static mean xi_k = mu + w for the components the next output sees (module docstring). Returns the xi
+        static mean xi_k = mu + w for the components the next output sees (docs/enkf.md). Returns the xi
         (..., M, p) that moves x: xi_{k|k} on the walk, the new draw about mu."""
         n, dim = self.model.n, self.dim
         xi = psi[..., n:dim]
@@ -568,7 +481,7 @@ class EnKF:
                         inflation=factor)
 
     def _forecast_inflation(self, Y: np.ndarray, delta: np.ndarray, previous: np.ndarray | None) -> np.ndarray:
-        """The factor (...,) on this update's forecast anomalies (module docstring): the EnKF-N's
+        """The factor (...,) on this update's forecast anomalies (docs/enkf.md): the EnKF-N's
         lambda = sqrt((N-1) / zeta_a) or the adaptive rho_k. Y: (..., ny, M) output anomalies without
         perturbations, delta = y - z_mean (..., ny); previous: rho_{k-1} (...,), or None at the start (1,
         clipped to [low, high]). Non-finite moments give 1 (enkf_n) or rho_{k-1} (adaptive)."""
@@ -593,7 +506,7 @@ class EnKF:
 
     def _transform(self, U: np.ndarray, V_z: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """ETKF: (K, L, ok) with K = U (V_z + R)^-1 (..., n+p, ny) for the mean and L (..., n+p, ny)
-        with analysis anomalies dpsi + L dz = X (I + S^T S)^(-1/2) (module docstring), from the
+        with analysis anomalies dpsi + L dz = X (I + S^T S)^(-1/2) (docs/enkf.md), from the
         eigenpairs of S S^T = R^(-1/2) V_z R^(-1/2) (..., ny, ny). V_z + R is positive definite, so
         only non-finite moments make ok False (K = L = 0, the ensemble unfiltered)."""
         ok = np.all(np.isfinite(V_z), axis=(-2, -1)) & np.all(np.isfinite(U), axis=(-2, -1))
@@ -657,8 +570,8 @@ class Analysis(NamedTuple):
 
 
 def enkf_n_zeta(mu: np.ndarray, b2: np.ndarray, N: int, grid: int = 32, iterations: int = 40) -> np.ndarray:
-    """zeta_a (...,) minimising the EnKF-N's dual cost D(zeta) over 0 < zeta <= N / eps_N (module
-    docstring; Bocquet, Raanes & Hannart 2015), for N members, the eigenvalues mu (..., ny) >= 0 of
+    """zeta_a (...,) minimising the EnKF-N's dual cost D(zeta) over 0 < zeta <= N / eps_N (docs/enkf.md;
+    Bocquet, Raanes & Hannart 2015), for N members, the eigenvalues mu (..., ny) >= 0 of
     R^(-1/2) Y Y^T R^(-1/2) and b2 (..., ny), the squares of b = E^T R^(-1/2) delta.
 
     In t = ln zeta, 2 dD/dt = g(t) = sum_i b_i^2 mu_i zeta / (zeta + mu_i)^2 + eps_N zeta - N. As

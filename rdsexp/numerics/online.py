@@ -8,41 +8,25 @@ can model the distribution of xi from its own filtered estimates xi_{k|k} and re
                                              (the last `window` of them, all, or weighted by
                                              forgetting^(k - k')), eq. (sample-mean) per path
                                              F_new = design(model, moments) by `method`
-                                             adopted from k+1 on if lam(F_new) < 1 and
-                                             lam(F_new) < lam(F_k), both exact rates on the new
-                                             moments (the safeguard; can be switched off), and
-                                             if the evidence carries it (below)
+                                             adopted from k+1 on if the evidence carries it
 
-The evidence (`resamples` > 0, the default): the modeled moments' uncertainty as B moving-block
-bootstrap draws of the window's estimates (`modeling.block_bootstrap_steps`, blocks of `block`
-consecutive xi_{k|k}, which are correlated in k). The candidate must beat the gain in use at its
-worst over the draws: max_b lam_b(F_new) < 1 and max_b lam_b(F_new) < max_b lam_b(F_k) (else
-`not_robust`). A window of fewer than `min_blocks` blocks gives too few distinct resamples for
-their spread to measure the uncertainty (with 2 blocks of 5 estimates, 21 distinct resamples):
-there a candidate that passes `waits`, unless the gain in use is unstable at every draw and also on
-the prior guess (`at_guess`, the system at xi_guess that the nominal gain is designed on): then two
-independent sources agree that waiting lets the path grow (F = 0 on an open-loop unstable plant). The
-draws alone misfire: on five draws of 30 random plants, 74 of the 98 gains replaced on them (a rule
-before) were stable on the plant, and 37 of their replacements were not; the nominal gain, stable at
-the guess by design, now always waits there (docs/online.md). No warm-up beyond `warmup` (the
-filter's) and `min_blocks` is needed.
-A component whose law its mean fixes (`EnKF.two_point`: a Bernoulli dropout, a discrete component of two
-values) is modeled with that law's variance, (mu - low) (high - mu), not the window's sample variance: each
-xi_{k|k} is shrunk toward the filter's prior, so their spread understates xi's (`two_point_moments`);
-its mean is kept off the ends by the add-half estimate of the window's size, which no window can rule out.
-A candidate that the model or a draw does not certify below 1 is never adopted, not even where the
-gain in use fails: the model of a growing loop is biased, and such a candidate can be worse on the
-plant than the gain in use.
+The evidence (`resamples` > 0, the default): a candidate is adopted only if its exact rate is below 1 and
+below the gain in use's on the window's moments, and also at its worst over B moving-block bootstrap draws of
+the window (`modeling.block_bootstrap_steps`; blocks of `block` estimates, which are correlated in k):
+max_b lam_b(F_new) < 1 and max_b lam_b(F_new) < max_b lam_b(F_k), else `not_robust`. A window of fewer than
+`min_blocks` blocks has too few distinct resamples to measure its uncertainty: a candidate that passes
+`waits` there, unless the gain in use is unstable at every draw and at the prior guess (`at_guess`), two
+independent sources agreeing that waiting lets the path grow. A candidate not certified below 1 is never
+adopted: the model of a growing loop is biased. A component whose law its mean fixes (`EnKF.two_point`) is
+modeled with that law's variance (`two_point_moments`), which the shrunk estimates understate. The probe
+(`probe` > 0, off by default) adds a known white excitation probe * s_k, s_k in {-1, 1}^m, until
+`probe_until`, which keeps the state and the outputs moving under feedback. docs/online.md states each rule
+with the measurements behind it, docs/online-rounds.md how the defaults were found.
 
-The probe (`probe` > 0, off by default): u_k gets a known excitation probe * s_k, s_k in {-1, 1}^m white
-(`probe_signs`, the same on every path), until `probe_until`. Under feedback the state decays and y_k
-carries little of xi's spread; the probe keeps the state, and with it the outputs, moving (docs/online-rounds.md,
-an eighth round: white signs, not the identification's held M-sequence, which spread the paper's walk).
-
-No identification run. `OnlineController` is what `simulation.simulate(controller=...)` calls
-after filtering; every decision (adopted or not, and why) is kept in `decisions()`.
-The default method, policy iteration, is run batched over paths (stacked eigenproblems, warm-
-started from the gain in use); any other method of `synthesis.METHODS` is called path by path.
+No identification run. `OnlineController` is what `simulation.simulate(controller=...)` calls after
+filtering; every decision (adopted or not, and why) is kept in `decisions()`. The default method, policy
+iteration, is run batched over paths (stacked eigenproblems, warm-started from the gain in use); any other
+method of `synthesis.METHODS` is called path by path.
 """
 from __future__ import annotations
 
@@ -185,15 +169,15 @@ def two_point_moments(mean: np.ndarray, cov: np.ndarray, two_point, estimates=No
     two_point: None (returned as they are) or (which (p,) bool, low (p,), high (p,)), `EnKF.two_point`. A
     component on {low, high} with mean mu has variance (mu - low) (high - mu), mu clipped into [low, high];
     its correlations with the other components are kept (its row and column rescaled), so cov stays PSD.
-    The window's sample variance of xi_{k|k} understates it (on seed 0's plant 7 of `random_plants.py`: a
-    median of 0.125 where the plant has 0.24), and so does a design on it (docs/online-rounds.md, a tenth round).
+    The window's sample variance of xi_{k|k} understates it (each estimate is shrunk toward the filter's prior),
+    and so does a design on it (docs/online.md, "And modeled as a dropout").
 
     estimates: None, or the number N of estimates the moments come from (a scalar, or an array broadcasting
     against mean.shape[:-1]): the mean of such a component is then kept (high - low) / (2 (N + 1)) inside its
     ends, the add-half estimate of N equal outcomes. N estimates cannot tell a probability below that from 0,
     and a model at an end is deterministic there: its design can lean on an input that the end switches off
-    (gain entries of 1e16, a rate of 3e16 on the plant, certified by a window whose every estimate sat at the
-    end), and the EnKF that draws from it never draws the other end again (docs/online-rounds.md, a fifteenth round)."""
+    (gain entries of 1e16 where the input matrix has a rounding-level entry), and the EnKF that draws from it
+    never draws the other end again (docs/online.md, "Never at an end")."""
     if two_point is None:
         return mean, cov
     which, low, high = two_point
