@@ -15,7 +15,6 @@ flattening, `rdsexp.experiment.metrics`).
 """
 from __future__ import annotations
 
-import functools
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from functools import cached_property
@@ -272,7 +271,6 @@ def _sweep(sweep: dict) -> SweepRef:
                     recorded_name=sweep.get("name"))
 
 
-@functools.lru_cache(maxsize=256)
 def sweep_name(sweep_dir: str | None) -> str | None:
     """The name of a sweep launched without `+sweep=NAME`: the overrides of its command line that sweep
     (`enkf.ensemble_size=50,100 seed=range(3)`; all of them if none does), as Hydra wrote them into

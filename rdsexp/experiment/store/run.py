@@ -10,7 +10,6 @@ other machines happen, so every reader
 from __future__ import annotations
 
 import copy
-import functools
 import json
 import os
 import re
@@ -124,9 +123,6 @@ def read_table(run_dir: Path, info: dict, name: str, check_hash: bool = True) ->
         raise DamagedRecord(path, f"unreadable ({one_line(err)})") from None
     if not check_hash or not meta.get("sha256"):
         return table
-    seen = (*files.unchanged_key(path), meta["sha256"], meta.get("file_sha256"))
-    if seen in _VERIFIED:                  # this file, unchanged since, was checked in this process
-        return table
     # the file's bytes as recorded (hashed once per process and file: a report's `run_damage` check of the
     # runs it selects hashed them already) are its content as recorded; else the content hash decides (a
     # record without the file's hash). Either matching is an intact table, as before: a record written
@@ -134,11 +130,7 @@ def read_table(run_dir: Path, info: dict, name: str, check_hash: bool = True) ->
     if not (meta.get("file_sha256") and files.stored_file_hash(path) == meta["file_sha256"]) \
             and files.table_hash(table) != meta["sha256"]:
         raise DamagedRecord(path, "modified after the run (does not match the hash in run.json)")
-    _VERIFIED.add(seen)
     return table
-
-
-_VERIFIED: set[tuple] = set()       # (files.unchanged_key, the hashes it was checked against) of read_table's tables
 
 
 def run_json_paths(root: Path) -> list[Path]:
@@ -184,7 +176,6 @@ def intact_runs(root: Path) -> list[tuple[Path, dict]]:
     return runs
 
 
-_FULL_CONFIGS: dict[tuple, object] = {}    # Run.config by (path, size, mtime)
 MATRIX = "<not a scalar>"           # stands for a nested list while a config is resolved
 _CONFIGS: dict[tuple, dict] = {}    # scalar_config by (path, size, mtime): a stored config never changes
 
@@ -281,7 +272,6 @@ def _resolve_selects(config: dict) -> bool:
 
 
 
-@functools.cache
 def _yaml_loader():
     """OmegaConf's YAML loader (its float and timestamp rules), on libyaml's parser where available."""
     import yaml
@@ -325,17 +315,11 @@ class Run:
 
     @cached_property
     def config(self):
-        """The composed config (.hydra/config.yaml) as a read-only OmegaConf node, parsed once per
-        process and file (a report's scripts each load the runs again)."""
+        """The composed config (.hydra/config.yaml) as a read-only OmegaConf node, parsed once per Run."""
         from omegaconf import OmegaConf
-        path = self.dir / HYDRA_CONFIG
-        stat = path.stat()
-        key = (str(path.resolve()), stat.st_size, stat.st_mtime_ns)
-        if key not in _FULL_CONFIGS:
-            cfg = OmegaConf.load(path)
-            OmegaConf.set_readonly(cfg, True)
-            _FULL_CONFIGS[key] = cfg
-        return _FULL_CONFIGS[key]
+        cfg = OmegaConf.load(self.dir / HYDRA_CONFIG)
+        OmegaConf.set_readonly(cfg, True)
+        return cfg
 
     @cached_property
     def record(self) -> RunRecord:

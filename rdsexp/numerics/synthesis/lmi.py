@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import warnings
 from collections.abc import Callable
-from functools import lru_cache
 
 import cvxpy as cp
 import numpy as np
@@ -20,9 +19,9 @@ from .riccati import BRACKET_TOL, policy_iteration
 T_PROOF = 1e-8       # the margin t must be below -T_PROOF to prove infeasibility: above Clarabel's accuracy
 
 
-@lru_cache(maxsize=8)
 def _lmi_problem(n: int, m: int, nbar: int):
-    """Theorem 2's LMI at a given lambda^2, compiled once per size (lambda^2, Abar, Bbar parameters).
+    """Theorem 2's LMI at a given lambda^2, compiled (lambda^2, Abar, Bbar parameters): once per design, whose
+    bisection solves it at every lambda (`lmi_solver` owns it; a compile takes a fraction of a design).
 
     Rows of the off-diagonal block are reordered (a congruence by a permutation) so that
     X (x) I_nbar becomes I_nbar (x) X = blockdiag(X, ..., X); the margin t on the (1,1) block

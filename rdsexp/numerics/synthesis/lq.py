@@ -32,8 +32,6 @@ as much as the Riccati solve (0.7 of 2.0 ms at n = 10, 7-9 of 12-16 ms at n = 20
 """
 from __future__ import annotations
 
-import functools
-
 import numpy as np
 
 from ..analysis import (
@@ -180,7 +178,6 @@ def _sym_operator(Acl: np.ndarray) -> np.ndarray:
     return Ls
 
 
-@functools.cache
 def _sym_index(n: int):
     """(i, k) of the upper triangle (i <= k), the row-major columns i n + k and k n + i, and i != k."""
     upper, lower = np.triu_indices(n)

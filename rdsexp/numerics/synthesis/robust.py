@@ -19,7 +19,7 @@ distribution (`ms_rate`); the box's decay rate is info["lam_box"].
 from __future__ import annotations
 
 import itertools
-from functools import cache, lru_cache
+from functools import cache
 
 import cvxpy as cp
 import numpy as np
@@ -57,9 +57,9 @@ def box_rate(system: AffineRandomSystem, vertices: np.ndarray, F, X) -> float:
     return float(np.linalg.norm(inv_half @ (A + B @ F) @ half, ord=2, axis=(1, 2)).max())
 
 
-@lru_cache(maxsize=16)
 def _box_problem(n: int, m: int, V: int):
-    """The vertex LMIs at a given lambda^2, compiled once per size (parameters lambda^2, A(v), B(v)).
+    """The vertex LMIs at a given lambda^2, compiled once per solver (`_solver` owns it; parameters lambda^2,
+    A(v), B(v)).
 
     As in Theorem 2's problem (lmi.py): the margin t on the (1,1) blocks is maximised with
     trace(X) = 1 fixing the scale; the LMIs hold with X > 0 iff t* >= 0 and a gain comes back at
