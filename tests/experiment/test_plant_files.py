@@ -192,7 +192,7 @@ def test_failing_stage_is_a_status_not_a_traceback(tmp_path):
     # a stage that raises (here: modeling, patched to fail) ends the run with status error and its
     # stage named in the summary; the traceback goes to run.json and rdsexp.log only
     (tmp_path / "broken.py").write_text(
-        "import rdsexp.experiment.pipeline as p\n"
+        "import rdsexp.experiment.pipeline.identification as p\n"
         "def boom(*a, **k):\n    raise RuntimeError('boom')\n"
         "p.model_distribution = boom\n"
         "from rdsexp.experiment.cli import main\nmain()\n")
