@@ -30,12 +30,7 @@ def _lmi_problem(n: int, m: int, nbar: int):
     (lmi-syn) holds with X > 0 iff t* >= 0; the solve always has a solution, so a gain
     F = Y X^-1 comes back at every lambda, feasible or not, and its exact rate decides.
     """
-    lam2 = cp.Parameter(nonneg=True)
-    Abar = [cp.Parameter((n, n)) for _ in range(nbar)]
-    Bbar = [cp.Parameter((n, m)) for _ in range(nbar)]
-    X = cp.Variable((n, n), symmetric=True)
-    Y = cp.Variable((m, n))
-    t = cp.Variable()
+    lam2, Abar, Bbar, X, Y, t = lmi_variables(n, m, nbar)
     H = cp.vstack([Abar[r] @ X + Bbar[r] @ Y for r in range(nbar)])           # (nbar n, n)
     Z = np.zeros((n, n))
     diag = cp.bmat([[X if i == j else Z for j in range(nbar)] for i in range(nbar)])
@@ -47,11 +42,26 @@ def _lmi_problem(n: int, m: int, nbar: int):
     # real solve through the same path; every solve also builds a fresh Clarabel solver
     # (warm_start=False) instead of updating the previous one's data in place, which differs in the last
     # bits. Together, results do not depend on call history.
-    lam2.value = 1.0
-    for r in range(nbar):
-        Abar[r].value, Bbar[r].value = np.eye(n), np.zeros((n, m))
-    problem.get_problem_data(cp.CLARABEL)          # compiles the parametrised program, no solve
+    compile_problem(problem, lam2, Abar, Bbar)
     return problem, lam2, Abar, Bbar, X, Y, t
+
+
+def lmi_variables(n: int, m: int, count: int):
+    """The parameters and variables of a decay-rate LMI: lambda^2, `count` pairs of parameters A_r (n, n),
+    B_r (n, m), and the variables X (n, n) symmetric, Y (m, n) (the gain is Y X^-1) and the margin t."""
+    lam2 = cp.Parameter(nonneg=True)
+    A = [cp.Parameter((n, n)) for _ in range(count)]
+    B = [cp.Parameter((n, m)) for _ in range(count)]
+    return lam2, A, B, cp.Variable((n, n), symmetric=True), cp.Variable((m, n)), cp.Variable()
+
+
+def compile_problem(problem: cp.Problem, lam2, A: list, B: list) -> None:
+    """Compile the parametrised program now, without a solve (at lambda = 1, A_r = I, B_r = 0): see
+    `_lmi_problem`, why every solve must go through the same path."""
+    lam2.value = 1.0
+    for a, b in zip(A, B, strict=True):
+        a.value, b.value = np.eye(a.shape[0]), np.zeros(b.shape)
+    problem.get_problem_data(cp.CLARABEL)
 
 
 def solve_fresh(problem: cp.Problem) -> str:

@@ -27,7 +27,7 @@ import numpy as np
 from ..analysis import ms_rate, perron
 from ..systems import AffineRandomSystem, MomentModel
 from .base import SynthesisResult
-from .lmi import solve_fresh
+from .lmi import compile_problem, lmi_variables, solve_fresh
 from .riccati import policy_iteration
 
 MAX_VERTICES = 1024
@@ -65,21 +65,13 @@ def _box_problem(n: int, m: int, V: int):
     trace(X) = 1 fixing the scale; the LMIs hold with X > 0 iff t* >= 0 and a gain comes back at
     every lambda, whose certified box rate then decides.
     """
-    lam2 = cp.Parameter(nonneg=True)
-    A = [cp.Parameter((n, n)) for _ in range(V)]
-    B = [cp.Parameter((n, m)) for _ in range(V)]
-    X = cp.Variable((n, n), symmetric=True)
-    Y = cp.Variable((m, n))
-    t = cp.Variable()
+    lam2, A, B, X, Y, t = lmi_variables(n, m, V)
     lmis = []
     for v in range(V):
         H = A[v] @ X + B[v] @ Y
         lmis.append(cp.bmat([[lam2 * X - t * np.eye(n), H.T], [H, X]]) >> 0)
     problem = cp.Problem(cp.Maximize(t), lmis + [cp.trace(X) == 1])
-    lam2.value = 1.0                                   # compile now, no solve (see lmi._lmi_problem)
-    for v in range(V):
-        A[v].value, B[v].value = np.eye(n), np.zeros((n, m))
-    problem.get_problem_data(cp.CLARABEL)
+    compile_problem(problem, lam2, A, B)
     return problem, lam2, A, B, X, Y, t
 
 
