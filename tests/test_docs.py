@@ -83,6 +83,7 @@ HERE = [p for p in RUN if p not in GUIDES]
 
 
 @pytest.mark.parametrize("page", HERE, ids=[str(p.relative_to(REPO)) for p in HERE])
+@pytest.mark.slow
 def test_examples_run(page, tmp_path):
     run_examples(page, tmp_path)
 

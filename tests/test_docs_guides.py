@@ -7,5 +7,6 @@ PAGES = [p for p in RUN if p in GUIDES]
 
 
 @pytest.mark.parametrize("page", PAGES, ids=[str(p.relative_to(REPO)) for p in PAGES])
+@pytest.mark.slow
 def test_examples_run(page, tmp_path):
     run_examples(page, tmp_path)

@@ -220,6 +220,7 @@ def test_bash_completion_of_gain_lists_the_methods(tmp_path):
     assert set(out.stdout.split()) == {f"gain={m}" for m in rx.synthesis.METHODS}
 
 
+@pytest.mark.slow
 def test_configs_found_from_any_directory_and_extendable_with_config_dir(tmp_path):
     """The configs come from the installed package; --config-dir adds a user's own group option."""
     (tmp_path / "mine" / "gain").mkdir(parents=True)

@@ -38,37 +38,41 @@ def test_every_config_option_composes_and_validates(group, option):
     build(compose("config", overrides=[f"{group}={option}"]))
 
 
-def sweep_points(sweep):
-    top = compose("config", overrides=[f"+sweep={sweep}"], return_hydra_config=True)
+def sweep_points(top):
+    """The override lists of every job of the sweep whose config (with its hydra node) is `top`."""
     args = [f"{k}={v}" for k, v in top.hydra.sweeper.params.items()]
     return BasicSweeper.split_arguments(OverridesParser.create().parse_overrides(args), max_batch_size=None)[0]
 
 
 @pytest.mark.parametrize("sweep", SWEEPS)
+@pytest.mark.slow
 def test_every_sweep_point_composes_and_validates(sweep):
-    if not enumerable(compose("config", overrides=[f"+sweep={sweep}"], return_hydra_config=True)):
+    top = compose("config", overrides=[f"+sweep={sweep}"], return_hydra_config=True)
+    if not enumerable(top):
         validate_sweep([[f"+sweep={sweep}"]])   # an optimizing sweeper's trials: each validated by its job
         return
-    points = [[f"+sweep={sweep}", *overrides] for overrides in sweep_points(sweep)]
+    points = [[f"+sweep={sweep}", *overrides] for overrides in sweep_points(top)]
     assert len(points) >= 3
     validate_sweep(points)                # what a sweep runs first; exit 2 on the first bad point
 
 
 @pytest.mark.parametrize("sweep", SWEEPS)
+@pytest.mark.slow
 def test_shipped_sweeps_use_every_core_unless_told_serial(sweep):
     """A shipped sweep's jobs run in one joblib worker per core; hydra/launcher=basic runs them one after
     the other. An optimizing sweeper's (tune_enkf: seeded, one trial after the other) stays serial."""
-    def launcher(*overrides):
-        cfg = compose("config", overrides=[f"+sweep={sweep}", *overrides], return_hydra_config=True)
-        return cfg.hydra.launcher
-    default = launcher()
-    if enumerable(compose("config", overrides=[f"+sweep={sweep}"], return_hydra_config=True)):
+    def composed(*overrides):
+        return compose("config", overrides=[f"+sweep={sweep}", *overrides], return_hydra_config=True)
+    top = composed()
+    default = top.hydra.launcher
+    if enumerable(top):
         assert default._target_.endswith("JoblibLauncher") and default.n_jobs == -1
     else:
         assert default._target_.endswith("BasicLauncher")
-    assert launcher("hydra/launcher=basic")._target_.endswith("BasicLauncher")
+    assert composed("hydra/launcher=basic").hydra.launcher._target_.endswith("BasicLauncher")
 
 
+@pytest.mark.slow
 def test_composing_once_per_group_choice_equals_a_full_compose():
     """The sweep validation's shortcut (group choices composed once, value overrides applied on top)
     gives every job exactly Hydra's config, for group and value overrides of every kind mixed."""
@@ -163,6 +167,7 @@ def sweep_tables(sweep_dir: Path):
                      for j in summary["job"]}
 
 
+@pytest.mark.slow
 def test_sweep_end_to_end_designs_every_method(tmp_path):
     """+sweep=NAME with command-line overrides: one job per method, all complete (launcher
     independence of the tables: tests/experiment/test_sweep.py)."""
@@ -225,6 +230,7 @@ def test_auto_estimate_is_the_prediction_when_the_output_depends_on_the_input():
     assert exp.loop.estimate == "predicted"
 
 
+@pytest.mark.slow
 def test_the_same_command_twice_reuses_the_stored_run(tmp_path):
     """A single run, like a sweep's job, is reused when the store holds one of the same config and code
     version: the second records a copy naming it, says so on its first line, and computes nothing."""
@@ -241,6 +247,7 @@ def test_the_same_command_twice_reuses_the_stored_run(tmp_path):
     assert len(list((tmp_path / "outputs" / "runs").iterdir())) == 3
 
 
+@pytest.mark.slow
 def test_a_sweep_that_records_nothing_says_so_in_one_line(tmp_path):
     proc = rdsexp("-m", "seed=1,2", "tracking=off", "closed_loop.paths=2", "enkf.ensemble_size=10",
                   "closed_loop.horizon=20", "hydra/launcher=basic", cwd=tmp_path)
@@ -248,6 +255,7 @@ def test_a_sweep_that_records_nothing_says_so_in_one_line(tmp_path):
     assert "ZeroDivisionError" not in proc.stderr and "no sweep recording" not in proc.stderr
 
 
+@pytest.mark.slow
 def test_a_m_sweep_is_found_by_the_name_list_shows(tmp_path, capsys):
     """A sweep launched with -m and no +sweep=NAME is named by its swept overrides in `list`; `show` and
     `plot` find it by that name."""

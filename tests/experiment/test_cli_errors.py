@@ -64,6 +64,7 @@ def test_yaml_syntax_error_is_one_line_with_file_line_and_column(tmp_path, args,
     assert not (tmp_path / "outputs").exists()
 
 
+@pytest.mark.slow
 def test_overrides_on_both_sides_of_m_make_the_same_sweep(tmp_path):
     """`rdsexp enkf.ensemble_size=10,1 -m ...` is `rdsexp -m enkf.ensemble_size=10,1 ...` (argparse alone
     refuses the overrides after -m): the same two jobs, the second refused by the sweep's validation
@@ -131,6 +132,7 @@ def store_passes_check(tmp_path) -> None:
     assert not list((tmp_path / "outputs").rglob("*.tmp"))
 
 
+@pytest.mark.slow
 def test_ctrl_c_during_a_run_is_one_line_and_exit_130(tmp_path):
     proc = start(tmp_path, "closed_loop.paths=400", "tracking.recording=false")   # some 15 s, stopped after 3
     line = interrupt_when(proc, lambda: any(status(p) == "incomplete" for p in tmp_path.glob("outputs/runs/*/run.json")))
@@ -143,6 +145,7 @@ def test_ctrl_c_during_a_run_is_one_line_and_exit_130(tmp_path):
 
 
 @pytest.mark.parametrize("launcher", [[], ["hydra/launcher=parallel"]], ids=["basic", "parallel"])
+@pytest.mark.slow
 def test_ctrl_c_during_a_sweep_leaves_a_store_that_passes_check_and_resumes(tmp_path, launcher):
     # parallel: the shipped sweeps' default (joblib); its workers' queues leave semaphores that Python's
     # resource tracker removes, without a word on stderr. The jobs still running get status "interrupted",

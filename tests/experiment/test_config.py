@@ -76,6 +76,7 @@ cli.main()
 """
 
 
+@pytest.mark.slow
 def test_sweep_with_failed_job_writes_summary_and_exits_1(tmp_path):
     import subprocess
     script = tmp_path / "failing.py"

@@ -67,6 +67,7 @@ def test_data_run_claims_no_true_plant(round_trip):
     assert "true plant" not in proc.stdout
 
 
+@pytest.mark.slow
 def test_data_run_provenance_reuse_and_verify(round_trip):
     """run.json records the file's sha256, rows and column map; the catalog shows the file as the identity;
     verify re-runs from the file; a changed file is another config (never reused) and fails verify."""

@@ -130,6 +130,7 @@ def test_python_api_raises_clear_value_errors(call, message):
     assert message in str(err.value) and "\n" not in str(err.value)
 
 
+@pytest.mark.slow
 def test_diverging_run_is_recorded_as_a_status_without_warnings(tmp_path):
     # its own process: a warning would reach stderr there, not pytest's capture
     proc = rdsexp("gain=pole_placement", *SMALL, "closed_loop.horizon=60", cwd=tmp_path, process=True)
@@ -144,6 +145,7 @@ def test_diverging_run_is_recorded_as_a_status_without_warnings(tmp_path):
     assert np.isfinite(q["q[0]"]).all()                                    # the finite part is kept
 
 
+@pytest.mark.slow
 def test_rerun_disabled_in_the_environment_gives_a_complete_run_without_recording(tmp_path, monkeypatch):
     """RERUN=off turns Rerun's streams off: the run (and a sweep of it) still completes, with every
     table and an intact record, only without recording.rrd."""
@@ -173,6 +175,7 @@ def complete_jobs(root):
 
 
 @pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGINT], ids=["SIGKILL", "SIGINT"])
+@pytest.mark.slow
 def test_killed_sweep_resumes_and_keeps_every_result(tmp_path, sig):
     """Kill a sweep after its first jobs, relaunch the same command: completed jobs are reused
     (same config hash and code version), the rest run, the summary has every job."""
@@ -199,6 +202,7 @@ def test_killed_sweep_resumes_and_keeps_every_result(tmp_path, sig):
     assert reused == done_before
 
 
+@pytest.mark.slow
 def test_killed_run_is_marked_incomplete(tmp_path):
     proc = subprocess.Popen([sys.executable, "-m", "rdsexp", "closed_loop.paths=400", "tracking.recording=false"],
                             cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
@@ -212,6 +216,7 @@ def test_killed_run_is_marked_incomplete(tmp_path):
     assert "incomplete" in listing
 
 
+@pytest.mark.slow
 def test_concurrent_sweeps_do_not_collide(tmp_path):
     args = [sys.executable, "-m", "rdsexp", "+sweep=seeds", "seed=range(0,3)", *SMALL, "tracking.recording=false",
             "model.reported=null", "reuse=false", SERIAL]

@@ -32,6 +32,7 @@ def whole():
 
 @pytest.mark.parametrize("extra", [["closed_loop.chunk_paths=3"], ["closed_loop.chunk_paths=1"],
                                    ["closed_loop.chunk_paths=2", "closed_loop.workers=2"]])
+@pytest.mark.slow
 def test_tables_do_not_depend_on_chunks_or_workers(whole, extra):
     chunked = run_experiment(experiment(*extra))
     assert set(chunked.tables) == set(whole.tables) >= {"trajectories", "members", "metrics", "paths"}
@@ -105,6 +106,7 @@ def test_bad_scale_settings_are_one_line_errors(override, message):
     assert str(err.value) == message
 
 
+@pytest.mark.slow
 def test_cli_streams_tables_and_verify_passes(tmp_path):
     rdsexp(*SMALL, "closed_loop.paths=5", "closed_loop.chunk_paths=2", cwd=tmp_path)
     (run,) = (tmp_path / "outputs" / "runs").iterdir()

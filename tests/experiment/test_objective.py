@@ -54,6 +54,7 @@ def test_objective_is_checked_and_left_out_of_the_config_hash():
     assert provenance.config_hash(job_config(plain)) == provenance.config_hash(job_config(tuned))
 
 
+@pytest.mark.slow
 def test_tune_enkf_averages_each_trial_over_seeds_and_holds_out_the_best(tmp_path):
     """Three Optuna trials of two seeds each on a small paper plant: every seed a complete run in the study's
     directory; each trial's stored mean and standard error recomputed from its stored runs; Optuna minimized

@@ -21,6 +21,7 @@ def experiment(*extra):
         return build(compose("config", overrides=[*SMALL, "tracking=off", "gain.designs=all", *extra]))
 
 
+@pytest.mark.slow
 def test_identical_stages_are_reused_within_a_process_with_the_same_tables():
     """With this process's stage cache (StageCache.in_process), a second run of the same identification
     takes identification and designs from memory (designs report seconds 0) and gives the same tables as a
@@ -106,6 +107,7 @@ def test_every_summary_key_is_in_the_data_dictionary(extra, key):
     assert key in summary and undocumented(summary) == []
 
 
+@pytest.mark.slow
 def test_modeled_covariance_is_total_for_a_user_plant_and_the_papers_for_the_paper():
     """identification.covariance: a library plant defaults to total (eq. sample-mean's covariance plus the
     mean filtered covariance: same mean, every variance at least as large, and larger somewhere); the
@@ -120,6 +122,7 @@ def test_modeled_covariance_is_total_for_a_user_plant_and_the_papers_for_the_pap
     assert pipeline.run_experiment(experiment()).summary["modeling_covariance"] == "sample"
 
 
+@pytest.mark.slow
 def test_iterated_identification_models_from_its_last_pass_and_stops_at_a_fixed_point():
     """identification.xi_model = iterated (a library plant's default): the model is eq. (sample-mean) of
     the identification table's xi_{k|k}, the last pass's; the summary counts the passes. A pass that
@@ -287,6 +290,7 @@ def test_the_online_observer_draws_a_dropout_from_its_two_point_law():
     assert not walk.static_mean and walk.xi_ends.tolist() == [True]
 
 
+@pytest.mark.slow
 def test_the_online_controller_models_a_dropout_with_the_variance_its_mean_fixes():
     """The online loop's controller gets the observer's two-point components (`EnKF.two_point`): on the dropout
     plant every modeled variance of its Bernoulli xi is mu (1 - mu) (`online.two_point_moments`), and on the
@@ -406,6 +410,7 @@ def test_a_narrowed_start_whose_gain_holds_the_whole_law_worse_than_the_guess_de
     assert ms_rate(exp.model, whole, stabilizing.F) > ms_rate(exp.model, whole, at_guess.F) > 1
 
 
+@pytest.mark.slow
 def test_the_online_loop_borrows_the_fixed_gain_loops_floor_only_where_it_holds(monkeypatch):
     """The fixed-gain loop's run at rest is replaced by one that keeps a floor, then by one that grows: the online
     row's floor_rms is that floor where it holds and NaN where it does not, and only the fixed-gain loop is called

@@ -58,6 +58,7 @@ def random_plant(rng, n, m, p, ny, family):
 
 @pytest.mark.parametrize("n, m, p, ny, family", [(2, 1, 0, 1, "normal"), (5, 2, 3, 2, "bernoulli"),
                                                  (8, 3, 6, 3, "uniform"), (3, 1, 2, 1, "independent")])
+@pytest.mark.slow
 def test_random_plant_file_runs_end_to_end(tmp_path, n, m, p, ny, family):
     (tmp_path / "conf" / "plant").mkdir(parents=True)
     plant = random_plant(np.random.default_rng(n), n, m, p, ny, family)
@@ -98,6 +99,7 @@ FEEDBACK = {"paper": None, "dropout": "nominal", "multiplicative": "open_loop", 
             "cart_pole": "nominal"}          # what each plant file's comment says it shows
 
 
+@pytest.mark.slow
 def test_systems_sweep_runs_every_library_plant(tmp_path):
     sweep = yaml.safe_load((REPO / "conf" / "sweep" / "systems.yaml").read_text())
     assert sorted(sweep["hydra"]["sweeper"]["params"]["plant"].split(",")) == LIBRARY == sorted(FEEDBACK)
@@ -188,6 +190,7 @@ def test_no_model_is_stated(tmp_path):
     assert np.isfinite(estimate).sum() == 13           # k = 0..12, before the plant left the bound
 
 
+@pytest.mark.slow
 def test_failing_stage_is_a_status_not_a_traceback(tmp_path):
     # a stage that raises (here: modeling, patched to fail) ends the run with status error and its
     # stage named in the summary; the traceback goes to run.json and rdsexp.log only

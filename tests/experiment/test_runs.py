@@ -116,6 +116,7 @@ def test_a_reused_job_is_one_row_unless_copies_are_asked_for(tmp_path):
     assert list(runs.search(tmp_path, copies=True)["id"]) == ["A/0", "A/1", "B/0"]
 
 
+@pytest.mark.slow
 def test_diff_runs_and_sweeps(root, tmp_path):
     rows = runs.diff(str(root / "A" / "0"), str(root / "A" / "2"))
     got = {(r.what, r.key): (r.a, r.b) for r in rows.itertuples()}
@@ -329,6 +330,7 @@ xi: {family: independent, components: [{family: bernoulli, prob: PROB}]}
 """
 
 
+@pytest.mark.slow
 def test_the_plant_content_is_part_of_a_runs_identity(tmp_path):
     """A plant file changed between two runs (one Bernoulli probability): run.json's plant_hash differs, the
     catalog and `show` carry it, `diff` names the hash and the changed entry inside the xi law's list; the

@@ -53,6 +53,7 @@ def cached(tmp_path_factory):
     return cwd, first, second
 
 
+@pytest.mark.slow
 def test_tables_with_the_cache_are_those_without_bit_for_bit(plain, cached):
     _, first, second = cached
     assert hashes(first) == hashes(plain) and hashes(second) == hashes(plain)
@@ -69,6 +70,7 @@ def test_tables_with_the_cache_are_those_without_bit_for_bit(plain, cached):
         assert later["open_loop"]["run"] == first["proposed", seed]["id"]
 
 
+@pytest.mark.slow
 def test_changed_paths_reuse_identification_and_designs_and_recompute_the_loops(cached, plain):
     cwd, first, _ = cached
     more = sweep(cwd, *PAPER, "closed_loop.paths=5")
@@ -87,6 +89,7 @@ def test_changed_paths_reuse_identification_and_designs_and_recompute_the_loops(
     assert hashes(again) == hashes(more)
 
 
+@pytest.mark.slow
 def test_a_changed_identification_setting_misses(cached):
     cwd, first, _ = cached
     other = sweep(cwd, *PAPER, "identification.K1=15")
@@ -102,6 +105,7 @@ def test_a_changed_identification_setting_misses(cached):
         {i["stage_keys"]["identification"] for i in first.values()})
 
 
+@pytest.mark.slow
 def test_verify_computes_everything(cached, monkeypatch):
     _, _, second = cached
     info = second["pole_placement", "1"]
@@ -122,6 +126,7 @@ def single(cwd: Path, *args) -> dict:
     return json.loads((new / "run.json").read_text())
 
 
+@pytest.mark.slow
 def test_a_damaged_or_partial_entry_is_recomputed_not_a_traceback(tmp_path):
     first = single(tmp_path)
     stages = tmp_path / "outputs" / layout.STAGES
@@ -187,6 +192,7 @@ def test_a_save_interrupted_mid_write_leaves_no_temporary_entry(tmp_path, monkey
     assert [e.name for e in (tmp_path / layout.STAGES / "synthesis").iterdir()] == [key]
 
 
+@pytest.mark.slow
 def test_a_reused_stage_is_said_in_the_summary_and_the_log_not_on_the_terminal(tmp_path):
     # the open loop is loaded under its progress bar, where console logging goes through tqdm: the
     # console handler's level (warnings) still holds there

@@ -305,6 +305,7 @@ def test_verify_names_damaged_tables(st, capsys):
 
 # --- faults that need the CLI running
 
+@pytest.mark.slow
 def test_resumed_sweep_reruns_only_the_damaged_job(st, tmp_path):
     """A half-written run.json. A resumed sweep names it in one warning, runs that
     job again, reuses the others (read-only files, shared only where modes protect them) and
@@ -344,6 +345,7 @@ def test_resumed_sweep_reruns_only_the_damaged_job(st, tmp_path):
     assert store.find_reusable(st.root, *st.key(1)) == (new / "1").resolve()
 
 
+@pytest.mark.slow
 def test_sweep_outside_the_store_reads_and_reuses_nothing_there(pristine, tmp_path):
     """hydra.sweep.dir=SOMEWHERE/x: the reuse lookup searches the configured store only, never
     SOMEWHERE (which here holds complete runs of the same configs and a damaged record)."""
@@ -362,6 +364,7 @@ def test_sweep_outside_the_store_reads_and_reuses_nothing_there(pristine, tmp_pa
     assert not list((empty / store.INDEX).glob("*.json"))        # a run outside the store is not indexed
 
 
+@pytest.mark.slow
 def test_read_only_store_fails_before_any_work_with_one_line(st, tmp_path):
     """A read-only store (simulated as EROFS, which root cannot bypass): a run and a sweep each
     exit 1 with one line and write nothing; everything stored is still listed and reused."""
@@ -375,6 +378,7 @@ def test_read_only_store_fails_before_any_work_with_one_line(st, tmp_path):
     assert sorted(st.root.rglob("*")) == before
 
 
+@pytest.mark.slow
 def test_write_failing_midway_leaves_nothing_that_looks_complete(st, tmp_path, capsys):
     """A file size limit (as a full disk) hits the tables: exit 1 with one line, run.json says
     write_error, no partial file under a final name, no temporary file left."""
@@ -401,6 +405,7 @@ def test_write_failing_midway_leaves_nothing_that_looks_complete(st, tmp_path, c
     assert_undamaged_still_served(st, capsys, skip=None)
 
 
+@pytest.mark.slow
 def test_two_processes_resuming_the_same_sweep(st, tmp_path, capsys):
     cmd = [sys.executable, "-m", "rdsexp", *SWEEP, f"store={st.root}"]
     procs = [subprocess.Popen(cmd, cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
@@ -417,6 +422,7 @@ def test_two_processes_resuming_the_same_sweep(st, tmp_path, capsys):
     assert_undamaged_still_served(st, capsys, skip=None)
 
 
+@pytest.mark.slow
 def test_sweep_killed_during_its_summary_write(st, tmp_path, capsys):
     proc = subprocess.run([sys.executable, str(REPO / "tests" / "faulty_rdsexp.py"), "kill:summary.parquet",
                            *SWEEP, f"store={st.root}"], cwd=tmp_path, capture_output=True, text=True)

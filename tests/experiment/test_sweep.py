@@ -44,6 +44,7 @@ def basic(tmp_path_factory):
     return table_hashes(sweep(tmp_path_factory.mktemp("basic"), "basic", "hydra/launcher=basic", SEEDS, process=False))
 
 
+@pytest.mark.slow
 def test_joblib_workers_give_the_basic_tables_and_a_complete_summary(tmp_path, basic):
     sweep_dir = sweep(tmp_path, "joblib", "hydra/launcher=joblib", "hydra.launcher.n_jobs=2", SEEDS)
     assert table_hashes(sweep_dir) == basic
@@ -51,6 +52,7 @@ def test_joblib_workers_give_the_basic_tables_and_a_complete_summary(tmp_path, b
     assert sorted(summary["job"]) == list(range(4)) and (summary["status"] == "complete").all()
 
 
+@pytest.mark.slow
 def test_submitit_local_gives_the_basic_tables(tmp_path, basic):
     # hydra/launcher=slurm uses the same submitit code path; submitit_local runs it without Slurm
     sweep_dir = sweep(tmp_path, "submitit", "hydra/launcher=submitit_local", "seed=0,1")
@@ -60,6 +62,7 @@ def test_submitit_local_gives_the_basic_tables(tmp_path, basic):
 
 @pytest.mark.skipif(importlib.util.find_spec("hydra_plugins.hydra_ray_launcher") is None,
                     reason='needs the ray extra: pip install ".[ray]"')
+@pytest.mark.slow
 def test_ray_cluster_gives_the_basic_tables(tmp_path, basic):
     ray = shutil.which("ray", path=str(Path(sys.executable).parent)) or "ray"
     start = subprocess.run([ray, "start", "--head", "--num-cpus=2", "--include-dashboard=false",

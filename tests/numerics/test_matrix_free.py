@@ -108,6 +108,7 @@ def test_moment_map_and_dominant_term():
 
 
 @pytest.mark.parametrize("kind", KINDS)
+@pytest.mark.slow
 def test_ms_rate_equals_the_dense_eigenvalues(kind):
     """F = 0, a random gain and the rate-optimal gain (the optimization crowds eigenvalues around rho),
     n = 11..16. Not the optimal gain of a deterministic loop: it tends to dead beat, a Jordan block
@@ -163,6 +164,7 @@ def power_iteration_moments(system, dist, F, steps, rng):
 
 
 @pytest.mark.parametrize("n", [50, 100])
+@pytest.mark.slow
 def test_ms_rate_at_scale_is_consistent(n):
     """The eigen-equation residual, the Collatz-Wielandt bracket of the returned vector (positive
     definite here, so the bracket proves rho to 1e-8), and a bracket from the exact second moments
@@ -228,6 +230,7 @@ def test_lyapunov_and_exact_costs_equal_the_dense_solve(kind):
 
 
 @pytest.mark.parametrize("n", [50, 100])
+@pytest.mark.slow
 def test_lyapunov_at_scale_is_consistent(n):
     """The residual at working precision, P > 0, and P against the fixed point P <- Qbar + T*(P) iterated
     from 0 (Smith's iteration, written here) on a loop of rate 0.9."""
@@ -276,6 +279,7 @@ def dense_ms_lqr(system, dist, Q, R):
 
 
 @pytest.mark.parametrize("kind", KINDS)
+@pytest.mark.slow
 def test_ms_lqr_equals_the_dense_newton_iteration(kind):
     """n = 17 from the open loop, n = 20 with A_0 scaled by 1.2, an open loop that is not mean-square
     stable (the start is then a value-iteration gain, or none)."""
@@ -302,6 +306,7 @@ def test_ms_lqr_equals_the_dense_newton_iteration(kind):
 
 
 @pytest.mark.parametrize("n", [50, 100])
+@pytest.mark.slow
 def test_ms_lqr_at_scale_is_consistent(n):
     """The cost matrix of the returned gain by Smith's iteration (written here) solves the generalized
     Riccati equation and has the reported trace; the rate is the gain's (eigen-equation residual)."""
@@ -347,6 +352,7 @@ def dense_policy_iteration(system, dist, steps=60):
 
 
 @pytest.mark.parametrize("kind", KINDS)
+@pytest.mark.slow
 def test_policy_iteration_bracket_at_n_up_to_30(kind):
     """lam is the exact rate of F (dense eigenvalues), lam_lower is below the rate of every gain tried,
     `optimal` only with a bracket below 1e-7, and lam is the optimum a dense policy iteration reaches."""
@@ -367,6 +373,7 @@ def test_policy_iteration_bracket_at_n_up_to_30(kind):
 
 
 @pytest.mark.parametrize("n", [50, 100])
+@pytest.mark.slow
 def test_policy_iteration_at_scale(n):
     """A proven bracket of width <= 1e-6 at n = 50, 100: lam is F's rate (its Perron pair's residual and
     a Collatz-Wielandt bracket), lam_lower below the rates of nearby gains."""

@@ -595,6 +595,7 @@ def test_lag_auto_reaches_every_component(tmp_path):
     assert lags == {("paper", False): 1, ("multiplicative", False): 1, ("x1_only", False): 2, ("x1_only", True): 0}
 
 
+@pytest.mark.slow
 def test_static_mean_start_acts_with_the_model_observer_only(hydra_context):
     """controller.start is the loop's EnKF before a path's first model, which only observer=model draws from:
     on the paper's plant (observer random_walk, the walk throughout) both starts give the same bytes and the
@@ -692,6 +693,7 @@ def test_online_run_records_the_controller_table(tmp_path):
 
 
 @pytest.mark.parametrize("plant", ["paper", "multiplicative", "dropout"])
+@pytest.mark.slow
 def test_online_loop_does_not_depend_on_chunks_of_paths_or_workers(hydra_context, plant):
     """One controller per chunk of paths, chunks in worker processes as the offline loops' are: the
     decisions, rows and metrics equal those of one batch, bit for bit; with the random walk (paper) and with
@@ -710,6 +712,7 @@ def test_online_loop_does_not_depend_on_chunks_of_paths_or_workers(hydra_context
     assert (tables[0]["controller"]["k"] >= 0).any()
 
 
+@pytest.mark.slow
 def test_report_tables_the_controllers_sweep_per_plant(tmp_path):
     """fig_online: per plant, a figure and a table whose numbers are the runs' metrics (means over
     seeds), and a verdict that names exactly the settings meeting its criterion."""
@@ -810,6 +813,7 @@ def test_probe_adds_its_signs_to_u_until_its_step_and_auto_ends_where_the_rate_w
     assert build(compose("config", overrides=["controller=online"])).controller.online.probe == 0
 
 
+@pytest.mark.slow
 def test_the_summary_says_whether_the_probe_reaches_into_the_rate_window(tmp_path):
     """With controller.probe the run's summary names it, and says so where it runs into the rate window (the
     online loop's empirical rate then measures the probed loop); without the probe it says nothing."""

@@ -113,6 +113,7 @@ def test_closed_loop_rate_reproduces_paper():
     assert hi > 0.8432
 
 
+@pytest.mark.slow
 def test_mean_model_gains_fail_in_closed_loop():
     """Pole placement blows up (every path beyond the bound). The nominal LMI's infimum on the mean
     model is 0 (dead beat), not attained, so where its bisection stops is rounding (the paper's

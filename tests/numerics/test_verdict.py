@@ -59,6 +59,7 @@ def scalar_paths(a_draws: np.ndarray, K: int) -> np.ndarray:
 
 
 @pytest.mark.parametrize("law, P", [("student", 30), ("student", 200), ("bernoulli", 30), ("uniform", 100)])
+@pytest.mark.slow
 def test_interval_covers_the_exact_rate_of_a_heavy_tailed_scalar_system(law, P):
     """x_{k+1} = a_k x_k: exact mean-square rate sqrt(E a^2) over any window. a = 0.9 + 0.3 t_5 (heavy
     tails: t with 5 degrees of freedom, E a^2 = 0.81 + 0.09 * 5/3), a lossy actuator (1.25 w.p. 0.7, else

@@ -21,6 +21,7 @@ def ideal_loop(seed: int):
 
 
 @pytest.mark.parametrize("seeds, paths", [(1, 200), (4, 50)])
+@pytest.mark.slow
 def test_bootstrap_interval_covers_the_true_rate_at_its_nominal_level(seeds, paths):
     """Over R repetitions (independent paths of one ideal loop), the 95% interval of the two-point
     rate k = 10..20 covers the exact ratio of the second moments in a fraction of repetitions within

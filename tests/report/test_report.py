@@ -79,6 +79,7 @@ def finite_axes(fig):
     return True
 
 
+@pytest.mark.slow
 def test_each_figure_script_draws_finite_data(root):
     runs = report.load_runs(root, "paper")
     proposed = report.select(runs, gain__method="proposed")
@@ -92,6 +93,7 @@ def test_each_figure_script_draws_finite_data(root):
     assert finite_axes(fig_sweeps.draw({name: report.load_runs(root, name) for name in SWEEPS if name != "paper"}))
 
 
+@pytest.mark.slow
 def test_reproduction_tables_split_inputs_from_results(written):
     """Every reference number is in exactly one of the two tables, in the reference's order; configured
     inputs carry no verdict, computed results do, and the summary counts results only."""
@@ -116,6 +118,7 @@ def test_reproduction_tables_split_inputs_from_results(written):
     assert "Verdicts of the computed results: " + ", ".join(f"{v} {n}" for v, n in counts.items()) in page
 
 
+@pytest.mark.slow
 def test_new_reproduction_rows_on_small_runs(root, written):
     """The rows not in the reference: the identification input consistent with the paper's moments
     (one per sweep, the verdict follows identification_input's table) and the closed-loop rate with
@@ -153,6 +156,7 @@ def test_new_reproduction_rows_on_small_runs(root, written):
             assert table.loc[number[0], "verdict"] == ("within Monte Carlo error" if inside else "differs")
 
 
+@pytest.mark.slow
 def test_lineage_hashes_match_the_tables(written):
     outputs = sorted(written.glob("*.json"))
     assert {p.stem for p in outputs} >= {"estimation", "decay_proposed", "decay_open", "gain_comparison",
@@ -168,6 +172,7 @@ def test_lineage_hashes_match_the_tables(written):
                 assert files.table_hash(pd.read_parquet(Path(run["dir"]) / f"{name}.parquet")) == sha
 
 
+@pytest.mark.slow
 def test_rerun_rewrites_identical_files_without_simulating(root, written, tmp_path):
     before = {p.name: p.read_bytes() for p in written.iterdir()}
     runs_before = sorted(p for p in root.rglob("run.json"))
@@ -178,6 +183,7 @@ def test_rerun_rewrites_identical_files_without_simulating(root, written, tmp_pa
         assert (again / name).read_bytes() == data, name
 
 
+@pytest.mark.slow
 def test_second_call_on_the_same_output_renders_no_figure(root, written, tmp_path, monkeypatch):
     """Every figure's lineage (shared with its table of the same name) is found up to date: nothing is
     rendered again (rendering was most of a second call), and every file stays the same."""
@@ -217,6 +223,7 @@ def test_a_sweep_that_fails_ends_the_report_with_one_line_saying_how_to_resume(t
     assert not (tmp_path / "report").exists()
 
 
+@pytest.mark.slow
 def test_report_refuses_mixed_code_versions(root, tmp_path):
     from rdsexp.experiment.store import Run
     runs = report.load_runs(root, "paper")
@@ -232,6 +239,7 @@ def test_report_refuses_mixed_code_versions(root, tmp_path):
     {"overrides": ["plant=dropout"], "summary": {"plant": "dropout", "model": "plant's own structure"}},
     {"overrides": ["enkf.q_scale=4"], "summary": {}},                  # changes what the figure shows
 ])
+@pytest.mark.slow
 def test_a_users_sweep_of_the_same_name_is_not_the_papers(root, tmp_path, change):
     """The report takes the shipped sweep's runs on the paper's plant, not the latest sweep of that name: a
     newer `+sweep=ensemble_size` of another plant, or with an override the sweep does not vary, is left out."""
@@ -255,6 +263,7 @@ def test_a_users_sweep_of_the_same_name_is_not_the_papers(root, tmp_path, change
     assert len(report.load_runs(tmp_path / "outputs")) == 2 * len(papers)     # both stored, only one is the paper's
 
 
+@pytest.mark.slow
 def test_tampered_table_is_refused(root, tmp_path):
     import shutil
     run = report.load_runs(root, "paper")[0]
@@ -268,6 +277,7 @@ def test_tampered_table_is_refused(root, tmp_path):
         report.Run(copy).table("metrics")
 
 
+@pytest.mark.slow
 def test_figures_meet_the_print_requirements(root, written):
     """decay_*: one y-range, numbers in captions not titles, the lambda line names its lambda;
     gain_comparison: human labels in a legend outside the axes, the seed stated; sweeps: a diverged
@@ -323,6 +333,7 @@ SCRIPTS = ("closed_loop_rate", "fig_decay", "fig_estimation", "fig_filters", "fi
            "identification_input", "reproduction_table", "robust_width")
 
 
+@pytest.mark.slow
 def test_report_scripts_without_stored_runs_end_with_one_line(tmp_path, capsys):
     """Every report script (paper.py runs missing sweeps; pole_sets needs none) on an empty store:
     exit code 1 and one line naming what is missing, never a traceback. Each script's main runs

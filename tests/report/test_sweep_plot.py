@@ -176,6 +176,7 @@ def test_files_and_lineage_name_exactly_the_runs_drawn(sweep, tmp_path):
     assert "| enkf.ensemble_size | enkf.q_scale | mean |" in paths[2].read_text()
 
 
+@pytest.mark.slow
 def test_drawing_twice_gives_identical_bytes(sweep, tmp_path):
     first = sweep_plot.plot(sweep, ["ensemble_size", "q_scale"], "closed_loop_rate", out=tmp_path / "a", name="grid")
     second = sweep_plot.plot(sweep, ["ensemble_size", "q_scale"], "closed_loop_rate", out=tmp_path / "b", name="grid")

@@ -89,6 +89,7 @@ def mlflow_runs(client, experiment_id):
     return {r.info.run_id: r for r in client.search_runs([experiment_id], max_results=1000)}
 
 
+@pytest.mark.slow
 def test_each_run_with_its_params_metrics_curves_tags_and_artifacts(exported, tmp_path):
     report, client, table = exported
     assert sorted(report.exported) == sorted(table["id"]) and len(table) == 3 and not report.already
@@ -148,6 +149,7 @@ def test_each_run_with_its_params_metrics_curves_tags_and_artifacts(exported, tm
         assert Path(local).read_bytes() == (run_dir / name).read_bytes()
 
 
+@pytest.mark.slow
 def test_the_sweep_is_a_parent_run_and_a_single_run_is_top_level(exported):
     report, client, table = exported
     found = mlflow_runs(client, report.experiment_id)
@@ -173,6 +175,7 @@ def test_the_sweep_is_a_parent_run_and_a_single_run_is_top_level(exported):
     assert "recording.rrd" not in {f.path for f in client.list_artifacts(top.info.run_id)}
 
 
+@pytest.mark.slow
 def test_a_second_export_adds_nothing(exported, store, capsys):
     report, client, _ = exported
     before = mlflow_runs(client, report.experiment_id)
@@ -188,6 +191,7 @@ def test_a_second_export_adds_nothing(exported, store, capsys):
     assert len(client.get_metric_history(report.runs[report.exported[0]], "rms/closed_loop")) == steps
 
 
+@pytest.mark.slow
 def test_an_interrupted_export_is_completed_with_what_it_lacks(uri, store):
     """A run created by an export that stopped part-way (some params, part of a curve, no artifacts, no
     tag rdsexp.export) gets the rest, each curve step once, and no second MLflow run."""
@@ -209,6 +213,7 @@ def test_an_interrupted_export_is_completed_with_what_it_lacks(uri, store):
     assert again.already == [row.id] and not again.completed and not again.exported
 
 
+@pytest.mark.slow
 def test_failed_runs_are_exported_incomplete_and_damaged_ones_left_out(uri, store, tmp_path):
     """A run that ended in an error is exported with what it has (MLflow status FAILED); a run still being
     computed (status incomplete) and a run whose table was modified after it are named, not exported."""
@@ -238,6 +243,7 @@ def test_failed_runs_are_exported_incomplete_and_damaged_ones_left_out(uri, stor
     assert "trajectories.parquet" not in names and {"run.json", "exact.parquet"} <= names
 
 
+@pytest.mark.slow
 def test_errors_in_one_line(store, capsys):
     assert runs.main(["export", "--mlflow", "http://127.0.0.1:9", "--root", str(store)]) == 2
     assert capsys.readouterr().err.strip() == "rdsexp-runs: export: name a SWEEP or RUN, or give --where"
@@ -256,6 +262,7 @@ def test_mlflow_keys():
     assert to_mlflow.mlflow_key("x", {"x": 1}) == "x~2"
 
 
+@pytest.mark.slow
 def test_reused_copies_add_no_mlflow_run_and_no_second_parent(uri, store):
     """The sweep command relaunched (every job a reused copy, a new sweep directory) and the single run's
     command run again: exported, they add no MLflow run and no parent; each copy is tagged on its
@@ -281,6 +288,7 @@ def test_reused_copies_add_no_mlflow_run_and_no_second_parent(uri, store):
     assert "copies 3 (on their originals' runs)" in whole.lines()[0]
 
 
+@pytest.mark.slow
 def test_a_data_run_is_exported_with_its_data_file_as_identity(uri, tmp_path):
     """A data run (recorded data in place of a plant) on the real server: no plant hash, the data file's
     sha256 as its identity tag, its key numbers (exact rates on the identified model) as metrics."""
@@ -297,6 +305,7 @@ def test_a_data_run_is_exported_with_its_data_file_as_identity(uri, tmp_path):
     assert run.data.tags["summary.validation_modeled_better"] == str(info["summary"]["validation"]["modeled_better"])
 
 
+@pytest.mark.slow
 def test_a_directory_uri_is_one_line(store, capsys, tmp_path):
     """MLflow refuses to write a plain directory: the export says so in one line, exit 2."""
     assert runs.main(["export", "--mlflow", f"file://{tmp_path}/mlruns", "--where", "seed == 0",

@@ -118,6 +118,7 @@ def test_ms_lqr_small_n_equals_the_dense_kronecker_newton(case):
 
 
 @pytest.mark.parametrize("case", ["random", "nearly_deterministic", "open_loop_unstable", "factors_7"])
+@pytest.mark.slow
 def test_ms_lqr_preconditioned_anderson_equals_the_dense_kronecker_newton(case):
     """n = 17, 18 (beyond SYM_SOLVE_MAX_N: the accelerated fixed-point iteration): systems drawn until two
     are mean-square stabilizable, each drawn one checked (not stabilizable ones too)."""

@@ -292,6 +292,7 @@ def test_robust_box_on_paper_model_width_zero_is_the_nominal_case():
     assert rx.ms_rate(system, dist, box.F) > 1 and rx.ms_rate(system, dist, nominal.F) > 1
 
 
+@pytest.mark.slow
 def test_max_width_brackets_both_boundaries_on_the_paper_model():
     """Between the certified and the proven boundary lie widths that nothing decides (the paper's box
     LMIs are weakly infeasible), so the proven one is searched beyond the first width not certified."""
