@@ -1,13 +1,14 @@
 """The fast subset, `python -m pytest -m "not slow"` (docs/development.md), exercises every module of rdsexp/.
 
 A test not marked slow names a module when its body, its parametrize arguments, or the helpers, fixtures
-and module-level values of its file and of conftest.py that it reaches, read a name that resolves to the
+and module-level values of its file and of conftest.py that it reaches read a name that resolves to the
 module or to something defined in it (`rx.paper.plant`: rdsexp/__init__.py and paper; `from
-rdsexp.experiment.store import Run`: store/__init__.py and store/run.py), or run it as `python -m MODULE`.
-The conftest helper `rdsexp(...)` names cli and the catalog (its in-process main()). A module is exercised
-when a fast test names it, or names a module that imports a name from it (one step: `rx.synthesize`
-dispatches to synthesis/riccati.py, a run's cli writes through store/writer.py). Read from the source, not
-from a run, so the answer does not depend on which worker ran what."""
+rdsexp.experiment.store import Run`: store/__init__.py and store/run.py), or run it as `python -m MODULE`;
+the conftest helper `rdsexp(...)` names cli and the catalog (its in-process main()). A module is exercised
+when a fast test names it; names a module that imports a name from it (one step: a run's cli writes
+through store/writer.py); or names a package whose __init__.py imports it, directly or through the
+package's other modules (`rx.synthesize(..., "proposed")` runs synthesis/lmi.py and its bisection.py).
+Read from the source, not from a run, so the answer does not depend on which worker ran what."""
 import ast
 import importlib
 import inspect
@@ -66,7 +67,7 @@ def parsed(path: Path):
                 for name in ast.walk(target):
                     if isinstance(name, ast.Name):
                         defs[name.id] = node
-    return tree, defs, imports(tree.body)
+    return tree, defs, imports([n for n in tree.body if not isinstance(n, (ast.FunctionDef, ast.ClassDef))])
 
 
 def fixture_of(node) -> bool:
@@ -148,6 +149,19 @@ def imported_from(module: str) -> frozenset[str]:
     return frozenset(found & set(MODULES) - {module})
 
 
+@cache
+def facade(package: str) -> frozenset[str]:
+    """The modules of `package` that its __init__.py imports, directly or through one another (what a call
+    through the package reaches: `rx.synthesize(..., "proposed")` runs synthesis/lmi.py and its bisection.py)."""
+    found, todo = set(), [package]
+    while todo:
+        for module in imported_from(todo.pop()) - found:
+            if module.startswith(f"{package}."):
+                found.add(module)
+                todo.append(module)
+    return frozenset(found)
+
+
 def reached(path: Path, test: ast.FunctionDef) -> set[str]:
     """The modules of rdsexp the test `test` of the file `path` names, through what it reaches."""
     todo = [(path, test)]
@@ -160,10 +174,16 @@ def reached(path: Path, test: ast.FunctionDef) -> set[str]:
             continue
         seen.add((where, id(node)))
         _, defs, names = parsed(where)
-        local = names | imports([node])
+        inside = imports([node])
+        local = names | inside
         requested = {a.arg for a in node.args.args} if isinstance(node, ast.FunctionDef) else set()
+        # a variable of the function (`lmi = rx.synthesize(...)`) is not the module or helper of that name
+        bound = {n.id for n in ast.walk(node) if isinstance(n, ast.Name) and isinstance(n.ctx, ast.Store)} | {
+            a.arg for a in ast.walk(node) if isinstance(a, ast.arg)} - requested - set(inside)
         modules |= python_m(node)
         for name, attrs in [*chains(node), *((r, []) for r in requested)]:
+            if name in bound and not isinstance(node, (ast.Assign, ast.AnnAssign)):
+                continue
             if name in defs and defs[name] is not node:
                 todo.append((where, defs[name]))
             elif name in local and local[name][0] in HELPERS:          # from conftest import SMALL, rdsexp
@@ -196,7 +216,8 @@ def exercised() -> dict[str, list[str]]:
     found = {}
     for path, test in fast_tests():
         named = reached(path, test)
-        for module in named.union(*(imported_from(m) for m in named)):
+        packages = [m for m in named if MODULES[m].name == "__init__.py"]
+        for module in named.union(*(imported_from(m) for m in named), *(facade(p) for p in packages)):
             found.setdefault(module, []).append(f"{path.relative_to(REPO)}::{test.name}")
     return found
 
