@@ -77,8 +77,9 @@ EXPERIMENT = ["metrics", "store", "schema", "data", "config", "montecarlo", "pip
 STORE_READERS = {"read_run", "read_runs", "read_table", "run_damage", "intact_runs", "RUN_JSON"}
 EXPERIMENTS = REPO / "experiments"
 # experiments/fingerprint.py hashes the stored files themselves (a refactoring's proof of identical results);
-# benchmark_store.py builds stores of copied run.json files to time the store's own reading of them
-RAW_RECORD_SCRIPTS = {"fingerprint.py", "benchmark_store.py"}
+# benchmark_store.py and benchmark_caches.py build stores of copied run.json files to time the store's own reading
+# of them
+RAW_RECORD_SCRIPTS = {"fingerprint.py", "benchmark_store.py", "benchmark_caches.py"}
 # `.info` that is no run's run.json: a numerics result's solver details (SynthesisResult.info), a data file's
 # description (exp.data.data.info), MLflow's RunInfo (run.info.run_id, ...), logging (log.info(...), logger.info)
 NOT_A_RUN = {"res", "pi", "lq", "prop", "chosen", "exp.data.data", "log", "logger"}
