@@ -265,30 +265,10 @@ def simulate(plant: AffineRandomSystem | None, enkf: EnKF, *, F=None, d, q0, psi
     keep_forecast: keep every member's predicted output (Trajectories.y_forecast).
     """
     F, d, q0, psi0, P0 = check_settings(plant, enkf, F, d, q0, psi0, P0, paths, estimate, recorded)
-    if recorded is not None and not filter_sees_d:
-        raise ValueError("filter_sees_d: must be True with recorded data (the EnKF is told the recorded input)")
+    _check_counts(ensemble_size, paths, first_path, block, recorded, filter_sees_d)
     M, P, K = int(ensemble_size), int(paths), d.shape[0] - 1
-    if M < 2:
-        raise ValueError(f"ensemble_size: {M}, must be >= 2 (the EnKF needs a sample covariance)")
-    if P < 1:
-        raise ValueError(f"paths: {P}, must be >= 1")
-    if first_path < 0:
-        raise ValueError(f"first_path: {first_path}, must be >= 0")
-    if block < 1:
-        raise ValueError(f"block: {block}, must be >= 1")
-    model, dim, ny, width = enkf.model, enkf.dim, enkf.model.ny, enkf.width
-    md = enkf.d_slice.stop - dim
-    if md:                                           # [x; xi; d]: d_{0|-1} ~ N(0, Q_d)
-        psi0 = np.concatenate([psi0, np.zeros(md)])
-        P0 = np.block([[P0, np.zeros((dim, md))], [np.zeros((md, dim)), enkf.disturbance]])
-    if enkf.static_mean:                             # mu_0 ~ N(xi_{0|-1} mean, c mean_spread^2 Q_xi): the guess's doubt
-        xi_rows = slice(model.n, dim)
-        psi0 = np.concatenate([psi0, psi0[xi_rows]])
-        P0_mu = enkf.start_scale * enkf.mean_spread ** 2 * enkf.Q[xi_rows, xi_rows]
-        P0 = np.block([[P0, np.zeros((len(P0), model.p))], [np.zeros((model.p, len(P0))), P0_mu]])
-    if enkf.lag:                                     # the smoother's past draws start at the initial xi, fixed
-        psi0 = np.concatenate([psi0, np.tile(psi0[model.n:dim], enkf.lag)])
-        P0 = np.block([[P0, np.zeros((len(P0), width - len(P0)))], [np.zeros((width - len(P0), width))]])
+    model, ny, width = enkf.model, enkf.model.ny, enkf.width
+    psi0, P0 = _augmented_start(enkf, psi0, P0)
 
     # the plant (its coefficients from the PLANT streams) or the recorded data: what gives (u_k, y_k)
     source = _RecordedSource(recorded) if recorded is not None else \
@@ -302,32 +282,16 @@ def simulate(plant: AffineRandomSystem | None, enkf: EnKF, *, F=None, d, q0, psi
     inflation = None
     psi[...] = psi0 + np.stack([g.standard_normal((M, width)) for g in enkf_rngs]) @ sqrtm_psd(P0)
 
-    nan = lambda *shape: np.full((K + 1, P) + shape, np.nan)
-    out = Trajectories(q=nan(n_q), y=nan(ny), u=nan(model.m), psi_pred_mean=nan(dim),
-                       psi_pred_std=nan(dim), psi_filt_mean=nan(dim), psi_filt_std=nan(dim),
-                       failed_at=np.full(P, -1), failure=np.full(P, "", dtype=object), n=model.n,
-                       members=nan(M, dim) if keep_members else None,
-                       xi_filt_cov=nan(model.p, model.p) if keep_xi_cov else None, s=source.s,
-                       d_filt_mean=nan(md) if md else None, d_filt_std=nan(md) if md else None,
-                       y_forecast=nan(M, ny) if keep_forecast else None)
+    out = _empty_trajectories(enkf, K, P, M, n_q, source.s, keep_members=keep_members, keep_xi_cov=keep_xi_cov,
+                              keep_forecast=keep_forecast)
     alive = np.ones(P, dtype=bool)
     if controller is not None:
         # per-path gains (P, m, n): the same product per path as one shared (m, n) gain, bit for bit
         F = np.broadcast_to(F, (P, model.m, model.n)).copy()
         out.gain_index = np.zeros((K + 1, P), dtype=np.int64)
         adopted = np.zeros(P, dtype=np.int64)
-    # EnKF noise, `block` steps at a time from each path's own stream, drawn by a helper thread
-    # into one of two buffers while this thread filters with the other (numpy's generators release
-    # the GIL); each stream is still consumed in order, so results do not depend on the threading
-    # (the etkf variant draws no output perturbations: nv = 0 and only e_w per member and step)
     nv = enkf.output_noise_dim
-    buffers = np.empty((2, P, min(block, K + 1), M, nv + width))
-
-    def draw(k0: int) -> np.ndarray:
-        noise = buffers[(k0 // block) % 2]
-        for g, buffer in zip(enkf_rngs, noise):
-            g.standard_normal(out=buffer[:K + 1 - k0])
-        return noise
+    draw = _noise_blocks(enkf_rngs, K, M, nv + width, block)
 
     def fail(mask, k, reason):
         new = mask & alive
@@ -374,18 +338,7 @@ def simulate(plant: AffineRandomSystem | None, enkf: EnKF, *, F=None, d, q0, psi
             if keep_forecast:                       # psi still holds psi_{k|k-1} (the update wrote `filtered`)
                 out.y_forecast[k] = np.where(keep[:, :, None], enkf.outputs(psi, u_filter), np.nan)
             q = source.q if recorded is None else np.full((P, n_q), np.nan)
-            for name, value in (("q", q), ("y", y), ("u", u), ("psi_pred_mean", a.pred_mean[:, :dim]),
-                                ("psi_pred_std", a.pred_std[:, :dim]), ("psi_filt_mean", a.filt_mean[:, :dim]),
-                                ("psi_filt_std", a.filt_std[:, :dim])):
-                getattr(out, name)[k] = np.where(keep, value, np.nan)
-            if md:
-                out.d_filt_mean[k] = np.where(keep, a.filt_mean[:, enkf.d_slice], np.nan)
-                out.d_filt_std[k] = np.where(keep, a.filt_std[:, enkf.d_slice], np.nan)
-            if keep_members:
-                out.members[k] = np.where(keep[:, :, None], a.psi[..., :dim], np.nan)
-            xi_cov = None
-            if keep_xi_cov:
-                out.xi_filt_cov[k] = xi_cov = _xi_cov(a, slice(model.n, dim), keep)
+            xi_cov = _store_step(out, k, enkf, a, keep, q, y, u)
             if controller is not None and controller.needs_xi_cov:
                 xi_cov = _xi_cov(a, enkf.xi_estimate, keep) if enkf.lag or xi_cov is None else xi_cov
             if progress is not None:
@@ -396,18 +349,109 @@ def simulate(plant: AffineRandomSystem | None, enkf: EnKF, *, F=None, d, q0, psi
                 break
             if controller is not None:
                 out.gain_index[k] = adopted
-                # x_{k|k} and the xi estimate it models from (with the EnKF's lag: smoothed)
-                modeled = np.concatenate([a.filt_mean[:, :model.n], a.filt_mean[:, enkf.xi_estimate]], axis=1)
-                change = controller.update(k, np.where(keep, modeled, np.nan), alive.copy(), xi_cov)
-                if change is not None:                  # the new gains act from step k+1 on
-                    idx, gains = change
-                    F[idx] = gains
-                    adopted[idx] += 1
+                _adopt(controller, k, enkf, a, keep, alive, xi_cov, F, adopted)
             source.advance(k, u)
             prior = controller.observer_prior() if controller is not None and hasattr(controller, "observer_prior") \
                 else None
             enkf._predict(filtered, u_filter, e_w, out=psi, path_prior=prior)
     return out
+
+
+def _noise_blocks(enkf_rngs: list, K: int, M: int, width: int, block: int):
+    """draw(k0): the EnKF noise of steps k0..k0+block-1 (P, block, M, width), from each path's own stream.
+
+    A helper thread draws into one of two buffers while the loop filters with the other (numpy's generators
+    release the GIL); each stream is still consumed in order, so results do not depend on the threading (the
+    etkf variant draws no output perturbations: only e_w per member and step)."""
+    buffers = np.empty((2, len(enkf_rngs), min(block, K + 1), M, width))
+
+    def draw(k0: int) -> np.ndarray:
+        noise = buffers[(k0 // block) % 2]
+        for g, buffer in zip(enkf_rngs, noise):
+            g.standard_normal(out=buffer[:K + 1 - k0])
+        return noise
+    return draw
+
+
+def _adopt(controller: GainController, k: int, enkf: EnKF, a, keep: np.ndarray, alive: np.ndarray, xi_cov,
+           F: np.ndarray, adopted: np.ndarray) -> None:
+    """The controller's decision after step k's filter, from x_{k|k} and the xi estimate it models from (with
+    the EnKF's lag: smoothed): the paths it re-designs get their new gains in F (P, m, n), acting from step k+1
+    on, and their count of adopted gains (P,) goes up."""
+    modeled = np.concatenate([a.filt_mean[:, :enkf.model.n], a.filt_mean[:, enkf.xi_estimate]], axis=1)
+    change = controller.update(k, np.where(keep, modeled, np.nan), alive.copy(), xi_cov)
+    if change is not None:
+        idx, gains = change
+        F[idx] = gains
+        adopted[idx] += 1
+
+
+def _check_counts(ensemble_size: int, paths: int, first_path: int, block: int, recorded, filter_sees_d: bool):
+    """`simulate`'s counts and the recorded data's input, each a one-line ValueError naming the argument."""
+    if recorded is not None and not filter_sees_d:
+        raise ValueError("filter_sees_d: must be True with recorded data (the EnKF is told the recorded input)")
+    if int(ensemble_size) < 2:
+        raise ValueError(f"ensemble_size: {int(ensemble_size)}, must be >= 2 (the EnKF needs a sample covariance)")
+    if int(paths) < 1:
+        raise ValueError(f"paths: {int(paths)}, must be >= 1")
+    if first_path < 0:
+        raise ValueError(f"first_path: {first_path}, must be >= 0")
+    if block < 1:
+        raise ValueError(f"block: {block}, must be >= 1")
+
+
+def _augmented_start(enkf: EnKF, psi0: np.ndarray, P0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The initial ensemble's mean (width,) and covariance (width, width) over the EnKF's whole state: psi0, P0
+    of [x; xi], then the unknown input's d_{0|-1} ~ N(0, Q_d), the static mean's mu_0 ~ N(xi_{0|-1} mean,
+    c mean_spread^2 Q_xi) (the guess's doubt) and the smoother's past draws, fixed at the initial xi."""
+    model, dim, width = enkf.model, enkf.dim, enkf.width
+    md = enkf.d_slice.stop - dim
+    if md:                                           # [x; xi; d]: d_{0|-1} ~ N(0, Q_d)
+        psi0 = np.concatenate([psi0, np.zeros(md)])
+        P0 = np.block([[P0, np.zeros((dim, md))], [np.zeros((md, dim)), enkf.disturbance]])
+    if enkf.static_mean:
+        xi_rows = slice(model.n, dim)
+        psi0 = np.concatenate([psi0, psi0[xi_rows]])
+        P0_mu = enkf.start_scale * enkf.mean_spread ** 2 * enkf.Q[xi_rows, xi_rows]
+        P0 = np.block([[P0, np.zeros((len(P0), model.p))], [np.zeros((model.p, len(P0))), P0_mu]])
+    if enkf.lag:
+        psi0 = np.concatenate([psi0, np.tile(psi0[model.n:dim], enkf.lag)])
+        P0 = np.block([[P0, np.zeros((len(P0), width - len(P0)))], [np.zeros((width - len(P0), width))]])
+    return psi0, P0
+
+
+def _empty_trajectories(enkf: EnKF, K: int, P: int, M: int, n_q: int, s, *, keep_members: bool, keep_xi_cov: bool,
+                        keep_forecast: bool) -> Trajectories:
+    """The result arrays (K+1, P, ...), NaN until a step stores its values (`_store_step`)."""
+    model, dim, ny = enkf.model, enkf.dim, enkf.model.ny
+    md = enkf.d_slice.stop - dim
+    nan = lambda *shape: np.full((K + 1, P) + shape, np.nan)
+    return Trajectories(q=nan(n_q), y=nan(ny), u=nan(model.m), psi_pred_mean=nan(dim),
+                        psi_pred_std=nan(dim), psi_filt_mean=nan(dim), psi_filt_std=nan(dim),
+                        failed_at=np.full(P, -1), failure=np.full(P, "", dtype=object), n=model.n,
+                        members=nan(M, dim) if keep_members else None,
+                        xi_filt_cov=nan(model.p, model.p) if keep_xi_cov else None, s=s,
+                        d_filt_mean=nan(md) if md else None, d_filt_std=nan(md) if md else None,
+                        y_forecast=nan(M, ny) if keep_forecast else None)
+
+
+def _store_step(out: Trajectories, k: int, enkf: EnKF, a, keep: np.ndarray, q, y, u) -> np.ndarray | None:
+    """Step k's plant, output, input and the EnKF's analysis `a` into `out` (NaN on paths not kept (P, 1));
+    returns the filtered xi's covariance (P, p, p) where it is kept, else None."""
+    dim = enkf.dim
+    for name, value in (("q", q), ("y", y), ("u", u), ("psi_pred_mean", a.pred_mean[:, :dim]),
+                        ("psi_pred_std", a.pred_std[:, :dim]), ("psi_filt_mean", a.filt_mean[:, :dim]),
+                        ("psi_filt_std", a.filt_std[:, :dim])):
+        getattr(out, name)[k] = np.where(keep, value, np.nan)
+    if out.d_filt_mean is not None:
+        out.d_filt_mean[k] = np.where(keep, a.filt_mean[:, enkf.d_slice], np.nan)
+        out.d_filt_std[k] = np.where(keep, a.filt_std[:, enkf.d_slice], np.nan)
+    if out.members is not None:
+        out.members[k] = np.where(keep[:, :, None], a.psi[..., :dim], np.nan)
+    if out.xi_filt_cov is None:
+        return None
+    out.xi_filt_cov[k] = xi_cov = _xi_cov(a, slice(enkf.model.n, dim), keep)
+    return xi_cov
 
 
 def _xi_cov(a, rows: slice, keep: np.ndarray) -> np.ndarray:
