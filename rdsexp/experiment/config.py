@@ -160,6 +160,7 @@ class FilterSettings:
     psi0: np.ndarray
     P0: np.ndarray
     disturbance: np.ndarray | None = None
+    start: str = "zero"        # where psi0's xi comes from: enkf.initial.xi (guess | zero), or given (enkf.initial.mean)
 
     @classmethod
     def from_config(cls, cfg, model: AffineRandomSystem, plant: AffineRandomSystem,
@@ -216,7 +217,7 @@ class FilterSettings:
             # in the model's xi = T s + t: a filter starting at xi = 0 feeds a wrong x_{k|k-1} back
             psi0[model.n:] = truth[0] @ xi_guess + truth[1]
         return cls(enkf=enkf, ensemble_size=M, psi0=psi0, P0=_covariance(cfg, "enkf.initial.cov", dim),
-                   disturbance=disturbance)
+                   disturbance=disturbance, start="given" if mean is not None else start)
 
 
 @dataclass(frozen=True)
@@ -232,13 +233,14 @@ class IdentificationSettings:
     gain: np.ndarray | None
     xi_guess: np.ndarray
     covariance: str = "sample"
+    prior: str = "zero"         # where xi_guess comes from: a key of PRIORS
     xi_model: str = "random_walk"
     passes: int = 0
     resamples: int = 0          # moving-block bootstrap of the modeling window (0: no uncertainty)
     block: int = 5
 
     @classmethod
-    def from_config(cls, cfg, plant: AffineRandomSystem) -> IdentificationSettings:
+    def from_config(cls, cfg, plant: AffineRandomSystem, data_run: bool = False) -> IdentificationSettings:
         K_id = _number(get(cfg, "identification.horizon"), "identification.horizon", integer=True, low=1)
         K0 = _number(get(cfg, "identification.K0"), "identification.K0", integer=True, low=0)
         K1 = _number(get(cfg, "identification.K1"), "identification.K1", integer=True, low=0)
@@ -246,7 +248,7 @@ class IdentificationSettings:
             raise ConfigError(f"identification.K1: K0 + K1 = {K0 + K1} is not allowed, must be <= "
                               f"identification.horizon = {K_id}")
         u_id = identification_input(cfg, K_id, plant.m)
-        feedback, F_id, xi_guess = _identification_feedback(cfg, plant)
+        feedback, F_id, xi_guess, prior = _identification_feedback(cfg, plant, data_run)
         covariance = get(cfg, "identification.covariance")
         if covariance not in COVARIANCES:
             raise ConfigError(f"identification.covariance: {covariance!r} is not allowed, expected one of "
@@ -258,8 +260,8 @@ class IdentificationSettings:
         passes = _number(get(cfg, "identification.passes"), "identification.passes", integer=True, low=1)
         resamples = _number(get(cfg, "identification.resamples"), "identification.resamples", integer=True, low=0)
         block = _number(get(cfg, "identification.block"), "identification.block", integer=True, low=1)
-        return cls(input=u_id, K0=K0, K1=K1, feedback=feedback, gain=F_id, xi_guess=xi_guess, covariance=covariance,
-                   xi_model=xi_model, passes=passes, resamples=resamples, block=block)
+        return cls(input=u_id, K0=K0, K1=K1, feedback=feedback, gain=F_id, xi_guess=xi_guess, prior=prior,
+                   covariance=covariance, xi_model=xi_model, passes=passes, resamples=resamples, block=block)
 
 
 @dataclass(frozen=True)
@@ -484,7 +486,7 @@ def model_prior(cfg, model: AffineRandomSystem) -> AffineRandomSystem:
 # every key a plant file may hold (conf/plant/*.yaml; README "Your own system"); any other is a typo
 PLANT_KEYS = ("name", "A", "B", "C", "D", "xi", "q0", "poles", "reference", "model", "designs", "rate_window",
               "identification_feedback", "identification_covariance", "identification_xi", "initial_xi",
-              "filter_sees_disturbance", "observer_xi", "loop_estimate")
+              "filter_sees_disturbance", "observer_xi", "loop_estimate", "nominal")
 
 
 def check_plant_keys(cfg) -> None:
@@ -559,11 +561,11 @@ def build(cfg) -> Experiment:
                       reference=reference, q0=q0, seed=seed, **group_settings(cfg, model, plant, reported))
 
 
-def group_settings(cfg, model: AffineRandomSystem, plant: AffineRandomSystem, reported) -> dict:
+def group_settings(cfg, model: AffineRandomSystem, plant: AffineRandomSystem, reported, data_run: bool = False) -> dict:
     """One validated settings object per config group (Experiment's fields filter, identification, design, loop,
     tracking, controller); `plant`: the plant, or a data run's prior (the model with its xi as the guess)."""
     check_objective(cfg)           # in this order: a config's first error is the one reported
-    identification = IdentificationSettings.from_config(cfg, plant)
+    identification = IdentificationSettings.from_config(cfg, plant, data_run)
     filter_ = FilterSettings.from_config(cfg, model, plant, identification.xi_guess)
     design = DesignSettings.from_config(cfg, model, reported)
     loop = LoopSettings.from_config(cfg, model, plant)
@@ -587,7 +589,7 @@ def build_data_run(cfg, seed: int) -> Experiment:
             reported = model.check_distribution(MomentModel(mean=reported["mean"], cov=reported["cov"]))
     prior = model_prior(cfg, model)
     holdout = _number(get(cfg, "data.holdout"), "data.holdout", low=0, high=0.9)
-    groups = group_settings(cfg, model, prior, reported)
+    groups = group_settings(cfg, model, prior, reported, data_run=True)
     if groups["controller"].kind == "online":
         raise ConfigError("controller: 'online' is not allowed in a data run (there is no plant to run it on)")
     if groups["design"].source == "reported" and reported is None:
@@ -751,12 +753,14 @@ def _rate_window(window, K: int) -> tuple[int, int] | None:
     return tuple(window)
 
 
-def _identification_feedback(cfg, plant: AffineRandomSystem) -> tuple[str, np.ndarray | None, np.ndarray]:
-    """identification.feedback (none | nominal | auto | a gain F (m x n)) and identification.xi_guess.
+def _identification_feedback(cfg, plant: AffineRandomSystem,
+                             data_run: bool) -> tuple[str, np.ndarray | None, np.ndarray, str]:
+    """identification.feedback (none | nominal | auto | a gain F (m x n)), identification.xi_guess and where it
+    comes from (`prior_guess`).
 
     xi_guess is the nominal guess of the plant's random parameters, in the plant file's xi, that a
-    stabilizing gain is designed on: prior knowledge, by default the mean of the plant file's
-    distribution."""
+    stabilizing gain is designed on and the EnKF starts from: prior knowledge, never the law the plant is
+    simulated from unless asked for (`oracle`)."""
     feedback = plain(OmegaConf.select(cfg, "identification.feedback", default="none"))
     F = None
     if isinstance(feedback, list):
@@ -766,23 +770,50 @@ def _identification_feedback(cfg, plant: AffineRandomSystem) -> tuple[str, np.nd
     elif feedback not in FEEDBACK_MODES:
         raise ConfigError(f"identification.feedback: {feedback!r} is not allowed, expected one of "
                           f"{', '.join(FEEDBACK_MODES)} or a gain [[...]] of shape (m, n) = {(plant.m, plant.n)}")
+    xi_guess, prior = prior_guess(cfg, plant, data_run)
+    return feedback, F, xi_guess, prior
+
+
+# where identification.xi_guess comes from (`prior_guess`); only `oracle` reads the law the plant is simulated from
+PRIORS = {"given": "identification.xi_guess", "nominal": "the plant file's nominal",
+          "zero": "none stated: xi = 0, the plant file's A_0, B_0", "model": "the model's prior (model.xi)",
+          "oracle": "ORACLE: the mean of the law the plant is simulated from (not blind)"}
+
+
+def prior_guess(cfg, plant: AffineRandomSystem, data_run: bool = False) -> tuple[np.ndarray, str]:
+    """The prior guess of the plant's xi (p,), in the plant file's xi, and where it comes from (a PRIORS key):
+    identification.xi_guess as given (a list), `oracle` (the mean of the plant file's law: what a simulated run
+    is judged against, so labelled), or null: the plant file's `nominal:` (what the researcher knows before the
+    experiment), else xi = 0 (the nominal system A_0, B_0 the plant file's bases are written around); a data
+    run's null is the model's prior (model.xi), else 0. A simulated run reads the law only for `oracle`."""
     guess = plain(OmegaConf.select(cfg, "identification.xi_guess"))
-    with key("identification.xi_guess"):
-        if guess is None and plant.xi_dist is None:     # a data run's model without a prior xi
-            xi_guess = np.zeros(plant.p)
-        else:
-            xi_guess = plant.check_distribution(None).mean if guess is None else np.asarray(guess, dtype=float)
-        if xi_guess.shape != (plant.p,) or not np.all(np.isfinite(xi_guess)):
-            raise ValueError(f"{guess!r} is not allowed, expected null or p = {plant.p} finite numbers "
+    nominal = None if data_run else plain(OmegaConf.select(cfg, "plant.nominal", default=None))
+    name = "identification.xi_guess" if guess is not None or nominal is None else "plant.nominal"
+    with key(name):
+        if guess == "oracle":
+            if data_run or plant.xi_dist is None:
+                raise ValueError("'oracle' is not allowed without a plant law to read (a data run has none)")
+            return plant.check_distribution(None).mean, "oracle"
+        if isinstance(guess, str):
+            raise ValueError(f"{guess!r} is not allowed, expected null, oracle or p = {plant.p} finite numbers "
                              "(the plant file's xi)")
-    return feedback, F, xi_guess
+        value, source = (guess, "given") if guess is not None else (nominal, "nominal")
+        if value is None:
+            if data_run and plant.xi_dist is not None:
+                return plant.check_distribution(None).mean, "model"
+            return np.zeros(plant.p), "zero"
+        xi_guess = np.asarray(value, dtype=float)
+        if xi_guess.shape != (plant.p,) or not np.all(np.isfinite(xi_guess)):
+            raise ValueError(f"{value!r} is not allowed, expected null or p = {plant.p} finite numbers "
+                             "(the plant file's xi)" + (", or oracle" if name.startswith("identification") else ""))
+    return xi_guess, source
 
 
 # ------------------------------------------------------------------------- strict overrides
 GROUPS = ("plant", "model", "enkf", "identification", "gain", "closed_loop", "tracking")
 TOP_LEVEL = ("seed", "reuse", "cache", "objective", "objective_penalty", "data")
 # keys `build` reads with a default when the group's file does not set them: `+key=value` may add them
-OPTIONAL_KEYS = ("plant.name", "plant.C", "plant.D", "plant.q0", "plant.poles", "plant.reference",
+OPTIONAL_KEYS = ("plant.name", "plant.C", "plant.D", "plant.q0", "plant.poles", "plant.reference", "plant.nominal",
                  "plant.identification_feedback", "plant.identification_covariance", "plant.identification_xi",
                  "plant.rate_window", "plant.filter_sees_disturbance",
                  "plant.observer_xi", "plant.initial_xi", "plant.loop_estimate", "plant.designs", "plant.model",

@@ -7,6 +7,7 @@ import numpy as np
 
 from ..numerics.synthesis import status_meaning
 from ..numerics.verdict import ABOVE_FLOOR, AT_FLOOR, FAILURES, PAIRED_LEVEL
+from .config import PRIORS
 from .store import layout
 
 
@@ -70,6 +71,10 @@ def header_lines(info: dict, s: dict) -> list[str]:
 def identification_lines(s: dict) -> list[str]:
     """How the plant was driven, the recorded paths left out, the iterated identification's passes."""
     lines = []
+    prior = s.get("prior") or {}
+    if prior.get("used_by"):          # the prior guess of xi, where stages stand on it
+        lines.append(f"  prior guess of xi {vec(prior['xi_guess'])}: {PRIORS.get(prior['source'], prior['source'])}; "
+                     f"used by {', '.join(prior['used_by'])}")
     ident = s.get("identification_feedback") or {}
     if ident.get("mode", "none") != "none":
         line = f"  identification feedback {ident['mode']}: {ident.get('used')}"

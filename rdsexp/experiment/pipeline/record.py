@@ -23,8 +23,8 @@ OBSERVER_SEARCH_STEPS = 40    # its BFGS steps (n = 6: about 0.3 s). The rate re
 def stages_summary(exp: Experiment, identified: Identified, uncertainty: Uncertainty | None,
                    designs: DesignSet) -> dict:
     """What every run's summary says of identification, modeling and synthesis."""
-    s = {"model": exp.model_name, "gain_method": designs.method(exp.design.method), **identified.summary(),
-         **designs.summary()}
+    s = {"model": exp.model_name, "gain_method": designs.method(exp.design.method), "prior": prior_summary(exp),
+         **identified.summary(), **designs.summary()}
     if uncertainty is not None:
         s |= uncertainty.summary()
     dist, chosen = identified.moments, designs.chosen
@@ -36,6 +36,16 @@ def stages_summary(exp: Experiment, identified: Identified, uncertainty: Uncerta
     s["designs"] = {method: res.status for (source, method), (_, res) in designs.designs.items()
                     if source == "identified"}
     return s
+
+
+def prior_summary(exp: Experiment) -> dict:
+    """The prior guess of xi (identification.xi_guess, the plant file's xi), where it came from (config.PRIORS:
+    `oracle` is the only source that reads the law a simulated plant is drawn from) and which stages use it."""
+    ident = exp.identification
+    used = [use for use, on in (("the EnKF's start", exp.filter.start == "guess"),
+                                ("the identification feedback", ident.feedback in ("nominal", "auto")),
+                                ("the online controller", exp.controller.kind == "online")) if on]
+    return {"xi_guess": ident.xi_guess.tolist(), "source": ident.prior, "used_by": used}
 
 
 def run_summary(exp: Experiment, identified: Identified, uncertainty: Uncertainty | None, designs: DesignSet,
