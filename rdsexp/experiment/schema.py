@@ -194,6 +194,9 @@ RUN_SUMMARY_KEYS: dict[str, tuple[str, str | None]] = {
     "model": ("the model's name (the structure identified: A_i, B_i, C, D, and xi's prior)", None),
     "gain_method": ("the synthesis method whose gain the loop uses (after gain.fallback, or identification_gain "
                     "when the loop kept the identification's gain)", None),
+    "prior": ("the prior guess of xi (identification.xi_guess, the plant file's xi), where it came from (given, "
+              "nominal: the plant file's nominal:, zero: none stated, model: a data run's model.xi, oracle: the mean "
+              "of the law the plant is simulated from, not blind) and which stages use it", "xi"),
     "identification_feedback": ("the identification run's loop: open or under a feedback gain F (the rule that "
                                 "chose it, F, its exact rates)", None),
     "identification_passes": ("the iterated identification: passes, the last change of the moments, the "

@@ -231,7 +231,8 @@ UNST3 = {"name": "unst3",
          "B": [[[0], [0], [0]], [[0], [0], [1]], [[0], [0], [0]]],
          "C": [[[1, 0, 0]]],
          "xi": {"family": "independent", "components": [{"family": "bernoulli", "prob": 0.8},
-                                                         {"family": "uniform", "low": -1.0, "high": 1.0}]}}
+                                                         {"family": "uniform", "low": -1.0, "high": 1.0}]},
+         "nominal": [1.0, 0.0]}                        # the actuator link delivers (B_0 = 0: no input at xi = 0)
 
 
 def test_the_loop_keeps_the_identification_gain_where_the_designed_one_is_worse(tmp_path):
@@ -310,17 +311,19 @@ def test_the_online_controller_models_a_dropout_with_the_variance_its_mean_fixes
 
 def test_the_online_loops_nominal_gain_is_designed_on_the_law_its_enkf_starts_from():
     """controller.initial=nominal is the mean-square LQR at the guess with the spread xi has in the online loop's
-    EnKF at its start (`pipeline.online.online_nominal`). On the dropout plant that law is the Bernoulli's own at its
-    mean (variance mu (1 - mu)): the gain in use before any re-design is that design, recomputed here from the
-    plant file, and its rate on the law (recorded) is its exact rate on the plant (the controller table's)."""
+    EnKF at its start (`pipeline.online.online_nominal`). On the dropout plant that law is the two-point law at the
+    guess mu (variance mu (1 - mu)): the gain in use before any re-design is that design, recomputed here, and its
+    rate on the law (recorded) is its exact rate on the plant (the controller table's) where the guess is the
+    plant's probability."""
     from rdsexp.numerics.synthesis import synthesize
     from rdsexp.numerics.systems import MomentModel
     exp = experiment("plant=dropout", "controller=online", "controller.initial=nominal", "closed_loop.horizon=20",
-                     "closed_loop.open_loop=false")
+                     "closed_loop.open_loop=false", "identification.xi_guess=[0.8]")
     out = pipeline.run_experiment(exp)
     info = out.summary["online_initial"]
     assert (info["nominal_law"], info["method"]) == ("start", "ms_lqr") and info["rate_on_law"] < 1
-    mu = float(np.asarray(exp.plant.xi_dist.mean).ravel()[0])
+    mu = float(exp.identification.xi_guess[0])
+    assert mu == float(np.asarray(exp.plant.xi_dist.mean).ravel()[0])
     F = synthesize(exp.model, MomentModel(mean=np.array([mu]), cov=np.array([[mu * (1 - mu)]])), "ms_lqr").F
     first = out.tables["controller"].query("k < 0")
     np.testing.assert_allclose(first[[f"F[0,{j}]" for j in range(exp.model.n)]].to_numpy(), np.repeat(F, len(first), 0),

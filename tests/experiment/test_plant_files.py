@@ -273,7 +273,8 @@ UNSTABLE_BUT_STABLE_AT_MEAN = {
           [[0.931346, -1.36022], [0.885178, -0.354614]], [[0.935744, -0.75468], [-1.11291, -0.553699]]],
     "B": [[[-0.0449377, 0.791972], [-0.630707, 0.610557]], [[0, 0], [0, 0]], [[0, 0], [0, 0]],
           [[-1.02235, 0.0], [0.0, 0.0]]],
-    "C": [[[0.928649, 0.370959]]], "xi": {"family": "bernoulli", "prob": [0.67869, 0.877016, 0.715101]}}
+    "C": [[[0.928649, 0.370959]]], "xi": {"family": "bernoulli", "prob": [0.67869, 0.877016, 0.715101]},
+    "nominal": [0.67869, 0.877016, 0.715101]}        # a prior guess right on average: stable at the guess
 
 
 def test_open_loop_identification_whose_estimate_diverges_is_run_again_under_feedback(tmp_path):
