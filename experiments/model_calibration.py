@@ -1,0 +1,154 @@
+"""Calibration of the distribution model (the paper's first half) against the laws the plants are simulated from.
+
+In the spirit of simulation-based calibration: per plant, --seeds whole runs with the defaults (blind: the prior
+guess is the plant file's `nominal:` or xi = 0, never the law), and per component of xi the modeled mean and
+standard deviation against the plant file's law mapped into the model's xi (`plant_xi_mean`, `plant_xi_std`),
+with the uncertainty the run states (`modeling_uncertainty`: the sd of each over the bootstrap draws). Printed
+per plant:
+
+- z: (modeled - true) / stated sd, median |z| and max |z| over components and seeds, for the mean and the std;
+- cover: the fraction of the 95% intervals (modeled +- 1.96 stated sd) that hold the truth (nominal 0.95);
+- err: median |modeled mean - true| / true sd, and median |modeled std / true std - 1|;
+- status: the modeling statuses (ok, unsettled, or why no model);
+- e2e: the end-to-end figure of the loop's gain on the true plant against the optimum for the true law (median
+  and 90th percentile): for ms_lqr the ratio of exact LQ costs, for the rate designs (proposed,
+  policy_iteration) the exact rate's excess over the optimal rate.
+
+Plants: the library's, `unst3` (3 states, a Bernoulli actuator dropout and a uniform parameter on A[0, 0]; nominal
+[1, 0]) and --random plants of `random_plants.py`'s draw (seed 0), each stating a nominal one standard deviation
+off the law's mean in every component (`random_plants.wrong_guess`). The loops are cut to what the gain needs
+(2 paths, no open loop, no floor): only the model and the gain are measured here.
+
+    python experiments/model_calibration.py [--seeds 20] [--random 10] [--plants a,b] [--override KEY=VALUE ...]
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from rdsexp.numerics.analysis import exact_costs, ms_rate
+from rdsexp.numerics.synthesis import synthesize
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import random_plants  # noqa: E402  (the random plants' draw)
+from coverage import LIBRARY, UNST3, experiment  # noqa: E402
+
+FAST = ["closed_loop.paths=2", "closed_loop.open_loop=false", "closed_loop.floor_paths=0", "tracking=off"]
+RATE_DESIGNS = ("proposed", "policy_iteration", "nominal_lmi")
+
+
+def optimum(exp, method: str) -> float:
+    """The optimum for the true law of the method's objective: the LQ cost (ms_lqr) or the rate."""
+    truth = exp.plant.check_distribution(None)
+    if method in RATE_DESIGNS:
+        return min(ms_rate(exp.plant, None, synthesize(exp.plant, truth, method).F)
+                   for method in ("proposed", "policy_iteration"))
+    return exact_costs(exp.plant, None, synthesize(exp.plant, truth, "ms_lqr").F)["lq_cost"]
+
+
+def one_run(exp) -> dict:
+    """The modeled moments against the truth, the stated sds, the status and the end-to-end figure of one run."""
+    from rdsexp.experiment.pipeline import run_experiment
+    out = run_experiment(exp)
+    s = out.summary
+    row = {"status": s.get("modeling_status")}
+    if "xi_mean" not in s or "plant_xi_mean" not in s:
+        return row
+    u = s.get("modeling_uncertainty") or {}
+    for what in ("mean", "std"):
+        row[what] = np.asarray(s[f"xi_{what}"]) - np.asarray(s[f"plant_xi_{what}"])
+        row[f"{what}_sd"] = np.asarray(u.get(f"xi_{what}_sd", [np.nan] * len(s["xi_mean"])))
+    row["true_std"] = np.asarray(s["plant_xi_std"])
+    gains = out.tables["gains"]
+    chosen = gains[gains["selected"]]
+    method = exp.design.method
+    if len(chosen) and np.isfinite(chosen["rate_plant"].iloc[0]):
+        best = optimum(exp, method)
+        row["e2e"] = (chosen["rate_plant"].iloc[0] - best if method in RATE_DESIGNS
+                      else chosen["lq_cost_plant"].iloc[0] / best)
+        row["e2e_kind"] = "rate +" if method in RATE_DESIGNS else "cost x"
+    return row
+
+
+def summarize(rows: list[dict]) -> dict:
+    """z-scores, coverage, relative errors, status counts and the end-to-end figure over a plant's runs."""
+    statuses = {}
+    for r in rows:
+        statuses[r["status"]] = statuses.get(r["status"], 0) + 1
+    out = {"runs": len(rows), "status": statuses}
+    modeled = [r for r in rows if "mean" in r]
+    for what in ("mean", "std"):
+        err = np.concatenate([r[what] for r in modeled]) if modeled else np.zeros(0)
+        sd = np.concatenate([r[f"{what}_sd"] for r in modeled]) if modeled else np.zeros(0)
+        truth_sd = np.concatenate([r["true_std"] for r in modeled]) if modeled else np.zeros(0)
+        known = truth_sd > 0                                   # a constant component has no spread to compare
+        with np.errstate(all="ignore"):
+            z = np.abs(err / sd)
+            rel = np.abs(err / truth_sd)            # the mean's error in true sds; the std's relative error
+        out[f"{what}_z_median"] = float(np.nanmedian(z[known])) if known.any() else np.nan
+        out[f"{what}_z_max"] = float(np.nanmax(z[known])) if known.any() else np.nan
+        out[f"{what}_cover"] = float(np.mean(z[known] <= 1.96)) if known.any() else np.nan
+        out[f"{what}_err"] = float(np.nanmedian(rel[known])) if known.any() else np.nan
+        out[f"{what}_components"] = int(known.sum())
+    e2e = [r["e2e"] for r in rows if "e2e" in r]
+    out["e2e_kind"] = next((r["e2e_kind"] for r in rows if "e2e_kind" in r), "")
+    out["e2e_median"] = float(np.median(e2e)) if e2e else np.nan
+    out["e2e_q90"] = float(np.quantile(e2e, 0.9)) if e2e else np.nan
+    return out
+
+
+def print_table(results: dict[str, dict]) -> None:
+    print("| plant | runs | mean: median abs z / max / cover / err (true sd) | std: median abs z / max / cover / "
+          "err (relative) | status | e2e median / q90 |")
+    print("|---|---|---|---|---|---|")
+    f = lambda v, fmt=".2f": "-" if v is None or not np.isfinite(v) else format(v, fmt)
+    for name, r in results.items():
+        status = ", ".join(f"{k} {v}" for k, v in sorted(r["status"].items(), key=lambda kv: str(kv[0])))
+        print(f"| {name} | {r['runs']} | {f(r['mean_z_median'], '.1f')} / {f(r['mean_z_max'], '.0f')} / "
+              f"{f(r['mean_cover'])} / {f(r['mean_err'])} | {f(r['std_z_median'], '.1f')} / {f(r['std_z_max'], '.0f')} "
+              f"/ {f(r['std_cover'])} / {f(r['std_err'])} | {status} | {r['e2e_kind']} {f(r['e2e_median'], '.3f')} / "
+              f"{f(r['e2e_q90'], '.3f')} |")
+    modeled = [r for r in results.values() if r["mean_components"]]
+    pooled = lambda key: np.mean([r[key] for r in modeled if np.isfinite(r[key])]) if modeled else np.nan
+    print(f"\nmean over plants: mean cover {pooled('mean_cover'):.2f}, std cover {pooled('std_cover'):.2f}; "
+          f"ok runs {sum(r['status'].get('ok', 0) for r in results.values())} of "
+          f"{sum(r['runs'] for r in results.values())}")
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--seeds", type=int, default=20)
+    parser.add_argument("--random", type=int, default=10, help="random plants (random_plants.py's draw, seed 0)")
+    parser.add_argument("--plants", default=",".join(LIBRARY + ("unst3",)))
+    parser.add_argument("--override", nargs="*", default=[], metavar="KEY=VALUE")
+    args = parser.parse_args(argv)
+    start = time.perf_counter()
+    results = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        config_dir = Path(tmp)
+        (config_dir / "plant").mkdir()
+        (config_dir / "plant" / "unst3.yaml").write_text(yaml.safe_dump(UNST3 | {"nominal": [1.0, 0.0]}))
+        plants = [(name, None if name in LIBRARY else config_dir) for name in args.plants.split(",") if name]
+        for plant in random_plants.draw_plants(args.random, 0):
+            path = random_plants.write_plant(plant, config_dir, "model_calibration.py")
+            content = yaml.safe_load(path.read_text())
+            content["nominal"] = random_plants.wrong_guess(plant, 0, 1.0).tolist()
+            path.write_text(yaml.safe_dump(content, default_flow_style=None, sort_keys=False, width=100))
+            plants.append((plant.name, config_dir))
+        for name, where in plants:
+            rows = [one_run(experiment(name, where, [f"seed={seed}", *FAST, *args.override]))
+                    for seed in range(args.seeds)]
+            results[name] = summarize(rows)
+            print(f"{name}: {results[name]['runs']} runs", file=sys.stderr)
+    print_table(results)
+    print(f"\n{time.perf_counter() - start:.0f} s")
+
+
+if __name__ == "__main__":
+    main()
