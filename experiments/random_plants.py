@@ -44,8 +44,10 @@ directory, code version (the runs of one table should share it) and the reason o
         [--store /tmp/random_plants/store-SEED] [--out CSV] [--keep-plants DIR]
         [--override KEY=VALUE ...] [--only-draw] [--guess-off SD]
 
---guess-off SD gives every run a prior guess of xi (identification.xi_guess, which the online loop's start and
-nominal gain are built on) SD standard deviations of each component off the plant file's mean (`wrong_guess`).
+--guess-off SD (default 1) gives every run a prior guess of xi (identification.xi_guess, which the EnKF starts
+from and the identification and online gains are designed on) SD standard deviations of each component off the
+plant file's mean (`wrong_guess`): a researcher's knowledge of the plant, not its law (a run is blind); 0 leaves
+the default, xi = 0.
 """
 from __future__ import annotations
 
@@ -681,9 +683,9 @@ def main(argv=None):
     parser.add_argument("--override", action="append", default=[], metavar="KEY=VALUE",
                         help="extra override for every run (repeatable)")
     parser.add_argument("--only-draw", action="store_true", help="draw and write the plants, print them, run nothing")
-    parser.add_argument("--guess-off", type=float, default=0.0, metavar="SD",
+    parser.add_argument("--guess-off", type=float, default=1.0, metavar="SD",
                         help="every run's identification.xi_guess SD standard deviations of each component off the "
-                             "plant file's mean, signs alternating (`wrong_guess`; default 0: the mean)")
+                             "plant file's mean, signs alternating (`wrong_guess`; default 1; 0: none, xi = 0)")
     args = parser.parse_args(argv)
     if args.n < 1 or args.jobs < 1 or args.paths < 1:
         parser.error("--n, --jobs and --paths must be positive")
