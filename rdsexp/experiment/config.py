@@ -160,7 +160,7 @@ class FilterSettings:
     psi0: np.ndarray
     P0: np.ndarray
     disturbance: np.ndarray | None = None
-    start: str = "zero"        # where psi0's xi comes from: enkf.initial.xi (guess | zero), or given (enkf.initial.mean)
+    start: str = "zero"        # psi0's xi: enkf.initial.xi (guess | zero), or given (enkf.initial.mean)
 
     @classmethod
     def from_config(cls, cfg, model: AffineRandomSystem, plant: AffineRandomSystem,
