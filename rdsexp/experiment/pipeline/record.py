@@ -43,7 +43,8 @@ def prior_summary(exp: Experiment) -> dict:
     `oracle` is the only source that reads the law a simulated plant is drawn from) and which stages use it."""
     ident = exp.identification
     used = [use for use, on in (("the EnKF's start", exp.filter.start == "guess"),
-                                ("the identification feedback", ident.feedback in ("nominal", "auto")),
+                                ("the identification feedback",
+                                 exp.data is None and ident.feedback in ("nominal", "auto")),
                                 ("the online controller", exp.controller.kind == "online")) if on]
     return {"xi_guess": ident.xi_guess.tolist(), "source": ident.prior, "used_by": used}
 
