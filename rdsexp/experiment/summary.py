@@ -156,6 +156,10 @@ def gain_lines(s: dict) -> list[str]:
     elif s.get("data") is None and s.get("synthesis_status") is not None:
         lines.append(f"  gain {s.get('gain_method')}: {s.get('synthesis_status')}, lambda {fmt(s.get('lam'))}"
                      f"{beside(s, 'lam')}, exact rate on the true plant {fmt(s.get('rate_plant'))}")
+        if s.get("cost_ratio_plant") is not None:         # the end-to-end figure: against the law's optimum
+            lines.append(f"    on the true plant against the optimum for its law: LQ cost x{s['cost_ratio_plant']:.4f}")
+        if s.get("rate_excess_plant") is not None:
+            lines.append(f"    on the true plant against the optimum for its law: rate +{s['rate_excess_plant']:.4f}")
         if s.get("rate_plant") is None:
             lines.append(f"  no stabilizing gain: {s.get('gain_method')} returned none "
                          f"({s.get('synthesis_status')}); no closed loop")

@@ -43,7 +43,7 @@ def test_the_views_are_todays_lists():
                                              "open_loop_rate"]
     assert set(metrics.objectives()) == {"lam", "rate_plant", "closed_loop_rate", "open_loop_rate", "online_rate",
                                          "closed_loop_exact_rate", "xi_mean_error", "xi_std_error", "xi_crps",
-                                         "closed_loop_failed_fraction", "seconds"}
+                                         "closed_loop_failed_fraction", "seconds", "cost_ratio_plant", "rate_excess_plant"}
     assert {n: metrics.exact_counterpart(n) for n in ("closed_loop_rate", "online_rate", "open_loop_rate", "lam")} \
         == {"closed_loop_rate": "rate_plant", "online_rate": "rate_plant", "open_loop_rate": "open_loop_exact_rate",
             "lam": None}

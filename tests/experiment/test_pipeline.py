@@ -460,3 +460,26 @@ def test_paths_the_online_loop_loses_alone_are_counted_path_by_path_and_tested_a
     assert o["lost_held_unstable"] == 8 and o["lost_held_rate_max"] == pytest.approx(
         ms_rate(exp.plant, None, F0), rel=1e-9)
     assert not undocumented(out.summary)
+
+
+@pytest.mark.parametrize("extra, kind", [((), "rate_excess_plant"), (("plant=dropout",), "cost_ratio_plant")])
+def test_the_loops_gain_is_measured_against_the_optimum_for_the_true_law(extra, kind):
+    """The end-to-end figure: a rate design's exact rate on the plant minus the optimal rate (policy iteration on
+    the true law, recomputed here; >= 0 up to its certificate), an LQ design's exact LQ cost over the mean-square
+    LQ optimum's for the law (>= 1), both from the summary against an independent computation."""
+    from rdsexp.numerics.analysis import exact_costs, ms_rate
+    from rdsexp.numerics.synthesis import synthesize
+    exp = experiment(*extra)
+    out = pipeline.run_experiment(exp)
+    F = out.tables["gains"].query("selected")[[f"F[{i},{j}]" for i in range(exp.model.m)
+                                               for j in range(exp.model.n)]].to_numpy().reshape(exp.model.m, -1)
+    truth = exp.plant.check_distribution(None)
+    if kind == "rate_excess_plant":
+        best = synthesize(exp.plant, truth, "policy_iteration")
+        assert out.summary[kind] == pytest.approx(ms_rate(exp.plant, None, F) - best.lam, abs=1e-9)
+        assert out.summary[kind] >= -1e-6 and "cost_ratio_plant" not in out.summary
+    else:
+        best = synthesize(exp.plant, truth, "ms_lqr")
+        ratio = exact_costs(exp.plant, None, F)["lq_cost"] / exact_costs(exp.plant, None, best.F)["lq_cost"]
+        assert out.summary[kind] == pytest.approx(ratio, rel=1e-9) and out.summary[kind] >= 1 - 1e-9
+        assert "rate_excess_plant" not in out.summary

@@ -12,7 +12,7 @@ from functools import partial
 import numpy as np
 
 from ...errors import one_line
-from ...numerics.analysis import ms_rate
+from ...numerics.analysis import exact_costs, ms_rate
 from ...numerics.online import moment_factors, rates
 from ...numerics.synthesis import SynthesisResult, synthesize
 from ...numerics.systems import MomentModel
@@ -151,6 +151,38 @@ def design_spread(exp: Experiment, designs: DesignSet, uncertainty: Uncertainty 
                                "rate_model_q95": float(q[2]), "rate_model_worst": float(np.max(r)),
                                "draws": int(len(r))}
     return out
+
+
+RATE_OBJECTIVE = ("proposed", "policy_iteration", "nominal_lmi")     # designs that minimise the mean-square rate
+COST_OBJECTIVE = ("ms_lqr", "lqr_mean")                             # designs that minimise an LQ cost
+
+
+def against_optimum(exp: Experiment, stages: Stages, designs: DesignSet) -> dict:
+    """The end-to-end figure of a simulated run: the loop's gain on the true plant against the optimum for the
+    true law of the configured method's objective. An LQ design (COST_OBJECTIVE): cost_ratio_plant, the exact LQ
+    cost (the method's weights, x0 ~ N(0, I)) of the gain over that of the mean-square LQ optimum for the law
+    (>= 1); a rate design (RATE_OBJECTIVE): rate_excess_plant, the gain's exact rate minus the optimal rate (>= 0;
+    policy iteration's, Theorem 2's bisection where policy iteration is not certified optimal). {} without a
+    plant, a gain, or for a method with neither objective (pole placement, a given gain)."""
+    F, method = designs.gain, exp.design.method
+    if exp.plant is None or F is None or method not in RATE_OBJECTIVE + COST_OBJECTIVE:
+        return {}
+    truth, lmi_max_n = exp.plant.check_distribution(None), exp.design.lmi_max_n
+    optimal = lambda name, options: design(stages, exp.plant, truth, name, options, lmi_max_n,
+                                           f"synthesis/plant/{name}")
+    with np.errstate(all="ignore"):
+        if method in COST_OBJECTIVE:
+            weights = {k: v for k, v in exp.design.options.items() if k in ("state_weight", "input_weight")}
+            best = optimal("ms_lqr", weights)
+            if best.F is None:
+                return {}
+            cost = lambda gain: exact_costs(exp.plant, None, gain, **weights)["lq_cost"]
+            return {"cost_ratio_plant": float(cost(F) / cost(best.F))}
+        results = [optimal("policy_iteration", {})]
+        if results[0].status != "optimal":
+            results.append(optimal("proposed", {}))
+        rate = min((res.lam for res in results if np.isfinite(res.lam)), default=np.nan)
+        return {"rate_excess_plant": float(safe_rate(exp.plant, None, F) - rate)} if np.isfinite(rate) else {}
 
 
 def safe_rate(system, dist, F) -> float:

@@ -15,7 +15,7 @@ import pandas as pd
 from ..config import Experiment
 from ..montecarlo import LoopSummary
 from .data import failed_paths, loops_on_model, validate_holdout
-from .design import design_set, design_spread
+from .design import against_optimum, design_set, design_spread
 from .identification import identify_and_model, identify_recorded, model_moments, moment_uncertainty
 from .loops import METRIC_COLUMNS, Sample, judge_loops, loop_observer, noise_floor, root_seed, simulate_loops
 from .online import analyse_online, online_loop
@@ -107,7 +107,9 @@ def run_experiment(exp: Experiment, sink=None, cache=None) -> Outcome:
     if online is not None:
         online = analyse_online(exp, stages, online, tables["paths"], F, judged.window.k)
         add_online_tables(tables, online)
-    summary = run_summary(exp, identified, uncertainty, designs, judged, online)
+    with stages.timed("against_optimum"):
+        optimum = against_optimum(exp, stages, designs)
+    summary = run_summary(exp, identified, uncertainty, designs, judged, online) | optimum
     stages.timings["synthesis_by_method"] = {f"{source}/{method}": round(res.seconds, 4)
                                              for (source, method), (_, res) in designs.designs.items()}
     return Outcome(tables=tables, summary=summary, timings=stages.timings,
