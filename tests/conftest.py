@@ -134,3 +134,10 @@ def undocumented(summary: dict) -> list[str]:
     """The keys of a run's summary that the data dictionary (`schema.RUN_SUMMARY_KEYS`) does not describe."""
     from rdsexp.experiment.schema import summary_entry
     return [key for key in summary if summary_entry(key) is None]
+
+
+def import_source(node, package: str) -> str:
+    """The absolute module an `ast.ImportFrom` node imports from: relative imports (`from .store import x`,
+    level >= 1) resolved against `package`, the importing module's package."""
+    base = package.rsplit(".", node.level - 1)[0] if node.level else ""
+    return ".".join(p for p in (base, node.module) if p) if node.level else node.module or ""

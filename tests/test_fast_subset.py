@@ -17,7 +17,7 @@ from functools import cache
 from pathlib import Path
 
 import pytest
-from conftest import REPO
+from conftest import REPO, import_source
 from test_package import MODULES, PACKAGE
 
 TESTS = REPO / "tests"
@@ -139,8 +139,7 @@ def imported_from(module: str) -> frozenset[str]:
     found = set()
     for node in ast.walk(ast.parse(path.read_text())):
         if isinstance(node, ast.ImportFrom):
-            base = package.rsplit(".", node.level - 1)[0] if node.level else ""
-            source = ".".join(p for p in (base, node.module) if p) if node.level else node.module or ""
+            source = import_source(node, package)
             for alias in node.names:
                 if alias.name != "*":
                     found |= resolve((source, alias.name), [])

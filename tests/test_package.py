@@ -7,7 +7,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from conftest import REPO, SMALL
+from conftest import REPO, SMALL, import_source
 
 import rdsexp as rx
 
@@ -32,8 +32,7 @@ def imported_modules(path: Path) -> set[str]:
     names = set()
     for node in ast.walk(ast.parse(path.read_text())):
         if isinstance(node, ast.ImportFrom):
-            base = package.rsplit(".", node.level - 1)[0] if node.level else ""
-            target = ".".join(p for p in (base, node.module) if p) if node.level else node.module or ""
+            target = import_source(node, package)
             submodules = {f"{target}.{alias.name}" for alias in node.names} & set(MODULES)
             names |= submodules
             if len(submodules) < len(node.names):
