@@ -238,6 +238,7 @@ class IdentificationSettings:
     passes: int = 0
     resamples: int = 0          # moving-block bootstrap of the modeling window (0: no uncertainty)
     block: int = 5
+    noise_scales: tuple[float, ...] = ()     # enkf.Q's x block and R scaled by each: the moments again
 
     @classmethod
     def from_config(cls, cfg, plant: AffineRandomSystem, data_run: bool = False) -> IdentificationSettings:
@@ -260,8 +261,16 @@ class IdentificationSettings:
         passes = _number(get(cfg, "identification.passes"), "identification.passes", integer=True, low=1)
         resamples = _number(get(cfg, "identification.resamples"), "identification.resamples", integer=True, low=0)
         block = _number(get(cfg, "identification.block"), "identification.block", integer=True, low=1)
+        scales = plain(OmegaConf.select(cfg, "identification.noise_sensitivity", default="auto"))
+        if scales == "auto":
+            scales = [0.1, 10.0] if data_run else []
+        if not isinstance(scales, list) or len(scales) > 8:
+            raise ConfigError(f"identification.noise_sensitivity: {scales!r} is not allowed, expected auto or a list "
+                              f"of at most 8 positive factors")
+        scales = tuple(_number(v, "identification.noise_sensitivity", low=0, low_open=True) for v in scales)
         return cls(input=u_id, K0=K0, K1=K1, feedback=feedback, gain=F_id, xi_guess=xi_guess, prior=prior,
-                   covariance=covariance, xi_model=xi_model, passes=passes, resamples=resamples, block=block)
+                   covariance=covariance, xi_model=xi_model, passes=passes, resamples=resamples, block=block,
+                   noise_scales=scales)
 
 
 @dataclass(frozen=True)

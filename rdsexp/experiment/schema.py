@@ -207,6 +207,10 @@ RUN_SUMMARY_KEYS: dict[str, tuple[str, str | None]] = {
     "modeling_uncertainty": ("the modeled moments' spread over block-bootstrap draws of the modeling window: "
                              "resamples, block, sd of xi's mean and std per component", "xi"),
     "nbar": ("size of the LMI's basis Gbar (eq. Gbar)", None),
+    "noise_sensitivity": ("the moments modeled again with the EnKF's assumed noise (enkf.Q's x block and enkf.R) "
+                          "scaled by identification.noise_sensitivity's factors: the factors (1 among them), xi mean "
+                          "and std at each, their statuses, and the largest range over the factors in bootstrap "
+                          "sds (range_over_sd)", "xi"),
     "xi_mean": ("modeled mean of xi (the modeling window's sample mean of the EnKF's xi)", "xi"),
     "xi_std": ("modeled standard deviation of xi, per component", "xi"),
     "plant_xi_mean": ("the plant file's xi law's mean, mapped into the model's xi", "xi"),

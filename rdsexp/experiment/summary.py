@@ -146,6 +146,15 @@ def gain_lines(s: dict) -> list[str]:
             "block-bootstrap draws of the window"
         lines.append(f"    modeled moments' spread over {u['resamples']} {over}: xi mean "
                      f"sd {np.round(u['xi_mean_sd'], 4).tolist()}, xi std sd {np.round(u['xi_std_sd'], 4).tolist()}")
+    if s.get("noise_sensitivity"):     # the moments with the EnKF's assumed noise scaled
+        v = s["noise_sensitivity"]
+        each = lambda rows: " / ".join(str(vec(r)) for r in rows)
+        factors = " / x".join(f"{c:g}" for c in v["scales"])
+        lines.append(f"    with the EnKF's assumed noise (enkf.Q's x block and R) x{factors}: xi mean "
+                     f"{each(v['xi_mean'])}, xi std {each(v['xi_std'])}")
+        if (v.get("range_over_sd") or 0) > 2:
+            lines.append(f"    the assumed noise moves the moments {v['range_over_sd']:.0f} times their bootstrap sd: "
+                         f"set enkf.Q.x and enkf.R to the noise the data carry")
     if s.get("design_rates"):          # a data run: each design on the identified model, over the moments' draws
         for method, r in s["design_rates"].items():
             line = f"  design {method}: {r['status']}, exact rate on the identified model {fmt(r.get('rate_model'))}"

@@ -195,3 +195,29 @@ def test_recorded_paths_whose_estimate_fails_are_left_out(round_trip):
     s = info_of(max(runs_of(cwd), key=lambda r: r.stat().st_mtime))["summary"]
     assert s["identification_failed_paths"]["count"] == 1 and s["identification_failed_paths"]["of"] == 3
     assert s["modeling_status"] == "ok" and s["modeling_uncertainty"]["over"] == "paths"
+
+
+def test_a_data_run_bounds_the_effect_of_the_noise_its_enkf_assumes(tmp_path):
+    """identification.noise_sensitivity (auto: x0.1 and x10 in a data run): the moments modeled again with enkf.Q's
+    x block and enkf.R scaled; the x1 row is the run's own moments, and the x10 row is exactly what a data run
+    configured with that noise models (same seeds: recomputed here from the config alone)."""
+    from tests.conftest import REPO
+    example = REPO / "examples" / "dropout"
+    common = ["--config-dir", str(example), f"data={example / 'dropout.csv'}", "model=dropout", "plant=recorded",
+              "enkf.ensemble_size=20", "identification.passes=1", "identification.resamples=20"]
+    for where in ("base", "scaled"):
+        (tmp_path / where).mkdir()
+    proc = rdsexp(*common, cwd=tmp_path / "base")
+    (run_dir,) = runs_of(tmp_path / "base")
+    s = info_of(run_dir)["summary"]
+    v = s["noise_sensitivity"]
+    assert v["scales"] == [0.1, 1.0, 10.0] and v["xi_mean"][1] == s["xi_mean"] and v["xi_std"][1] == s["xi_std"]
+    assert v["range_over_sd"] > 0 and "with the EnKF's assumed noise (enkf.Q's x block and R) x0.1 / x1 / x10" \
+        in proc.stdout
+    rdsexp(*common, "enkf.Q.x=0.1", "enkf.R=0.1", "identification.noise_sensitivity=[]", cwd=tmp_path / "scaled")
+    (scaled,) = runs_of(tmp_path / "scaled")
+    t = info_of(scaled)["summary"]
+    assert "noise_sensitivity" not in t
+    assert t["xi_mean"] == v["xi_mean"][2] and t["xi_std"] == v["xi_std"][2]
+    with pytest.raises(AssertionError, match="noise_sensitivity"):
+        rdsexp(*common, "identification.noise_sensitivity=[0]", cwd=tmp_path)

@@ -143,6 +143,39 @@ def moment_uncertainty(exp: Experiment, identified: Identified) -> Uncertainty |
     return Uncertainty(mean, cov, settings.resamples, settings.block, "paths" if xi.shape[1] > 1 else "window blocks")
 
 
+def noise_sensitivity(exp: Experiment, identified: Identified, uncertainty: Uncertainty | None,
+                      remodel) -> dict | None:
+    """The moments modeled again (`remodel(exp)`: the whole modeling stage, the same seeds) with the noise the EnKF
+    assumes, enkf.Q's x block and enkf.R, scaled by each of identification.noise_sensitivity's factors: the
+    moments depend on it, and a data run cannot know the noise its data carry. Returns the summary entry (the
+    factors with 1 among them, the modeled xi mean and std (factors, p) at each, their statuses, and the largest
+    range of a mean or std over the factors in units of its bootstrap sd), or None without factors or a model."""
+    scales = exp.identification.noise_scales
+    if not scales or identified.moments is None or not exp.model.p:
+        return None
+    n, base = exp.model.n, exp.filter.enkf
+    models = {1.0: identified}
+    for c in scales:
+        Q = base.Q.copy()
+        Q[:n, :n] *= c
+        enkf = dataclasses.replace(base, Q=Q, R=c * base.R)
+        models[float(c)] = remodel(dataclasses.replace(exp, filter=dataclasses.replace(exp.filter, enkf=enkf)))
+    order = sorted(models)
+    stds = lambda m: np.sqrt(np.diag(m.cov)) if m is not None else np.full(exp.model.p, np.nan)
+    mean = np.array([models[c].moments.mean if models[c].moments is not None else np.full(exp.model.p, np.nan)
+                     for c in order])
+    std = np.array([stds(models[c].moments) for c in order])
+    out = {"scales": order, "xi_mean": mean.tolist(), "xi_std": std.tolist(),
+           "status": [models[c].status for c in order]}
+    if uncertainty is not None:
+        sd = uncertainty.summary()["modeling_uncertainty"]
+        with np.errstate(all="ignore"):
+            ranges = np.concatenate([np.ptp(mean, axis=0) / np.asarray(sd["xi_mean_sd"]),
+                                     np.ptp(std, axis=0) / np.asarray(sd["xi_std_sd"])])
+        out["range_over_sd"] = float(np.nanmax(ranges)) if np.isfinite(ranges).any() else None
+    return out
+
+
 def identification_feedback(exp: Experiment, force_nominal: bool = False) -> tuple[np.ndarray | None, dict]:
     """The gain of the identification run (None: open loop) and what was decided, for the summary.
 

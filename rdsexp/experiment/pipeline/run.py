@@ -16,7 +16,7 @@ from ..config import Experiment
 from ..montecarlo import LoopSummary
 from .data import failed_paths, loops_on_model, validate_holdout
 from .design import against_optimum, design_set, design_spread
-from .identification import identify_and_model, identify_recorded, model_moments, moment_uncertainty
+from .identification import identify_and_model, identify_recorded, model_moments, moment_uncertainty, noise_sensitivity
 from .loops import METRIC_COLUMNS, Sample, judge_loops, loop_observer, noise_floor, root_seed, simulate_loops
 from .online import analyse_online, online_loop
 from .record import data_summary, run_summary
@@ -69,6 +69,9 @@ def run_experiment(exp: Experiment, sink=None, cache=None) -> Outcome:
             plant=exp.plant, model=exp.model, filter=exp.filter, identification=exp.identification, q0=exp.q0,
             estimate=exp.loop.estimate, seed=seed, keep_members=keep)
     uncertainty = moment_uncertainty(exp, identified)
+    with stages.timed("noise_sensitivity"):
+        sensitivity = noise_sensitivity(exp, identified, uncertainty,
+                                        lambda scaled: identify_and_model(scaled, Stages(cache=None), seed))
     with stages.timed("synthesis"):
         designs = design_set(exp, stages, identified.moments, uncertainty, identified.feedback)
         observer = loop_observer(exp, designs.moments)
@@ -110,6 +113,8 @@ def run_experiment(exp: Experiment, sink=None, cache=None) -> Outcome:
     with stages.timed("against_optimum"):
         optimum = against_optimum(exp, stages, designs)
     summary = run_summary(exp, identified, uncertainty, designs, judged, online) | optimum
+    if sensitivity is not None:
+        summary["noise_sensitivity"] = sensitivity
     stages.timings["synthesis_by_method"] = {f"{source}/{method}": round(res.seconds, 4)
                                              for (source, method), (_, res) in designs.designs.items()}
     return Outcome(tables=tables, summary=summary, timings=stages.timings,
@@ -145,6 +150,12 @@ def run_on_data(exp: Experiment, sink=None, cache=None) -> Outcome:
     identified = model_moments(exp, stages, ident, lambda enkf: identify(enkf=enkf),
                                {"mode": "recorded", "used": "the recorded inputs"})
     dist, uncertainty = identified.moments, moment_uncertainty(exp, identified)
+    with stages.timed("noise_sensitivity"):
+        remodel = lambda scaled: model_moments(scaled, Stages(cache=None),
+                                               identify_recorded(scaled, scaled.data.identification, seed),
+                                               lambda enkf: identify_recorded(scaled, scaled.data.identification,
+                                                                              seed, enkf=enkf), identified.feedback)
+        sensitivity = noise_sensitivity(exp, identified, uncertainty, remodel)
     with stages.timed("synthesis"):
         designs = design_set(exp, stages, dist, uncertainty, identified.feedback)
     with stages.timed("metrics"):
@@ -170,6 +181,8 @@ def run_on_data(exp: Experiment, sink=None, cache=None) -> Outcome:
         tables |= sink.tables()
     summary = data_summary(exp, identified, uncertainty, designs, spread, validation, on_model,
                            failed_paths(exp, identified))
+    if sensitivity is not None:
+        summary["noise_sensitivity"] = sensitivity
     return Outcome(tables=tables, summary=summary, timings=stages.timings,
                    recorded=pd.concat([tables["identification"], *sample.rows], ignore_index=True),
                    recorded_members=members_table("identification", identified.trajectories) if keep else None,
