@@ -399,7 +399,8 @@ def read_record(outcome: Outcome) -> dict:
            "verdict": None, "verdict_reason": None, "closed_loop_status": None, "cl_rate": None, "cl_low": None,
            "cl_high": None, "failed_fraction": None, "run_seconds": None, "code_version": None,
            "online_failed_fraction": None, "online_final_rate": None, "offline_rate_plant": None,
-           "lost_online_only": None, "lost_offline_only": None, "lost_more_p": None, "lost_held_unstable": None}
+           "lost_online_only": None, "lost_offline_only": None, "lost_more_p": None, "lost_held_unstable": None,
+           "cost_ratio_plant": None, "rate_excess_plant": None}
     if outcome.run_dir is None:
         return row
     try:
@@ -411,7 +412,9 @@ def read_record(outcome: Outcome) -> dict:
     row.update(run_status=record.status, run_seconds=record.seconds, code_version=record.code_version,
                modeling_status=summary.modeling_status, synthesis_status=summary.synthesis_status,
                rate_plant=_value(summary.rate_plant), verdict=summary.verdict(),
-               verdict_reason=summary.verdict_reason(), closed_loop_status=summary.status())
+               verdict_reason=summary.verdict_reason(), closed_loop_status=summary.status(),
+               # the end-to-end figure: the loop's gain against the optimum for the plant's law
+               **{name: _value(record.metric(name)) for name in ("cost_ratio_plant", "rate_excess_plant")})
     if summary.status() is not None:            # the loop ran: its rate (NaNs where no window measured it)
         row.update(zip(("cl_rate", "cl_low", "cl_high"), map(_value, summary.rate())))
         row["failed_fraction"] = summary.failed_fraction()
@@ -536,6 +539,14 @@ def _clean(r) -> bool:
     return bool(r.completed and r.modeled and r.verdict == "stable" and r.failed_fraction == 0 and not r.note)
 
 
+def end_to_end(r) -> str:
+    """The loop's gain against the optimum for the plant's law: an LQ design's cost ratio (x), a rate design's rate
+    excess (+); - where the run has neither."""
+    if not _missing(r.cost_ratio_plant):
+        return f"x{r.cost_ratio_plant:.3f}"
+    return "-" if _missing(r.rate_excess_plant) else f"+{r.rate_excess_plant:.4f}"
+
+
 def print_results(table: pd.DataFrame) -> None:
     def interval(r):
         return "-" if _missing(r.cl_low) else f"[{r.cl_low:.4f}, {r.cl_high:.4f}]"
@@ -552,12 +563,19 @@ def print_results(table: pd.DataFrame) -> None:
         "interval": [interval(r) for r in table.itertuples()],
         "failed": table["failed_fraction"].map(lambda v: _f(v, ".2f")),
         "y_rate": table["y_rate"].map(_f),
+        "e2e": [end_to_end(r) for r in table.itertuples()],
         "s": table["wall_seconds"].map(lambda v: f"{v:.0f}"),
     })
     print(shown.to_string(index=False))
     for r in table.itertuples():
         if not _clean(r):
             print(f"  {r.plant}: {r.why}")
+    for name, what, fmt in (("cost_ratio_plant", "LQ cost over the optimum for the plant's law", ".3f"),
+                            ("rate_excess_plant", "exact rate above the optimal rate for the plant's law", ".4f")):
+        values = pd.to_numeric(table[name], errors="coerce").dropna()
+        if len(values):
+            print(f"end to end, {what}: median {values.median():{fmt}}, 90th percentile "
+                  f"{values.quantile(0.9):{fmt}} ({len(values)} plants)")
 
     N = len(table)
     completed, modeled = int(table["completed"].sum()), int(table["modeled"].sum())
