@@ -21,12 +21,15 @@ OBSERVER_SEARCH_STEPS = 40    # its BFGS steps (n = 6: about 0.3 s). The rate re
 
 
 def stages_summary(exp: Experiment, identified: Identified, uncertainty: Uncertainty | None,
-                   designs: DesignSet) -> dict:
-    """What every run's summary says of identification, modeling and synthesis."""
+                   designs: DesignSet, sensitivity: dict | None) -> dict:
+    """What every run's summary says of identification, modeling (with the moments' noise sensitivity,
+    `identification.noise_sensitivity`) and synthesis."""
     s = {"model": exp.model_name, "gain_method": designs.method(exp.design.method), "prior": prior_summary(exp),
          **identified.summary(), **designs.summary()}
     if uncertainty is not None:
         s |= uncertainty.summary()
+    if sensitivity is not None:
+        s["noise_sensitivity"] = sensitivity
     dist, chosen = identified.moments, designs.chosen
     if dist is not None:
         s.update(nbar=int(exp.model.Gbar(dist).shape[0]), xi_mean=dist.mean.tolist(),
@@ -50,10 +53,13 @@ def prior_summary(exp: Experiment) -> dict:
 
 
 def run_summary(exp: Experiment, identified: Identified, uncertainty: Uncertainty | None, designs: DesignSet,
-                judged: JudgedLoops, online: OnlineResult | None) -> dict:
+                judged: JudgedLoops, online: OnlineResult | None, sensitivity: dict | None = None,
+                optimum: dict | None = None) -> dict:
     """Key numbers of a simulated run: the stages' decisions, the model against the plant file's law, the
-    gain's exact rate on the true plant, and per loop its rate, interval, verdict and failures."""
-    s = {"plant": exp.plant_name, **stages_summary(exp, identified, uncertainty, designs), **judged.summary(),
+    gain's exact rate on the true plant and against the optimum for the law (`design.against_optimum`), and
+    per loop its rate, interval, verdict and failures."""
+    s = {"plant": exp.plant_name, **stages_summary(exp, identified, uncertainty, designs, sensitivity),
+         **(optimum or {}), **judged.summary(),
          "loop": {"estimate": exp.loop.estimate, "observer_xi": exp.loop.observer_xi,
                   "filter_sees_disturbance": exp.loop.filter_sees_disturbance}}
     s |= model_error(exp, identified)
@@ -134,11 +140,12 @@ def loop_through_outputs(exp: Experiment, F: np.ndarray | None, s: dict) -> dict
 
 
 def data_summary(exp: Experiment, identified: Identified, uncertainty: Uncertainty | None, designs: DesignSet,
-                 spread: dict, validation: Validation | None, on_model: dict | None, failed_paths: dict | None) -> dict:
+                 spread: dict, validation: Validation | None, on_model: dict | None, failed_paths: dict | None,
+                 sensitivity: dict | None = None) -> dict:
     """A data run's key numbers: the data file, the modeled moments, and each design's exact rate on the
     identified model with its spread over the moments' draws. Nothing here is a number on a true plant."""
     info, dist = exp.data.data.info, identified.moments
-    s = {"plant": None, **stages_summary(exp, identified, uncertainty, designs),
+    s = {"plant": None, **stages_summary(exp, identified, uncertainty, designs, sensitivity),
          "data": {"name": info["name"], "sha256": info["sha256"], "rows": info["rows"], "paths": info["paths"],
                   "steps": info["steps"], "identification_paths": int(identified.trajectories.failed_at.size),
                   "holdout_paths": exp.data.holdout_paths},

@@ -112,9 +112,7 @@ def run_experiment(exp: Experiment, sink=None, cache=None) -> Outcome:
         add_online_tables(tables, online)
     with stages.timed("against_optimum"):
         optimum = against_optimum(exp, stages, designs)
-    summary = run_summary(exp, identified, uncertainty, designs, judged, online) | optimum
-    if sensitivity is not None:
-        summary["noise_sensitivity"] = sensitivity
+    summary = run_summary(exp, identified, uncertainty, designs, judged, online, sensitivity, optimum)
     stages.timings["synthesis_by_method"] = {f"{source}/{method}": round(res.seconds, 4)
                                              for (source, method), (_, res) in designs.designs.items()}
     return Outcome(tables=tables, summary=summary, timings=stages.timings,
@@ -180,9 +178,7 @@ def run_on_data(exp: Experiment, sink=None, cache=None) -> Outcome:
     if isinstance(sink, MemorySink):
         tables |= sink.tables()
     summary = data_summary(exp, identified, uncertainty, designs, spread, validation, on_model,
-                           failed_paths(exp, identified))
-    if sensitivity is not None:
-        summary["noise_sensitivity"] = sensitivity
+                           failed_paths(exp, identified), sensitivity)
     return Outcome(tables=tables, summary=summary, timings=stages.timings,
                    recorded=pd.concat([tables["identification"], *sample.rows], ignore_index=True),
                    recorded_members=members_table("identification", identified.trajectories) if keep else None,
