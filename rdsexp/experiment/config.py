@@ -29,6 +29,7 @@ from .metrics import objectives
 TRACKING_LEVELS = ("off", "summary", "full")
 FEEDBACK_MODES = ("none", "nominal", "auto")     # identification.feedback, or a gain F (m x n)
 OBSERVER_XI = ("random_walk", "model")   # closed_loop.observer_xi: the paper's xi random walk, or i.i.d. model draws
+ESTIMATORS = ("paper", "simulated")      # identification.estimator: eq. (sample-mean), or `numerics.indirect`
 XI_MODELS = ("random_walk", "iterated")   # identification.xi_model: the paper's, or passes drawing xi i.i.d.
 INITIAL_XI = ("guess", "zero")       # enkf.initial.xi: members' xi at identification.xi_guess, or at 0 (the paper)
 XI_SUPPORT = ("project", "free")     # enkf.xi_support: members projected onto the plant family's support box, or not
@@ -239,6 +240,10 @@ class IdentificationSettings:
     resamples: int = 0          # moving-block bootstrap of the modeling window (0: no uncertainty)
     block: int = 5
     noise_scales: tuple[float, ...] = ()     # enkf.Q's x block and R scaled by each: the moments again
+    estimator: str = "paper"    # paper: eq. (sample-mean); simulated: `numerics.indirect` on the paper's as summary
+    replicates: int = 400       # simulated: identification runs of the model, one law of xi each
+    prior_width: float = 2.5    # simulated: the prior box in the paper estimator's stds (`indirect.prior_box`)
+    accept: float = 0.5         # simulated: the fraction of replicates nearest the summary that are weighted
 
     @classmethod
     def from_config(cls, cfg, plant: AffineRandomSystem, data_run: bool = False) -> IdentificationSettings:
@@ -268,7 +273,20 @@ class IdentificationSettings:
             raise ConfigError(f"identification.noise_sensitivity: {scales!r} is not allowed, expected auto or a list "
                               f"of at most 8 positive factors")
         scales = tuple(_number(v, "identification.noise_sensitivity", low=0, low_open=True) for v in scales)
-        return cls(input=u_id, K0=K0, K1=K1, feedback=feedback, gain=F_id, xi_guess=xi_guess, prior=prior,
+        estimator = get(cfg, "identification.estimator")
+        if estimator == "auto":
+            estimator = "paper" if data_run else "simulated"
+        if estimator not in ESTIMATORS:
+            raise ConfigError(f"identification.estimator: {estimator!r} is not allowed, expected auto or one of "
+                              f"{', '.join(ESTIMATORS)}")
+        if estimator == "simulated" and data_run:
+            raise ConfigError("identification.estimator: 'simulated' is not allowed in a data run yet (its replicates "
+                              "would replay each recorded path's inputs), expected paper")
+        replicates = _number(get(cfg, "identification.replicates"), "identification.replicates", integer=True, low=20)
+        width = _number(get(cfg, "identification.prior_width"), "identification.prior_width", low=0, low_open=True)
+        accept = _number(get(cfg, "identification.accept"), "identification.accept", low=0, high=1, low_open=True)
+        return cls(estimator=estimator, replicates=replicates, prior_width=width, accept=accept,
+                   input=u_id, K0=K0, K1=K1, feedback=feedback, gain=F_id, xi_guess=xi_guess, prior=prior,
                    covariance=covariance, xi_model=xi_model, passes=passes, resamples=resamples, block=block,
                    noise_scales=scales)
 
@@ -495,7 +513,7 @@ def model_prior(cfg, model: AffineRandomSystem) -> AffineRandomSystem:
 # every key a plant file may hold (conf/plant/*.yaml; README "Your own system"); any other is a typo
 PLANT_KEYS = ("name", "A", "B", "C", "D", "xi", "q0", "poles", "reference", "model", "designs", "rate_window",
               "identification_feedback", "identification_covariance", "identification_xi", "initial_xi",
-              "filter_sees_disturbance", "observer_xi", "loop_estimate", "nominal")
+              "identification_estimator", "filter_sees_disturbance", "observer_xi", "loop_estimate", "nominal")
 
 
 def check_plant_keys(cfg) -> None:
@@ -824,6 +842,7 @@ TOP_LEVEL = ("seed", "reuse", "cache", "objective", "objective_penalty", "data")
 # keys `build` reads with a default when the group's file does not set them: `+key=value` may add them
 OPTIONAL_KEYS = ("plant.name", "plant.C", "plant.D", "plant.q0", "plant.poles", "plant.reference", "plant.nominal",
                  "plant.identification_feedback", "plant.identification_covariance", "plant.identification_xi",
+                 "plant.identification_estimator",
                  "plant.rate_window", "plant.filter_sees_disturbance",
                  "plant.observer_xi", "plant.initial_xi", "plant.loop_estimate", "plant.designs", "plant.model",
                  "model.name",

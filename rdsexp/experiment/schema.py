@@ -202,10 +202,15 @@ RUN_SUMMARY_KEYS: dict[str, tuple[str, str | None]] = {
     "identification_passes": ("the iterated identification: passes, the last change of the moments, the "
                               "tolerance, converged or not", None),
     "modeling_status": ("ok (the moments settled), unsettled (the iterated identification did not settle within "
-                        "its tolerance), or why no model was made", None),
+                        "its tolerance, or too few simulated replicates were identified), or why no model was made",
+                        None),
+    "modeling_estimator": ("the estimator of the moments (identification.estimator): paper, or simulated with its "
+                           "replicates, how many were identified, their effective weight, the prior box's width and "
+                           "the paper estimator's moments it matched", None),
     "modeling_covariance": ("how the modeled covariance was formed (identification.covariance)", None),
-    "modeling_uncertainty": ("the modeled moments' spread over block-bootstrap draws of the modeling window: "
-                             "resamples, block, sd of xi's mean and std per component", "xi"),
+    "modeling_uncertainty": ("the modeled moments' spread over their draws (the simulated estimator's posterior, "
+                             "or block-bootstrap draws of the paper's modeling window): resamples, block, what "
+                             "was drawn over, sd of xi's mean and std per component", "xi"),
     "nbar": ("size of the LMI's basis Gbar (eq. Gbar)", None),
     "noise_sensitivity": ("the moments modeled again with the EnKF's assumed noise (enkf.Q's x block and enkf.R) "
                           "scaled by identification.noise_sensitivity's factors: the factors (1 among them), xi mean "

@@ -15,6 +15,8 @@ Every family has `p`, `mean`, `cov`, `moments` (a MomentModel), `sample(rng, siz
 and `support` -> (low (p,), high (p,)), the smallest box containing the support (+-inf if unbounded);
 `two_point` says which components take only that box's two ends.
 `expected_crps` scores a modeled Gaussian against draws of the true distribution (a proper score).
+`PathLaws` gives every simulated path a law of its own (the replicates of `numerics.indirect`); `sample_paths`
+draws any family's coefficients path by path.
 """
 from __future__ import annotations
 
@@ -208,6 +210,47 @@ def _independent(specs) -> Independent:
         except ValueError as err:
             raise ValueError(f"components[{i}]: {err}") from None
     return Independent(parsed)          # an empty list is rejected there
+
+
+@dataclass(frozen=True, eq=False)
+class PathLaws:
+    """One law of xi per simulated path: path j draws xi_k = mean[j] + sqrt[j] z_k, z_k ~ N(0, I) from its own
+    stream, except the components `ends` (p,) bool, which take the two-point law on {low, high} with that mean
+    (`two_point_draw` of the same z). mean (P, p), sqrt (P, p, p); low, high (p,) (None: no such component).
+    A plant with these laws simulates P paths exactly (`sample_paths`), not one path more."""
+
+    mean: np.ndarray
+    sqrt: np.ndarray
+    ends: np.ndarray | None = None
+    low: np.ndarray | None = None
+    high: np.ndarray | None = None
+
+    p = property(lambda self: self.mean.shape[1])
+
+    def sample_paths(self, rngs: list, steps: int) -> np.ndarray:
+        """(steps, P, p): path j's coefficients from rngs[j] (P generators, one per path)."""
+        if len(rngs) != self.mean.shape[0]:
+            raise ValueError(f"rngs: {len(rngs)} paths, these laws are of {self.mean.shape[0]}")
+        z = np.stack([g.standard_normal((steps, self.p)) for g in rngs], axis=1)            # (steps, P, p)
+        # elementwise products summed per row: each path's numbers whatever the other paths in the batch
+        xi = self.mean + (self.sqrt * z[..., None, :]).sum(axis=-1)
+        if self.ends is not None and self.ends.any():
+            xi = np.where(self.ends, two_point_draw(z, self.mean, self.low, self.high), xi)
+        return xi
+
+
+def two_point_draw(z: np.ndarray, mean, low, high) -> np.ndarray:
+    """Draws of the law on {low, high} with the given mean from standard normal z (broadcast): high where
+    Phi(z) < P(high) = (mean - low) / (high - low), else low (`EnKF.xi_ends`)."""
+    return np.where(ndtr(z) < (mean - low) / (high - low), high, low)
+
+
+def sample_paths(dist, rngs: list, steps: int) -> np.ndarray:
+    """(steps, P, p): each path's coefficients from its own generator (rngs, P of them): `PathLaws` by path, any
+    other family the same law on every path."""
+    if isinstance(dist, PathLaws):
+        return dist.sample_paths(rngs, steps)
+    return np.stack([dist.sample(g, (steps,)) for g in rngs], axis=1)
 
 
 def two_point(dist) -> np.ndarray:

@@ -36,9 +36,8 @@ from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
-from scipy.special import ndtr
 
-from .distributions import two_point
+from .distributions import two_point, two_point_draw
 from .systems import AffineRandomSystem, MomentModel, _finite_array, affine_apply
 
 # an innovation covariance V with condition number above this is singular to working precision
@@ -687,12 +686,6 @@ def xi_support(model: AffineRandomSystem, plant: AffineRandomSystem) -> tuple[np
         with np.errstate(invalid="ignore"):
             low[i], high[i] = np.nanmin(ends), np.nanmax(ends)
     return low, high
-
-
-def two_point_draw(z: np.ndarray, mean, low, high) -> np.ndarray:
-    """Draws of the law on {low, high} with the given mean from standard normal z (broadcast): high where
-    Phi(z) < P(high) = (mean - low) / (high - low), else low (`EnKF.xi_ends`)."""
-    return np.where(ndtr(z) < (mean - low) / (high - low), high, low)
 
 
 def xi_ends(model: AffineRandomSystem, plant: AffineRandomSystem) -> np.ndarray | None:

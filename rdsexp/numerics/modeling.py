@@ -100,6 +100,20 @@ def model_distribution(xi_filt_mean: np.ndarray, K0: int, K1: int,
     return MomentModel(mean=model.mean, cov=model.cov + cov.mean(axis=0))
 
 
+def path_moments(xi_filt_mean: np.ndarray, K0: int, K1: int,
+                 xi_filt_cov: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Each path's own `model_distribution`: xi_filt_mean (K+1, P, p) (and xi_filt_cov (K+1, P, p, p)) ->
+    means (P, p) and covariances (P, p, p) over the path's window K0..K0+K1 (1/N, plus the mean filtered
+    covariance with xi_filt_cov). NaN where a path's window is not finite (its estimate failed)."""
+    xi = window_samples(xi_filt_mean, K0, K1)                            # (T, P, p)
+    mean = xi.mean(axis=0)
+    dev = xi - mean
+    cov = np.einsum("tpi,tpj->pij", dev, dev) / xi.shape[0]
+    if xi_filt_cov is not None:
+        cov += window_samples(xi_filt_cov, K0, K1).mean(axis=0)
+    return mean, cov
+
+
 def block_bootstrap_steps(T: int, resamples: int, block: int, seed) -> np.ndarray:
     """(resamples, T) indices into a window of T estimates: each row a moving-block bootstrap resample,
     ceil(T / L) blocks of L = min(block, T) consecutive indices with uniform starts, cut to T (xi_{k|k}

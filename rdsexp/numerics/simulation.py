@@ -26,6 +26,7 @@ from typing import Protocol
 import numpy as np
 from threadpoolctl import threadpool_limits
 
+from .distributions import sample_paths
 from .enkf import EnKF, check_covariance, component_major, ensemble_mean, sqrtm_psd
 from .systems import AffineRandomSystem, _finite_array
 
@@ -143,7 +144,7 @@ class _PlantSource:
     """The simulated plant of `simulate`: coefficients s_k drawn per path (PLANT streams), state q_k."""
 
     def __init__(self, plant: AffineRandomSystem, q0, rngs, K: int):
-        self.s = np.stack([plant.xi_dist.sample(g, (K + 1,)) for g in rngs], axis=1)    # (K+1, P, p_plant)
+        self.s = sample_paths(plant.xi_dist, rngs, K + 1)                              # (K+1, P, p_plant)
         self.A, self.B, self.C, self.D = plant.at(self.s)
         self.q = np.broadcast_to(q0, (len(rngs), plant.n)).copy()
 

@@ -8,9 +8,10 @@ import dataclasses
 
 import numpy as np
 
-from ...numerics.modeling import model_distribution, moment_draws, nominal_gain, path_moment_draws
+from ...numerics import indirect
+from ...numerics.modeling import model_distribution, moment_draws, nominal_gain, path_moment_draws, path_moments
 from ...numerics.simulation import Trajectories, bytes_per_path
-from ...numerics.systems import MomentModel
+from ...numerics.systems import AffineRandomSystem, MomentModel
 from ...numerics.verdict import FAILURES
 from ..config import Experiment
 from ..montecarlo import MEMORY_BUDGET, Simulation
@@ -19,6 +20,7 @@ from .results import Identified, Uncertainty
 from .stage import Stages
 
 UNCERTAINTY_STREAM = 3   # SeedSequence([seed, 3]): the modeling window's bootstrap (stages use spawn keys 0-2)
+REPLICATE_STREAM = 4     # SeedSequence([seed, 4]): the simulated estimator's replicates (and [seed, 4, 1]: their laws)
 PASS_TOL = 1e-3        # iterated identification: stop when the moments move less than this (relative)
 
 
@@ -41,7 +43,75 @@ def identify_and_model(exp: Experiment, stages: Stages, seed) -> Identified:
             info = retry | {"open_loop_diverged_at": int(ident.failed_at[0]),
                             "open_loop_failure": str(ident.failure[0])}
             ident = identify(F_id)
+    if exp.identification.estimator == "simulated" and exp.model.p:
+        return simulated_moments(exp, stages, ident, F_id, info)
     return model_moments(exp, stages, ident, lambda enkf: identify(F_id, enkf), info)
+
+
+def simulated_moments(exp: Experiment, stages: Stages, ident: Trajectories, F_id, feedback: dict) -> Identified:
+    """The modeling stage of identification.estimator = simulated (`numerics.indirect`): the paper's estimator on
+    the identification run is the summary; identification.replicates runs of the model under the same input,
+    feedback and EnKF, each path drawing xi from its own law of the prior box, give the posterior of the law's
+    mean and stds. The posterior mean is the model, its weighted draws the uncertainty (`Identified.posterior`)."""
+    settings, model = exp.identification, exp.model
+    with stages.timed("modeling"):
+        summary, failure = identified_moments(exp, ident)
+        if summary is None:
+            return Identified(ident, None, failure, feedback, covariance=settings.covariance)
+        total = settings.covariance == "total"
+        ends, low, high = two_point_ends(exp.filter.enkf)
+        s_obs = np.concatenate([summary.mean, np.sqrt(np.diag(summary.cov))])
+        lo, hi = indirect.prior_box(s_obs, ends, low, high, settings.prior_width)
+        R = settings.replicates
+        theta = lo + (hi - lo) * np.random.default_rng([exp.seed, REPLICATE_STREAM, 1]).random((R, lo.size))
+        s = replicate_summaries(exp, F_id, theta, ends, low, high, total)
+        usable = int(np.all(np.isfinite(s), axis=1).sum())
+        info = {"name": "simulated", "replicates": R, "usable": usable, "prior_width": settings.prior_width,
+                "accept": settings.accept, "summary_mean": summary.mean.tolist(),
+                "summary_std": s_obs[model.p:].tolist()}
+        if usable < 10 * (lo.size + 1):        # too few for the regression: the paper's moments, said so
+            info["fallback"] = f"{usable} of {R} replicates identified (needs {10 * (lo.size + 1)}): the paper's moments"
+            return Identified(ident, summary, "", feedback, covariance=settings.covariance, estimator=info)
+        adjusted, w = indirect.adjusted_posterior(theta, s, s_obs, lo, hi, settings.accept)
+        info["effective"] = float(w.sum() ** 2 / (w ** 2).sum())
+        std = s_obs[model.p:]
+        corr = summary.cov / np.outer(std, std) if np.all(std > 0) else None
+        mean, cov = indirect.moments_of(w @ adjusted / w.sum(), ends, low, high, corr)
+        draws = indirect.weighted_draws(adjusted, w, max(settings.resamples, 200), [exp.seed, UNCERTAINTY_STREAM])
+        d_mean, d_cov = indirect.moments_of(draws, ends, low, high, corr)
+        posterior = Uncertainty(d_mean, d_cov, len(draws), 0, "simulated replicates")
+    return Identified(ident, MomentModel(mean=mean, cov=cov), "", feedback, covariance=settings.covariance,
+                      estimator=info, posterior=posterior)
+
+
+def two_point_ends(enkf) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(ends (p,) bool, low (p,), high (p,)): the components the EnKF models as two-point laws (`EnKF.two_point`)."""
+    if enkf.two_point is None:
+        p = enkf.model.p
+        return np.zeros(p, dtype=bool), np.zeros(p), np.ones(p)
+    return enkf.two_point
+
+
+def replicate_summaries(exp: Experiment, F_id, theta: np.ndarray, ends, low, high, total: bool) -> np.ndarray:
+    """(R, 2p): the paper estimator's mean and std of xi on R identification runs of the model, path r drawing xi
+    from theta[r] (`indirect.path_laws`), with the identification's input, feedback and EnKF; NaN where a run
+    failed. In chunks of paths within the Monte Carlo's memory budget (each path its own streams)."""
+    model, settings = exp.model, exp.identification
+    q0 = exp.q0 if exp.q0.shape == (model.n,) else np.zeros(model.n)
+    sim = Simulation.of(exp, exp.filter.enkf, F_id, np.random.SeedSequence([exp.seed, REPLICATE_STREAM]),
+                        plant=model, q0=q0, d=settings.input, paths=len(theta), filter_sees_d=True)
+    per_path = bytes_per_path(model, sim.observer, ensemble_size=exp.filter.ensemble_size,
+                              horizon=settings.input.shape[0] - 1, keep_members=False, block=16)
+    size = int(max(1, MEMORY_BUDGET // (3 * per_path)))
+    out = []
+    for first in range(0, len(theta), size):
+        part = theta[first:first + size]
+        laws = indirect.path_laws(part, ends, low, high)
+        plant = AffineRandomSystem(model.A, model.B, model.C, model.D, xi_dist=laws)
+        tr = dataclasses.replace(sim, plant=plant).run(first, len(part), keep_xi_cov=total)
+        mean, cov = path_moments(tr.xi(tr.psi_filt_mean), settings.K0, settings.K1, tr.xi_filt_cov if total else None)
+        out.append(np.concatenate([mean, np.sqrt(np.einsum("pii->pi", cov))], axis=1))
+    return np.concatenate(out)
 
 
 def model_moments(exp: Experiment, stages: Stages, ident: Trajectories, identify, feedback: dict) -> Identified:
@@ -126,6 +196,8 @@ def moment_uncertainty(exp: Experiment, identified: Identified) -> Uncertainty |
     run the moments come from (`modeling.moment_draws`: moving blocks of one path's window; `path_moment_draws`:
     over the recorded paths), seeded by the run's seed. None without resamples or without a model."""
     settings, ident = exp.identification, identified.trajectories
+    if identified.posterior is not None:
+        return identified.posterior
     if identified.moments is None or not settings.resamples or not exp.model.p:
         return None
     total = settings.covariance == "total"

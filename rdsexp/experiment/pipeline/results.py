@@ -28,7 +28,8 @@ class Identified:
     trajectories: the run the moments come from (the last pass of an iterated identification); moments:
     None where modeling failed, `failure` says why; feedback: how the plant was driven (the gain, or the
     recorded inputs); passes: an iterated identification's passes (None: one pass); covariance: the
-    modeling window's covariance (sample | total)."""
+    modeling window's covariance (sample | total); estimator: identification.estimator = simulated's account
+    (replicates, usable, effective, the summary it matched), with `posterior` its draws of the moments."""
 
     trajectories: Trajectories
     moments: MomentModel | None
@@ -36,12 +37,16 @@ class Identified:
     feedback: dict
     passes: dict | None = None
     covariance: str = "sample"
+    estimator: dict | None = None
+    posterior: Uncertainty | None = None
 
     @property
     def status(self) -> str:
-        """ok; unsettled (passes that stopped before the moments settled); or why there is no model."""
+        """ok; unsettled (passes that stopped before the moments settled, or a simulated estimator left with the
+        paper's moments); or why there is no model."""
         passes = self.passes or {}
-        unsettled = self.moments is not None and passes.get("passes") and not passes.get("converged")
+        unsettled = self.moments is not None and ((passes.get("passes") and not passes.get("converged"))
+                                                  or "fallback" in (self.estimator or {}))
         return self.failure or ("unsettled" if unsettled else "ok")
 
     def summary(self) -> dict:
@@ -50,6 +55,7 @@ class Identified:
             s["identification_passes"] = self.passes
         if self.moments is not None:
             s["modeling_covariance"] = self.covariance
+        s["modeling_estimator"] = self.estimator or {"name": "paper"}
         return s
 
 

@@ -1,0 +1,94 @@
+"""The moments of xi by simulation: approximate Bayesian computation with the paper's estimator as summary.
+
+The paper's estimator (eq. sample-mean: the moments of xi_{k|k} over the window) is biased: the EnKF's
+filtered means are shrunk toward its random walk, and its covariance mixes the spread of xi with the
+filter's own. Its bias depends on the plant, the input, the window and the noise, so no fixed correction
+removes it. But rdsexp can run the same identification on the model at any law of xi. So:
+
+1. the summary s = (mean (p), std (p)) of the paper's estimator on the identification run (`s_obs`);
+2. theta = (mean of xi (p), std of every component that is not two-point) drawn uniformly from a box
+   around s_obs (`prior_box`), one law per replicate path (`path_laws`, `distributions.PathLaws`);
+3. the same identification (input, feedback, EnKF, window) of the model on each replicate, batched over
+   paths: its summary s_r;
+4. the replicates nearest s_obs weighted (Epanechnikov kernel), and theta_r moved along a weighted linear
+   regression of theta on s to s = s_obs (`adjusted_posterior`: Beaumont, Zhang & Balding 2002).
+
+The weighted adjusted thetas are draws of the posterior of theta given s_obs under the box prior. Their
+mean is the modeled law, their spread its uncertainty: it contains the estimator's bias and its noise, and
+where s says little about a component (an output that barely sees it) the posterior stays as wide as the
+box. A two-point component (a Bernoulli dropout: `EnKF.two_point`) has its std fixed by its mean.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .distributions import PathLaws
+
+
+def prior_box(s_obs: np.ndarray, ends: np.ndarray, low: np.ndarray, high: np.ndarray, width: float):
+    """(lo, hi) (d,): the uniform prior of theta = (mean (p), std of the components not in `ends`).
+
+    s_obs (2p,): the paper estimator's mean and std of xi; mean_i in s_obs mean_i +- width s_obs std_i (a
+    two-point component: inside its ends low_i < high_i, off each end by 1e-3 of the box), std_i in
+    [0, width s_obs std_i]. ends (p,) bool; low, high (p,) the two-point components' ends."""
+    p = ends.size
+    mean, std = s_obs[:p], np.maximum(s_obs[p:], 1e-6)
+    lo_m, hi_m = mean - width * std, mean + width * std
+    if ends.any():
+        eps = 1e-3 * (high - low)
+        lo_m, hi_m = np.where(ends, low + eps, lo_m), np.where(ends, high - eps, hi_m)
+    free = ~ends
+    return np.concatenate([lo_m, np.zeros(free.sum())]), np.concatenate([hi_m, width * std[free]])
+
+
+def moments_of(theta: np.ndarray, ends: np.ndarray, low: np.ndarray, high: np.ndarray,
+               corr: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """theta (..., d) -> mean (..., p) and covariance (..., p, p) of xi: the stds of theta, a two-point
+    component's sqrt((mean - low)(high - mean)), with correlation `corr` (p, p) (None: independent)."""
+    p = ends.size
+    mean = theta[..., :p]
+    std = np.zeros(theta.shape[:-1] + (p,))
+    std[..., ~ends] = np.abs(theta[..., p:])
+    if ends.any():
+        std[..., ends] = np.sqrt(np.clip((mean[..., ends] - low[ends]) * (high[ends] - mean[..., ends]), 0, None))
+    corr = np.eye(p) if corr is None else corr
+    return mean, std[..., :, None] * corr * std[..., None, :]
+
+
+def path_laws(theta: np.ndarray, ends: np.ndarray, low: np.ndarray, high: np.ndarray) -> PathLaws:
+    """The replicates' laws: path r draws xi from theta[r] (R, d), independent components (`moments_of`)."""
+    mean, cov = moments_of(theta, ends, low, high)
+    sqrt = np.sqrt(np.einsum("rii->ri", cov))[..., None] * np.eye(ends.size)
+    return PathLaws(mean, sqrt, ends if ends.any() else None, low, high)
+
+
+def adjusted_posterior(theta: np.ndarray, s: np.ndarray, s_obs: np.ndarray, lo: np.ndarray, hi: np.ndarray,
+                       accept: float) -> tuple[np.ndarray, np.ndarray]:
+    """Draws of theta given s_obs: the local-linear regression adjustment (Beaumont, Zhang & Balding 2002).
+
+    theta (R, d) drawn from the box prior [lo, hi], s (R, ds) their summaries (rows with a non-finite s are
+    left out: the replicate's identification failed), s_obs (ds,). The fraction `accept` of the replicates
+    nearest s_obs (distance scaled by s's spread over the replicates) get Epanechnikov weights; theta is
+    regressed on s by weighted least squares and moved to s = s_obs, then kept in the box.
+    Returns the adjusted draws (N, d) and their weights (N,), N > 0 the weighted replicates."""
+    ok = np.all(np.isfinite(s), axis=1)
+    theta, s = theta[ok], s[ok]
+    dev = s - s_obs
+    scale = s.std(axis=0)
+    scale = np.where(scale > 0, scale, 1.0)
+    dist = np.sqrt(((dev / scale) ** 2).sum(axis=1))
+    h = np.quantile(dist, accept)
+    w = np.clip(1 - (dist / h) ** 2, 0, None) if h > 0 else (dist == 0).astype(float)
+    keep = w > 0
+    theta, dev, w = theta[keep], dev[keep], w[keep]
+    X = np.concatenate([np.ones((len(w), 1)), dev / scale], axis=1)
+    # weighted least squares, a minimum-norm solution where the kept summaries are collinear
+    beta = np.linalg.lstsq(X * np.sqrt(w)[:, None], theta * np.sqrt(w)[:, None], rcond=None)[0]
+    adjusted = theta - (dev / scale) @ beta[1:]
+    return np.clip(adjusted, lo, hi), w
+
+
+def weighted_draws(adjusted: np.ndarray, w: np.ndarray, count: int, seed) -> np.ndarray:
+    """(count, d): draws from the weighted adjusted thetas (multinomial by weight, default_rng(seed))."""
+    pick = np.random.default_rng(seed).choice(len(w), size=count, p=w / w.sum())
+    return adjusted[pick]

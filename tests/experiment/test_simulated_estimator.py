@@ -1,0 +1,82 @@
+"""identification.estimator = simulated (the default beside the paper's plant): the moments of xi by simulation
+(`numerics.indirect`), blind, with an interval that holds the law the plant is simulated from, the same numbers
+whatever the chunks, and the paper's estimator where the paper's plant asks for it."""
+import numpy as np
+import pytest
+import yaml
+from conftest import SMALL
+from hydra import compose, initialize_config_module
+from scipy.stats import binom
+
+from rdsexp.errors import ConfigError
+from rdsexp.experiment.config import build
+from rdsexp.experiment.pipeline import identification
+from rdsexp.experiment.pipeline.identification import identify_and_model, moment_uncertainty
+from rdsexp.experiment.pipeline.loops import root_seed
+from rdsexp.experiment.pipeline.stage import Stages
+
+# open-loop unstable, identified under nominal feedback: a Bernoulli(0.8) actuator link and a normal gain on A
+PLANT = {"name": "link", "A": [[[1.05, 0.2], [0.0, 0.95]], [[0, 0], [0, 0]], [[0.3, 0], [0, 0]]],
+         "B": [[[0], [0.2]], [[0], [1]], [[0], [0]]], "C": [[[1, 0]]], "nominal": [1.0, 0.0],
+         "xi": {"family": "independent", "components": [{"family": "bernoulli", "prob": 0.8},
+                                                         {"family": "normal", "mean": [0.5], "cov": [[0.09]]}]}}
+TRUE_MEAN, TRUE_STD = np.array([0.8, 0.5]), np.array([0.4, 0.3])
+
+
+def experiment(tmp_path, *extra):
+    (tmp_path / "plant").mkdir(exist_ok=True)
+    (tmp_path / "plant" / "link.yaml").write_text(yaml.safe_dump(PLANT))
+    with initialize_config_module(config_module="rdsexp.conf", version_base="1.3"):
+        return build(compose("config", overrides=[f"hydra.searchpath=[file://{tmp_path}]", "plant=link",
+                                                  "model=plant", *SMALL, "tracking=off", "identification.horizon=60",
+                                                  "identification.K1=50", "identification.replicates=200", *extra]))
+
+
+def modeled(exp):
+    identified = identify_and_model(exp, Stages(cache=None), root_seed(exp, "identification"))
+    return identified, moment_uncertainty(exp, identified)
+
+
+def test_the_stated_interval_holds_the_law(tmp_path):
+    """Over seeds, modeled +- 1.96 stated sd holds the true mean and std of both components at about the
+    nominal 95% (at least the count 3 binomial sds below it), where the paper's estimator misses."""
+    hits, paper_hits, count = 0, 0, 0
+    for seed in range(10):
+        identified, posterior = modeled(experiment(tmp_path, f"seed={seed}"))
+        assert identified.status == "ok" and identified.estimator["usable"] >= 100
+        summary = posterior.summary()["modeling_uncertainty"]
+        mean, std = identified.moments.mean, np.sqrt(np.diag(identified.moments.cov))
+        hits += np.sum(np.abs(mean - TRUE_MEAN) <= 1.96 * np.asarray(summary["xi_mean_sd"]))
+        hits += np.sum(np.abs(std - TRUE_STD) <= 1.96 * np.asarray(summary["xi_std_sd"]))
+        paper = identified.estimator
+        paper_hits += np.sum(np.abs(np.array(paper["summary_mean"]) - TRUE_MEAN) <= 1.96 * np.asarray(summary["xi_mean_sd"]))
+        count += 4
+    assert hits >= binom.ppf(0.0015, count, 0.95), f"{hits} of {count} intervals hold the truth"
+    assert paper_hits < hits
+
+
+def test_the_same_numbers_whatever_the_chunks(tmp_path, monkeypatch):
+    exp = experiment(tmp_path, "seed=3")
+    whole, whole_draws = modeled(exp)
+    monkeypatch.setattr(identification, "MEMORY_BUDGET", 1)          # one replicate path per chunk
+    parts, parts_draws = modeled(exp)
+    np.testing.assert_array_equal(whole.moments.mean, parts.moments.mean)
+    np.testing.assert_array_equal(whole.moments.cov, parts.moments.cov)
+    np.testing.assert_array_equal(whole_draws.mean, parts_draws.mean)
+
+
+def test_too_few_identified_replicates_keep_the_paper_moments_and_say_so(tmp_path, monkeypatch):
+    exp = experiment(tmp_path, "seed=0")
+    monkeypatch.setattr(identification, "replicate_summaries",
+                        lambda exp, F, theta, *rest: np.full((len(theta), 2 * exp.model.p), np.nan))
+    identified, _ = modeled(exp)
+    assert identified.status == "unsettled" and "0 of 200 replicates" in identified.estimator["fallback"]
+    np.testing.assert_array_equal(identified.moments.mean, identified.estimator["summary_mean"])
+
+
+def test_the_paper_plant_keeps_the_paper_estimator_and_a_data_run_cannot_ask_for_it_yet(tmp_path):
+    with initialize_config_module(config_module="rdsexp.conf", version_base="1.3"):
+        assert build(compose("config", overrides=SMALL)).identification.estimator == "paper"
+        with pytest.raises(ConfigError, match="identification.estimator: 'bogus' is not allowed"):
+            build(compose("config", overrides=[*SMALL, "identification.estimator=bogus"]))
+    assert experiment(tmp_path).identification.estimator == "simulated"
