@@ -70,7 +70,8 @@ def simulated_moments(exp: Experiment, stages: Stages, ident: Trajectories, F_id
                 "accept": settings.accept, "summary_mean": summary.mean.tolist(),
                 "summary_std": s_obs[model.p:].tolist()}
         if usable < 10 * (lo.size + 1):        # too few for the regression: the paper's moments, said so
-            info["fallback"] = f"{usable} of {R} replicates identified (needs {10 * (lo.size + 1)}): the paper's moments"
+            info["fallback"] = (f"{usable} of {R} replicates identified (needs {10 * (lo.size + 1)}): "
+                                "the paper's moments")
             return Identified(ident, summary, "", feedback, covariance=settings.covariance, estimator=info)
         adjusted, w = indirect.adjusted_posterior(theta, s, s_obs, lo, hi, settings.accept)
         info["effective"] = float(w.sum() ** 2 / (w ** 2).sum())
