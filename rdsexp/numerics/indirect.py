@@ -41,6 +41,23 @@ def prior_box(s_obs: np.ndarray, ends: np.ndarray, low: np.ndarray, high: np.nda
     return np.concatenate([lo_m, np.zeros(free.sum())]), np.concatenate([hi_m, width * std[free]])
 
 
+def uniform_draws(lo: np.ndarray, hi: np.ndarray, count: int, seed) -> np.ndarray:
+    """(count, d): theta uniform in the box [lo, hi] (d,), from default_rng(seed)."""
+    return lo + (hi - lo) * np.random.default_rng(seed).random((count, lo.size))
+
+
+def posterior_box(adjusted: np.ndarray, w: np.ndarray, lo: np.ndarray, hi: np.ndarray,
+                  margin: float = 0.25) -> tuple[np.ndarray, np.ndarray]:
+    """The box the next round draws from: the span of the weighted draws (N, d), widened by `margin` of it on
+    each side, within [lo, hi]. The posterior under the first box lies inside (up to the margin), so the same
+    prior restricted to it gives the same posterior, resolved by more replicates where it has its mass."""
+    kept = adjusted[w > 0]
+    low, high = kept.min(axis=0), kept.max(axis=0)
+    pad = margin * (high - low)
+    new_lo, new_hi = np.maximum(lo, low - pad), np.minimum(hi, high + pad)
+    return new_lo, np.maximum(new_hi, new_lo)
+
+
 def moments_of(theta: np.ndarray, ends: np.ndarray, low: np.ndarray, high: np.ndarray,
                corr: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """theta (..., d) -> mean (..., p) and covariance (..., p, p) of xi: the stds of theta, a two-point

@@ -9,6 +9,7 @@ import dataclasses
 import numpy as np
 
 from ...numerics import indirect
+from ...numerics.enkf import xi_ends
 from ...numerics.modeling import model_distribution, moment_draws, nominal_gain, path_moment_draws, path_moments
 from ...numerics.simulation import Trajectories, bytes_per_path
 from ...numerics.systems import AffineRandomSystem, MomentModel
@@ -20,7 +21,7 @@ from .results import Identified, Uncertainty
 from .stage import Stages
 
 UNCERTAINTY_STREAM = 3   # SeedSequence([seed, 3]): the modeling window's bootstrap (stages use spawn keys 0-2)
-REPLICATE_STREAM = 4     # SeedSequence([seed, 4]): the simulated estimator's replicates (and [seed, 4, 1]: their laws)
+REPLICATE_STREAM = 4     # [seed, 4, round]: the simulated estimator's replicates and their laws (their own streams)
 PASS_TOL = 1e-3        # iterated identification: stop when the moments move less than this (relative)
 
 
@@ -50,56 +51,71 @@ def identify_and_model(exp: Experiment, stages: Stages, seed) -> Identified:
 
 def simulated_moments(exp: Experiment, stages: Stages, ident: Trajectories, F_id, feedback: dict) -> Identified:
     """The modeling stage of identification.estimator = simulated (`numerics.indirect`): the paper's estimator on
-    the identification run is the summary; identification.replicates runs of the model under the same input,
-    feedback and EnKF, each path drawing xi from its own law of the prior box, give the posterior of the law's
-    mean and stds. The posterior mean is the model, its weighted draws the uncertainty (`Identified.posterior`)."""
+    the identification run is the summary; two rounds of identification.replicates runs of the model under the
+    same input, feedback and EnKF, each path drawing xi from its own law, give the posterior of the law's mean
+    and stds: the first from the prior box, the second from the box its posterior draws span (a replicate whose
+    identification failed, as the observed one did not, is left out). The posterior mean is the model, its
+    weighted draws the uncertainty (`Identified.posterior`)."""
     settings, model = exp.identification, exp.model
     with stages.timed("modeling"):
         summary, failure = identified_moments(exp, ident)
         if summary is None:
             return Identified(ident, None, failure, feedback, covariance=settings.covariance)
-        total = settings.covariance == "total"
-        ends, low, high = two_point_ends(exp.filter.enkf)
+        ends, low, high = two_point_ends(exp)
         s_obs = np.concatenate([summary.mean, np.sqrt(np.diag(summary.cov))])
-        lo, hi = indirect.prior_box(s_obs, ends, low, high, settings.prior_width)
-        R = settings.replicates
-        theta = lo + (hi - lo) * np.random.default_rng([exp.seed, REPLICATE_STREAM, 1]).random((R, lo.size))
-        s = replicate_summaries(exp, F_id, theta, ends, low, high, total)
-        usable = int(np.all(np.isfinite(s), axis=1).sum())
-        info = {"name": "simulated", "replicates": R, "usable": usable, "prior_width": settings.prior_width,
+        box = indirect.prior_box(s_obs, ends, low, high, settings.prior_width)
+        info = {"name": "simulated", "replicates": settings.replicates, "prior_width": settings.prior_width,
                 "accept": settings.accept, "summary_mean": summary.mean.tolist(),
-                "summary_std": s_obs[model.p:].tolist()}
-        if usable < 10 * (lo.size + 1):        # too few for the regression: the paper's moments, said so
-            info["fallback"] = (f"{usable} of {R} replicates identified (needs {10 * (lo.size + 1)}): "
-                                "the paper's moments")
+                "summary_std": s_obs[model.p:].tolist(), "usable": []}
+        posterior = None
+        for round_ in (1, 2):
+            theta = indirect.uniform_draws(*box, settings.replicates, [exp.seed, REPLICATE_STREAM, round_])
+            s = replicate_summaries(exp, F_id, theta, ends, low, high, round_)
+            usable = int(np.all(np.isfinite(s), axis=1).sum())
+            info["usable"].append(usable)
+            if usable < 10 * (theta.shape[1] + 1):        # too few for the regression
+                break
+            posterior = indirect.adjusted_posterior(theta, s, s_obs, *box, settings.accept)
+            box = indirect.posterior_box(*posterior, *box)
+        if posterior is None:       # the paper's moments, said so
+            info["fallback"] = (f"{info['usable'][0]} of {settings.replicates} replicates identified (needs "
+                                f"{10 * (len(box[0]) + 1)}): the paper's moments")
             return Identified(ident, summary, "", feedback, covariance=settings.covariance, estimator=info)
-        adjusted, w = indirect.adjusted_posterior(theta, s, s_obs, lo, hi, settings.accept)
+        adjusted, w = posterior
         info["effective"] = float(w.sum() ** 2 / (w ** 2).sum())
         std = s_obs[model.p:]
         corr = summary.cov / np.outer(std, std) if np.all(std > 0) else None
         mean, cov = indirect.moments_of(w @ adjusted / w.sum(), ends, low, high, corr)
-        draws = indirect.weighted_draws(adjusted, w, max(settings.resamples, 200), [exp.seed, UNCERTAINTY_STREAM])
-        d_mean, d_cov = indirect.moments_of(draws, ends, low, high, corr)
-        posterior = Uncertainty(d_mean, d_cov, len(draws), 0, "simulated replicates")
+        draws = None
+        if settings.resamples:          # the uncertainty: identification.resamples draws of the posterior
+            picks = indirect.weighted_draws(adjusted, w, settings.resamples, [exp.seed, UNCERTAINTY_STREAM])
+            draws = Uncertainty(*indirect.moments_of(picks, ends, low, high, corr), settings.resamples, 0,
+                                "simulated replicates")
     return Identified(ident, MomentModel(mean=mean, cov=cov), "", feedback, covariance=settings.covariance,
-                      estimator=info, posterior=posterior)
+                      estimator=info, posterior=draws)
 
 
-def two_point_ends(enkf) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(ends (p,) bool, low (p,), high (p,)): the components the EnKF models as two-point laws (`EnKF.two_point`)."""
-    if enkf.two_point is None:
-        p = enkf.model.p
+def two_point_ends(exp: Experiment) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(ends (p,) bool, low (p,), high (p,)): the components whose law takes only the two ends of the support box
+    the plant file's family states (`enkf.xi_ends`: a Bernoulli link), as the online loop models them; their
+    std is fixed by their mean."""
+    p, bounds = exp.model.p, exp.filter.enkf.xi_bounds
+    ends = xi_ends(exp.model, exp.plant) if bounds is not None and exp.plant is not None else None
+    if ends is None or not ends.any():
         return np.zeros(p, dtype=bool), np.zeros(p), np.ones(p)
-    return enkf.two_point
+    low, high = bounds
+    ends = ends & (high > low)
+    return ends, np.where(ends, low, 0.0), np.where(ends, high, 1.0)
 
 
-def replicate_summaries(exp: Experiment, F_id, theta: np.ndarray, ends, low, high, total: bool) -> np.ndarray:
+def replicate_summaries(exp: Experiment, F_id, theta: np.ndarray, ends, low, high, round_: int) -> np.ndarray:
     """(R, 2p): the paper estimator's mean and std of xi on R identification runs of the model, path r drawing xi
     from theta[r] (`indirect.path_laws`), with the identification's input, feedback and EnKF; NaN where a run
     failed. In chunks of paths within the Monte Carlo's memory budget (each path its own streams)."""
     model, settings = exp.model, exp.identification
+    total = settings.covariance == "total"
     q0 = exp.q0 if exp.q0.shape == (model.n,) else np.zeros(model.n)
-    sim = Simulation.of(exp, exp.filter.enkf, F_id, np.random.SeedSequence([exp.seed, REPLICATE_STREAM]),
+    sim = Simulation.of(exp, exp.filter.enkf, F_id, np.random.SeedSequence([exp.seed, REPLICATE_STREAM, round_]),
                         plant=model, q0=q0, d=settings.input, paths=len(theta), filter_sees_d=True)
     per_path = bytes_per_path(model, sim.observer, ensemble_size=exp.filter.ensemble_size,
                               horizon=settings.input.shape[0] - 1, keep_members=False, block=16)
