@@ -3,13 +3,13 @@
 In the spirit of simulation-based calibration: per plant, --seeds whole runs with the defaults (blind: the prior
 guess is the plant file's `nominal:` or xi = 0, never the law), and per component of xi the modeled mean and
 standard deviation against the plant file's law mapped into the model's xi (`plant_xi_mean`, `plant_xi_std`),
-with the uncertainty the run states (`modeling_uncertainty`: the sd of each over the bootstrap draws). Printed
+with the uncertainty the run states (`modeling_uncertainty`: the sd of each over its draws). Printed
 per plant:
 
 - z: (modeled - true) / stated sd, median |z| and max |z| over components and seeds, for the mean and the std;
 - cover: the fraction of the 95% intervals (modeled +- 1.96 stated sd) that hold the truth (nominal 0.95);
 - err: median |modeled mean - true| / true sd, and median |modeled std / true std - 1|;
-- status: the modeling statuses (ok, unsettled, or why no model);
+- status: the modeling statuses (ok, unsettled, at_prior_edge, or why no model), and the cover over the ok runs;
 - e2e: the end-to-end figure of the loop's gain on the true plant against the optimum for the true law (median
   and 90th percentile): for ms_lqr the ratio of exact LQ costs, for the rate designs (proposed,
   policy_iteration) the exact rate's excess over the optimal rate.
@@ -83,6 +83,11 @@ def summarize(rows: list[dict]) -> dict:
         statuses[r["status"]] = statuses.get(r["status"], 0) + 1
     out = {"runs": len(rows), "status": statuses}
     modeled = [r for r in rows if "mean" in r]
+    ok = [r for r in modeled if r["status"] == "ok"]
+    hits = [np.abs(np.concatenate([r[w] for w in ("mean", "std")])) <= 1.96 * np.concatenate([r[f"{w}_sd"] for w in
+            ("mean", "std")]) for r in ok]
+    known = [np.concatenate([r["true_std"] > 0] * 2) for r in ok]
+    out["ok_cover"] = float(np.mean(np.concatenate([h[k] for h, k in zip(hits, known)]))) if ok else np.nan
     for what in ("mean", "std"):
         err = np.concatenate([r[what] for r in modeled]) if modeled else np.zeros(0)
         sd = np.concatenate([r[f"{what}_sd"] for r in modeled]) if modeled else np.zeros(0)
@@ -105,20 +110,23 @@ def summarize(rows: list[dict]) -> dict:
 
 def print_table(results: dict[str, dict]) -> None:
     print("| plant | runs | mean: median abs z / max / cover / err (true sd) | std: median abs z / max / cover / "
-          "err (relative) | status | e2e median / q90 |")
-    print("|---|---|---|---|---|---|")
+          "err (relative) | status | cover, ok runs | e2e median / q90 |")
+    print("|---|---|---|---|---|---|---|")
     f = lambda v, fmt=".2f": "-" if v is None or not np.isfinite(v) else format(v, fmt)
     for name, r in results.items():
         status = ", ".join(f"{k} {v}" for k, v in sorted(r["status"].items(), key=lambda kv: str(kv[0])))
         print(f"| {name} | {r['runs']} | {f(r['mean_z_median'], '.1f')} / {f(r['mean_z_max'], '.0f')} / "
               f"{f(r['mean_cover'])} / {f(r['mean_err'])} | {f(r['std_z_median'], '.1f')} / {f(r['std_z_max'], '.0f')} "
-              f"/ {f(r['std_cover'])} / {f(r['std_err'])} | {status} | {r['e2e_kind']} {f(r['e2e_median'], '.3f')} / "
+              f"/ {f(r['std_cover'])} / {f(r['std_err'])} | {status} | {f(r['ok_cover'])} | {r['e2e_kind']} "
+              f"{f(r['e2e_median'], '.3f')} / "
               f"{f(r['e2e_q90'], '.3f')} |")
     modeled = [r for r in results.values() if r["mean_components"]]
     pooled = lambda key: np.mean([r[key] for r in modeled if np.isfinite(r[key])]) if modeled else np.nan
     print(f"\nmean over plants: mean cover {pooled('mean_cover'):.2f}, std cover {pooled('std_cover'):.2f}; "
           f"ok runs {sum(r['status'].get('ok', 0) for r in results.values())} of "
-          f"{sum(r['runs'] for r in results.values())}")
+          f"{sum(r['runs'] for r in results.values())}, their cover {pooled('ok_cover'):.2f}; median error: "
+          f"mean {np.median([r['mean_err'] for r in modeled]):.2f} true sds, std "
+          f"{np.median([r['std_err'] for r in modeled]):.2f}")
 
 
 def main(argv=None):

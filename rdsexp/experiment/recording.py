@@ -44,7 +44,7 @@ from . import metrics as metric_registry
 from .schema import split_column
 from .store import RunStore, layout
 from .store.table import changed_params
-from .summary import lost_paths
+from .summary import drawn_over, lost_paths
 
 KEYS = ["experiment", "k", "path"]
 MEMBER_KEYS = ["experiment", "k", "path", "member"]
@@ -441,9 +441,9 @@ def report_markdown(tables: dict[str, pd.DataFrame], summary: dict) -> str:
              + (f", xi mean {np.round(s['xi_mean'], 4).tolist()}, nbar {s.get('nbar')}" if "xi_mean" in s else ""),
              f"- gain {s.get('gain_method')}: **{s.get('synthesis_status', 'n/a')}**, lambda {_fmt(s.get('lam'))}, "
              f"exact rate on the true plant {_fmt(s.get('rate_plant'))}"]
-    if "modeling_uncertainty" in s:               # the moments' spread over the window's bootstrap draws
+    if "modeling_uncertainty" in s:               # the moments' spread over their draws
         u = s["modeling_uncertainty"]
-        lines.insert(3, f"- modeled moments' spread over {u['resamples']} block-bootstrap draws: xi mean sd "
+        lines.insert(3, f"- modeled moments' spread over {u['resamples']} {drawn_over(u)}: xi mean sd "
                         f"{np.round(u['xi_mean_sd'], 4).tolist()}, xi std sd {np.round(u['xi_std_sd'], 4).tolist()}")
     if "gain_choice" in s:
         c = s["gain_choice"]

@@ -108,12 +108,24 @@ def identification_lines(s: dict) -> list[str]:
 def model_lines(s: dict) -> list[str]:
     """The modeled moments of xi beside the plant file's law, or why there is no model."""
     lines = []
-    if s.get("modeling_status") in ("ok", "unsettled"):       # unsettled: moments, not a fixed point of the passes
+    if "xi_mean" in s:       # ok, unsettled (moments, not a fixed point of the passes) or at_prior_edge
         lines.append(f"  modeling {s['modeling_status']}: xi mean {vec(s.get('xi_mean', []))}{beside(s, 'xi_mean')}, "
                      f"nbar {s.get('nbar')}{beside(s, 'nbar')}")
+        estimator = s.get("modeling_estimator") or {}
+        if estimator.get("name") == "simulated":
+            usable = " and ".join(map(str, estimator["usable"]))
+            line = (f"    modeled by simulation: the paper's estimator read xi mean {vec(estimator['summary_mean'])}, "
+                    f"std {vec(estimator['summary_std'])}; matched over {len(estimator['usable'])} x "
+                    f"{estimator['replicates']} identification runs of the model ({usable} identified)")
+            lines.append(line + (f"; {estimator['fallback']}" if "fallback" in estimator else ""))
+            if estimator.get("at_prior_edge"):
+                wider = f"identification.prior_width={2 * estimator['prior_width']:g}"
+                lines.append(f"    the prior box, not the data, stops the posterior of "
+                             f"{', '.join(estimator['at_prior_edge'])}: its interval may be cut short ({wider} "
+                             f"widens the box)")
         if "xi_std" in s:
             line = f"    modeled xi std {vec(s['xi_std'])}"
-            if s.get("modeling_covariance") == "total":
+            if s.get("modeling_covariance") == "total" and estimator.get("name", "paper") == "paper":
                 line += " (the spread of xi_{k|k} plus the EnKF's mean filtered spread)"
             if "plant_xi_mean" in s:
                 line += f"; the plant file's xi: mean {vec(s['plant_xi_mean'])}, std {vec(s['plant_xi_std'])}"
@@ -124,6 +136,12 @@ def model_lines(s: dict) -> list[str]:
         lines.append(f"  no model: {s.get('modeling_status')}" +
                      ("; no gain designed, no closed loop" if s.get("synthesis_status") is None else ""))
     return lines
+
+
+def drawn_over(u: dict) -> str:
+    """What the modeled moments' draws (`modeling_uncertainty`) are draws of, in words."""
+    return {"paths": "bootstrap draws of the recorded paths", "simulated replicates": "draws of their posterior"}.get(
+        u.get("over"), "block-bootstrap draws of the window")
 
 
 def gain_lines(s: dict) -> list[str]:
@@ -142,9 +160,7 @@ def gain_lines(s: dict) -> list[str]:
                      f"{c['designed_median']:.4f}, {c['identification_median']:.4f})")
     if s.get("modeling_uncertainty"):
         u = s["modeling_uncertainty"]
-        over = "bootstrap draws of the recorded paths" if u.get("over") == "paths" else \
-            "block-bootstrap draws of the window"
-        lines.append(f"    modeled moments' spread over {u['resamples']} {over}: xi mean "
+        lines.append(f"    modeled moments' spread over {u['resamples']} {drawn_over(u)}: xi mean "
                      f"sd {np.round(u['xi_mean_sd'], 4).tolist()}, xi std sd {np.round(u['xi_std_sd'], 4).tolist()}")
     if s.get("noise_sensitivity"):     # the moments with the EnKF's assumed noise scaled
         v = s["noise_sensitivity"]

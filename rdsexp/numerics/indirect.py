@@ -105,6 +105,21 @@ def adjusted_posterior(theta: np.ndarray, s: np.ndarray, s_obs: np.ndarray, lo: 
     return np.clip(adjusted, lo, hi), w
 
 
+def at_the_edge(adjusted: np.ndarray, w: np.ndarray, lo: np.ndarray, hi: np.ndarray, ends: np.ndarray,
+                share: float = 0.05) -> np.ndarray:
+    """(d,) bool: the components of theta whose posterior puts more than `share` of its weight within 1% of the
+    prior box [lo, hi] at an edge that is not the law's own: either end of a mean that is not two-point, the
+    upper end of a std (a std of 0 and a two-point component's ends are laws the box rightly holds). There the
+    box, not the data, stops the posterior: its interval may be cut short."""
+    p = ends.size
+    near_lo = adjusted <= lo + 0.01 * (hi - lo)
+    near_hi = adjusted >= hi - 0.01 * (hi - lo)
+    check_lo = np.concatenate([~ends, np.zeros(lo.size - p, dtype=bool)])
+    check_hi = np.concatenate([~ends, np.ones(lo.size - p, dtype=bool)])
+    edge = (near_lo & check_lo) | (near_hi & check_hi)
+    return w @ edge / w.sum() > share
+
+
 def weighted_draws(adjusted: np.ndarray, w: np.ndarray, count: int, seed) -> np.ndarray:
     """(count, d): draws from the weighted adjusted thetas (multinomial by weight, default_rng(seed))."""
     pick = np.random.default_rng(seed).choice(len(w), size=count, p=w / w.sum())

@@ -83,3 +83,21 @@ def test_failed_replicates_are_left_out():
     adjusted, w = indirect.adjusted_posterior(theta, s, np.array([0.5]), np.zeros(1), np.ones(1), accept=0.5)
     assert np.all(np.isfinite(adjusted)) and len(w) <= 150 and np.all(w > 0)
     assert abs(w @ adjusted[:, 0] / w.sum() - 0.5) < 0.01
+
+
+def test_a_posterior_stopped_by_the_box_is_told_apart_from_a_law_at_its_own_edge():
+    """theta = (mean 1 two-point, mean 2, std 2): weight at mean 2's edge or std 2's upper edge flags the box;
+    a std of 0 or a two-point mean at its end is a law the box rightly holds."""
+    lo, hi, ends = np.array([0.001, -1.0, 0.0]), np.array([0.999, 1.0, 2.0]), np.array([True, False])
+    inside = np.array([0.5, 0.0, 1.0])
+    w = np.ones(100)
+    for column, value, flagged in [(1, 1.0, True), (1, -1.0, True), (2, 2.0, True), (2, 0.0, False),
+                                   (0, 0.999, False), (0, 0.001, False)]:
+        draws = np.tile(inside, (100, 1))
+        draws[:10, column] = value                              # 10% of the weight at that edge
+        expect = np.zeros(3, dtype=bool)
+        expect[column] = flagged
+        np.testing.assert_array_equal(indirect.at_the_edge(draws, w, lo, hi, ends), expect)
+    draws = np.tile(inside, (100, 1))
+    draws[:4, 1] = 1.0                                          # 4%: below the share
+    assert not indirect.at_the_edge(draws, w, lo, hi, ends).any()

@@ -63,7 +63,7 @@ def simulated_moments(exp: Experiment, stages: Stages, ident: Trajectories, F_id
             return Identified(ident, None, failure, feedback, covariance=settings.covariance)
         ends, low, high = two_point_ends(exp)
         s_obs = np.concatenate([summary.mean, np.sqrt(np.diag(summary.cov))])
-        box = indirect.prior_box(s_obs, ends, low, high, settings.prior_width)
+        box = prior = indirect.prior_box(s_obs, ends, low, high, settings.prior_width)
         info = {"name": "simulated", "replicates": settings.replicates, "prior_width": settings.prior_width,
                 "accept": settings.accept, "summary_mean": summary.mean.tolist(),
                 "summary_std": s_obs[model.p:].tolist(), "usable": []}
@@ -83,6 +83,10 @@ def simulated_moments(exp: Experiment, stages: Stages, ident: Trajectories, F_id
             return Identified(ident, summary, "", feedback, covariance=settings.covariance, estimator=info)
         adjusted, w = posterior
         info["effective"] = float(w.sum() ** 2 / (w ** 2).sum())
+        edge = indirect.at_the_edge(adjusted, w, *prior, ends)
+        if edge.any():                  # the box, not the data, stops the posterior there
+            names = [f"xi mean {i + 1}" for i in range(model.p)] + [f"xi std {i + 1}" for i in np.flatnonzero(~ends)]
+            info["at_prior_edge"] = [names[i] for i in np.flatnonzero(edge)]
         std = s_obs[model.p:]
         corr = summary.cov / np.outer(std, std) if np.all(std > 0) else None
         mean, cov = indirect.moments_of(w @ adjusted / w.sum(), ends, low, high, corr)

@@ -43,11 +43,14 @@ class Identified:
     @property
     def status(self) -> str:
         """ok; unsettled (passes that stopped before the moments settled, or a simulated estimator left with the
-        paper's moments); or why there is no model."""
-        passes = self.passes or {}
-        unsettled = self.moments is not None and ((passes.get("passes") and not passes.get("converged"))
-                                                  or "fallback" in (self.estimator or {}))
-        return self.failure or ("unsettled" if unsettled else "ok")
+        paper's moments); at_prior_edge (the simulated estimator's posterior stopped by its prior box); or why
+        there is no model."""
+        passes, estimator = self.passes or {}, self.estimator or {}
+        if self.failure or self.moments is None:
+            return self.failure
+        if (passes.get("passes") and not passes.get("converged")) or "fallback" in estimator:
+            return "unsettled"
+        return "at_prior_edge" if estimator.get("at_prior_edge") else "ok"
 
     def summary(self) -> dict:
         s = {"identification_feedback": self.feedback, "modeling_status": self.status}
