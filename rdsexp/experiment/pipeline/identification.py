@@ -22,6 +22,8 @@ from .stage import Stages
 
 UNCERTAINTY_STREAM = 3   # SeedSequence([seed, 3]): the modeling window's bootstrap (stages use spawn keys 0-2)
 REPLICATE_STREAM = 4     # [seed, 4, round]: the simulated estimator's replicates and their laws (their own streams)
+ROUNDS = 3              # the simulated estimator's rounds of replicates: two with a posterior, one more where the
+                       # first round's identifications mostly failed
 PASS_TOL = 1e-3        # iterated identification: stop when the moments move less than this (relative)
 
 
@@ -53,9 +55,10 @@ def simulated_moments(exp: Experiment, stages: Stages, ident: Trajectories, F_id
     """The modeling stage of identification.estimator = simulated (`numerics.indirect`): the paper's estimator on
     the identification run is the summary; two rounds of identification.replicates runs of the model under the
     same input, feedback and EnKF, each path drawing xi from its own law, give the posterior of the law's mean
-    and stds: the first from the prior box, the second from the box its posterior draws span (a replicate whose
-    identification failed, as the observed one did not, is left out). The posterior mean is the model, its
-    weighted draws the uncertainty (`Identified.posterior`)."""
+    and stds: the first from the prior box, the second from the box its posterior draws span. A replicate
+    whose identification failed, as the observed one did not, is left out; where too few were identified to
+    regress on, the next round draws from the box the identified ones span (at most ROUNDS rounds). The
+    posterior mean is the model, its weighted draws the uncertainty (`Identified.posterior`)."""
     settings, model = exp.identification, exp.model
     with stages.timed("modeling"):
         summary, failure = identified_moments(exp, ident)
@@ -67,18 +70,25 @@ def simulated_moments(exp: Experiment, stages: Stages, ident: Trajectories, F_id
         info = {"name": "simulated", "replicates": settings.replicates, "prior_width": settings.prior_width,
                 "accept": settings.accept, "summary_mean": summary.mean.tolist(),
                 "summary_std": s_obs[model.p:].tolist(), "usable": []}
-        posterior = None
-        for round_ in (1, 2):
+        posterior, rounds = None, 0
+        for round_ in range(1, ROUNDS + 1):
             theta = indirect.uniform_draws(*box, settings.replicates, [exp.seed, REPLICATE_STREAM, round_])
             s = replicate_summaries(exp, F_id, theta, ends, low, high, round_)
-            usable = int(np.all(np.isfinite(s), axis=1).sum())
-            info["usable"].append(usable)
-            if usable < 10 * (theta.shape[1] + 1):        # too few for the regression
+            ok = np.all(np.isfinite(s), axis=1)
+            info["usable"].append(int(ok.sum()))
+            if ok.sum() >= 10 * (theta.shape[1] + 1):        # enough for the regression
+                posterior = indirect.adjusted_posterior(theta, s, s_obs, *box, settings.accept)
+                box, rounds = indirect.posterior_box(*posterior, *box), rounds + 1
+                if rounds == 2:
+                    break
+            elif ok.sum() >= 2 and posterior is None:
+                # most laws of the box make the identification diverge, as the observed one did not: the next
+                # round draws from the box the identified ones span
+                box = indirect.posterior_box(theta[ok], np.ones(ok.sum()), *box)
+            else:
                 break
-            posterior = indirect.adjusted_posterior(theta, s, s_obs, *box, settings.accept)
-            box = indirect.posterior_box(*posterior, *box)
         if posterior is None:       # the paper's moments, said so
-            info["fallback"] = (f"{info['usable'][0]} of {settings.replicates} replicates identified (needs "
+            info["fallback"] = (f"{max(info['usable'])} of {settings.replicates} replicates identified (needs "
                                 f"{10 * (len(box[0]) + 1)}): the paper's moments")
             return Identified(ident, summary, "", feedback, covariance=settings.covariance, estimator=info)
         adjusted, w = posterior
