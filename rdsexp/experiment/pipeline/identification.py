@@ -65,11 +65,11 @@ def simulated_moments(exp: Experiment, stages: Stages, ident: Trajectories, F_id
         if summary is None:
             return Identified(ident, None, failure, feedback, covariance=settings.covariance)
         ends, low, high = two_point_ends(exp)
-        s_obs = np.concatenate([summary.mean, np.sqrt(np.diag(summary.cov))])
-        box = prior = indirect.prior_box(s_obs, ends, low, high, settings.prior_width)
+        s_obs = summary_statistics(exp, ident)[0]
+        box = prior = indirect.prior_box(s_obs[:2 * model.p], ends, low, high, settings.prior_width)
         info = {"name": "simulated", "replicates": settings.replicates, "prior_width": settings.prior_width,
                 "accept": settings.accept, "summary_mean": summary.mean.tolist(),
-                "summary_std": s_obs[model.p:].tolist(), "usable": []}
+                "summary_std": np.sqrt(np.diag(summary.cov)).tolist(), "usable": []}
         posterior, rounds = None, 0
         for round_ in range(1, ROUNDS + 1):
             theta = indirect.uniform_draws(*box, settings.replicates, [exp.seed, REPLICATE_STREAM, round_])
@@ -97,7 +97,7 @@ def simulated_moments(exp: Experiment, stages: Stages, ident: Trajectories, F_id
         if edge.any():                  # the box, not the data, stops the posterior there
             names = [f"xi mean {i + 1}" for i in range(model.p)] + [f"xi std {i + 1}" for i in np.flatnonzero(~ends)]
             info["at_prior_edge"] = [names[i] for i in np.flatnonzero(edge)]
-        std = s_obs[model.p:]
+        std = np.sqrt(np.diag(summary.cov))
         corr = summary.cov / np.outer(std, std) if np.all(std > 0) else None
         mean, cov = indirect.moments_of(w @ adjusted / w.sum(), ends, low, high, corr)
         draws = None
@@ -123,9 +123,9 @@ def two_point_ends(exp: Experiment) -> tuple[np.ndarray, np.ndarray, np.ndarray]
 
 
 def replicate_summaries(exp: Experiment, F_id, theta: np.ndarray, ends, low, high, round_: int) -> np.ndarray:
-    """(R, 2p): the paper estimator's mean and std of xi on R identification runs of the model, path r drawing xi
-    from theta[r] (`indirect.path_laws`), with the identification's input, feedback and EnKF; NaN where a run
-    failed. In chunks of paths within the Monte Carlo's memory budget (each path its own streams)."""
+    """(R, S): the `summary_statistics` of R identification runs of the model, path r drawing xi from theta[r]
+    (`indirect.path_laws`), with the identification's input, feedback and EnKF; NaN where a run failed. In
+    chunks of paths within the Monte Carlo's memory budget (each path its own streams)."""
     model, settings = exp.model, exp.identification
     total = settings.covariance == "total"
     q0 = exp.q0 if exp.q0.shape == (model.n,) else np.zeros(model.n)
@@ -137,12 +137,29 @@ def replicate_summaries(exp: Experiment, F_id, theta: np.ndarray, ends, low, hig
     out = []
     for first in range(0, len(theta), size):
         part = theta[first:first + size]
-        laws = indirect.path_laws(part, ends, low, high)
-        plant = AffineRandomSystem(model.A, model.B, model.C, model.D, xi_dist=laws)
-        tr = dataclasses.replace(sim, plant=plant).run(first, len(part), keep_xi_cov=total)
-        mean, cov = path_moments(tr.xi(tr.psi_filt_mean), settings.K0, settings.K1, tr.xi_filt_cov if total else None)
-        out.append(np.concatenate([mean, np.sqrt(np.einsum("pii->pi", cov))], axis=1))
+        plant = AffineRandomSystem(model.A, model.B, model.C, model.D,
+                                   xi_dist=indirect.path_laws(part, ends, low, high))
+        out.append(summary_statistics(exp, dataclasses.replace(sim, plant=plant).run(first, len(part),
+                                                                                      keep_xi_cov=total)))
     return np.concatenate(out)
+
+
+def summary_statistics(exp: Experiment, tr: Trajectories) -> np.ndarray:
+    """(P, 2p + 2 ny): what the simulated estimator matches, per identification path: the paper estimator's
+    mean and std of xi over the window (eq. sample-mean, with identification.covariance), and the log mean
+    square of each output and of the EnKF's innovation y_k - C x_{k|k-1} - D u_k there (the spread of xi moves
+    the outputs' energy, which the filtered means of one output may not show). NaN where the path failed."""
+    settings, model = exp.identification, exp.model
+    window = slice(settings.K0, settings.K0 + settings.K1 + 1)
+    total = settings.covariance == "total"
+    mean, cov = path_moments(tr.xi(tr.psi_filt_mean), settings.K0, settings.K1, tr.xi_filt_cov if total else None)
+    x, xi = tr.x(tr.psi_pred_mean)[window], tr.xi(tr.psi_pred_mean)[window]
+    _, _, C, D = model.at(xi)
+    y, u = tr.y[window], tr.u[window]
+    innovation = y - (C @ x[..., None])[..., 0] - (D @ u[..., None])[..., 0]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        energy = np.log(np.concatenate([np.mean(y ** 2, axis=0), np.mean(innovation ** 2, axis=0)], axis=1))
+    return np.concatenate([mean, np.sqrt(np.einsum("pii->pi", cov)), energy], axis=1)
 
 
 def model_moments(exp: Experiment, stages: Stages, ident: Trajectories, identify, feedback: dict) -> Identified:
