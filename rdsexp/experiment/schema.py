@@ -203,7 +203,8 @@ RUN_SUMMARY_KEYS: dict[str, tuple[str, str | None]] = {
                               "tolerance, converged or not", None),
     "modeling_status": ("ok (the moments settled), unsettled (the iterated identification did not settle within "
                         "its tolerance, or too few simulated replicates were identified), at_prior_edge (the simulated "
-                        "estimator's posterior stopped by its prior box), or why no model was made",
+                        "estimator's posterior stopped by its prior box), weakly_identified (a component whose prior "
+                        "box the data hardly narrowed), or why no model was made",
                         None),
     "modeling_estimator": ("the estimator of the moments (identification.estimator): paper, or simulated with its "
                            "replicates, how many were identified, their effective weight, the prior box's width and "

@@ -5,6 +5,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..numerics.indirect import WEAK
 from ..numerics.synthesis import status_meaning
 from ..numerics.verdict import ABOVE_FLOOR, AT_FLOOR, FAILURES, PAIRED_LEVEL
 from .config import PRIORS
@@ -123,6 +124,10 @@ def model_lines(s: dict) -> list[str]:
                 lines.append(f"    the prior box, not the data, stops the posterior of "
                              f"{', '.join(estimator['at_prior_edge'])}: its interval may be cut short ({wider} "
                              f"widens the box)")
+            if estimator.get("weakly_identified"):
+                lines.append(f"    weakly identified: the data hardly narrow the prior box of "
+                             f"{', '.join(estimator['weakly_identified'])} (posterior sd over the box's above "
+                             f"{WEAK:g}): its interval is the box, its value the box's middle")
         if "xi_std" in s:
             line = f"    modeled xi std {vec(s['xi_std'])}"
             if s.get("modeling_covariance") == "total" and estimator.get("name", "paper") == "paper":

@@ -24,6 +24,8 @@ import numpy as np
 
 from .distributions import PathLaws
 
+WEAK = 0.8      # `narrowed` above this: the data hardly narrowed the prior box, the component is weakly identified
+
 
 def prior_box(s_obs: np.ndarray, ends: np.ndarray, low: np.ndarray, high: np.ndarray, width: float):
     """(lo, hi) (d,): the uniform prior of theta = (mean (p), std of the components not in `ends`).
@@ -118,6 +120,13 @@ def at_the_edge(adjusted: np.ndarray, w: np.ndarray, lo: np.ndarray, hi: np.ndar
     check_hi = np.concatenate([~ends, np.ones(lo.size - p, dtype=bool)])
     edge = (near_lo & check_lo) | (near_hi & check_hi)
     return w @ edge / w.sum() > share
+
+
+def narrowed(adjusted: np.ndarray, w: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """(d,): each component's posterior sd over the prior box's, (hi - lo) / sqrt(12): near 1 where the data
+    did not narrow the box (the outputs do not tell that component), small where they pinned it down."""
+    mean = w @ adjusted / w.sum()
+    return np.sqrt(w @ (adjusted - mean) ** 2 / w.sum()) / np.maximum((hi - lo) / np.sqrt(12), 1e-300)
 
 
 def weighted_draws(adjusted: np.ndarray, w: np.ndarray, count: int, seed) -> np.ndarray:

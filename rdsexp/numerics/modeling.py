@@ -106,12 +106,19 @@ def path_moments(xi_filt_mean: np.ndarray, K0: int, K1: int,
     means (P, p) and covariances (P, p, p) over the path's window K0..K0+K1 (1/N, plus the mean filtered
     covariance with xi_filt_cov). NaN where a path's window is not finite (its estimate failed)."""
     xi = window_samples(xi_filt_mean, K0, K1)                            # (T, P, p)
-    mean = xi.mean(axis=0)
+    mean = time_mean(xi)
     dev = xi - mean
-    cov = np.einsum("tpi,tpj->pij", dev, dev) / xi.shape[0]
+    cov = time_mean(dev[..., :, None] * dev[..., None, :])
     if xi_filt_cov is not None:
-        cov += window_samples(xi_filt_cov, K0, K1).mean(axis=0)
+        cov += time_mean(window_samples(xi_filt_cov, K0, K1))
     return mean, cov
+
+
+def time_mean(a: np.ndarray) -> np.ndarray:
+    """The mean over axis 0 (steps) of a (T, ...) array, each element's sum in the same order whatever the other
+    axes' sizes: numpy sums a contiguous axis pairwise and a strided one in sequence, so a plain mean over steps
+    rounds differently for one path than for many."""
+    return np.ascontiguousarray(np.moveaxis(a, 0, -1)).mean(axis=-1)
 
 
 def block_bootstrap_steps(T: int, resamples: int, block: int, seed) -> np.ndarray:

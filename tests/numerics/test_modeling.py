@@ -31,3 +31,17 @@ def test_moment_draws_are_the_models_of_the_resampled_windows():
     # a window of constant estimates has no uncertainty
     mean, cov = moment_draws(np.ones((41, 2)), K0, K1, resamples=5, block=3)
     assert np.all(mean == 1) and np.allclose(cov, 0)
+
+
+def test_path_moments_of_one_path_are_its_numbers_in_any_batch():
+    """Each path's window moments (`path_moments`, the simulated estimator's summary) bit for bit the same alone
+    and among others, for one component too (a contiguous axis that numpy would sum pairwise)."""
+    from rdsexp.numerics.modeling import path_moments
+    rng = np.random.default_rng(4)
+    for p in (1, 3):
+        xi, cov = rng.normal(size=(101, 7, p)), rng.normal(size=(101, 7, p, p))
+        mean_all, cov_all = path_moments(xi, 20, 80, cov)
+        for j in range(7):
+            mean_one, cov_one = path_moments(xi[:, j:j + 1], 20, 80, cov[:, j:j + 1])
+            np.testing.assert_array_equal(mean_one[0], mean_all[j])
+            np.testing.assert_array_equal(cov_one[0], cov_all[j])

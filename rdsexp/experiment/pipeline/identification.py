@@ -10,7 +10,14 @@ import numpy as np
 
 from ...numerics import indirect
 from ...numerics.enkf import xi_ends
-from ...numerics.modeling import model_distribution, moment_draws, nominal_gain, path_moment_draws, path_moments
+from ...numerics.modeling import (
+    model_distribution,
+    moment_draws,
+    nominal_gain,
+    path_moment_draws,
+    path_moments,
+    time_mean,
+)
 from ...numerics.simulation import Trajectories, bytes_per_path
 from ...numerics.systems import AffineRandomSystem, MomentModel
 from ...numerics.verdict import FAILURES
@@ -93,10 +100,14 @@ def simulated_moments(exp: Experiment, stages: Stages, ident: Trajectories, F_id
             return Identified(ident, summary, "", feedback, covariance=settings.covariance, estimator=info)
         adjusted, w = posterior
         info["effective"] = float(w.sum() ** 2 / (w ** 2).sum())
+        names = [f"xi mean {i + 1}" for i in range(model.p)] + [f"xi std {i + 1}" for i in np.flatnonzero(~ends)]
         edge = indirect.at_the_edge(adjusted, w, *prior, ends)
         if edge.any():                  # the box, not the data, stops the posterior there
-            names = [f"xi mean {i + 1}" for i in range(model.p)] + [f"xi std {i + 1}" for i in np.flatnonzero(~ends)]
             info["at_prior_edge"] = [names[i] for i in np.flatnonzero(edge)]
+        ratio = indirect.narrowed(adjusted, w, *prior)
+        info["narrowed"] = ratio.tolist()
+        if np.any(ratio > indirect.WEAK):        # the data hardly narrowed the prior box: the outputs do not tell
+            info["weakly_identified"] = [names[i] for i in np.flatnonzero(ratio > indirect.WEAK)]
         std = np.sqrt(np.diag(summary.cov))
         corr = summary.cov / np.outer(std, std) if np.all(std > 0) else None
         mean, cov = indirect.moments_of(w @ adjusted / w.sum(), ends, low, high, corr)
@@ -154,11 +165,15 @@ def summary_statistics(exp: Experiment, tr: Trajectories) -> np.ndarray:
     total = settings.covariance == "total"
     mean, cov = path_moments(tr.xi(tr.psi_filt_mean), settings.K0, settings.K1, tr.xi_filt_cov if total else None)
     x, xi = tr.x(tr.psi_pred_mean)[window], tr.xi(tr.psi_pred_mean)[window]
-    _, _, C, D = model.at(xi)
     y, u = tr.y[window], tr.u[window]
-    innovation = y - (C @ x[..., None])[..., 0] - (D @ u[..., None])[..., 0]
+    # y - C(xi) x - D(xi) u, C(xi) = C[0] + sum_j xi_j C[j], as elementwise products summed per row: a path's
+    # numbers whatever the other paths in the batch (a batched matrix product rounds by the batch's size)
+    apply = lambda M, v: (M * v[..., None, :]).sum(axis=-1)
+    coefficients = np.concatenate([np.ones(xi.shape[:-1] + (1,)), xi], axis=-1)
+    innovation = y - sum(c[..., None] * (apply(Cj, x) + apply(Dj, u))
+                         for c, Cj, Dj in zip(np.moveaxis(coefficients, -1, 0), model.C, model.D))
     with np.errstate(divide="ignore", invalid="ignore"):
-        energy = np.log(np.concatenate([np.mean(y ** 2, axis=0), np.mean(innovation ** 2, axis=0)], axis=1))
+        energy = np.log(np.concatenate([time_mean(y ** 2), time_mean(innovation ** 2)], axis=1))
     return np.concatenate([mean, np.sqrt(np.einsum("pii->pi", cov)), energy], axis=1)
 
 

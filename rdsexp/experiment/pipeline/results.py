@@ -43,14 +43,16 @@ class Identified:
     @property
     def status(self) -> str:
         """ok; unsettled (passes that stopped before the moments settled, or a simulated estimator left with the
-        paper's moments); at_prior_edge (the simulated estimator's posterior stopped by its prior box); or why
-        there is no model."""
+        paper's moments); at_prior_edge (the simulated estimator's posterior stopped by its prior box);
+        weakly_identified (a component whose prior box the data hardly narrowed); or why there is no model."""
         passes, estimator = self.passes or {}, self.estimator or {}
         if self.failure or self.moments is None:
             return self.failure
         if (passes.get("passes") and not passes.get("converged")) or "fallback" in estimator:
             return "unsettled"
-        return "at_prior_edge" if estimator.get("at_prior_edge") else "ok"
+        if estimator.get("at_prior_edge"):
+            return "at_prior_edge"
+        return "weakly_identified" if estimator.get("weakly_identified") else "ok"
 
     def summary(self) -> dict:
         s = {"identification_feedback": self.feedback, "modeling_status": self.status}
