@@ -108,13 +108,13 @@ def simulated_moments(exp: Experiment, stages: Stages, ident: Trajectories, F_id
         info["narrowed"] = ratio.tolist()
         if np.any(ratio > indirect.WEAK):        # the data hardly narrowed the prior box: the outputs do not tell
             info["weakly_identified"] = [names[i] for i in np.flatnonzero(ratio > indirect.WEAK)]
-        std = np.sqrt(np.diag(summary.cov))
-        corr = summary.cov / np.outer(std, std) if np.all(std > 0) else None
-        mean, cov = indirect.moments_of(w @ adjusted / w.sum(), ends, low, high, corr)
+        # independent components, the laws the replicates draw from (the paper estimator's correlations are as
+        # biased as its stds, and designs on them did worse on the calibration plants)
+        mean, cov = indirect.moments_of(w @ adjusted / w.sum(), ends, low, high)
         draws = None
         if settings.resamples:          # the uncertainty: identification.resamples draws of the posterior
             picks = indirect.weighted_draws(adjusted, w, settings.resamples, [exp.seed, UNCERTAINTY_STREAM])
-            draws = Uncertainty(*indirect.moments_of(picks, ends, low, high, corr), settings.resamples, 0,
+            draws = Uncertainty(*indirect.moments_of(picks, ends, low, high), settings.resamples, 0,
                                 "simulated replicates")
     return Identified(ident, MomentModel(mean=mean, cov=cov), "", feedback, covariance=settings.covariance,
                       estimator=info, posterior=draws)
