@@ -115,7 +115,7 @@ def model_lines(s: dict) -> list[str]:
         estimator = s.get("modeling_estimator") or {}
         if estimator.get("name") == "simulated":
             usable = " and ".join(map(str, estimator["usable"]))
-            line = (f"    modeled by simulation: the paper's estimator read xi mean {vec(estimator['summary_mean'])}, "
+            line = (f"    modeled by simulation: the window's xi_{{k|k}} read mean {vec(estimator['summary_mean'])}, "
                     f"std {vec(estimator['summary_std'])}; matched over {len(estimator['usable'])} x "
                     f"{estimator['replicates']} identification runs of the model ({usable} identified)")
             lines.append(line + (f"; {estimator['fallback']}" if "fallback" in estimator else ""))

@@ -111,9 +111,10 @@ def test_every_summary_key_is_in_the_data_dictionary(extra, key):
 def test_modeled_covariance_is_total_for_a_user_plant_and_the_papers_for_the_paper():
     """identification.covariance: a library plant defaults to total (eq. sample-mean's covariance plus the
     mean filtered covariance: same mean, every variance at least as large, and larger somewhere); the
-    paper's plant file keeps eq. (sample-mean)."""
+    paper's plant file keeps eq. (sample-mean). (The paper's estimator, whose covariance this is.)"""
     out = {c: pipeline.run_experiment(experiment("plant=dropout", f"identification.covariance={c}",
-                                                 "identification.xi_model=random_walk")).summary
+                                                 "identification.xi_model=random_walk",
+                                                 "identification.estimator=paper")).summary
            for c in ("sample", "total")}
     assert pipeline.run_experiment(experiment("plant=dropout")).summary["modeling_covariance"] == "total"
     assert out["sample"]["xi_mean"] == out["total"]["xi_mean"]
@@ -129,7 +130,7 @@ def test_iterated_identification_models_from_its_last_pass_and_stops_at_a_fixed_
     reproduces its prior stops the iteration (converged), and a failing pass keeps the last model. The
     paper's plant file keeps the random walk (no passes)."""
     out = pipeline.run_experiment(experiment("plant=dropout", "identification.covariance=sample",
-                                             "identification.passes=2"))
+                                             "identification.passes=2", "identification.estimator=paper"))
     info = out.summary["identification_passes"]
     assert info["first"] == "random_walk" and 1 <= info["passes"] <= 2
     ident = out.tables["identification"]
@@ -276,7 +277,7 @@ def test_the_loop_keeps_the_identification_gain_where_the_designed_one_is_worse(
     tables = {"gains": pd.DataFrame(columns=["distribution", "method", "status", "lam", "rate_plant", "selected"]),
               "metrics": pd.DataFrame(columns=list(pipeline.METRIC_COLUMNS))}
     report = report_markdown(tables, summary)          # the recording's summary document says both
-    assert "spread over 20 block-bootstrap draws" in report and "gain choice: **designed**" in report
+    assert "spread over 20 draws of their posterior" in report and "gain choice: **designed**" in report
 
 
 def test_the_online_observer_draws_a_dropout_from_its_two_point_law():

@@ -42,7 +42,7 @@ def test_path_moments_of_one_path_are_its_numbers_in_any_batch():
         xi, cov = rng.normal(size=(101, 7, p)), rng.normal(size=(101, 7, p, p))
         mean_all, cov_all = path_moments(xi, 20, 80, cov)
         for j in range(7):
-            one = lambda a: np.ascontiguousarray(a[:, j:j + 1])          # as a run of one path holds it
-            mean_one, cov_one = path_moments(one(xi), 20, 80, one(cov))
+            alone = [np.ascontiguousarray(a[:, j:j + 1]) for a in (xi, cov)]    # as a run of one path holds it
+            mean_one, cov_one = path_moments(alone[0], 20, 80, alone[1])
             np.testing.assert_array_equal(mean_one[0], mean_all[j])
             np.testing.assert_array_equal(cov_one[0], cov_all[j])

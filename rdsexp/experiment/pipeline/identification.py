@@ -96,7 +96,7 @@ def simulated_moments(exp: Experiment, stages: Stages, ident: Trajectories, F_id
                 break
         if posterior is None:       # the paper's moments, said so
             info["fallback"] = (f"{max(info['usable'])} of {settings.replicates} replicates identified (needs "
-                                f"{10 * (len(box[0]) + 1)}): the paper's moments")
+                                f"{10 * (len(box[0]) + 1)}): the window's moments of xi_{{k|k}} kept")
             return Identified(ident, summary, "", feedback, covariance=settings.covariance, estimator=info)
         adjusted, w = posterior
         info["effective"] = float(w.sum() ** 2 / (w ** 2).sum())
