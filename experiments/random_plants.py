@@ -6,8 +6,8 @@ closed-loop Monte Carlo), then reads every run's record from the store and print
 
 - the draw: n, m, ny, p, the family of xi, the exact open-loop mean-square rate (F = 0) on the true
   plant and the optimal rate (the `proposed` design on the family's exact moments, true plant);
-- the run: completed (run status `complete`), modeled (modeling_status `ok` or `unsettled`), the selected gain's
-  exact rate on the true plant (rate_plant), the closed loop's verdict (stable / unstable /
+- the run: completed (run status `complete`), modeled (a modeling_status with moments, `results.MODELED`), the
+  selected gain's exact rate on the true plant (rate_plant), the closed loop's verdict (stable / unstable /
   undetermined / failed; "-" where the record has none), its empirical rate and interval [low, high],
   and the fraction of failed paths; y_rate: the exact rate of the same gain fed by the best linear
   observer of y found on the true plant (`observer_loop.best_observer`; "-" when the outputs depend on
@@ -71,6 +71,7 @@ import yaml
 
 from rdsexp import runs
 from rdsexp.errors import DamagedRecord
+from rdsexp.experiment.pipeline.results import MODELED
 from rdsexp.experiment.store import RunStore, layout
 from rdsexp.numerics.analysis import ms_rate
 from rdsexp.numerics.distributions import from_spec
@@ -488,7 +489,7 @@ def results_table(plants: list[Plant], outcomes: dict[str, Outcome]) -> pd.DataF
         rows.append({"plant": p.name, "n": p.n, "m": p.m, "ny": p.ny, "p": p.p, "family": p.family,
                      "open_loop_rate": p.open_loop_rate, "mean_rho": p.mean_rho,
                      "optimal_rate": p.optimal_rate, "completed": rec["run_status"] == "complete",
-                     "modeled": rec["modeling_status"] in ("ok", "unsettled"),
+                     "modeled": rec["modeling_status"] in MODELED,
                      **rec, "wall_seconds": round(o.seconds, 1), "returncode": o.returncode,
                      "run_dir": str(o.run_dir) if o.run_dir else None, "log": str(o.log), "note": o.note,
                      "y_rate": through_outputs(p, o.run_dir)})

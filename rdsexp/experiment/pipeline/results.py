@@ -18,6 +18,7 @@ from ...numerics.systems import MomentModel
 from ...numerics.verdict import Floor
 from ..montecarlo import LoopSummary
 
+MODELED = ("ok", "unsettled", "at_prior_edge", "weakly_identified")     # the modeling statuses that come with moments
 KEPT_GAIN = "identification_gain"     # the method name of the identification's gain when the loop keeps it
 
 

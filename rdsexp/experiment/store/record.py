@@ -80,7 +80,7 @@ class RunSummary(Mapping):
 
     @property
     def modeling_status(self) -> str | None:
-        """ok, unsettled, or why no model was made."""
+        """ok, unsettled, at_prior_edge, weakly_identified (moments were modeled), or why no model was made."""
         return self.values.get("modeling_status")
 
     @property
