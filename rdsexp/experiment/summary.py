@@ -118,6 +118,8 @@ def model_lines(s: dict) -> list[str]:
             line = (f"    modeled by simulation: the window's xi_{{k|k}} read mean {vec(estimator['summary_mean'])}, "
                     f"std {vec(estimator['summary_std'])}; matched over {len(estimator['usable'])} x "
                     f"{estimator['replicates']} identification runs of the model ({usable} identified)")
+            if estimator.get("summary_filter", "random_walk") != "random_walk":
+                line += f"; the window read from a run whose EnKF draws xi {estimator['summary_filter']}"
             lines.append(line + (f"; {estimator['fallback']}" if "fallback" in estimator else ""))
             if estimator.get("at_prior_edge"):
                 wider = f"identification.prior_width={2 * estimator['prior_width']:g}"

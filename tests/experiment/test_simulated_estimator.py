@@ -68,7 +68,7 @@ def test_the_same_numbers_whatever_the_chunks(tmp_path, monkeypatch):
 def test_too_few_identified_replicates_keep_the_paper_moments_and_say_so(tmp_path, monkeypatch):
     exp = experiment(tmp_path, "seed=0")
     monkeypatch.setattr(identification, "replicate_summaries",
-                        lambda exp, F, theta, *rest: np.full((len(theta), 2 * exp.model.p), np.nan))
+                        lambda exp, enkf, F, theta, *rest: np.full((len(theta), 2 * exp.model.p), np.nan))
     identified, _ = modeled(exp)
     assert identified.status == "unsettled" and "0 of 200 replicates" in identified.estimator["fallback"]
     np.testing.assert_array_equal(identified.moments.mean, identified.estimator["summary_mean"])
@@ -110,3 +110,28 @@ def test_the_error_shrinks_with_data_on_a_fully_observed_scalar_system(tmp_path)
         rms[horizon] = np.sqrt(np.mean(np.square(errors), axis=0))
     assert np.all(rms[60] / rms[240] > 1.4), rms
     assert hits >= binom.ppf(0.0015, 48, 0.95), f"{hits} of 48 intervals hold the truth"
+
+
+def test_a_failed_random_walk_is_read_again_with_an_iid_xi_and_so_are_the_replicates(tmp_path, monkeypatch):
+    """Where the random-walk run fails, the summary comes from a run whose EnKF draws xi i.i.d. about the prior guess
+    (enkf.Q's xi block), the replicates run that same EnKF, and the summary says so."""
+    exp = experiment(tmp_path, "seed=0")
+    real, calls, filters = identification.identified_moments, [], []
+    def first_fails(exp, ident):
+        calls.append(ident)
+        return (None, "identification failed at k = 3: the EnKF estimate diverged") if len(calls) == 1 else \
+            real(exp, ident)
+    replicate = identification.replicate_summaries
+    def spy(exp, enkf, *rest):
+        filters.append(enkf)
+        return replicate(exp, enkf, *rest)
+    monkeypatch.setattr(identification, "identified_moments", first_fails)
+    monkeypatch.setattr(identification, "replicate_summaries", spy)
+    identified, _ = modeled(exp)
+    assert identified.moments is not None and len(calls) == 2 and calls[0] is not calls[1]
+    assert identified.estimator["summary_filter"].startswith("i.i.d. about the prior guess (the random walk's "
+                                                            "identification failed at k = 3")
+    n = exp.model.n
+    for enkf in filters:
+        np.testing.assert_array_equal(enkf.xi_prior.mean, exp.filter.psi0[n:])
+        np.testing.assert_array_equal(enkf.xi_prior.cov, exp.filter.enkf.Q[n:, n:])

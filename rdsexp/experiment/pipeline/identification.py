@@ -54,21 +54,32 @@ def identify_and_model(exp: Experiment, stages: Stages, seed) -> Identified:
                             "open_loop_failure": str(ident.failure[0])}
             ident = identify(F_id)
     if exp.identification.estimator == "simulated" and exp.model.p:
-        return simulated_moments(exp, stages, ident, F_id, info)
+        return simulated_moments(exp, stages, ident, lambda enkf: identify(F_id, enkf), F_id, info)
     return model_moments(exp, stages, ident, lambda enkf: identify(F_id, enkf), info)
 
 
-def simulated_moments(exp: Experiment, stages: Stages, ident: Trajectories, F_id, feedback: dict) -> Identified:
+def simulated_moments(exp: Experiment, stages: Stages, ident: Trajectories, identify, F_id,
+                      feedback: dict) -> Identified:
     """The modeling stage of identification.estimator = simulated (`numerics.indirect`): the paper's estimator on
     the identification run is the summary; two rounds of identification.replicates runs of the model under the
     same input, feedback and EnKF, each path drawing xi from its own law, give the posterior of the law's mean
     and stds: the first from the prior box, the second from the box its posterior draws span. A replicate
     whose identification failed, as the observed one did not, is left out; where too few were identified to
     regress on, the next round draws from the box the identified ones span (at most ROUNDS rounds). The
-    posterior mean is the model, its weighted draws the uncertainty (`Identified.posterior`)."""
+    posterior mean is the model, its weighted draws the uncertainty (`Identified.posterior`).
+
+    Where the random-walk run failed (its xi drifted until the estimate, or the plant under its feedback,
+    diverged), the summary is read from a run of `identify(enkf)` whose EnKF draws each step's xi i.i.d. about
+    the prior guess with enkf.Q's xi block (Assumption 1; an i.i.d. xi cannot drift), and so are the replicates'."""
     settings, model = exp.identification, exp.model
+    enkf, summary_filter = exp.filter.enkf, "random_walk"
     with stages.timed("modeling"):
         summary, failure = identified_moments(exp, ident)
+        if summary is None:
+            n = model.n
+            enkf = dataclasses.replace(enkf, xi_prior=MomentModel(mean=exp.filter.psi0[n:], cov=enkf.Q[n:, n:]))
+            ident, summary_filter = identify(enkf), f"i.i.d. about the prior guess (the random walk's {failure})"
+            summary, failure = identified_moments(exp, ident)
         if summary is None:
             return Identified(ident, None, failure, feedback, covariance=settings.covariance)
         ends, low, high = two_point_ends(exp)
@@ -76,11 +87,12 @@ def simulated_moments(exp: Experiment, stages: Stages, ident: Trajectories, F_id
         box = prior = indirect.prior_box(s_obs[:2 * model.p], ends, low, high, settings.prior_width)
         info = {"name": "simulated", "replicates": settings.replicates, "prior_width": settings.prior_width,
                 "accept": settings.accept, "summary_mean": summary.mean.tolist(),
-                "summary_std": np.sqrt(np.diag(summary.cov)).tolist(), "usable": []}
+                "summary_std": np.sqrt(np.diag(summary.cov)).tolist(), "summary_filter": summary_filter,
+                "usable": []}
         posterior, rounds = None, 0
         for round_ in range(1, ROUNDS + 1):
             theta = indirect.uniform_draws(*box, settings.replicates, [exp.seed, REPLICATE_STREAM, round_])
-            s = replicate_summaries(exp, F_id, theta, ends, low, high, round_)
+            s = replicate_summaries(exp, enkf, F_id, theta, ends, low, high, round_)
             ok = np.all(np.isfinite(s), axis=1)
             info["usable"].append(int(ok.sum()))
             if ok.sum() >= 10 * (theta.shape[1] + 1):        # enough for the regression
@@ -133,14 +145,14 @@ def two_point_ends(exp: Experiment) -> tuple[np.ndarray, np.ndarray, np.ndarray]
     return ends, np.where(ends, low, 0.0), np.where(ends, high, 1.0)
 
 
-def replicate_summaries(exp: Experiment, F_id, theta: np.ndarray, ends, low, high, round_: int) -> np.ndarray:
+def replicate_summaries(exp: Experiment, enkf, F_id, theta: np.ndarray, ends, low, high, round_: int) -> np.ndarray:
     """(R, S): the `summary_statistics` of R identification runs of the model, path r drawing xi from theta[r]
-    (`indirect.path_laws`), with the identification's input, feedback and EnKF; NaN where a run failed. In
+    (`indirect.path_laws`), with the identification's input, feedback F_id and `enkf`; NaN where a run failed. In
     chunks of paths within the Monte Carlo's memory budget (each path its own streams)."""
     model, settings = exp.model, exp.identification
     total = settings.covariance == "total"
     q0 = exp.q0 if exp.q0.shape == (model.n,) else np.zeros(model.n)
-    sim = Simulation.of(exp, exp.filter.enkf, F_id, np.random.SeedSequence([exp.seed, REPLICATE_STREAM, round_]),
+    sim = Simulation.of(exp, enkf, F_id, np.random.SeedSequence([exp.seed, REPLICATE_STREAM, round_]),
                         plant=model, q0=q0, d=settings.input, paths=len(theta), filter_sees_d=True)
     per_path = bytes_per_path(model, sim.observer, ensemble_size=exp.filter.ensemble_size,
                               horizon=settings.input.shape[0] - 1, keep_members=False, block=16)
