@@ -1,6 +1,8 @@
 """Identification and modeling: the EnKF on psi = [x; xi] filters an identification run (simulated on the plant
 under an M-sequence input, or the recorded (u, y) of a data run), and the moments of xi are modeled from
-xi_{k|k} over the window k = K0..K0+K1 (the paper's Sec. IV), with their bootstrap uncertainty.
+xi_{k|k} over the window k = K0..K0+K1: as the paper does (Sec. IV, identification.estimator = paper, with a
+bootstrap of the window as their uncertainty), or by simulating that estimator on the model (simulated,
+`numerics.indirect`: the posterior of the law given what the window reads).
 """
 from __future__ import annotations
 
@@ -84,42 +86,18 @@ def simulated_moments(exp: Experiment, stages: Stages, ident: Trajectories, iden
             return Identified(ident, None, failure, feedback, covariance=settings.covariance)
         ends, low, high = two_point_ends(exp)
         s_obs = summary_statistics(exp, ident)[0]
-        box = prior = indirect.prior_box(s_obs[:2 * model.p], ends, low, high, settings.prior_width)
+        prior = indirect.prior_box(s_obs[:2 * model.p], ends, low, high, settings.prior_width)
         info = {"name": "simulated", "replicates": settings.replicates, "prior_width": settings.prior_width,
                 "accept": settings.accept, "summary_mean": summary.mean.tolist(),
                 "summary_std": np.sqrt(np.diag(summary.cov)).tolist(), "summary_filter": summary_filter,
                 "usable": []}
-        posterior, rounds = None, 0
-        for round_ in range(1, ROUNDS + 1):
-            theta = indirect.uniform_draws(*box, settings.replicates, [exp.seed, REPLICATE_STREAM, round_])
-            s = replicate_summaries(exp, enkf, F_id, theta, ends, low, high, round_)
-            ok = np.all(np.isfinite(s), axis=1)
-            info["usable"].append(int(ok.sum()))
-            if ok.sum() >= 10 * (theta.shape[1] + 1):        # enough for the regression
-                posterior = indirect.adjusted_posterior(theta, s, s_obs, *box, settings.accept)
-                box, rounds = indirect.posterior_box(*posterior, *box), rounds + 1
-                if rounds == 2:
-                    break
-            elif ok.sum() >= 2 and posterior is None:
-                # most laws of the box make the identification diverge, as the observed one did not: the next
-                # round draws from the box the identified ones span
-                box = indirect.posterior_box(theta[ok], np.ones(ok.sum()), *box)
-            else:
-                break
-        if posterior is None:       # the paper's moments, said so
+        posterior = posterior_rounds(exp, enkf, F_id, s_obs, prior, (ends, low, high), info["usable"])
+        if posterior is None:       # the window's moments, said so
             info["fallback"] = (f"{max(info['usable'])} of {settings.replicates} replicates identified (needs "
-                                f"{10 * (len(box[0]) + 1)}): the window's moments of xi_{{k|k}} kept")
+                                f"{10 * (len(prior[0]) + 1)}): the window's moments of xi_{{k|k}} kept")
             return Identified(ident, summary, "", feedback, covariance=settings.covariance, estimator=info)
         adjusted, w = posterior
-        info["effective"] = float(w.sum() ** 2 / (w ** 2).sum())
-        names = [f"xi mean {i + 1}" for i in range(model.p)] + [f"xi std {i + 1}" for i in np.flatnonzero(~ends)]
-        edge = indirect.at_the_edge(adjusted, w, *prior, ends)
-        if edge.any():                  # the box, not the data, stops the posterior there
-            info["at_prior_edge"] = [names[i] for i in np.flatnonzero(edge)]
-        ratio = indirect.narrowed(adjusted, w, *prior)
-        info["narrowed"] = ratio.tolist()
-        if np.any(ratio > indirect.WEAK):        # the data hardly narrowed the prior box: the outputs do not tell
-            info["weakly_identified"] = [names[i] for i in np.flatnonzero(ratio > indirect.WEAK)]
+        info |= diagnostics(adjusted, w, prior, ends)
         # independent components, the laws the replicates draw from (the paper estimator's correlations are as
         # biased as its stds, and designs on them did worse on the calibration plants)
         mean, cov = indirect.moments_of(w @ adjusted / w.sum(), ends, low, high)
@@ -130,6 +108,47 @@ def simulated_moments(exp: Experiment, stages: Stages, ident: Trajectories, iden
                                 "simulated replicates")
     return Identified(ident, MomentModel(mean=mean, cov=cov), "", feedback, covariance=settings.covariance,
                       estimator=info, posterior=draws)
+
+
+def posterior_rounds(exp: Experiment, enkf, F_id, s_obs: np.ndarray, box, laws, usable: list):
+    """The replicate rounds of `simulated_moments`: (adjusted draws (N, d), weights (N,)) of the posterior, or None
+    where no round identified enough replicates to regress on (10 per regressor). `laws`: (ends, low, high);
+    each round's count of identified replicates is appended to `usable`."""
+    settings = exp.identification
+    posterior, rounds = None, 0
+    for round_ in range(1, ROUNDS + 1):
+        theta = indirect.uniform_draws(*box, settings.replicates, [exp.seed, REPLICATE_STREAM, round_])
+        s = replicate_summaries(exp, enkf, F_id, theta, *laws, round_)
+        ok = np.all(np.isfinite(s), axis=1)
+        usable.append(int(ok.sum()))
+        if ok.sum() >= 10 * (theta.shape[1] + 1):
+            posterior = indirect.adjusted_posterior(theta, s, s_obs, *box, settings.accept)
+            box, rounds = indirect.posterior_box(*posterior, *box), rounds + 1
+            if rounds == 2:
+                break
+        elif ok.sum() >= 2 and posterior is None:
+            # most laws of the box make the identification diverge, as the observed one did not: the next round
+            # draws from the box the identified ones span
+            box = indirect.posterior_box(theta[ok], np.ones(ok.sum()), *box)
+        else:
+            break
+    return posterior
+
+
+def diagnostics(adjusted: np.ndarray, w: np.ndarray, prior, ends: np.ndarray) -> dict:
+    """The posterior's account for the summary and the status: its effective number of replicates, how much the
+    data narrowed each component's prior box (`indirect.narrowed`), and the components at the box's edge
+    (`at_prior_edge`) or hardly narrowed (`weakly_identified`, above `indirect.WEAK`)."""
+    p = ends.size
+    names = [f"xi mean {i + 1}" for i in range(p)] + [f"xi std {i + 1}" for i in np.flatnonzero(~ends)]
+    ratio = indirect.narrowed(adjusted, w, *prior)
+    out = {"effective": float(w.sum() ** 2 / (w ** 2).sum()), "narrowed": ratio.tolist()}
+    edge = indirect.at_the_edge(adjusted, w, *prior, ends)
+    if edge.any():                  # the box, not the data, stops the posterior there
+        out["at_prior_edge"] = [names[i] for i in np.flatnonzero(edge)]
+    if np.any(ratio > indirect.WEAK):        # the data hardly narrowed the prior box: the outputs do not tell
+        out["weakly_identified"] = [names[i] for i in np.flatnonzero(ratio > indirect.WEAK)]
+    return out
 
 
 def two_point_ends(exp: Experiment) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
