@@ -5,9 +5,12 @@ filtered means are shrunk toward its random walk, and its covariance mixes the s
 filter's own. Its bias depends on the plant, the input, the window and the noise, so no fixed correction
 removes it. But rdsexp can run the same identification on the model at any law of xi. So:
 
-1. the summary s = (mean (p), std (p)) of the paper's estimator on the identification run (`s_obs`);
+1. the summary s of the identification run (`s_obs`): the paper estimator's mean (p) and std (p), and any
+   other statistic the caller computes the same way on every run (rdsexp adds the outputs' and the
+   innovations' log mean squares);
 2. theta = (mean of xi (p), std of every component that is not two-point) drawn uniformly from a box
-   around s_obs (`prior_box`), one law per replicate path (`path_laws`, `distributions.PathLaws`);
+   around the paper estimator's moments (`prior_box`), one law per replicate path (`path_laws`,
+   `distributions.PathLaws`);
 3. the same identification (input, feedback, EnKF, window) of the model on each replicate, batched over
    paths: its summary s_r;
 4. the replicates nearest s_obs weighted (Epanechnikov kernel), and theta_r moved along a weighted linear
