@@ -124,12 +124,12 @@ def model_lines(s: dict) -> list[str]:
             if estimator.get("at_prior_edge"):
                 wider = f"identification.prior_width={2 * estimator['prior_width']:g}"
                 lines.append(f"    the prior box, not the data, stops the posterior of "
-                             f"{', '.join(estimator['at_prior_edge'])}: its interval may be cut short ({wider} "
+                             f"{', '.join(estimator['at_prior_edge'])}: the interval may be cut short ({wider} "
                              f"widens the box)")
             if estimator.get("weakly_identified"):
                 lines.append(f"    weakly identified: the data hardly narrow the prior box of "
-                             f"{', '.join(estimator['weakly_identified'])} (posterior sd over the box's above "
-                             f"{WEAK:g}): its interval is the box, its value the box's middle")
+                             f"{', '.join(estimator['weakly_identified'])} (posterior sd above "
+                             f"{WEAK:g} of the box's): the interval is the box, the value its middle")
         if "xi_std" in s:
             line = f"    modeled xi std {vec(s['xi_std'])}"
             if s.get("modeling_covariance") == "total" and estimator.get("name", "paper") == "paper":
