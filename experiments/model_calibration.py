@@ -9,7 +9,8 @@ per plant:
 - z: (modeled - true) / stated sd, median |z| and max |z| over components and seeds, for the mean and the std;
 - cover: the fraction of the 95% intervals (modeled +- 1.96 stated sd) that hold the truth (nominal 0.95);
 - err: median |modeled mean - true| / true sd, and median |modeled std / true std - 1|;
-- status: the modeling statuses (ok, unsettled, at_prior_edge, or why no model), and the cover over the ok runs;
+- status: the modeling statuses (ok, unsettled, at_prior_edge, weakly_identified, or why no model), and the
+  cover over the ok runs;
 - e2e: the end-to-end figure of the loop's gain on the true plant against the optimum for the true law (median
   and 90th percentile): for ms_lqr the ratio of exact LQ costs, for the rate designs (proposed,
   policy_iteration) the exact rate's excess over the optimal rate.

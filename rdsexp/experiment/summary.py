@@ -109,27 +109,12 @@ def identification_lines(s: dict) -> list[str]:
 def model_lines(s: dict) -> list[str]:
     """The modeled moments of xi beside the plant file's law, or why there is no model."""
     lines = []
-    if "xi_mean" in s:       # ok, unsettled (moments, not a fixed point of the passes) or at_prior_edge
+    if "xi_mean" in s:       # a status with moments (`results.MODELED`)
         lines.append(f"  modeling {s['modeling_status']}: xi mean {vec(s.get('xi_mean', []))}{beside(s, 'xi_mean')}, "
                      f"nbar {s.get('nbar')}{beside(s, 'nbar')}")
         estimator = s.get("modeling_estimator") or {}
         if estimator.get("name") == "simulated":
-            usable = " and ".join(map(str, estimator["usable"]))
-            line = (f"    modeled by simulation: the window's xi_{{k|k}} read mean {vec(estimator['summary_mean'])}, "
-                    f"std {vec(estimator['summary_std'])}; matched over {len(estimator['usable'])} x "
-                    f"{estimator['replicates']} identification runs of the model ({usable} identified)")
-            if estimator.get("summary_filter", "random_walk") != "random_walk":
-                line += f"; the window read from a run whose EnKF draws xi {estimator['summary_filter']}"
-            lines.append(line + (f"; {estimator['fallback']}" if "fallback" in estimator else ""))
-            if estimator.get("at_prior_edge"):
-                wider = f"identification.prior_width={2 * estimator['prior_width']:g}"
-                lines.append(f"    the prior box, not the data, stops the posterior of "
-                             f"{', '.join(estimator['at_prior_edge'])}: the interval may be cut short ({wider} "
-                             f"widens the box)")
-            if estimator.get("weakly_identified"):
-                lines.append(f"    weakly identified: the data hardly narrow the prior box of "
-                             f"{', '.join(estimator['weakly_identified'])} (posterior sd above "
-                             f"{WEAK:g} of the box's): the interval is the box, the value its middle")
+            lines += estimator_lines(estimator)
         if "xi_std" in s:
             line = f"    modeled xi std {vec(s['xi_std'])}"
             if s.get("modeling_covariance") == "total" and estimator.get("name", "paper") == "paper":
@@ -149,6 +134,29 @@ def drawn_over(u: dict) -> str:
     """What the modeled moments' draws (`modeling_uncertainty`) are draws of, in words."""
     return {"paths": "bootstrap draws of the recorded paths", "simulated replicates": "draws of their posterior"}.get(
         u.get("over"), "block-bootstrap draws of the window")
+
+
+def estimator_lines(estimator: dict) -> list[str]:
+    """The simulated estimator's account (`modeling_estimator`): what the window read, the replicates, and what the
+    statuses at_prior_edge and weakly_identified name."""
+    lines = []
+    usable = " and ".join(map(str, estimator["usable"]))
+    line = (f"    modeled by simulation: the window's xi_{{k|k}} read mean {vec(estimator['summary_mean'])}, "
+            f"std {vec(estimator['summary_std'])}; matched over {len(estimator['usable'])} x "
+            f"{estimator['replicates']} identification runs of the model ({usable} identified)")
+    if estimator.get("summary_filter", "random_walk") != "random_walk":
+        line += f"; the window read from a run whose EnKF draws xi {estimator['summary_filter']}"
+    lines.append(line + (f"; {estimator['fallback']}" if "fallback" in estimator else ""))
+    if estimator.get("at_prior_edge"):
+        wider = f"identification.prior_width={2 * estimator['prior_width']:g}"
+        lines.append(f"    the prior box, not the data, stops the posterior of "
+                     f"{', '.join(estimator['at_prior_edge'])}: the interval may be cut short ({wider} "
+                     f"widens the box)")
+    if estimator.get("weakly_identified"):
+        lines.append(f"    weakly identified: the data hardly narrow the prior box of "
+                     f"{', '.join(estimator['weakly_identified'])} (posterior sd above "
+                     f"{WEAK:g} of the box's): the interval is the box, the value its middle")
+    return lines
 
 
 def gain_lines(s: dict) -> list[str]:

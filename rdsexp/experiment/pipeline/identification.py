@@ -89,9 +89,8 @@ def simulated_moments(exp: Experiment, stages: Stages, ident: Trajectories, iden
         prior = indirect.prior_box(s_obs[:2 * model.p], ends, low, high, settings.prior_width)
         info = {"name": "simulated", "replicates": settings.replicates, "prior_width": settings.prior_width,
                 "accept": settings.accept, "summary_mean": summary.mean.tolist(),
-                "summary_std": np.sqrt(np.diag(summary.cov)).tolist(), "summary_filter": summary_filter,
-                "usable": []}
-        posterior = posterior_rounds(exp, enkf, F_id, s_obs, prior, (ends, low, high), info["usable"])
+                "summary_std": np.sqrt(np.diag(summary.cov)).tolist(), "summary_filter": summary_filter}
+        posterior, info["usable"] = posterior_rounds(exp, enkf, F_id, s_obs, prior, (ends, low, high))
         if posterior is None:       # the window's moments, said so
             info["fallback"] = (f"{max(info['usable'])} of {settings.replicates} replicates identified (needs "
                                 f"{10 * (len(prior[0]) + 1)}): the window's moments of xi_{{k|k}} kept")
@@ -110,12 +109,12 @@ def simulated_moments(exp: Experiment, stages: Stages, ident: Trajectories, iden
                       estimator=info, posterior=draws)
 
 
-def posterior_rounds(exp: Experiment, enkf, F_id, s_obs: np.ndarray, box, laws, usable: list):
+def posterior_rounds(exp: Experiment, enkf, F_id, s_obs: np.ndarray, box, laws) -> tuple[tuple | None, list[int]]:
     """The replicate rounds of `simulated_moments`: (adjusted draws (N, d), weights (N,)) of the posterior, or None
-    where no round identified enough replicates to regress on (10 per regressor). `laws`: (ends, low, high);
-    each round's count of identified replicates is appended to `usable`."""
+    where no round identified enough replicates to regress on (10 per regressor), and each round's count of
+    identified replicates. `laws`: (ends, low, high)."""
     settings = exp.identification
-    posterior, rounds = None, 0
+    posterior, rounds, usable = None, 0, []
     for round_ in range(1, ROUNDS + 1):
         theta = indirect.uniform_draws(*box, settings.replicates, [exp.seed, REPLICATE_STREAM, round_])
         s = replicate_summaries(exp, enkf, F_id, theta, *laws, round_)
@@ -132,7 +131,7 @@ def posterior_rounds(exp: Experiment, enkf, F_id, s_obs: np.ndarray, box, laws, 
             box = indirect.posterior_box(theta[ok], np.ones(ok.sum()), *box)
         else:
             break
-    return posterior
+    return posterior, usable
 
 
 def diagnostics(adjusted: np.ndarray, w: np.ndarray, prior, ends: np.ndarray) -> dict:
