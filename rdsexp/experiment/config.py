@@ -266,22 +266,19 @@ class IdentificationSettings:
         passes = _number(get(cfg, "identification.passes"), "identification.passes", integer=True, low=1)
         resamples = _number(get(cfg, "identification.resamples"), "identification.resamples", integer=True, low=0)
         block = _number(get(cfg, "identification.block"), "identification.block", integer=True, low=1)
+        estimator = get(cfg, "identification.estimator")
+        if estimator == "auto":
+            estimator = "simulated"
+        if estimator not in ESTIMATORS:
+            raise ConfigError(f"identification.estimator: {estimator!r} is not allowed, expected auto or one of "
+                              f"{', '.join(ESTIMATORS)}")
         scales = plain(OmegaConf.select(cfg, "identification.noise_sensitivity", default="auto"))
-        if scales == "auto":
-            scales = [0.1, 10.0] if data_run else []
+        if scales == "auto":        # the simulated estimator estimates a data run's noise scale (`Replay.noisy`)
+            scales = [0.1, 10.0] if data_run and estimator == "paper" else []
         if not isinstance(scales, list) or len(scales) > 8:
             raise ConfigError(f"identification.noise_sensitivity: {scales!r} is not allowed, expected auto or a list "
                               f"of at most 8 positive factors")
         scales = tuple(_number(v, "identification.noise_sensitivity", low=0, low_open=True) for v in scales)
-        estimator = get(cfg, "identification.estimator")
-        if estimator == "auto":
-            estimator = "paper" if data_run else "simulated"
-        if estimator not in ESTIMATORS:
-            raise ConfigError(f"identification.estimator: {estimator!r} is not allowed, expected auto or one of "
-                              f"{', '.join(ESTIMATORS)}")
-        if estimator == "simulated" and data_run:
-            raise ConfigError("identification.estimator: 'simulated' is not allowed in a data run yet (its replicates "
-                              "would replay each recorded path's inputs), expected paper")
         replicates = _number(get(cfg, "identification.replicates"), "identification.replicates", integer=True, low=20)
         width = _number(get(cfg, "identification.prior_width"), "identification.prior_width", low=0, low_open=True)
         accept = _number(get(cfg, "identification.accept"), "identification.accept", low=0, high=1, low_open=True)
@@ -466,6 +463,8 @@ class DataSettings:
     data: RecordedData
     holdout: float
     loops: bool = False        # data.loops: the closed and open loops simulated on the identified model
+    prior: AffineRandomSystem | None = None     # the model with its prior guess's law (`model_prior`): the structure
+                                                # the model file states (a two-point link), never a truth
 
     @property
     def holdout_paths(self) -> int:
@@ -623,7 +622,7 @@ def build_data_run(cfg, seed: int) -> Experiment:
         raise ConfigError("gain.source: 'reported' needs model.reported")
     K0, K1 = groups["identification"].K0, groups["identification"].K1
     recorded = load_data(data_file(cfg), model.m, model.ny, K0 + K1 + 1)
-    data = DataSettings(recorded, holdout, _flag(cfg, "data.loops"))
+    data = DataSettings(recorded, holdout, _flag(cfg, "data.loops"), prior)
     if data.identification.paths < 1:
         raise ConfigError(f"data.holdout: {holdout!r} leaves no recorded path for the identification")
     return Experiment(plant=None, model=model, plant_name="none (recorded data)", model_name=model_name,

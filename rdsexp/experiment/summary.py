@@ -141,12 +141,20 @@ def estimator_lines(estimator: dict) -> list[str]:
     statuses at_prior_edge and weakly_identified name."""
     lines = []
     usable = " and ".join(map(str, estimator["usable"]))
-    line = (f"    modeled by simulation: the window's xi_{{k|k}} read mean {vec(estimator['summary_mean'])}, "
+    recorded = estimator.get("summary_paths")            # a data run: the mean of the recorded paths' summaries
+    read = f"on {recorded} recorded paths (their mean) " if recorded else ""
+    runs = "runs of the model replaying the recorded inputs" if recorded else "runs of the model"
+    line = (f"    modeled by simulation: the window's xi_{{k|k}} read {read}mean {vec(estimator['summary_mean'])}, "
             f"std {vec(estimator['summary_std'])}; matched over {len(estimator['usable'])} x "
-            f"{estimator['replicates']} identification runs of the model ({usable} identified)")
+            f"{estimator['replicates']} identification {runs} ({usable} identified)")
     if estimator.get("summary_filter", "random_walk") != "random_walk":
         line += f"; the window read from a run whose EnKF draws xi {estimator['summary_filter']}"
     lines.append(line + (f"; {estimator['fallback']}" if "fallback" in estimator else ""))
+    if "noise_scale" in estimator:          # a data run: the replicates' noise, estimated
+        noise = estimator["noise_scale"]
+        lines.append(f"    the data's noise: {noise['median']:.3g} (95% {noise['low']:.3g}-{noise['high']:.3g}) times the "
+                     f"noise the EnKF assumes (enkf.Q's x block and enkf.R), within the prior "
+                     f"{noise['box'][0]:g}-{noise['box'][1]:g}")
     if estimator.get("at_prior_edge"):
         wider = f"identification.prior_width={2 * estimator['prior_width']:g}"
         lines.append(f"    the prior box, not the data, stops the posterior of "

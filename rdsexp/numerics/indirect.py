@@ -24,6 +24,7 @@ box. A two-point component (a Bernoulli dropout: `EnKF.two_point`) has its std f
 from __future__ import annotations
 
 import numpy as np
+from scipy.special import expit
 
 from .distributions import PathLaws
 
@@ -104,10 +105,39 @@ def adjusted_posterior(theta: np.ndarray, s: np.ndarray, s_obs: np.ndarray, lo: 
     keep = w > 0
     theta, dev, w = theta[keep], dev[keep], w[keep]
     X = np.concatenate([np.ones((len(w), 1)), dev / scale], axis=1)
+    # the regression on the logit of theta's place in the box, so that the adjusted draws stay inside it without
+    # piling up on an edge where the regression extrapolates (a std of 0, a probability of 1)
+    span = np.where(hi > lo, hi - lo, 1.0)
+    place = np.clip((theta - lo) / span, 1e-9, 1 - 1e-9)
+    logit = np.log(place) - np.log1p(-place)
     # weighted least squares, a minimum-norm solution where the kept summaries are collinear
-    beta = np.linalg.lstsq(X * np.sqrt(w)[:, None], theta * np.sqrt(w)[:, None], rcond=None)[0]
-    adjusted = theta - (dev / scale) @ beta[1:]
-    return np.clip(adjusted, lo, hi), w
+    beta = np.linalg.lstsq(X * np.sqrt(w)[:, None], logit * np.sqrt(w)[:, None], rcond=None)[0]
+    adjusted = lo + span * expit(logit - (dev / scale) @ beta[1:])
+    return np.where(hi > lo, adjusted, lo), w
+
+
+def averaged(theta: np.ndarray, s: np.ndarray, paths: int) -> np.ndarray:
+    """(R, ds): summaries of one path per replicate made those of the mean over `paths` paths, as the observed
+    summary of several recorded paths is: the regression of s on theta (R, d) (quadratic in theta where there are
+    at least 5 replicates per coefficient, else linear) plus the residual over sqrt(paths). The mean of `paths`
+    i.i.d. summaries has the regression of one and 1/paths of its covariance. Rows with a non-finite s stay NaN."""
+    ok = np.all(np.isfinite(s), axis=1)
+    t = theta[ok]
+    t = (t - t.mean(axis=0)) / np.where(t.std(axis=0) > 0, t.std(axis=0), 1.0)
+    pairs = np.triu_indices(t.shape[1])
+    quadratic = (t.shape[1] + 1) * (t.shape[1] + 2) // 2 * 5 <= len(t)
+    X = np.concatenate([np.ones((len(t), 1)), t] + ([t[:, pairs[0]] * t[:, pairs[1]]] if quadratic else []), axis=1)
+    fit = X @ np.linalg.lstsq(X, s[ok], rcond=None)[0]
+    out = np.full(s.shape, np.nan)
+    out[ok] = fit + (s[ok] - fit) / np.sqrt(paths)
+    return out
+
+
+def weighted_quantiles(values: np.ndarray, w: np.ndarray, q) -> np.ndarray:
+    """The quantiles q of values (N,) weighted by w (N,) (the weighted empirical distribution, interpolated)."""
+    order = np.argsort(values, kind="stable")
+    cdf = (np.cumsum(w[order]) - 0.5 * w[order]) / w.sum()
+    return np.interp(q, cdf, values[order])
 
 
 def at_the_edge(adjusted: np.ndarray, w: np.ndarray, lo: np.ndarray, hi: np.ndarray, ends: np.ndarray,

@@ -14,8 +14,8 @@ F may be one gain (m, n) or one per path (P, m, n); a `controller` (e.g. the onl
 controller of `online.py`) may change the per-path gains between steps k and k+1 from psi_{k|k}.
 
 Randomness: path j of a run with root SeedSequence `seed` draws its plant coefficients from
-SeedSequence(entropy, spawn_key=seed.spawn_key + (PLANT, j)) and its EnKF noise from
-(..., (ENKF, j)). Results therefore do not depend on how paths are batched or chunked.
+SeedSequence(entropy, spawn_key=seed.spawn_key + (PLANT, j)), its EnKF noise from (..., (ENKF, j)) and,
+where the plant has additive noise (`PlantNoise`), that noise from (..., (NOISE, j)). Results therefore do not depend on how paths are batched or chunked.
 """
 from __future__ import annotations
 
@@ -30,7 +30,7 @@ from .distributions import sample_paths
 from .enkf import EnKF, check_covariance, component_major, ensemble_mean, sqrtm_psd
 from .systems import AffineRandomSystem, _finite_array
 
-PLANT, ENKF = 0, 1            # SeedSequence spawn-key slots per purpose
+PLANT, ENKF, NOISE = 0, 1, 2     # SeedSequence spawn-key slots per purpose
 ESTIMATES = ("predicted", "filtered")   # the state estimate the feedback uses: x_{k|k-1} or x_{k|k}
 DIVERGENCE_BOUND = 1e6        # |q| (or |ensemble mean|) beyond this marks a path (or its filter) diverged
 
@@ -140,13 +140,39 @@ class Recorded:
         return Recorded(self.u[:, paths], self.y[:, paths])
 
 
-class _PlantSource:
-    """The simulated plant of `simulate`: coefficients s_k drawn per path (PLANT streams), state q_k."""
+@dataclass(frozen=True)
+class PlantNoise:
+    """Additive noise on a simulated plant: q_{k+1} = A q_k + B u_k + w_k, y_k = C q_k + D u_k + v_k with
+    w_k ~ N(0, W), v_k ~ N(0, V), i.i.d. in k. W (n, n) and V (ny, ny), or one per path (P, n, n), (P, ny, ny).
+    rdsexp's plants are noise-free; recorded data are not, and the simulated estimator's replicates of a data run
+    carry the noise the EnKF assumes, scaled per path (`pipeline.identification`)."""
 
-    def __init__(self, plant: AffineRandomSystem, q0, rngs, K: int):
+    W: np.ndarray
+    V: np.ndarray
+
+    def draws(self, rngs: list, steps: int) -> tuple[np.ndarray, np.ndarray]:
+        """(w (steps, P, n), v (steps, P, ny)): path j's noise from rngs[j] (NOISE streams), with elementwise
+        products summed per row: each path's numbers whatever the other paths in the batch."""
+        n = self.W.shape[-1]
+        z = np.stack([g.standard_normal((steps, n + self.V.shape[-1])) for g in rngs], axis=1)
+        # a factor (n, n) or one per path (P, n, n) broadcasts against z's (steps, P, 1, n) alike
+        w = (sqrtm_psd(self.W) * z[..., None, :n]).sum(axis=-1)
+        v = (sqrtm_psd(self.V) * z[..., None, n:]).sum(axis=-1)
+        return w, v
+
+
+class _PlantSource:
+    """The simulated plant of `simulate`: coefficients s_k drawn per path (PLANT streams), state q_k, and the
+    plant's additive noise (NOISE streams) if it has any."""
+
+    def __init__(self, plant: AffineRandomSystem, q0, rngs, K: int, noise: PlantNoise | None = None,
+                 noise_rngs: list | None = None):
         self.s = sample_paths(plant.xi_dist, rngs, K + 1)                              # (K+1, P, p_plant)
         self.A, self.B, self.C, self.D = plant.at(self.s)
         self.q = np.broadcast_to(q0, (len(rngs), plant.n)).copy()
+        self.w = self.v = None
+        if noise is not None:
+            self.w, self.v = noise.draws(noise_rngs, K + 1)
 
     def stop(self, dead):
         self.q[dead] = 0.0                     # no overflow on failed paths
@@ -156,10 +182,13 @@ class _PlantSource:
 
     def output(self, k, u=None):
         y = (self.C[k] @ self.q[..., None])[..., 0]
-        return y if u is None else y + (self.D[k] @ u[..., None])[..., 0]
+        y = y if u is None else y + (self.D[k] @ u[..., None])[..., 0]
+        return y if self.v is None else y + self.v[k]
 
     def advance(self, k, u):
         self.q = (self.A[k] @ self.q[..., None])[..., 0] + (self.B[k] @ u[..., None])[..., 0]
+        if self.w is not None:
+            self.q += self.w[k]
 
 
 class _RecordedSource:
@@ -226,9 +255,15 @@ def check_settings(plant: AffineRandomSystem | None, enkf: EnKF, F, d, q0, psi0,
                              f"{(paths, model.m, model.n)}")
     else:
         F = np.zeros((model.m, model.n)) if F is None else model.check_gain(F)
-    d = _finite_array("d", np.asarray(d, dtype=float).reshape(len(d), -1), 2)
-    if d.shape[1] != model.m or d.shape[0] < 1:
-        raise ValueError(f"d: shape {d.shape}, expected (K+1, m = {model.m})")
+    d = np.asarray(d, dtype=float)
+    if d.ndim == 3:                                  # one input sequence per path
+        d = _finite_array("d", d, 3)
+        if d.shape[1:] != (paths, model.m) or d.shape[0] < 1:
+            raise ValueError(f"d: shape {d.shape}, expected (K+1, m = {model.m}) or (K+1, paths = {paths}, m)")
+    else:
+        d = _finite_array("d", d.reshape(len(d), -1), 2)
+        if d.shape[1] != model.m or d.shape[0] < 1:
+            raise ValueError(f"d: shape {d.shape}, expected (K+1, m = {model.m})")
     q0 = _finite_array("q0", q0, 1)
     if q0.shape != (plant.n,):
         raise ValueError(f"q0: length {q0.size}, expected n = {plant.n}")
@@ -243,10 +278,11 @@ def simulate(plant: AffineRandomSystem | None, enkf: EnKF, *, F=None, d, q0, psi
              paths: int, seed, first_path: int = 0, filter_sees_d: bool = True, keep_members: bool = False,
              keep_xi_cov: bool = False, block: int = 16, bound: float = DIVERGENCE_BOUND, progress=None,
              controller: GainController | None = None, estimate: str = "predicted",
-             recorded: Recorded | None = None, keep_forecast: bool = False) -> Trajectories:
+             recorded: Recorded | None = None, keep_forecast: bool = False,
+             plant_noise: PlantNoise | None = None) -> Trajectories:
     """Closed loop (open loop when F is None) of `plant` observed by `enkf`, P = `paths` sample paths.
 
-    d: (K+1, m) external input added on u_k (horizon K = len(d) - 1); q0: (n,) plant initial state;
+    d: (K+1, m) external input added on u_k, or one per path (K+1, P, m) (horizon K = len(d) - 1); q0: (n,) plant initial state;
     psi0, P0: mean (n+p,) and covariance of the initial ensemble psi_{0|-1} (P0 = 0: every member
     at psi0, as in the paper); with the EnKF's disturbance estimate, its d part starts N(0, Q_d), one step
     of its random walk from 0. first_path: index of the first of the P paths, so that a run split into
@@ -264,6 +300,7 @@ def simulate(plant: AffineRandomSystem | None, enkf: EnKF, *, F=None, d, q0, psi
     (plant None, F None, filter_sees_d True): the EnKF is told the recorded u_k and filters the recorded
     y_k; q, s stay NaN/None. The same EnKF streams and initial ensemble as a simulated run of `seed`.
     keep_forecast: keep every member's predicted output (Trajectories.y_forecast).
+    plant_noise: additive process and output noise on the plant (`PlantNoise`; None: noise-free).
     """
     F, d, q0, psi0, P0 = check_settings(plant, enkf, F, d, q0, psi0, P0, paths, estimate, recorded)
     _check_counts(ensemble_size, paths, first_path, block, recorded, filter_sees_d)
@@ -272,9 +309,11 @@ def simulate(plant: AffineRandomSystem | None, enkf: EnKF, *, F=None, d, q0, psi
     psi0, P0 = _augmented_start(enkf, psi0, P0)
 
     # the plant (its coefficients from the PLANT streams) or the recorded data: what gives (u_k, y_k)
+    paths_here = range(first_path, first_path + P)
     source = _RecordedSource(recorded) if recorded is not None else \
-        _PlantSource(plant, q0, path_generators(seed, PLANT, range(first_path, first_path + P)), K)
-    enkf_rngs = path_generators(seed, ENKF, range(first_path, first_path + P))
+        _PlantSource(plant, q0, path_generators(seed, PLANT, paths_here), K, plant_noise,
+                     path_generators(seed, NOISE, paths_here) if plant_noise is not None else None)
+    enkf_rngs = path_generators(seed, ENKF, paths_here)
     n_q = model.n if recorded is not None else plant.n
     # ensembles psi_{k|k-1}, psi_{k|k} and the EnKF's scratch, reused at every step (see EnKF._predict)
     psi, filtered, work = (component_major((P, M, c)) for c in (width, width, width + ny + 1))

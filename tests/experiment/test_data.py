@@ -164,7 +164,11 @@ def test_dropout_example_with_holdout_validation(tmp_path):
     (run_dir,) = runs_of(tmp_path)
     s = info_of(run_dir)["summary"]
     assert s["data"]["identification_paths"] == 24 and s["data"]["holdout_paths"] == 6
-    assert s["modeling_uncertainty"]["over"] == "paths"
+    # the simulated estimator: replicates replay the 24 paths' recorded inputs, and the data's noise is estimated
+    assert s["modeling_uncertainty"]["over"] == "simulated replicates"
+    estimator = s["modeling_estimator"]
+    assert estimator["summary_paths"] == 24 and "noise_scale" in estimator and "noise_sensitivity" not in s
+    assert "read on 24 recorded paths" in proc.stdout and "the data's noise:" in proc.stdout
     table = pd.read_parquet(run_dir / "validation.parquet")
     assert set(table["law"]) == {"modeled", "nominal"} and set(table["output"]) == {"0", "all"}
     assert table[["coverage_50", "coverage_90"]].apply(lambda c: c.between(0, 1)).all().all()
@@ -198,13 +202,14 @@ def test_recorded_paths_whose_estimate_fails_are_left_out(round_trip):
 
 
 def test_a_data_run_bounds_the_effect_of_the_noise_its_enkf_assumes(tmp_path):
-    """identification.noise_sensitivity (auto: x0.1 and x10 in a data run): the moments modeled again with enkf.Q's
+    """identification.noise_sensitivity (auto: x0.1 and x10 in a data run with the paper's estimator): the moments modeled again with enkf.Q's
     x block and enkf.R scaled; the x1 row is the run's own moments, and the x10 row is exactly what a data run
     configured with that noise models (same seeds: recomputed here from the config alone)."""
     from tests.conftest import REPO
     example = REPO / "examples" / "dropout"
     common = ["--config-dir", str(example), f"data={example / 'dropout.csv'}", "model=dropout", "plant=recorded",
-              "enkf.ensemble_size=20", "identification.passes=1", "identification.resamples=20"]
+              "enkf.ensemble_size=20", "identification.passes=1", "identification.resamples=20",
+              "identification.estimator=paper"]         # (the simulated estimator estimates the noise instead)
     for where in ("base", "scaled"):
         (tmp_path / where).mkdir()
     proc = rdsexp(*common, cwd=tmp_path / "base")

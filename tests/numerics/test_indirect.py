@@ -101,3 +101,45 @@ def test_a_posterior_stopped_by_the_box_is_told_apart_from_a_law_at_its_own_edge
     draws = np.tile(inside, (100, 1))
     draws[:4, 1] = 1.0                                          # 4%: below the share
     assert not indirect.at_the_edge(draws, w, lo, hi, ends).any()
+
+
+def test_a_boundary_truth_keeps_its_posterior_inside_the_box_and_spread():
+    """A std near 0 that the summary reads with noise: the regression on the logit keeps every adjusted draw inside
+    the box and spread (no pile at the edge), and the 95% interval holds the truth at about its level."""
+    lo, hi, R, runs, covered = np.zeros(1), np.ones(1), 2000, 200, 0
+    for seed in range(runs):
+        rng = np.random.default_rng(seed)
+        truth = rng.uniform(0.0, 0.1)
+        s_obs = np.array([truth + 0.05 * rng.standard_normal()])
+        theta = rng.random((R, 1))
+        adjusted, w = indirect.adjusted_posterior(theta, theta + 0.05 * rng.standard_normal((R, 1)), s_obs, lo, hi,
+                                                  accept=0.1)
+        assert np.all((adjusted > 0) & (adjusted < 1)) and np.unique(adjusted).size == adjusted.size
+        bounds = interval(adjusted, w)[0]
+        covered += bounds[0] <= truth <= bounds[1]
+    assert binom.ppf(0.0015, runs, 0.95) <= covered <= runs - binom.ppf(0.0015, runs, 0.05), covered
+
+
+def test_summaries_of_one_path_made_those_of_a_mean_of_many():
+    """s = 1 + 2 theta + theta^2 + e, e ~ N(0, 0.5^2): `averaged` keeps the regression and divides the residual's
+    sd by sqrt(paths) (to within the Monte Carlo error of 4000 replicates: 5%); failed rows stay NaN."""
+    rng = np.random.default_rng(0)
+    theta = rng.uniform(-1, 1, (4000, 1))
+    mean = 1 + 2 * theta + theta ** 2
+    s = mean + 0.5 * rng.standard_normal(theta.shape)
+    s[7] = np.nan
+    out = indirect.averaged(theta, s, paths=25)
+    assert np.isnan(out[7]).all() and np.isfinite(np.delete(out, 7, axis=0)).all()
+    residual = np.delete(out - mean, 7, axis=0)
+    assert abs(residual.std() / (0.5 / 5) - 1) < 0.05 and abs(residual.mean()) < 3 * 0.1 / np.sqrt(4000)
+
+
+def test_weighted_quantiles_are_the_weighted_distributions():
+    """Equal weights: numpy's (Hazen) quantiles; integer weights: within a draw's spacing of the repeated sample's."""
+    rng = np.random.default_rng(2)
+    values, q = rng.standard_normal(500), [0.025, 0.5, 0.975]
+    np.testing.assert_allclose(indirect.weighted_quantiles(values, np.ones(500), q),
+                               np.quantile(values, q, method="hazen"))
+    counts = rng.integers(1, 4, 500)
+    repeated = np.quantile(np.repeat(values, counts), q, method="hazen")
+    assert np.all(np.abs(indirect.weighted_quantiles(values, counts.astype(float), q) - repeated) < 0.05)

@@ -20,7 +20,7 @@ from ...numerics.modeling import (
     path_moments,
     time_mean,
 )
-from ...numerics.simulation import Trajectories, bytes_per_path
+from ...numerics.simulation import PlantNoise, Trajectories, bytes_per_path
 from ...numerics.systems import AffineRandomSystem, MomentModel
 from ...numerics.verdict import FAILURES
 from ..config import Experiment
@@ -56,19 +56,53 @@ def identify_and_model(exp: Experiment, stages: Stages, seed) -> Identified:
                             "open_loop_failure": str(ident.failure[0])}
             ident = identify(F_id)
     if exp.identification.estimator == "simulated" and exp.model.p:
-        return simulated_moments(exp, stages, ident, lambda enkf: identify(F_id, enkf), F_id, info)
+        q0 = exp.q0 if exp.q0.shape == (exp.model.n,) else np.zeros(exp.model.n)
+        return simulated_moments(exp, stages, ident, lambda enkf: identify(F_id, enkf),
+                                 Replay(exp.identification.input, F_id, q0), info)
     return model_moments(exp, stages, ident, lambda enkf: identify(F_id, enkf), info)
 
 
-def simulated_moments(exp: Experiment, stages: Stages, ident: Trajectories, identify, F_id,
+@dataclasses.dataclass(frozen=True)
+class Replay:
+    """How the simulated estimator's replicates repeat the identification: the input d, (K+1, m) or one per
+    recorded path (K+1, P_rec, m), replicate r replaying recorded path r mod P_rec; the feedback F (m, n) (None:
+    the inputs as they are); the plant's initial state q0 (n,). noisy (a data run): the replicates' plant carries
+    enkf.Q's x block and enkf.R as process and output noise, times a scale theta's last component estimates
+    (log10, in NOISE_BOX): recorded outputs are noisy by an amount nobody states, and the summary depends on it."""
+
+    d: np.ndarray
+    F: np.ndarray | None
+    q0: np.ndarray
+    noisy: bool = False
+
+
+NOISE_BOX = (-3.0, 1.0)     # a data run's prior on log10 of the noise scale (`Replay.noisy`): 1e-3 to 10 times
+                            # the noise the EnKF assumes
+
+
+def model_recorded(exp: Experiment, stages: Stages, ident: Trajectories, seed) -> Identified:
+    """The modeling stage of a data run on its recorded identification `ident`, with either estimator. The
+    simulated estimator's replicates replay each recorded path's inputs as they were applied, from the EnKF's
+    initial guess of x, with the noise the EnKF assumes times an estimated scale (`Replay`)."""
+    recorded = exp.data.identification
+    identify = lambda enkf: identify_recorded(exp, recorded, seed, enkf=enkf)
+    feedback = {"mode": "recorded", "used": "the recorded inputs"}
+    if exp.identification.estimator == "simulated" and exp.model.p:
+        replay = Replay(recorded.u, None, exp.filter.psi0[:exp.model.n], noisy=True)
+        return simulated_moments(exp, stages, ident, identify, replay, feedback)
+    return model_moments(exp, stages, ident, identify, feedback)
+
+
+def simulated_moments(exp: Experiment, stages: Stages, ident: Trajectories, identify, replay: Replay,
                       feedback: dict) -> Identified:
     """The modeling stage of identification.estimator = simulated (`numerics.indirect`): the paper's estimator on
-    the identification run is the summary; two rounds of identification.replicates runs of the model under the
-    same input, feedback and EnKF, each path drawing xi from its own law, give the posterior of the law's mean
-    and stds: the first from the prior box, the second from the box its posterior draws span. A replicate
-    whose identification failed, as the observed one did not, is left out; where too few were identified to
-    regress on, the next round draws from the box the identified ones span (at most ROUNDS rounds). The
-    posterior mean is the model, its weighted draws the uncertainty (`Identified.posterior`).
+    the identification run is the summary (several recorded paths: the mean of theirs); two rounds of
+    identification.replicates runs of the model as `replay` says, each path drawing xi from its own law, give the
+    posterior of the law's mean and stds (and of a data run's noise scale): the first from the prior box, the
+    second from the box its posterior draws span. A replicate whose identification failed, as the observed one
+    did not, is left out; where too few were identified to regress on, the next round draws from the box the
+    identified ones span (at most ROUNDS rounds). The posterior mean is the model, its weighted draws the
+    uncertainty (`Identified.posterior`).
 
     Where the random-walk run failed (its xi drifted until the estimate, or the plant under its feedback,
     diverged), the summary is read from a run of `identify(enkf)` whose EnKF draws each step's xi i.i.d. about
@@ -85,42 +119,54 @@ def simulated_moments(exp: Experiment, stages: Stages, ident: Trajectories, iden
         if summary is None:
             return Identified(ident, None, failure, feedback, covariance=settings.covariance)
         ends, low, high = two_point_ends(exp)
-        s_obs = summary_statistics(exp, ident)[0]
+        per_path = summary_statistics(exp, ident)
+        per_path = per_path[np.all(np.isfinite(per_path), axis=1)]       # the paths whose identification failed out
+        s_obs = per_path.mean(axis=0)           # one path's own summary, bit for bit (x / 1)
         prior = indirect.prior_box(s_obs[:2 * model.p], ends, low, high, settings.prior_width)
+        if replay.noisy:
+            prior = tuple(np.append(edge, bound) for edge, bound in zip(prior, NOISE_BOX))
         info = {"name": "simulated", "replicates": settings.replicates, "prior_width": settings.prior_width,
                 "accept": settings.accept, "summary_mean": summary.mean.tolist(),
                 "summary_std": np.sqrt(np.diag(summary.cov)).tolist(), "summary_filter": summary_filter}
-        posterior, info["usable"] = posterior_rounds(exp, enkf, F_id, s_obs, prior, (ends, low, high))
+        if len(per_path) > 1:
+            info["summary_paths"] = len(per_path)
+        posterior, info["usable"] = posterior_rounds(exp, enkf, replay, s_obs, len(per_path), prior,
+                                                     (ends, low, high))
         if posterior is None:       # the window's moments, said so
             info["fallback"] = (f"{max(info['usable'])} of {settings.replicates} replicates identified (needs "
                                 f"{10 * (len(prior[0]) + 1)}): the window's moments of xi_{{k|k}} kept")
             return Identified(ident, summary, "", feedback, covariance=settings.covariance, estimator=info)
         adjusted, w = posterior
-        info |= diagnostics(adjusted, w, prior, ends)
+        info |= diagnostics(adjusted, w, prior, ends, replay.noisy)
+        xi_part = adjusted[:, :len(prior[0]) - replay.noisy]
         # independent components, the laws the replicates draw from (the paper estimator's correlations are as
         # biased as its stds, and designs on them did worse on the calibration plants)
-        mean, cov = indirect.moments_of(w @ adjusted / w.sum(), ends, low, high)
+        mean, cov = indirect.moments_of(w @ xi_part / w.sum(), ends, low, high)
         draws = None
         if settings.resamples:          # the uncertainty: identification.resamples draws of the posterior
-            picks = indirect.weighted_draws(adjusted, w, settings.resamples, [exp.seed, UNCERTAINTY_STREAM])
+            picks = indirect.weighted_draws(xi_part, w, settings.resamples, [exp.seed, UNCERTAINTY_STREAM])
             draws = Uncertainty(*indirect.moments_of(picks, ends, low, high), settings.resamples, 0,
                                 "simulated replicates")
     return Identified(ident, MomentModel(mean=mean, cov=cov), "", feedback, covariance=settings.covariance,
                       estimator=info, posterior=draws)
 
 
-def posterior_rounds(exp: Experiment, enkf, F_id, s_obs: np.ndarray, box, laws) -> tuple[tuple | None, list[int]]:
+def posterior_rounds(exp: Experiment, enkf, replay: Replay, s_obs: np.ndarray, paths: int, box,
+                     laws) -> tuple[tuple | None, list[int]]:
     """The replicate rounds of `simulated_moments`: (adjusted draws (N, d), weights (N,)) of the posterior, or None
     where no round identified enough replicates to regress on (10 per regressor), and each round's count of
-    identified replicates. `laws`: (ends, low, high)."""
+    identified replicates. s_obs: the mean of `paths` paths' summaries (`indirect.averaged`). `laws`: (ends, low,
+    high)."""
     settings = exp.identification
     posterior, rounds, usable = None, 0, []
     for round_ in range(1, ROUNDS + 1):
         theta = indirect.uniform_draws(*box, settings.replicates, [exp.seed, REPLICATE_STREAM, round_])
-        s = replicate_summaries(exp, enkf, F_id, theta, *laws, round_)
+        s = replicate_summaries(exp, enkf, replay, theta, *laws, round_)
         ok = np.all(np.isfinite(s), axis=1)
         usable.append(int(ok.sum()))
         if ok.sum() >= 10 * (theta.shape[1] + 1):
+            if paths > 1:
+                s = indirect.averaged(theta, s, paths)
             posterior = indirect.adjusted_posterior(theta, s, s_obs, *box, settings.accept)
             box, rounds = indirect.posterior_box(*posterior, *box), rounds + 1
             if rounds == 2:
@@ -134,28 +180,37 @@ def posterior_rounds(exp: Experiment, enkf, F_id, s_obs: np.ndarray, box, laws) 
     return posterior, usable
 
 
-def diagnostics(adjusted: np.ndarray, w: np.ndarray, prior, ends: np.ndarray) -> dict:
+def diagnostics(adjusted: np.ndarray, w: np.ndarray, prior, ends: np.ndarray, noisy: bool = False) -> dict:
     """The posterior's account for the summary and the status: its effective number of replicates, how much the
-    data narrowed each component's prior box (`indirect.narrowed`), and the components at the box's edge
-    (`at_prior_edge`) or hardly narrowed (`weakly_identified`, above `indirect.WEAK`)."""
+    data narrowed each component's prior box (`indirect.narrowed`), and the components of xi's law at the box's
+    edge (`at_prior_edge`) or hardly narrowed (`weakly_identified`, above `indirect.WEAK`). noisy: the last
+    component is a data run's log10 noise scale, reported (`noise_scale`: its posterior median and 95% interval,
+    times the noise the EnKF assumes), not a status (its box's low end is noise too small to matter)."""
     p = ends.size
     names = [f"xi mean {i + 1}" for i in range(p)] + [f"xi std {i + 1}" for i in np.flatnonzero(~ends)]
     ratio = indirect.narrowed(adjusted, w, *prior)
     out = {"effective": float(w.sum() ** 2 / (w ** 2).sum()), "narrowed": ratio.tolist()}
-    edge = indirect.at_the_edge(adjusted, w, *prior, ends)
+    xi = slice(0, len(names))
+    edge = indirect.at_the_edge(adjusted[:, xi], w, prior[0][xi], prior[1][xi], ends)
     if edge.any():                  # the box, not the data, stops the posterior there
         out["at_prior_edge"] = [names[i] for i in np.flatnonzero(edge)]
-    if np.any(ratio > indirect.WEAK):        # the data hardly narrowed the prior box: the outputs do not tell
-        out["weakly_identified"] = [names[i] for i in np.flatnonzero(ratio > indirect.WEAK)]
+    weak = ratio[xi] > indirect.WEAK
+    if weak.any():                  # the data hardly narrowed the prior box: the outputs do not tell
+        out["weakly_identified"] = [names[i] for i in np.flatnonzero(weak)]
+    if noisy:
+        q = indirect.weighted_quantiles(adjusted[:, -1], w, [0.025, 0.5, 0.975])
+        out["noise_scale"] = {"median": float(10 ** q[1]), "low": float(10 ** q[0]), "high": float(10 ** q[2]),
+                              "box": [10 ** prior[0][-1], 10 ** prior[1][-1]]}
     return out
 
 
 def two_point_ends(exp: Experiment) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(ends (p,) bool, low (p,), high (p,)): the components whose law takes only the two ends of the support box
-    the plant file's family states (`enkf.xi_ends`: a Bernoulli link), as the online loop models them; their
-    std is fixed by their mean."""
+    the plant file's family states (`enkf.xi_ends`: a Bernoulli link; a data run: its model file's prior guess),
+    as the online loop models them; their std is fixed by their mean."""
     p, bounds = exp.model.p, exp.filter.enkf.xi_bounds
-    ends = xi_ends(exp.model, exp.plant) if bounds is not None and exp.plant is not None else None
+    family = exp.plant if exp.data is None else exp.data.prior
+    ends = xi_ends(exp.model, family) if bounds is not None and family is not None else None
     if ends is None or not ends.any():
         return np.zeros(p, dtype=bool), np.zeros(p), np.ones(p)
     low, high = bounds
@@ -163,25 +218,32 @@ def two_point_ends(exp: Experiment) -> tuple[np.ndarray, np.ndarray, np.ndarray]
     return ends, np.where(ends, low, 0.0), np.where(ends, high, 1.0)
 
 
-def replicate_summaries(exp: Experiment, enkf, F_id, theta: np.ndarray, ends, low, high, round_: int) -> np.ndarray:
-    """(R, S): the `summary_statistics` of R identification runs of the model, path r drawing xi from theta[r]
-    (`indirect.path_laws`), with the identification's input, feedback F_id and `enkf`; NaN where a run failed. In
-    chunks of paths within the Monte Carlo's memory budget (each path its own streams)."""
+def replicate_summaries(exp: Experiment, enkf, replay: Replay, theta: np.ndarray, ends, low, high,
+                        round_: int) -> np.ndarray:
+    """(R, S): the `summary_statistics` of R identification runs of the model as `replay` says, path r drawing xi
+    from theta[r] (`indirect.path_laws`; a noisy replay's last column is its log10 noise scale) with `enkf`; NaN
+    where a run failed. In chunks of paths within the Monte Carlo's memory budget (each path its own streams)."""
     model, settings = exp.model, exp.identification
     total = settings.covariance == "total"
-    q0 = exp.q0 if exp.q0.shape == (model.n,) else np.zeros(model.n)
-    sim = Simulation.of(exp, enkf, F_id, np.random.SeedSequence([exp.seed, REPLICATE_STREAM, round_]),
-                        plant=model, q0=q0, d=settings.input, paths=len(theta), filter_sees_d=True)
+    R, n = len(theta), model.n
+    d = replay.d if replay.d.ndim == 2 else replay.d[:, np.arange(R) % replay.d.shape[1]]
+    sim = Simulation.of(exp, enkf, replay.F, np.random.SeedSequence([exp.seed, REPLICATE_STREAM, round_]),
+                        plant=model, q0=replay.q0, d=d, paths=R, filter_sees_d=True)
     per_path = bytes_per_path(model, sim.observer, ensemble_size=exp.filter.ensemble_size,
-                              horizon=settings.input.shape[0] - 1, keep_members=False, block=16)
+                              horizon=d.shape[0] - 1, keep_members=False, block=16)
     size = int(max(1, MEMORY_BUDGET // (3 * per_path)))
+    laws = theta[:, :theta.shape[1] - replay.noisy]
     out = []
-    for first in range(0, len(theta), size):
-        part = theta[first:first + size]
+    for first in range(0, R, size):
+        part = slice(first, first + size)
         plant = AffineRandomSystem(model.A, model.B, model.C, model.D,
-                                   xi_dist=indirect.path_laws(part, ends, low, high))
-        out.append(summary_statistics(exp, dataclasses.replace(sim, plant=plant).run(first, len(part),
-                                                                                      keep_xi_cov=total)))
+                                   xi_dist=indirect.path_laws(laws[part], ends, low, high))
+        chunk = dataclasses.replace(sim, plant=plant, d=d if d.ndim == 2 else d[:, part])
+        noise = None
+        if replay.noisy:
+            scale = 10.0 ** theta[part, -1, None, None]
+            noise = PlantNoise(scale * enkf.Q[:n, :n], scale * enkf.R)
+        out.append(summary_statistics(exp, chunk.run(first, len(laws[part]), keep_xi_cov=total, plant_noise=noise)))
     return np.concatenate(out)
 
 

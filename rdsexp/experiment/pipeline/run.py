@@ -16,7 +16,7 @@ from ..config import Experiment
 from ..montecarlo import LoopSummary
 from .data import failed_paths, loops_on_model, validate_holdout
 from .design import against_optimum, design_set, design_spread
-from .identification import identify_and_model, identify_recorded, model_moments, moment_uncertainty, noise_sensitivity
+from .identification import identify_and_model, identify_recorded, model_recorded, moment_uncertainty, noise_sensitivity
 from .loops import METRIC_COLUMNS, Sample, judge_loops, loop_observer, noise_floor, root_seed, simulate_loops
 from .online import analyse_online, online_loop
 from .record import data_summary, run_summary
@@ -143,16 +143,13 @@ def run_on_data(exp: Experiment, sink=None, cache=None) -> Outcome:
     stages, keep = Stages(cache), exp.tracking.level == "full"
     seed = root_seed(exp, "identification")
     with stages.timed("identification"):
-        identify = partial(identify_recorded, exp, exp.data.identification, seed)
-        ident = identify()
-    identified = model_moments(exp, stages, ident, lambda enkf: identify(enkf=enkf),
-                               {"mode": "recorded", "used": "the recorded inputs"})
+        ident = identify_recorded(exp, exp.data.identification, seed)
+
+    identified = model_recorded(exp, stages, ident, seed)
     dist, uncertainty = identified.moments, moment_uncertainty(exp, identified)
     with stages.timed("noise_sensitivity"):
-        remodel = lambda scaled: model_moments(scaled, Stages(cache=None),
-                                               identify_recorded(scaled, scaled.data.identification, seed),
-                                               lambda enkf: identify_recorded(scaled, scaled.data.identification,
-                                                                              seed, enkf=enkf), identified.feedback)
+        remodel = lambda scaled: model_recorded(scaled, Stages(cache=None),
+                                                identify_recorded(scaled, scaled.data.identification, seed), seed)
         sensitivity = noise_sensitivity(exp, identified, uncertainty, remodel)
     with stages.timed("synthesis"):
         designs = design_set(exp, stages, dist, uncertainty, identified.feedback)
