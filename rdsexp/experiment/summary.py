@@ -230,6 +230,11 @@ def data_lines(s: dict) -> list[str]:
         lines.append(f"  validation on {v['paths']} held-out paths, y_k one step ahead, k={v['k_from']}..{v['k_to']}: "
                      f"{law('modeled')}; {law('nominal')} (xi at its mean): the modeled law is "
                      f"{'better' if v['modeled_better'] else 'not better'} by CRPS")
+        if "calibrated" in v:
+            slack = "/".join(f"{x:.2f}" for x in v["coverage_slack"])
+            lines.append(f"    the modeled law's predictive is {'calibrated' if v['calibrated'] else 'NOT calibrated'}"
+                         f": its coverage is {'within' if v['calibrated'] else 'outside'} {slack} of 50% / 90%"
+                         + ("" if v["calibrated"] else ": the law, or the noise the EnKF assumes, is wrong for these data"))
     for name, r in (s.get("loops_on_model") or {}).items():      # data.loops: on the identified model
         if isinstance(r, dict):
             w = s["loops_on_model"]["rate_window"]

@@ -316,6 +316,11 @@ class EnKF:
             np.matmul(self._xi_prior_sqrt, components(e_w)[n:dim].reshape(self.model.p, -1),
                       out=psi_next[n:dim].reshape(self.model.p, -1))     # a contiguous block: a view
             psi_next[n:dim] += self.xi_prior.mean.reshape((-1,) + (1,) * (psi_next.ndim - 1))
+            if self._ends is not None:          # (`xi_ends`) the two-point law at the prior's mean, as above
+                ends, low, high = (a.reshape((-1,) + (1,) * (psi_next.ndim - 1)) for a in self.two_point)
+                mean = self.xi_prior.mean.reshape(ends.shape)
+                psi_next[n:dim] = np.where(ends, two_point_draw(components(e_w)[n:dim], mean, low, high),
+                                           psi_next[n:dim])
             if self.xi_bounds is not None:       # a Gaussian draw of moments also leaves the support
                 self._clip_xi(psi_next[n:dim])
             xi = out[..., n:dim]

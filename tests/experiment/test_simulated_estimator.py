@@ -43,7 +43,7 @@ def test_the_stated_interval_holds_the_law(tmp_path):
     hits, paper_hits, count = 0, 0, 0
     for seed in range(10):
         identified, posterior = modeled(experiment(tmp_path, f"seed={seed}"))
-        assert identified.status == "ok" and min(identified.estimator["usable"]) >= 100
+        assert identified.status in ("ok", "weakly_identified") and min(identified.estimator["usable"]) >= 100
         summary = posterior.summary()["modeling_uncertainty"]
         mean, std = identified.moments.mean, np.sqrt(np.diag(identified.moments.cov))
         hits += np.sum(np.abs(mean - TRUE_MEAN) <= 1.96 * np.asarray(summary["xi_mean_sd"]))
