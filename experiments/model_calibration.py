@@ -20,7 +20,13 @@ Plants: the library's, `unst3` (3 states, a Bernoulli actuator dropout and a uni
 off the law's mean in every component (`random_plants.wrong_guess`). The loops are cut to what the gain needs
 (2 paths, no open loop, no floor): only the model and the gain are measured here.
 
-    python experiments/model_calibration.py [--seeds 20] [--random 10] [--plants a,b] [--override KEY=VALUE ...]
+Data runs (--data): recorded data of a researcher's own simulator (`user_data.py`, 80 paths x 101 steps, a new
+data set per seed), identified with rdsexp's defaults for a system of one's own: `user` (two outputs, noise sd
+0.01 where the EnKF assumes 0.1), `user_matched` (the EnKF told the data's noise), `user_one_output` (the first
+state only). Their end-to-end figure is the gain's exact LQ cost on the true law over the optimum's.
+
+    python experiments/model_calibration.py [--seeds 20] [--random 10] [--plants a,b] [--data a,b]
+        [--override KEY=VALUE ...]
 """
 from __future__ import annotations
 
@@ -38,7 +44,11 @@ from rdsexp.numerics.synthesis import synthesize
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import random_plants  # noqa: E402  (the random plants' draw)
+import user_data  # noqa: E402  (a researcher's own simulator)
 from coverage import LIBRARY, UNST3, experiment  # noqa: E402
+
+DATA_SETS = {"user": ({}, []), "user_matched": ({}, ["enkf.Q.x=1e-4", "enkf.R=1e-4"]),
+             "user_one_output": ({"outputs": 1}, [])}     # user_data.write's arguments, the run's overrides
 
 FAST = ["closed_loop.paths=2", "closed_loop.open_loop=false", "closed_loop.floor_paths=0", "tracking=off"]
 RATE_DESIGNS = ("proposed", "policy_iteration", "nominal_lmi")
@@ -74,6 +84,43 @@ def one_run(exp) -> dict:
         row["e2e"] = (chosen["rate_plant"].iloc[0] - best if method in RATE_DESIGNS
                       else chosen["lq_cost_plant"].iloc[0] / best)
         row["e2e_kind"] = "rate +" if method in RATE_DESIGNS else "cost x"
+    return row
+
+
+def one_data_run(name: str, seed: int, where: Path, overrides: list[str]) -> dict:
+    """A data run on a new data set of `user_data`'s simulator (DATA_SETS[name]), against its known law."""
+    from hydra import compose, initialize_config_dir
+
+    from rdsexp.conf import __path__ as conf_path
+    from rdsexp.experiment.config import build
+    from rdsexp.experiment.pipeline.run import run_on_data
+    from rdsexp.numerics.distributions import from_spec
+    from rdsexp.numerics.systems import AffineRandomSystem
+    kwargs, extra = DATA_SETS[name]
+    model = user_data.write_config(where, kwargs.get("outputs", 2))
+    data = user_data.write(where / f"{name}_{seed}.csv", seed, **kwargs)
+    with initialize_config_dir(config_dir=str(Path(conf_path[0]).resolve()), version_base="1.3"):
+        exp = build(compose("config", overrides=[f"hydra.searchpath=[file://{where}]", f"data.file={data}",
+                                                 f"model={model}", "plant=recorded", "tracking=off", f"seed={seed}",
+                                                 *extra, *overrides]))
+    out = run_on_data(exp)
+    s = out.summary
+    row = {"status": s.get("modeling_status")}
+    if s.get("xi_mean") is None:
+        return row
+    u = s.get("modeling_uncertainty") or {}
+    for what, truth in (("mean", user_data.TRUE_MEAN), ("std", user_data.TRUE_STD)):
+        row[what] = np.asarray(s[f"xi_{what}"]) - truth
+        row[f"{what}_sd"] = np.asarray(u.get(f"xi_{what}_sd", [np.nan] * 2))
+    row["true_std"] = user_data.TRUE_STD
+    truth = AffineRandomSystem(exp.model.A, exp.model.B, exp.model.C, exp.model.D,
+                               xi_dist=from_spec(user_data.TRUE_LAW))
+    chosen = out.tables["gains"][out.tables["gains"]["selected"]]
+    F = np.array([[chosen[f"F[{i},{j}]"].iloc[0] for j in range(exp.model.n)] for i in range(exp.model.m)]) \
+        if len(chosen) else np.full((1, 1), np.nan)
+    if np.all(np.isfinite(F)):            # the gain's exact LQ cost on the true law over the optimum's
+        best = exact_costs(truth, None, synthesize(truth, truth.check_distribution(None), "ms_lqr").F)["lq_cost"]
+        row["e2e"], row["e2e_kind"] = exact_costs(truth, None, F)["lq_cost"] / best, "cost x"
     return row
 
 
@@ -135,6 +182,7 @@ def main(argv=None):
     parser.add_argument("--seeds", type=int, default=20)
     parser.add_argument("--random", type=int, default=10, help="random plants (random_plants.py's draw, seed 0)")
     parser.add_argument("--plants", default=",".join(LIBRARY + ("unst3",)))
+    parser.add_argument("--data", default="", help=f"data runs, of {', '.join(DATA_SETS)}")
     parser.add_argument("--override", nargs="*", default=[], metavar="KEY=VALUE")
     args = parser.parse_args(argv)
     start = time.perf_counter()
@@ -154,6 +202,10 @@ def main(argv=None):
             rows = [one_run(experiment(name, where, [f"seed={seed}", *FAST, *args.override]))
                     for seed in range(args.seeds)]
             results[name] = summarize(rows)
+            print(f"{name}: {results[name]['runs']} runs", file=sys.stderr)
+        for name in filter(None, args.data.split(",")):
+            results[name] = summarize([one_data_run(name, seed, config_dir, args.override)
+                                       for seed in range(args.seeds)])
             print(f"{name}: {results[name]['runs']} runs", file=sys.stderr)
     print_table(results)
     print(f"\n{time.perf_counter() - start:.0f} s")

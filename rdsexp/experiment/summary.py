@@ -155,6 +155,12 @@ def estimator_lines(estimator: dict) -> list[str]:
         lines.append(f"    the data's noise: {noise['median']:.3g} (95% {noise['low']:.3g}-{noise['high']:.3g}) times the "
                      f"noise the EnKF assumes (enkf.Q's x block and enkf.R), within the prior "
                      f"{noise['box'][0]:g}-{noise['box'][1]:g}")
+    if estimator.get("misfit"):
+        m = estimator["misfit"]
+        lines.append(f"    misfit: no law the replicates tried reproduces the data's {m['summary']} ({m['z']:+.1f} sds off "
+                     f"the nearest replicates', bound {m['bound']:g}): the window's moments of xi_{{k|k}} kept. The "
+                     f"model's structure, the noise the EnKF assumes, or (data recorded under feedback) the replicates' "
+                     f"open-loop replay of the recorded inputs differ from what made the data")
     if estimator.get("at_prior_edge"):
         wider = f"identification.prior_width={2 * estimator['prior_width']:g}"
         lines.append(f"    the prior box, not the data, stops the posterior of "
@@ -235,6 +241,10 @@ def data_lines(s: dict) -> list[str]:
             lines.append(f"    the modeled law's predictive is {'calibrated' if v['calibrated'] else 'NOT calibrated'}"
                          f": its coverage is {'within' if v['calibrated'] else 'outside'} {slack} of 50% / 90%"
                          + ("" if v["calibrated"] else ": the law, or the noise the EnKF assumes, is wrong for these data"))
+            noise = (s.get("modeling_estimator") or {}).get("noise_scale")
+            if not v["calibrated"] and noise:
+                lines.append(f"    (the data's noise reads {noise['median']:.3g} times the EnKF's: enkf.Q.x and enkf.R "
+                             f"scaled by that assume what the data carry)")
     for name, r in (s.get("loops_on_model") or {}).items():      # data.loops: on the identified model
         if isinstance(r, dict):
             w = s["loops_on_model"]["rate_window"]

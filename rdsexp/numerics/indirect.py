@@ -116,6 +116,20 @@ def adjusted_posterior(theta: np.ndarray, s: np.ndarray, s_obs: np.ndarray, lo: 
     return np.where(hi > lo, adjusted, lo), w
 
 
+def misfit(s: np.ndarray, s_obs: np.ndarray, accept: float) -> np.ndarray:
+    """(ds,): where s_obs lies among the replicates' summaries s (R, ds) nearest to it (the fraction `accept`, as
+    `adjusted_posterior` weights them): (s_obs - their mean) / their sd per component. Where the model reproduces
+    the data these are of order 1; a component many sds off is a summary no law in the box reaches, and the
+    regression adjustment would extrapolate to it."""
+    s = s[np.all(np.isfinite(s), axis=1)]
+    scale = s.std(axis=0)
+    scale = np.where(scale > 0, scale, 1.0)
+    dist = np.sqrt((((s - s_obs) / scale) ** 2).sum(axis=1))
+    near = s[dist <= np.quantile(dist, accept)]
+    spread = near.std(axis=0)
+    return (s_obs - near.mean(axis=0)) / np.where(spread > 0, spread, scale)
+
+
 def averaged(theta: np.ndarray, s: np.ndarray, paths: int) -> np.ndarray:
     """(R, ds): summaries of one path per replicate made those of the mean over `paths` paths, as the observed
     summary of several recorded paths is: the regression of s on theta (R, d) (quadratic in theta where there are

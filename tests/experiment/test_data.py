@@ -164,11 +164,13 @@ def test_dropout_example_with_holdout_validation(tmp_path):
     (run_dir,) = runs_of(tmp_path)
     s = info_of(run_dir)["summary"]
     assert s["data"]["identification_paths"] == 24 and s["data"]["holdout_paths"] == 6
-    # the simulated estimator: replicates replay the 24 paths' recorded inputs, and the data's noise is estimated
-    assert s["modeling_uncertainty"]["over"] == "simulated replicates"
+    # the simulated estimator's replicates replay the 24 paths' recorded inputs open loop; these were recorded under
+    # a stabilizing gain, so no law reproduces their outputs' energy: misfit, the window's moments kept, said so
     estimator = s["modeling_estimator"]
-    assert estimator["summary_paths"] == 24 and "noise_scale" in estimator and "noise_sensitivity" not in s
-    assert "read on 24 recorded paths" in proc.stdout and "the data's noise:" in proc.stdout
+    assert s["modeling_status"] == "misfit" and estimator["summary_paths"] == 24 and "noise_sensitivity" not in s
+    assert estimator["misfit"]["summary"] == "log mean square of y[0]" and estimator["misfit"]["z"] < -4
+    assert s["xi_mean"] == estimator["summary_mean"] and s["modeling_uncertainty"]["over"] == "paths"
+    assert "read on 24 recorded paths" in proc.stdout and "misfit: no law the replicates tried" in proc.stdout
     table = pd.read_parquet(run_dir / "validation.parquet")
     assert set(table["law"]) == {"modeled", "nominal"} and set(table["output"]) == {"0", "all"}
     assert table[["coverage_50", "coverage_90"]].apply(lambda c: c.between(0, 1)).all().all()

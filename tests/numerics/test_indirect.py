@@ -143,3 +143,16 @@ def test_weighted_quantiles_are_the_weighted_distributions():
     counts = rng.integers(1, 4, 500)
     repeated = np.quantile(np.repeat(values, counts), q, method="hazen")
     assert np.all(np.abs(indirect.weighted_quantiles(values, counts.astype(float), q) - repeated) < 0.05)
+
+
+def test_a_summary_no_law_reaches_is_a_misfit():
+    """s = (theta, theta^2 + e): an observed summary some law makes lies among the nearest replicates (|z| of order
+    1 in every component over many truths); one whose second component no theta in the box reaches is many sds off."""
+    rng = np.random.default_rng(3)
+    theta = rng.uniform(-1, 1, (2000, 1))
+    s = np.column_stack([theta[:, 0] + 0.1 * rng.standard_normal(2000), theta[:, 0] ** 2 + 0.1 * rng.standard_normal(2000)])
+    worst = [np.abs(indirect.misfit(s, np.array([t + 0.1 * rng.standard_normal(), t ** 2 + 0.1 * rng.standard_normal()]),
+                                    0.5)).max() for t in rng.uniform(-0.9, 0.9, 100)]
+    assert np.quantile(worst, 0.95) < 3
+    z = indirect.misfit(s, np.array([0.5, -1.0]), 0.5)        # theta^2 >= 0: no law gives -1
+    assert z[1] < -4 and abs(z[0]) < 3

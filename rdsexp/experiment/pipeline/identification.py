@@ -34,6 +34,7 @@ REPLICATE_STREAM = 4     # [seed, 4, round]: the simulated estimator's replicate
 POSTERIOR_ROUNDS = 2, 4  # the simulated estimator's rounds with a posterior for one identification path, and for
                         # several recorded ones, whose mean pins the law down far inside the box of two rounds
                         # (a user's simulator, 80 paths: median errors 0.09 / 0.18 with 2 rounds, 0.06 / 0.11 with 4)
+MISFIT = 4.0           # the data's summary this many sds off the nearest replicates' (`indirect.misfit`): status misfit
 PASS_TOL = 1e-3        # iterated identification: stop when the moments move less than this (relative)
 
 
@@ -77,7 +78,7 @@ class Replay:
     noisy: bool = False
 
 
-NOISE_BOX = (-3.0, 1.0)     # a data run's prior on log10 of the noise scale (`Replay.noisy`): 1e-3 to 10 times
+NOISE_BOX = (-6.0, 1.0)     # a data run's prior on log10 of the noise scale (`Replay.noisy`): 1e-6 to 10 times
                             # the noise the EnKF assumes
 
 
@@ -131,11 +132,15 @@ def simulated_moments(exp: Experiment, stages: Stages, ident: Trajectories, iden
                 "summary_std": np.sqrt(np.diag(summary.cov)).tolist(), "summary_filter": summary_filter}
         if len(per_path) > 1:
             info["summary_paths"] = len(per_path)
-        posterior, info["usable"] = posterior_rounds(exp, enkf, replay, s_obs, len(per_path), prior,
-                                                     (ends, low, high))
+        posterior, info["usable"], z = posterior_rounds(exp, enkf, replay, s_obs, len(per_path), prior,
+                                                        (ends, low, high))
         if posterior is None:       # the window's moments, said so
             info["fallback"] = (f"{max(info['usable'])} of {settings.replicates} replicates identified (needs "
                                 f"{10 * (len(prior[0]) + 1)}): the window's moments of xi_{{k|k}} kept")
+            return Identified(ident, summary, "", feedback, covariance=settings.covariance, estimator=info)
+        if np.max(np.abs(z)) > MISFIT:      # no law in the box reproduces what the data read: the window's moments
+            worst = int(np.argmax(np.abs(z)))
+            info["misfit"] = {"summary": summary_names(model)[worst], "z": float(z[worst]), "bound": MISFIT}
             return Identified(ident, summary, "", feedback, covariance=settings.covariance, estimator=info)
         adjusted, w = posterior
         info |= diagnostics(adjusted, w, prior, ends, replay.noisy)
@@ -153,14 +158,14 @@ def simulated_moments(exp: Experiment, stages: Stages, ident: Trajectories, iden
 
 
 def posterior_rounds(exp: Experiment, enkf, replay: Replay, s_obs: np.ndarray, paths: int, box,
-                     laws) -> tuple[tuple | None, list[int]]:
+                     laws) -> tuple[tuple | None, list[int], np.ndarray | None]:
     """The replicate rounds of `simulated_moments`: (adjusted draws (N, d), weights (N,)) of the posterior, or None
-    where no round identified enough replicates to regress on (10 per regressor), and each round's count of
-    identified replicates. Each round after the first draws from the box the previous posterior spans
+    where no round identified enough replicates to regress on (10 per regressor), each round's count of
+    identified replicates, and where s_obs lies among the last round's replicates (`indirect.misfit`). Each round after the first draws from the box the previous posterior spans
     (POSTERIOR_ROUNDS of them; one more where the first round's identifications mostly failed). s_obs: the mean of
     `paths` paths' summaries (`indirect.averaged`). `laws`: (ends, low, high)."""
     settings = exp.identification
-    posterior, rounds, usable = None, 0, []
+    posterior, rounds, usable, z = None, 0, [], None
     wanted = POSTERIOR_ROUNDS[paths > 1]
     for round_ in range(1, wanted + 2):
         theta = indirect.uniform_draws(*box, settings.replicates, [exp.seed, REPLICATE_STREAM, round_])
@@ -171,6 +176,7 @@ def posterior_rounds(exp: Experiment, enkf, replay: Replay, s_obs: np.ndarray, p
             if paths > 1:
                 s = indirect.averaged(theta, s, paths)
             posterior = indirect.adjusted_posterior(theta, s, s_obs, *box, settings.accept)
+            z = indirect.misfit(s, s_obs, settings.accept)
             box, rounds = indirect.posterior_box(*posterior, *box), rounds + 1
             if rounds == wanted:
                 break
@@ -180,7 +186,7 @@ def posterior_rounds(exp: Experiment, enkf, replay: Replay, s_obs: np.ndarray, p
             box = indirect.posterior_box(theta[ok], np.ones(ok.sum()), *box)
         else:
             break
-    return posterior, usable
+    return posterior, usable, z
 
 
 def diagnostics(adjusted: np.ndarray, w: np.ndarray, prior, ends: np.ndarray, noisy: bool = False) -> dict:
@@ -248,6 +254,13 @@ def replicate_summaries(exp: Experiment, enkf, replay: Replay, theta: np.ndarray
             noise = PlantNoise(scale * enkf.Q[:n, :n], scale * enkf.R)
         out.append(summary_statistics(exp, chunk.run(first, len(laws[part]), keep_xi_cov=total, plant_noise=noise)))
     return np.concatenate(out)
+
+
+def summary_names(model) -> list[str]:
+    """The names of `summary_statistics`' columns."""
+    return [*(f"window mean of xi {i + 1}" for i in range(model.p)), *(f"window std of xi {i + 1}" for i in range(model.p)),
+            *(f"log mean square of y[{i}]" for i in range(model.ny)),
+            *(f"log mean square of innovation {i}" for i in range(model.ny))]
 
 
 def summary_statistics(exp: Experiment, tr: Trajectories) -> np.ndarray:

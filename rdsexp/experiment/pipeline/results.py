@@ -18,7 +18,7 @@ from ...numerics.systems import MomentModel
 from ...numerics.verdict import Floor
 from ..montecarlo import LoopSummary
 
-MODELED = ("ok", "unsettled", "at_prior_edge", "weakly_identified")     # the modeling statuses that come with moments
+MODELED = ("ok", "unsettled", "misfit", "at_prior_edge", "weakly_identified")   # the statuses that come with moments
 KEPT_GAIN = "identification_gain"     # the method name of the identification's gain when the loop keeps it
 
 
@@ -44,13 +44,16 @@ class Identified:
     @property
     def status(self) -> str:
         """ok; unsettled (passes that stopped before the moments settled, or a simulated estimator left with the
-        paper's moments); at_prior_edge (the simulated estimator's posterior stopped by its prior box);
+        paper's moments); misfit (no law the simulated estimator tried reproduces what the data read: the window's
+        moments kept); at_prior_edge (the simulated estimator's posterior stopped by its prior box);
         weakly_identified (a component whose prior box the data hardly narrowed); or why there is no model."""
         passes, estimator = self.passes or {}, self.estimator or {}
         if self.failure or self.moments is None:
             return self.failure
         if (passes.get("passes") and not passes.get("converged")) or "fallback" in estimator:
             return "unsettled"
+        if "misfit" in estimator:
+            return "misfit"
         if estimator.get("at_prior_edge"):
             return "at_prior_edge"
         return "weakly_identified" if estimator.get("weakly_identified") else "ok"
