@@ -243,8 +243,9 @@ def data_lines(s: dict) -> list[str]:
                          + ("" if v["calibrated"] else ": the law, or the noise the EnKF assumes, is wrong for these data"))
             noise = (s.get("modeling_estimator") or {}).get("noise_scale")
             if not v["calibrated"] and noise:
-                lines.append(f"    (the data's noise reads {noise['median']:.3g} times the EnKF's: enkf.Q.x and enkf.R "
-                             f"scaled by that assume what the data carry)")
+                lines.append(f"    (the simulated estimator puts the data's noise at {noise['median']:.3g} (95% "
+                             f"{noise['low']:.3g}-{noise['high']:.3g}) times the EnKF's: set enkf.Q.x and enkf.R to the "
+                             f"noise your sensors and process carry)")
     for name, r in (s.get("loops_on_model") or {}).items():      # data.loops: on the identified model
         if isinstance(r, dict):
             w = s["loops_on_model"]["rate_window"]
