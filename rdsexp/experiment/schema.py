@@ -122,6 +122,9 @@ COLUMNS: dict[str, dict[str, tuple[str, str | None]]] = {
                       "the open loop; the online loop takes the closed loop's where it holds; inf if the loop at "
                       "rest diverged; NaN: none)", "state"),
         "rms_k_to": ("sqrt(E|q_k_to|^2), compared with the floor", "state"),
+        "tail_khat": ("Pareto k-hat of the paths' |q_k_to|^2 (`verdict.tail_index`, as PSIS computes it): above 0.7 "
+                      "a few paths carry the mean square and the rate's interval needs more paths; NaN below 20 "
+                      "paths", None),
         "paths": ("number of sample paths", None),
         "failed_fraction": ("fraction of paths that failed", None),
         "x_error_rms": ("RMS of x_{k|k-1} - q_k over steps and paths", "state"),
@@ -242,6 +245,8 @@ RUN_SUMMARY_KEYS: dict[str, tuple[str, str | None]] = {
     "{loop}_verdict": ("stable, unstable, undetermined or failed (metrics table's verdict)", None),
     "{loop}_verdict_reason": ("the verdict in words, with its evidence", None),
     "{loop}_exact_rate": ("exact rate of the ideal loop over the same window", "1/step"),
+    "{loop}_tail_khat": ("Pareto k-hat of the paths' |q_k_to|^2 (metrics `tail_khat`): above 0.7 a few paths carry "
+                         "the mean square", None),
     "{loop}_estimation": ("the estimate fed back, the RMS of its error, the loop's RMS at k_to", "state"),
     "{loop}_rate": ("[rate, low, high]: the plain empirical rate over the window with its 95% interval", "1/step"),
     "{loop}_failed": ("failed paths: fraction, first and median step, reasons (only where a path failed)", None),

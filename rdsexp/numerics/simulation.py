@@ -15,7 +15,8 @@ controller of `online.py`) may change the per-path gains between steps k and k+1
 
 Randomness: path j of a run with root SeedSequence `seed` draws its plant coefficients from
 SeedSequence(entropy, spawn_key=seed.spawn_key + (PLANT, j)), its EnKF noise from (..., (ENKF, j)) and,
-where the plant has additive noise (`PlantNoise`), that noise from (..., (NOISE, j)). Results therefore do not depend on how paths are batched or chunked.
+where the plant has additive noise (`PlantNoise`), that noise from (..., (NOISE, j)). Results therefore do not
+depend on how paths are batched or chunked.
 """
 from __future__ import annotations
 
@@ -282,8 +283,8 @@ def simulate(plant: AffineRandomSystem | None, enkf: EnKF, *, F=None, d, q0, psi
              plant_noise: PlantNoise | None = None) -> Trajectories:
     """Closed loop (open loop when F is None) of `plant` observed by `enkf`, P = `paths` sample paths.
 
-    d: (K+1, m) external input added on u_k, or one per path (K+1, P, m) (horizon K = len(d) - 1); q0: (n,) plant initial state;
-    psi0, P0: mean (n+p,) and covariance of the initial ensemble psi_{0|-1} (P0 = 0: every member
+    d: (K+1, m) external input added on u_k, or one per path (K+1, P, m) (horizon K = len(d) - 1); q0: (n,)
+    plant initial state; psi0, P0: mean (n+p,) and covariance of the initial ensemble psi_{0|-1} (P0 = 0: every member
     at psi0, as in the paper); with the EnKF's disturbance estimate, its d part starts N(0, Q_d), one step
     of its random walk from 0. first_path: index of the first of the P paths, so that a run split into
     chunks of paths (first_path = 0, P1, P1 + P2, ...) gives exactly the paths of one batch.

@@ -248,3 +248,21 @@ def test_paired_losses_false_alarm_rate_and_power_measured_by_simulation(hazard)
     assert np.mean(same.sum(1) > off.sum(1)) > 0.3                     # the bare counts' false alarms
     power = np.mean([paired_losses(a, b)[2] < PAIRED_LEVEL for a, b in zip(worse, off)])
     assert power > 0.75
+
+
+def test_the_tail_index_recovers_a_pareto_shape_and_flags_a_few_paths_carrying_the_mean():
+    """Generalized Pareto samples of 2,000 with shape k: the mean k-hat over 40 seeds within 3 of its standard
+    errors of k (less PSIS's shrinkage toward 0.5, 10 / (n + 10) of the way); a mean square carried by 3 paths of
+    200 is heavy (above HEAVY_TAIL), a lognormal of spread 0.5 is not."""
+    from scipy.stats import genpareto
+    from rdsexp.numerics.verdict import HEAVY_TAIL, tail_index
+    for k in (0.2, 0.5, 0.9):
+        est = np.array([tail_index(genpareto(c=k).rvs(size=2000, random_state=seed)) for seed in range(40)])
+        n = np.ceil(3 * np.sqrt(2000))
+        expected = (n * k + 10 * 0.5) / (n + 10)
+        assert abs(est.mean() - expected) < 3 * est.std(ddof=1) / np.sqrt(40) + 0.02, (k, est.mean())
+    rng = np.random.default_rng(0)
+    few = rng.lognormal(0.0, 0.5, 200)
+    few[:3] *= 1e3                                      # three paths carry most of the mean square
+    assert tail_index(few) > HEAVY_TAIL > tail_index(rng.lognormal(0.0, 0.5, 200))
+    assert np.isnan(tail_index(np.ones(50))) and np.isnan(tail_index(np.arange(10.0)))

@@ -83,9 +83,10 @@ def calibration(coverage: np.ndarray, per_path: np.ndarray) -> dict:
 
 
 def score_holdout(exp: Experiment, moments: MomentModel, k_from: int) -> tuple[np.ndarray, int, np.ndarray]:
-    """The held-out paths filtered with xi drawn from `moments`, in chunks of paths within the memory budget, scored as they come: sums (2 + levels, ny) per
-    output of the CRPS and of the interval hits per level, and the count of finite (step, path) pairs; the number
-    of paths whose EnKF failed; and each path's coverage per level over its outputs (P, levels)."""
+    """The held-out paths filtered with xi drawn from `moments`, in chunks of paths within the memory budget,
+    scored as they come: sums (2 + levels, ny) per output of the CRPS and of the interval hits per level, and the
+    count of finite (step, path) pairs; the number of paths whose EnKF failed; and each path's coverage per level
+    over its outputs (P, levels)."""
     held, enkf = exp.data.holdout_data, exp.filter.enkf
     seed = np.random.SeedSequence(exp.seed, spawn_key=VALIDATION_KEY)
     noise_seed = np.random.SeedSequence(seed.entropy, spawn_key=seed.spawn_key + (2,))   # per path: chunk-free

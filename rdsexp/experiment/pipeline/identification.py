@@ -34,6 +34,8 @@ REPLICATE_STREAM = 4     # [seed, 4, round]: the simulated estimator's replicate
 POSTERIOR_ROUNDS = 2, 4  # the simulated estimator's rounds with a posterior for one identification path, and for
                         # several recorded ones, whose mean pins the law down far inside the box of two rounds
                         # (a user's simulator, 80 paths: median errors 0.09 / 0.18 with 2 rounds, 0.06 / 0.11 with 4)
+NOISE_BOX = (-6.0, 1.0)  # a data run's prior on log10 of the noise scale (`Replay.noisy`): 1e-6 to 10 times the
+                        # noise the EnKF assumes
 MISFIT = 4.0           # the data's summary this many sds off the nearest replicates' (`indirect.misfit`): status misfit
 PASS_TOL = 1e-3        # iterated identification: stop when the moments move less than this (relative)
 
@@ -78,10 +80,6 @@ class Replay:
     noisy: bool = False
 
 
-NOISE_BOX = (-6.0, 1.0)     # a data run's prior on log10 of the noise scale (`Replay.noisy`): 1e-6 to 10 times
-                            # the noise the EnKF assumes
-
-
 def model_recorded(exp: Experiment, stages: Stages, ident: Trajectories, seed) -> Identified:
     """The modeling stage of a data run on its recorded identification `ident`, with either estimator. The
     simulated estimator's replicates replay each recorded path's inputs as they were applied, from the EnKF's
@@ -98,13 +96,14 @@ def model_recorded(exp: Experiment, stages: Stages, ident: Trajectories, seed) -
 def simulated_moments(exp: Experiment, stages: Stages, ident: Trajectories, identify, replay: Replay,
                       feedback: dict) -> Identified:
     """The modeling stage of identification.estimator = simulated (`numerics.indirect`): the paper's estimator on
-    the identification run is the summary (several recorded paths: the mean of theirs); two rounds of
+    the identification run is the summary (several recorded paths: the mean of theirs); rounds of
     identification.replicates runs of the model as `replay` says, each path drawing xi from its own law, give the
-    posterior of the law's mean and stds (and of a data run's noise scale): the first from the prior box, the
-    second from the box its posterior draws span. A replicate whose identification failed, as the observed one
-    did not, is left out; where too few were identified to regress on, the next round draws from the box the
+    posterior of the law's mean and stds (and of a data run's noise scale): the first from the prior box, each
+    next one from the box the previous posterior spans. A replicate whose identification failed, as the observed
+    one did not, is left out; where too few were identified to regress on, the next round draws from the box the
     identified ones span (`posterior_rounds`). The posterior mean is the model, its weighted draws the
-    uncertainty (`Identified.posterior`).
+    uncertainty (`Identified.posterior`); where no law in the box reproduces the summary (`indirect.misfit`
+    beyond MISFIT), the window's moments are kept and the status says misfit.
 
     Where the random-walk run failed (its xi drifted until the estimate, or the plant under its feedback,
     diverged), the summary is read from a run of `identify(enkf)` whose EnKF draws each step's xi i.i.d. about
@@ -161,9 +160,10 @@ def posterior_rounds(exp: Experiment, enkf, replay: Replay, s_obs: np.ndarray, p
                      laws) -> tuple[tuple | None, list[int], np.ndarray | None]:
     """The replicate rounds of `simulated_moments`: (adjusted draws (N, d), weights (N,)) of the posterior, or None
     where no round identified enough replicates to regress on (10 per regressor), each round's count of
-    identified replicates, and where s_obs lies among the last round's replicates (`indirect.misfit`). Each round after the first draws from the box the previous posterior spans
-    (POSTERIOR_ROUNDS of them; one more where the first round's identifications mostly failed). s_obs: the mean of
-    `paths` paths' summaries (`indirect.averaged`). `laws`: (ends, low, high)."""
+    identified replicates, and where s_obs lies among the last round's replicates (`indirect.misfit`). Each round
+    after the first draws from the box the previous posterior spans (POSTERIOR_ROUNDS of them; one more where the
+    first round's identifications mostly failed). s_obs: the mean of `paths` paths' summaries
+    (`indirect.averaged`). `laws`: (ends, low, high)."""
     settings = exp.identification
     posterior, rounds, usable, z = None, 0, [], None
     wanted = POSTERIOR_ROUNDS[paths > 1]

@@ -16,7 +16,7 @@ import pandas as pd
 
 from ...numerics.analysis import rms_band
 from ...numerics.simulation import Trajectories
-from ...numerics.verdict import Floor, judge_loop, place_window, rate_interval, window_start
+from ...numerics.verdict import Floor, judge_loop, place_window, rate_interval, tail_index, window_start
 from ..config import Experiment
 from ..montecarlo import LoopSummary, Simulation, run_chunks
 from .results import JudgedLoops, RateWindow
@@ -185,7 +185,7 @@ def metrics_table(exp: Experiment, loops: dict[str, LoopSummary], window: RateWi
                      "k_from": k_from, "k_to": k_to, "verdict_rate": verdict.rate, "verdict_rate_low": verdict.low,
                      "verdict_rate_high": verdict.high, "k_end": verdict.k_end, "exact_rate": exact_rate,
                      "floor_rms": (0.0 if name == "open_loop" else np.nan) if loop_floor is None else loop_floor.rms,
-                     "rms_k_to": end_rms, "paths": loop.sq.shape[1],
+                     "rms_k_to": end_rms, "tail_khat": tail_index(loop.sq[k_to]), "paths": loop.sq.shape[1],
                      "failed_fraction": float(np.mean(loop.failed_at >= 0)),
                      "x_error_rms": loop.rms_of("x_pred_err"),
                      "q_rms_final": float(np.sqrt(np.mean(loop.sq[-1]))),
@@ -204,4 +204,4 @@ ESTIMATION = ("x_rmse", "x_spread_error", "xi_rmse", "xi_spread_error")
 
 METRIC_COLUMNS = ("experiment", "verdict", "verdict_reason", "status", "rate", "rate_low", "rate_high", "k_from",
                   "k_to", "verdict_rate", "verdict_rate_low", "verdict_rate_high", "k_end", "exact_rate", "floor_rms",
-                  "rms_k_to", "paths", "failed_fraction", "x_error_rms", "q_rms_final", *ESTIMATION)
+                  "rms_k_to", "tail_khat", "paths", "failed_fraction", "x_error_rms", "q_rms_final", *ESTIMATION)

@@ -144,7 +144,6 @@ def run_on_data(exp: Experiment, sink=None, cache=None) -> Outcome:
     seed = root_seed(exp, "identification")
     with stages.timed("identification"):
         ident = identify_recorded(exp, exp.data.identification, seed)
-
     identified = model_recorded(exp, stages, ident, seed)
     dist, uncertainty = identified.moments, moment_uncertainty(exp, identified)
     with stages.timed("noise_sensitivity"):
