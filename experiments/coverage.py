@@ -12,7 +12,10 @@ same plant samples the EnKF loop would see) and judged by the verdict rdsexp giv
   rate, with its binomial standard error;
 - wrong: the fraction of decisive verdicts on the wrong side of 1 (truth: the exact rate);
 - undetermined: the fraction of verdicts that are neither (failed counts here too);
-- decisive: how many verdicts were decisive.
+- decisive: how many verdicts were decisive;
+- heavy: the fraction of decisive runs whose paths' ||q_k_to||^2 have a Pareto k-hat above 0.7
+  (`verdict.tail_index`: a few paths carry the mean square), and the coverage among those runs: whether the
+  tail diagnostic tells the intervals that miss (issue 66 asks a decisive word to need more paths there).
 
 Plants: the library's (`paper`, `dropout`, `cart_pole`, `two_carts`, `multiplicative`), `unst3` (3
 states, a Bernoulli actuator dropout and a uniform parameter on A[0, 0], exact open-loop rate 1.064;
@@ -39,7 +42,7 @@ import yaml
 
 from rdsexp.numerics.analysis import second_moments
 from rdsexp.numerics.simulation import simulate_state_feedback
-from rdsexp.numerics.verdict import judge_loop, window_start
+from rdsexp.numerics.verdict import HEAVY_TAIL, judge_loop, tail_index, window_start
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import random_plants  # noqa: E402  (the random plants' draw)
@@ -80,7 +83,7 @@ def open_loop_calibration(exp, paths: int, seeds: int) -> dict:
         _, second = second_moments(plant, None, F0, exp.q0, d)
     exact_rms = np.sqrt(np.trace(second, axis1=1, axis2=2))
     truth = (exact_rms[window[1]] / exact_rms[window[0]]) ** (1 / (window[1] - window[0]))
-    decisive = covered = wrong = 0
+    decisive = covered = wrong = heavy = heavy_covered = 0
     for seed in range(seeds):
         with np.errstate(all="ignore"):
             x = simulate_state_feedback(plant, F0, d=d, x0=exp.q0, paths=paths, seed=seed)
@@ -94,12 +97,16 @@ def open_loop_calibration(exp, paths: int, seeds: int) -> dict:
             decisive += 1
             wrong += (v.word == "stable") != (truth < 1)
             if np.isfinite(v.low):                 # an interval beside the word (a diverged loop has none)
-                covered += v.low <= truth <= v.high
+                hit = v.low <= truth <= v.high
             else:
-                covered += 1 if v.word == "unstable" and truth >= 1 else 0
+                hit = v.word == "unstable" and truth >= 1
+            covered += hit
+            if tail_index(sq[window[1]]) > HEAVY_TAIL:
+                heavy, heavy_covered = heavy + 1, heavy_covered + hit
     share = (lambda count: count / decisive) if decisive else (lambda count: np.nan)
     return {"truth": truth, "window": window, "decisive": decisive, "coverage": share(covered), "wrong": share(wrong),
-            "undetermined": 1 - decisive / seeds}
+            "undetermined": 1 - decisive / seeds, "heavy": share(heavy),
+            "heavy_coverage": heavy_covered / heavy if heavy else np.nan}
 
 
 def closed_loop_contradictions(plant: str, config_dir: Path | None, paths: int, runs: int) -> dict:
@@ -136,7 +143,7 @@ def main(argv=None):
                 random_plants.write_plant(plant, config_dir, "# coverage.py")
                 names.append(plant.name)
         print(f"{'plant':16s} {'paths':>5s} {'window':>9s} {'exact':>7s} {'decisive':>8s} {'coverage':>14s} "
-              f"{'wrong':>6s} {'undet.':>6s}")
+              f"{'wrong':>6s} {'undet.':>6s} {'heavy':>6s} {'cover|heavy':>11s}")
         start = time.time()
         for name in names:
             exp = experiment(name, config_dir)
@@ -144,7 +151,8 @@ def main(argv=None):
                 r = open_loop_calibration(exp, paths, args.seeds)
                 se = np.sqrt(r["coverage"] * (1 - r["coverage"]) / r["decisive"]) if r["decisive"] else np.nan
                 print(f"{name:16s} {paths:5d} {str(r['window']):>9s} {r['truth']:7.4f} {r['decisive']:8d} "
-                      f"{r['coverage']:7.2f} +-{se:4.2f} {r['wrong']:6.2f} {r['undetermined']:6.2f}", flush=True)
+                      f"{r['coverage']:7.2f} +-{se:4.2f} {r['wrong']:6.2f} {r['undetermined']:6.2f} {r['heavy']:6.2f} "
+                      f"{r['heavy_coverage']:11.2f}", flush=True)
         if args.closed:
             for name in [n for n in names if n in LIBRARY + ("unst3",)]:
                 for paths in args.paths:

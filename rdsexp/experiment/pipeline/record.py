@@ -108,7 +108,8 @@ def loop_summary(exp: Experiment, row, loop) -> dict:
     s = {f"{name}_status": row.status, f"{name}_verdict": row.verdict, f"{name}_verdict_reason": row.verdict_reason,
          f"{name}_exact_rate": row.exact_rate,              # the ideal loop over the same window
          f"{name}_estimation": {"estimate": exp.loop.estimate, "x_error_rms": fed_back, "rms_k_to": row.rms_k_to},
-         f"{name}_tail_khat": row.tail_khat,        # the paths' |q_k_to|^2 tail (`verdict.tail_index`)
+         # the paths' |q_k_to|^2 tail (`verdict.tail_index`); None below 20 paths
+         f"{name}_tail_khat": float(row.tail_khat) if np.isfinite(row.tail_khat) else None,
          f"{name}_rate": [row.rate, row.rate_low, row.rate_high]}
     bad = loop.failed_at >= 0
     if bad.any():
