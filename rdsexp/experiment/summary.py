@@ -152,15 +152,15 @@ def estimator_lines(estimator: dict) -> list[str]:
     lines.append(line + (f"; {estimator['fallback']}" if "fallback" in estimator else ""))
     if "noise_scale" in estimator:          # a data run: the replicates' noise, estimated
         noise = estimator["noise_scale"]
-        lines.append(f"    the data's noise: {noise['median']:.3g} (95% {noise['low']:.3g}-{noise['high']:.3g}) times the "
-                     f"noise the EnKF assumes (enkf.Q's x block and enkf.R), within the prior "
+        lines.append(f"    the data's noise: {noise['median']:.3g} (95% {noise['low']:.3g}-{noise['high']:.3g}) times "
+                     f"the noise the EnKF assumes (enkf.Q's x block and enkf.R), within the prior "
                      f"{noise['box'][0]:g}-{noise['box'][1]:g}")
     if estimator.get("misfit"):
         m = estimator["misfit"]
-        lines.append(f"    misfit: no law the replicates tried reproduces the data's {m['summary']} ({m['z']:+.1f} sds off "
-                     f"the nearest replicates', bound {m['bound']:g}): the window's moments of xi_{{k|k}} kept. The "
-                     f"model's structure, the noise the EnKF assumes, or (data recorded under feedback) the replicates' "
-                     f"open-loop replay of the recorded inputs differ from what made the data")
+        lines.append(f"    misfit: no law the replicates tried reproduces the data's {m['summary']} ({m['z']:+.1f} sds "
+                     f"off the nearest replicates', bound {m['bound']:g}): the window's moments of xi_{{k|k}} kept. "
+                     f"The model's structure, the noise the EnKF assumes, or (data recorded under feedback) the "
+                     f"replicates' open-loop replay of the recorded inputs differ from what made the data")
     if estimator.get("at_prior_edge"):
         wider = f"identification.prior_width={2 * estimator['prior_width']:g}"
         lines.append(f"    the prior box, not the data, stops the posterior of "
@@ -238,14 +238,15 @@ def data_lines(s: dict) -> list[str]:
                      f"{'better' if v['modeled_better'] else 'not better'} by CRPS")
         if "calibrated" in v:
             slack = "/".join(f"{x:.2f}" for x in v["coverage_slack"])
+            wrong = ": the law, or the noise the EnKF assumes, is wrong for these data"
             lines.append(f"    the modeled law's predictive is {'calibrated' if v['calibrated'] else 'NOT calibrated'}"
                          f": its coverage is {'within' if v['calibrated'] else 'outside'} {slack} of 50% / 90%"
-                         + ("" if v["calibrated"] else ": the law, or the noise the EnKF assumes, is wrong for these data"))
+                         + ("" if v["calibrated"] else wrong))
             noise = (s.get("modeling_estimator") or {}).get("noise_scale")
             if not v["calibrated"] and noise:
                 lines.append(f"    (the simulated estimator puts the data's noise at {noise['median']:.3g} (95% "
-                             f"{noise['low']:.3g}-{noise['high']:.3g}) times the EnKF's: set enkf.Q.x and enkf.R to the "
-                             f"noise your sensors and process carry)")
+                             f"{noise['low']:.3g}-{noise['high']:.3g}) times the EnKF's: set enkf.Q.x and enkf.R to "
+                             f"the noise your sensors and process carry)")
     for name, r in (s.get("loops_on_model") or {}).items():      # data.loops: on the identified model
         if isinstance(r, dict):
             w = s["loops_on_model"]["rate_window"]

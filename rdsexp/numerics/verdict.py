@@ -68,14 +68,14 @@ def tail_index(values: np.ndarray) -> float:
     to the largest min(P / 5, 3 sqrt(P)) values over the next one, by Zhang & Stephens' (2009) estimator with its
     weakly informative shrinkage toward 0.5. Above HEAVY_TAIL (0.7) the sample mean is carried by a few values and
     converges too slowly to trust at this P; the tail has no finite variance above 0.5. NaN below 20 finite
-    values or where the tail is flat."""
+    values or where a quarter of the tail ties with its threshold."""
     x = np.sort(np.asarray(values, dtype=float)[np.isfinite(values)])
     if x.size < 20:
         return float("nan")
     tail = int(np.ceil(min(0.2 * x.size, 3 * np.sqrt(x.size))))
     excess = x[-tail:] - x[-tail - 1]
-    if not np.any(excess > 0):
-        return float("nan")
+    if excess[int(excess.size / 4 + 0.5) - 1] <= 0:      # a quarter of the tail tied with its threshold: no
+        return float("nan")                              # continuous tail to fit (values of a discrete law)
     n = excess.size
     # Zhang & Stephens: a grid of the profile parameter theta = -k / sigma, weighted by its profile likelihood
     grid = 30 + int(np.sqrt(n))

@@ -255,6 +255,7 @@ def test_the_tail_index_recovers_a_pareto_shape_and_flags_a_few_paths_carrying_t
     errors of k (less PSIS's shrinkage toward 0.5, 10 / (n + 10) of the way); a mean square carried by 3 paths of
     200 is heavy (above HEAVY_TAIL), a lognormal of spread 0.5 is not."""
     from scipy.stats import genpareto
+
     from rdsexp.numerics.verdict import HEAVY_TAIL, tail_index
     for k in (0.2, 0.5, 0.9):
         est = np.array([tail_index(genpareto(c=k).rvs(size=2000, random_state=seed)) for seed in range(40)])
@@ -266,3 +267,6 @@ def test_the_tail_index_recovers_a_pareto_shape_and_flags_a_few_paths_carrying_t
     few[:3] *= 1e3                                      # three paths carry most of the mean square
     assert tail_index(few) > HEAVY_TAIL > tail_index(rng.lognormal(0.0, 0.5, 200))
     assert np.isnan(tail_index(np.ones(50))) and np.isnan(tail_index(np.arange(10.0)))
+    ties = np.repeat([1.0, 2.0, 40.0], [150, 45, 5])              # a discrete law's values: no tail to fit
+    with np.errstate(all="raise"):
+        assert np.isnan(tail_index(ties))

@@ -258,7 +258,8 @@ def replicate_summaries(exp: Experiment, enkf, replay: Replay, theta: np.ndarray
 
 def summary_names(model) -> list[str]:
     """The names of `summary_statistics`' columns."""
-    return [*(f"window mean of xi {i + 1}" for i in range(model.p)), *(f"window std of xi {i + 1}" for i in range(model.p)),
+    return [*(f"window mean of xi {i + 1}" for i in range(model.p)),
+            *(f"window std of xi {i + 1}" for i in range(model.p)),
             *(f"log mean square of y[{i}]" for i in range(model.ny)),
             *(f"log mean square of innovation {i}" for i in range(model.ny))]
 
