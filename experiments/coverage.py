@@ -28,6 +28,14 @@ end of the disturbance to the horizon, as `closed_loop.rate_window=auto` starts 
 --closed N adds, for the library plants and `unst3`, N seeded runs of the whole experiment per path
 count (identification, design, EnKF closed loop with its floor) and counts the closed loops called
 `stable` beside an ideal-loop exact rate >= 1 (rdsexp never says so) and the verdicts' spread.
+
+--near-truth N judges closed loops, whose truth no formula gives, against a near-truth: per plant (library,
+`unst3` and the --random plants) and seed, the same run with --truth-paths paths (same identification, gain and
+first paths: every path has its own streams), its rate over the steps the smaller run's verdict was decided on
+(with the floor's mean square subtracted where the verdict subtracted it). Per path count: how many verdicts were
+decisive on the loop's own rate, the coverage of their intervals, the wrong words, the share undetermined, the
+share of decisive runs with a heavy tail (k-hat > 0.7) with their coverage, and how many were decided by the loop
+at rest (its growth or failure: the same in both runs, not counted above).
 """
 from __future__ import annotations
 
@@ -125,6 +133,45 @@ def closed_loop_contradictions(plant: str, config_dir: Path | None, paths: int, 
     return {"verdicts": words, "stable_beside_exact_above_1": contradictions}
 
 
+def closed_loop_near_truth(plant: str, config_dir: Path | None, paths: list[int], seeds: int,
+                           truth_paths: int) -> dict[int, dict]:
+    """Per path count: the closed loop's decisive intervals against the same run at truth_paths paths."""
+    from rdsexp.experiment.pipeline import run_experiment
+    from rdsexp.experiment.store.stages import StageCache
+    counts = {P: {"decisive": 0, "covered": 0, "wrong": 0, "undetermined": 0, "heavy": 0, "heavy_covered": 0,
+                  "by_floor": 0} for P in paths}
+    common = ["tracking=summary", "closed_loop.open_loop=false"]
+    for seed in range(seeds):
+        cache = StageCache.in_process()             # one identification and design for every path count
+        run = lambda P, seed=seed, cache=cache: run_experiment(
+            experiment(plant, config_dir, [f"seed={seed}", f"closed_loop.paths={P}", *common]), cache=cache)
+        truth = run(truth_paths)
+        if "closed_loop" not in truth.squares:
+            continue
+        sq = truth.squares["closed_loop"]
+        floor = truth.tables["metrics"].set_index("experiment").loc["closed_loop", "floor_rms"]
+        for P in paths:
+            row = run(P).tables["metrics"].set_index("experiment").loc["closed_loop"]
+            c = counts[P]
+            if row["verdict"] not in ("stable", "unstable") or not np.isfinite(row["verdict_rate_low"]):
+                c["undetermined"] += 1
+                continue
+            k_from, k_end = int(row["k_from"]), int(row["k_end"])
+            if k_end < 0:                   # decided by the loop at rest (its growth), which both runs share
+                c["by_floor"] += 1
+                continue
+            f = floor ** 2 if "floor's mean square subtracted" in row["verdict_reason"] else 0.0
+            with np.errstate(all="ignore"):
+                near = ((np.nanmean(sq[k_end]) - f) / (np.nanmean(sq[k_from]) - f)) ** (1 / (2 * (k_end - k_from)))
+            hit = row["verdict_rate_low"] <= near <= row["verdict_rate_high"]
+            c["decisive"] += 1
+            c["covered"] += hit
+            c["wrong"] += (row["verdict"] == "stable") != (near < 1)
+            if row["tail_khat"] > HEAVY_TAIL:
+                c["heavy"], c["heavy_covered"] = c["heavy"] + 1, c["heavy_covered"] + hit
+    return counts
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--seeds", type=int, default=50)
@@ -132,6 +179,8 @@ def main(argv=None):
     parser.add_argument("--random", type=int, default=10, help="random plants (random_plants.py's draw, seed 0)")
     parser.add_argument("--plants", default=",".join(LIBRARY + ("unst3",)))
     parser.add_argument("--closed", type=int, default=0, help="whole runs per plant and path count (0: none)")
+    parser.add_argument("--near-truth", type=int, default=0, help="seeds of closed loops against near-truths")
+    parser.add_argument("--truth-paths", type=int, default=2000)
     args = parser.parse_args(argv)
     with tempfile.TemporaryDirectory() as tmp:
         config_dir = Path(tmp)
@@ -158,6 +207,18 @@ def main(argv=None):
                 for paths in args.paths:
                     r = closed_loop_contradictions(name, config_dir, paths, args.closed)
                     print(f"closed loop {name:16s} {paths:5d}: {r}", flush=True)
+        if args.near_truth:
+            print(f"\nclosed loops against the same run at {args.truth_paths} paths ({args.near_truth} seeds)")
+            print(f"{'plant':16s} {'paths':>5s} {'decisive':>8s} {'coverage':>8s} {'wrong':>5s} {'undet.':>6s} "
+                  f"{'heavy':>5s} {'cover|heavy':>11s} {'by floor':>8s}")
+            for name in names:
+                for P, c in closed_loop_near_truth(name, config_dir, args.paths, args.near_truth,
+                                                   args.truth_paths).items():
+                    d = c["decisive"]
+                    share = lambda count, of=d: f"{count / of:.2f}" if of else "-"
+                    print(f"{name:16s} {P:5d} {d:8d} {share(c['covered']):>8s} {c['wrong']:5d} "
+                          f"{c['undetermined'] / args.near_truth:6.2f} {share(c['heavy']):>5s} "
+                          f"{share(c['heavy_covered'], c['heavy']):>11s} {c['by_floor']:8d}", flush=True)
         print(f"{time.time() - start:.0f} s")
 
 
