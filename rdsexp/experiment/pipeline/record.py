@@ -89,7 +89,7 @@ def model_error(exp: Experiment, identified: Identified) -> dict:
     family, dist = exp.plant.xi_dist, identified.moments
     s = {"plant_xi_mean": (T @ family.mean + t).tolist(),
          "plant_xi_std": np.sqrt(np.diag(T @ family.cov @ T.T)).tolist()}
-    if dist is not None:
+    if dist is not None and exp.model.p:        # (a model without xi has no error to measure)
         std = np.sqrt(np.diag(dist.cov)).tolist()
         for what, modeled in (("mean", dist.mean.tolist()), ("std", std)):
             err = np.subtract(modeled, s[f"plant_xi_{what}"])
