@@ -34,8 +34,9 @@ count (identification, design, EnKF closed loop with its floor) and counts the c
 first paths: every path has its own streams), its rate over the steps the smaller run's verdict was decided on
 (with the floor's mean square subtracted where the verdict subtracted it). Per path count: how many verdicts were
 decisive on the loop's own rate, the coverage of their intervals, the wrong words, the share undetermined, the
-share of decisive runs with a heavy tail (k-hat > 0.7) with their coverage, and how many were decided by the loop
-at rest (its growth or failure: the same in both runs, not counted above).
+share of decisive runs with a heavy tail (k-hat > 0.7) with their coverage, how many were decided by the loop
+at rest (its growth or failure: the same in both runs, not counted above), and how many had no loop (no model
+or no gain).
 """
 from __future__ import annotations
 
@@ -139,14 +140,16 @@ def closed_loop_near_truth(plant: str, config_dir: Path | None, paths: list[int]
     from rdsexp.experiment.pipeline import run_experiment
     from rdsexp.experiment.store.stages import StageCache
     counts = {P: {"decisive": 0, "covered": 0, "wrong": 0, "undetermined": 0, "heavy": 0, "heavy_covered": 0,
-                  "by_floor": 0} for P in paths}
+                  "by_floor": 0, "no_loop": 0} for P in paths}
     common = ["tracking=summary", "closed_loop.open_loop=false"]
     for seed in range(seeds):
         cache = StageCache.in_process()             # one identification and design for every path count
         run = lambda P, seed=seed, cache=cache: run_experiment(
             experiment(plant, config_dir, [f"seed={seed}", f"closed_loop.paths={P}", *common]), cache=cache)
         truth = run(truth_paths)
-        if "closed_loop" not in truth.squares:
+        if "closed_loop" not in truth.squares:      # no model or no gain: no loop to judge
+            for c in counts.values():
+                c["no_loop"] += 1
             continue
         sq = truth.squares["closed_loop"]
         floor = truth.tables["metrics"].set_index("experiment").loc["closed_loop", "floor_rms"]
@@ -210,7 +213,7 @@ def main(argv=None):
         if args.near_truth:
             print(f"\nclosed loops against the same run at {args.truth_paths} paths ({args.near_truth} seeds)")
             print(f"{'plant':16s} {'paths':>5s} {'decisive':>8s} {'coverage':>8s} {'wrong':>5s} {'undet.':>6s} "
-                  f"{'heavy':>5s} {'cover|heavy':>11s} {'by floor':>8s}")
+                  f"{'heavy':>5s} {'cover|heavy':>11s} {'by floor':>8s} {'no loop':>7s}")
             for name in names:
                 for P, c in closed_loop_near_truth(name, config_dir, args.paths, args.near_truth,
                                                    args.truth_paths).items():
@@ -218,7 +221,8 @@ def main(argv=None):
                     share = lambda count, of=d: f"{count / of:.2f}" if of else "-"
                     print(f"{name:16s} {P:5d} {d:8d} {share(c['covered']):>8s} {c['wrong']:5d} "
                           f"{c['undetermined'] / args.near_truth:6.2f} {share(c['heavy']):>5s} "
-                          f"{share(c['heavy_covered'], c['heavy']):>11s} {c['by_floor']:8d}", flush=True)
+                          f"{share(c['heavy_covered'], c['heavy']):>11s} {c['by_floor']:8d} {c['no_loop']:7d}",
+                          flush=True)
         print(f"{time.time() - start:.0f} s")
 
 
