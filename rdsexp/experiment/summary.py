@@ -145,8 +145,10 @@ def estimator_lines(estimator: dict) -> list[str]:
     read = f"on {recorded} recorded paths (their mean) " if recorded else ""
     runs = "runs of the model replaying the recorded inputs" if recorded else "runs of the model"
     line = (f"    modeled by simulation: the window's xi_{{k|k}} read {read}mean {vec(estimator['summary_mean'])}, "
-            f"std {vec(estimator['summary_std'])}; matched over {len(estimator['usable'])} x "
-            f"{estimator['replicates']} identification {runs} ({usable} identified)")
+            f"std {vec(estimator['summary_std'])}")
+    if estimator["usable"]:                 # (no replicates where the summary itself is not finite)
+        line += f"; matched over {len(estimator['usable'])} x {estimator['replicates']} identification {runs} " \
+                f"({usable} identified)"
     if estimator.get("summary_filter", "random_walk") != "random_walk":
         line += f"; the window read from a run whose EnKF draws xi {estimator['summary_filter']}"
     lines.append(line + (f"; {estimator['fallback']}" if "fallback" in estimator else ""))

@@ -206,3 +206,23 @@ def test_the_held_out_validation_tells_the_law_from_a_wrong_one(tmp_path):
                                  model=no_link)
         wrong = validate_holdout(exp, MomentModel(mean=user_data.TRUE_MEAN, cov=np.zeros((2, 2)))).summary
         assert not wrong["calibrated"] and wrong["modeled"]["coverage_90"] < 0.9 - wrong["coverage_slack"][1]
+
+
+def test_outputs_identically_zero_keep_the_window_moments_and_say_why(tmp_path):
+    """A degenerate record (every output 0: no log mean square to match) runs no replicates and warns nothing: the
+    window's moments, status unsettled, the reason in the summary."""
+    import warnings
+
+    import pandas as pd
+
+    from rdsexp.experiment.pipeline.run import run_on_data
+    exp, _ = data_experiment(tmp_path, 0)
+    zeros = pd.read_csv(exp.data.data.file).assign(**{"y[0]": 0.0, "y[1]": 0.0})
+    zeros.to_csv(tmp_path / "zeros.csv", index=False)
+    exp, _ = data_experiment(tmp_path, 0, f"data.file={tmp_path / 'zeros.csv'}")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        s = run_on_data(exp).summary
+    estimator = s["modeling_estimator"]
+    assert s["modeling_status"] == "unsettled" and estimator["usable"] == [] and "no path's summary" in \
+        estimator["fallback"] and s["xi_mean"] == estimator["summary_mean"]

@@ -93,6 +93,8 @@ def test_open_loop_records_the_uncontrolled_plant():
     (dict(paths=0), "paths: 0"),
     (dict(F=np.ones((1, 5))), "F: shape"),
     (dict(d=np.ones((10, 2))), "d: shape"),
+    (dict(d=np.ones((10, 3, 1))), r"d: shape \(10, 3, 1\), expected .* or \(K\+1, paths = 4, m\)"),
+    (dict(d=np.full((10, 4, 1), np.nan)), "d: "),
     (dict(psi0=np.zeros(6)), "psi0: length 6"),
     (dict(P0=-np.eye(9)), "P0: must be positive semidefinite"),
 ])

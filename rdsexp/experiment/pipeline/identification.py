@@ -119,16 +119,20 @@ def simulated_moments(exp: Experiment, stages: Stages, ident: Trajectories, iden
             summary, failure = identified_moments(exp, ident)
         if summary is None:
             return Identified(ident, None, failure, feedback, covariance=settings.covariance)
+        info = {"name": "simulated", "replicates": settings.replicates, "prior_width": settings.prior_width,
+                "accept": settings.accept, "summary_mean": summary.mean.tolist(),
+                "summary_std": np.sqrt(np.diag(summary.cov)).tolist(), "summary_filter": summary_filter}
         ends, low, high = two_point_ends(exp)
         per_path = summary_statistics(exp, ident)
         per_path = per_path[np.all(np.isfinite(per_path), axis=1)]       # the paths whose identification failed out
+        if not len(per_path):       # (an output identically 0 has no log mean square): nothing to match
+            info |= {"usable": [], "fallback": "no path's summary is finite (an output identically 0?): the "
+                                                "window's moments of xi_{k|k} kept"}
+            return Identified(ident, summary, "", feedback, covariance=settings.covariance, estimator=info)
         s_obs = per_path.mean(axis=0)           # one path's own summary, bit for bit (x / 1)
         prior = indirect.prior_box(s_obs[:2 * model.p], ends, low, high, settings.prior_width)
         if replay.noisy:
             prior = tuple(np.append(edge, bound) for edge, bound in zip(prior, NOISE_BOX))
-        info = {"name": "simulated", "replicates": settings.replicates, "prior_width": settings.prior_width,
-                "accept": settings.accept, "summary_mean": summary.mean.tolist(),
-                "summary_std": np.sqrt(np.diag(summary.cov)).tolist(), "summary_filter": summary_filter}
         if len(per_path) > 1:
             info["summary_paths"] = len(per_path)
         posterior, info["usable"], z = posterior_rounds(exp, enkf, replay, s_obs, len(per_path), prior,
