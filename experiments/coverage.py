@@ -23,13 +23,17 @@ written below) and --random random plants of `experiments/random_plants.py`'s dr
 mean-square unstable in open loop). The window is the library plant's configured one, else from the
 end of the disturbance to the horizon, as `closed_loop.rate_window=auto` starts it.
 
-    python experiments/coverage.py [--seeds 50] [--paths 30 100 300] [--random 10] [--plants a,b]
+    python experiments/coverage.py [--seeds 50] [--paths 30 100 300 auto] [--random 10] [--plants a,b]
+
+auto: closed_loop.paths auto, its looks (50, 200, 800, 2000) each at 1 - 5% / 4, stopping where no verdict asks for
+more paths (`verdict.asks_for_paths`); the last columns give the median and 95th percentile of the paths used.
 
 --closed N adds, for the library plants and `unst3`, N seeded runs of the whole experiment per path
 count (identification, design, EnKF closed loop with its floor) and counts the closed loops called
 `stable` beside an ideal-loop exact rate >= 1 (rdsexp never says so) and the verdicts' spread.
 
---near-truth N judges closed loops, whose truth no formula gives, against a near-truth: per plant (library,
+--near-truth N judges closed loops, whose truth no formula gives, against a near-truth (with auto, --truth-paths
+above its budget of 2000, e.g. 4000): per plant (library,
 `unst3` and the --random plants) and seed, the same run with --truth-paths paths (same identification, gain and
 first paths: every path has its own streams), its rate over the steps the smaller run's verdict was decided on
 (with the floor's mean square subtracted where the verdict subtracted it). Per path count: how many verdicts were
@@ -51,7 +55,7 @@ import yaml
 
 from rdsexp.numerics.analysis import second_moments
 from rdsexp.numerics.simulation import simulate_state_feedback
-from rdsexp.numerics.verdict import HEAVY_TAIL, judge_loop, tail_index, window_start
+from rdsexp.numerics.verdict import HEAVY_TAIL, judge_at_looks, tail_index, window_start
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import random_plants  # noqa: E402  (the random plants' draw)
@@ -82,8 +86,11 @@ def experiment(plant: str, config_dir: Path | None, overrides=()):
     return build(cfg)
 
 
-def open_loop_calibration(exp, paths: int, seeds: int) -> dict:
-    """Coverage, wrong and undetermined fractions of the open loop's verdict over `seeds` seeds."""
+def open_loop_calibration(exp, paths, seeds: int) -> dict:
+    """Coverage, wrong and undetermined fractions of the open loop's verdict over `seeds` seeds; paths: a count, or
+    "auto": the looks of closed_loop.paths auto (`verdict.judge_at_looks`, the open loop's rule), with the median and
+    95th percentile of the paths they stopped at."""
+    looks = exp.loop.looks if paths == "auto" else (paths,)
     d, plant = exp.loop.disturbance, exp.plant
     K = d.shape[0] - 1
     window = exp.loop.rate_window or (window_start(d, exp.model.n), K)
@@ -93,15 +100,18 @@ def open_loop_calibration(exp, paths: int, seeds: int) -> dict:
     exact_rms = np.sqrt(np.trace(second, axis1=1, axis2=2))
     truth = (exact_rms[window[1]] / exact_rms[window[0]]) ** (1 / (window[1] - window[0]))
     decisive = covered = wrong = heavy = heavy_covered = 0
+    used = []
     for seed in range(seeds):
         with np.errstate(all="ignore"):
-            x = simulate_state_feedback(plant, F0, d=d, x0=exp.q0, paths=paths, seed=seed)
+            x = simulate_state_feedback(plant, F0, d=d, x0=exp.q0, paths=looks[-1], seed=seed)
         sq = np.sum(x ** 2, axis=-1)
         grown = ~np.all(np.isfinite(sq) & (sq < 1e12), axis=0)         # the pipeline's divergence bound 1e6 on |q|
         failed_at = np.where(grown, np.argmax(~(np.isfinite(sq) & (sq < 1e12)), axis=0), -1)
         sq = np.where(np.arange(K + 1)[:, None] >= np.where(grown, failed_at, K + 1), np.nan, sq)
-        v = judge_loop(sq, failed_at=failed_at, failure=np.where(grown, "diverged", "").astype(object),
-                       window=window, exact_rms=exact_rms, floor=None, open_loop=True)
+        v, P = judge_at_looks(sq, looks, False, failed_at=failed_at,
+                              failure=np.where(grown, "diverged", "").astype(object), window=window,
+                              exact_rms=exact_rms, floor=None, open_loop=True)
+        used.append(P)
         if v.word in ("stable", "unstable"):
             decisive += 1
             wrong += (v.word == "stable") != (truth < 1)
@@ -110,12 +120,12 @@ def open_loop_calibration(exp, paths: int, seeds: int) -> dict:
             else:
                 hit = v.word == "unstable" and truth >= 1
             covered += hit
-            if tail_index(sq[window[1]]) > HEAVY_TAIL:
+            if tail_index(sq[window[1], :P]) > HEAVY_TAIL:
                 heavy, heavy_covered = heavy + 1, heavy_covered + hit
     share = (lambda count: count / decisive) if decisive else (lambda count: np.nan)
     return {"truth": truth, "window": window, "decisive": decisive, "coverage": share(covered), "wrong": share(wrong),
             "undetermined": 1 - decisive / seeds, "heavy": share(heavy),
-            "heavy_coverage": heavy_covered / heavy if heavy else np.nan}
+            "heavy_coverage": heavy_covered / heavy if heavy else np.nan, "used": np.percentile(used, [50, 95])}
 
 
 def closed_loop_contradictions(plant: str, config_dir: Path | None, paths: int, runs: int) -> dict:
@@ -134,13 +144,14 @@ def closed_loop_contradictions(plant: str, config_dir: Path | None, paths: int, 
     return {"verdicts": words, "stable_beside_exact_above_1": contradictions}
 
 
-def closed_loop_near_truth(plant: str, config_dir: Path | None, paths: list[int], seeds: int,
-                           truth_paths: int) -> dict[int, dict]:
-    """Per path count: the closed loop's decisive intervals against the same run at truth_paths paths."""
+def closed_loop_near_truth(plant: str, config_dir: Path | None, paths: list, seeds: int,
+                           truth_paths: int) -> dict:
+    """Per path count (or auto): the closed loop's decisive intervals against the same run at truth_paths paths, and
+    the paths each run was judged on."""
     from rdsexp.experiment.pipeline import run_experiment
     from rdsexp.experiment.store.stages import StageCache
     counts = {P: {"decisive": 0, "covered": 0, "wrong": 0, "undetermined": 0, "heavy": 0, "heavy_covered": 0,
-                  "by_floor": 0, "no_loop": 0} for P in paths}
+                  "by_floor": 0, "no_loop": 0, "used": []} for P in paths}
     common = ["tracking=summary", "closed_loop.open_loop=false"]
     for seed in range(seeds):
         cache = StageCache.in_process()             # one identification and design for every path count
@@ -156,6 +167,7 @@ def closed_loop_near_truth(plant: str, config_dir: Path | None, paths: list[int]
         for P in paths:
             row = run(P).tables["metrics"].set_index("experiment").loc["closed_loop"]
             c = counts[P]
+            c["used"].append(int(row["paths"]))
             if row["verdict"] not in ("stable", "unstable") or not np.isfinite(row["verdict_rate_low"]):
                 c["undetermined"] += 1
                 continue
@@ -178,7 +190,8 @@ def closed_loop_near_truth(plant: str, config_dir: Path | None, paths: list[int]
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--seeds", type=int, default=50)
-    parser.add_argument("--paths", type=int, nargs="+", default=[30, 100, 300])
+    parser.add_argument("--paths", type=lambda v: v if v == "auto" else int(v), nargs="+", default=[30, 100, 300],
+                        help="path counts, or auto (closed_loop.paths auto's looks)")
     parser.add_argument("--random", type=int, default=10, help="random plants (random_plants.py's draw, seed 0)")
     parser.add_argument("--plants", default=",".join(LIBRARY + ("unst3",)))
     parser.add_argument("--closed", type=int, default=0, help="whole runs per plant and path count (0: none)")
@@ -195,34 +208,35 @@ def main(argv=None):
                 random_plants.write_plant(plant, config_dir, "# coverage.py")
                 names.append(plant.name)
         print(f"{'plant':16s} {'paths':>5s} {'window':>9s} {'exact':>7s} {'decisive':>8s} {'coverage':>14s} "
-              f"{'wrong':>6s} {'undet.':>6s} {'heavy':>6s} {'cover|heavy':>11s}")
+              f"{'wrong':>6s} {'undet.':>6s} {'heavy':>6s} {'cover|heavy':>11s} {'used (median, 95%)':>18s}")
         start = time.time()
         for name in names:
             exp = experiment(name, config_dir)
             for paths in args.paths:
                 r = open_loop_calibration(exp, paths, args.seeds)
                 se = np.sqrt(r["coverage"] * (1 - r["coverage"]) / r["decisive"]) if r["decisive"] else np.nan
-                print(f"{name:16s} {paths:5d} {str(r['window']):>9s} {r['truth']:7.4f} {r['decisive']:8d} "
+                print(f"{name:16s} {paths!s:>5s} {str(r['window']):>9s} {r['truth']:7.4f} {r['decisive']:8d} "
                       f"{r['coverage']:7.2f} +-{se:4.2f} {r['wrong']:6.2f} {r['undetermined']:6.2f} {r['heavy']:6.2f} "
-                      f"{r['heavy_coverage']:11.2f}", flush=True)
+                      f"{r['heavy_coverage']:11.2f} {r['used'][0]:9.0f} {r['used'][1]:8.0f}", flush=True)
         if args.closed:
             for name in [n for n in names if n in LIBRARY + ("unst3",)]:
                 for paths in args.paths:
                     r = closed_loop_contradictions(name, config_dir, paths, args.closed)
-                    print(f"closed loop {name:16s} {paths:5d}: {r}", flush=True)
+                    print(f"closed loop {name:16s} {paths!s:>5s}: {r}", flush=True)
         if args.near_truth:
             print(f"\nclosed loops against the same run at {args.truth_paths} paths ({args.near_truth} seeds)")
             print(f"{'plant':16s} {'paths':>5s} {'decisive':>8s} {'coverage':>8s} {'wrong':>5s} {'undet.':>6s} "
-                  f"{'heavy':>5s} {'cover|heavy':>11s} {'by floor':>8s} {'no loop':>7s}")
+                  f"{'heavy':>5s} {'cover|heavy':>11s} {'by floor':>8s} {'no loop':>7s} {'used (median, 95%)':>18s}")
             for name in names:
                 for P, c in closed_loop_near_truth(name, config_dir, args.paths, args.near_truth,
                                                    args.truth_paths).items():
                     d = c["decisive"]
                     share = lambda count, of=d: f"{count / of:.2f}" if of else "-"
-                    print(f"{name:16s} {P:5d} {d:8d} {share(c['covered']):>8s} {c['wrong']:5d} "
+                    used = np.percentile(c["used"], [50, 95]) if c["used"] else (np.nan, np.nan)
+                    print(f"{name:16s} {P!s:>5s} {d:8d} {share(c['covered']):>8s} {c['wrong']:5d} "
                           f"{c['undetermined'] / args.near_truth:6.2f} {share(c['heavy']):>5s} "
-                          f"{share(c['heavy_covered'], c['heavy']):>11s} {c['by_floor']:8d} {c['no_loop']:7d}",
-                          flush=True)
+                          f"{share(c['heavy_covered'], c['heavy']):>11s} {c['by_floor']:8d} {c['no_loop']:7d} "
+                          f"{used[0]:9.0f} {used[1]:8.0f}", flush=True)
         print(f"{time.time() - start:.0f} s")
 
 

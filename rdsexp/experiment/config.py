@@ -32,6 +32,7 @@ OBSERVER_XI = ("random_walk", "model")   # closed_loop.observer_xi: the paper's 
 ESTIMATORS = ("paper", "simulated")      # identification.estimator: eq. (sample-mean), or `numerics.indirect`
 XI_MODELS = ("random_walk", "iterated")   # identification.xi_model: the paper's, or passes drawing xi i.i.d.
 INITIAL_XI = ("guess", "zero")       # enkf.initial.xi: members' xi at identification.xi_guess, or at 0 (the paper)
+LOOK_GROWTH = 4                      # closed_loop.paths auto: each look judges 4 times the previous look's paths
 XI_SUPPORT = ("project", "free")     # enkf.xi_support: members projected onto the plant family's support box, or not
 
 
@@ -343,7 +344,7 @@ class LoopSettings:
     measures the noise floor (0: not measured), chunks of paths (None: from a memory budget) and
     worker processes."""
 
-    paths: int
+    paths: int                            # fixed, or with max_paths the pilot (the first look) of auto
     disturbance: np.ndarray
     filter_sees_disturbance: bool
     open_loop: bool
@@ -353,14 +354,35 @@ class LoopSettings:
     estimate: str                         # the feedback's estimate: predicted x_{k|k-1} | filtered x_{k|k}
     chunk_paths: int | None
     workers: int
+    max_paths: int | None = None          # closed_loop.paths auto: the budget of its looks (None: fixed paths)
 
     @property
     def horizon(self) -> int:
         return self.disturbance.shape[0] - 1
 
+    @property
+    def looks(self) -> tuple[int, ...]:
+        """The path counts at which the loops are judged: (paths,) when fixed; auto: the pilot, then LOOK_GROWTH
+        times the previous count, the last one max_paths (`pipeline.looks`)."""
+        if self.max_paths is None:
+            return (self.paths,)
+        looks = [self.paths]
+        while looks[-1] < self.max_paths:
+            looks.append(min(LOOK_GROWTH * looks[-1], self.max_paths))
+        if len(looks) > 1 and looks[-1] - looks[-2] < looks[-2] // 2:      # no look of a few more paths
+            looks.pop(-2)
+        return tuple(looks)
+
     @classmethod
     def from_config(cls, cfg, model: AffineRandomSystem, plant: AffineRandomSystem) -> LoopSettings:
-        paths = _number(get(cfg, "closed_loop.paths"), "closed_loop.paths", integer=True, low=1)
+        paths, max_paths = get(cfg, "closed_loop.paths"), None
+        if paths == "auto":                 # looks from a pilot up to a budget (pipeline.looks)
+            paths = _number(get(cfg, "closed_loop.pilot_paths"), "closed_loop.pilot_paths", integer=True, low=2)
+            max_paths = _number(get(cfg, "closed_loop.max_paths"), "closed_loop.max_paths", integer=True, low=paths)
+        elif isinstance(paths, str):
+            raise ConfigError(f"closed_loop.paths: {paths!r} is not allowed, expected auto or an integer >= 1")
+        else:
+            paths = _number(paths, "closed_loop.paths", integer=True, low=1)
         K = _number(get(cfg, "closed_loop.horizon"), "closed_loop.horizon", integer=True, low=1)
         amplitude = get(cfg, "closed_loop.disturbance.amplitude")
         if isinstance(amplitude, list):                     # one amplitude per input channel
@@ -395,7 +417,7 @@ class LoopSettings:
         chunk = None if chunk is None else _number(chunk, "closed_loop.chunk_paths", integer=True, low=1)
         workers = _number(get(cfg, "closed_loop.workers"), "closed_loop.workers", integer=True, low=1)
         return cls(paths=paths, disturbance=d, rate_window=window, floor_paths=floor_paths, observer_xi=observer_xi,
-                   estimate=estimate, chunk_paths=chunk, workers=workers, **flags)
+                   estimate=estimate, chunk_paths=chunk, workers=workers, max_paths=max_paths, **flags)
 
 
 @dataclass(frozen=True)
@@ -512,7 +534,8 @@ def model_prior(cfg, model: AffineRandomSystem) -> AffineRandomSystem:
 # every key a plant file may hold (conf/plant/*.yaml; README "Your own system"); any other is a typo
 PLANT_KEYS = ("name", "A", "B", "C", "D", "xi", "q0", "poles", "reference", "model", "designs", "rate_window",
               "identification_feedback", "identification_covariance", "identification_xi", "initial_xi",
-              "identification_estimator", "filter_sees_disturbance", "observer_xi", "loop_estimate", "nominal")
+              "identification_estimator", "filter_sees_disturbance", "observer_xi", "loop_estimate", "nominal",
+              "loop_paths")
 
 
 def check_plant_keys(cfg) -> None:
@@ -841,7 +864,7 @@ TOP_LEVEL = ("seed", "reuse", "cache", "objective", "objective_penalty", "data")
 # keys `build` reads with a default when the group's file does not set them: `+key=value` may add them
 OPTIONAL_KEYS = ("plant.name", "plant.C", "plant.D", "plant.q0", "plant.poles", "plant.reference", "plant.nominal",
                  "plant.identification_feedback", "plant.identification_covariance", "plant.identification_xi",
-                 "plant.identification_estimator",
+                 "plant.identification_estimator", "plant.loop_paths",
                  "plant.rate_window", "plant.filter_sees_disturbance",
                  "plant.observer_xi", "plant.initial_xi", "plant.loop_estimate", "plant.designs", "plant.model",
                  "model.name",

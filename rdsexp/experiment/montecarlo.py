@@ -42,6 +42,7 @@ class Simulation:
     estimate: str = "predicted"
     keep_members: bool = False
     chunk_paths: int | None = None
+    first_path: int = 0         # a later look of closed_loop.paths auto adds paths first_path.. to the earlier ones
 
     @classmethod
     def of(cls, exp, observer: EnKF, F: np.ndarray | None, seed, **changes) -> Simulation:
@@ -64,16 +65,17 @@ class Simulation:
                         progress=progress, **keep)
 
     def chunks(self) -> list[tuple[int, int]]:
-        """The paths in chunks as (first path, number of paths), in path order: chunk_paths each, else as many
-        as fit the memory budget (at least 1)."""
+        """The paths first_path..paths - 1 in chunks as (first path, number of paths), in path order: chunk_paths
+        each, else as many as fit the memory budget (at least 1)."""
+        count = self.paths - self.first_path
         if self.chunk_paths is not None:
-            size = min(self.chunk_paths, self.paths)
+            size = min(self.chunk_paths, count)
         else:
             per_path = bytes_per_path(self.plant, self.filter.enkf, ensemble_size=self.filter.ensemble_size,
                                       horizon=self.d.shape[0] - 1, keep_members=self.keep_members)
             # the chunk's table rows and the worker's copy roughly double what simulate holds
-            size = int(min(self.paths, max(1, MEMORY_BUDGET // (3 * per_path))))
-        return [(j, min(size, self.paths - j)) for j in range(0, self.paths, size)]
+            size = int(min(count, max(1, MEMORY_BUDGET // (3 * per_path))))
+        return [(j, min(size, self.paths - j)) for j in range(self.first_path, self.paths, size)]
 
 
 def _simulate_chunk(sim: Simulation, first: int, count: int, controller=None, progress=None):

@@ -105,16 +105,16 @@ COLUMNS: dict[str, dict[str, tuple[str, str | None]]] = {
         "verdict_reason": ("the verdict in words, with the evidence it was decided on", None),
         "status": ("ok, partially_failed or failed (every path): whether paths diverged", None),
         "rate": ("empirical rate (E|q_k_to|^2 / E|q_k_from|^2)^(1/(2 (k_to - k_from)))", "1/step"),
-        "rate_low": ("lower end of the rate's 95% interval (hull of a BCa and a lognormal bootstrap over "
+        "rate_low": ("lower end of the rate's interval at `level` (hull of a BCa and a lognormal bootstrap over "
                      "paths)", "1/step"),
-        "rate_high": ("upper end of the rate's 95% interval", "1/step"),
+        "rate_high": ("upper end of the rate's interval at `level`", "1/step"),
         "k_from": ("first step of the rate window (config, or auto: after the disturbance)", "step"),
         "k_to": ("last step of the rate window (auto: the ideal loop still 10 floors up)", "step"),
         "verdict_rate": ("the rate the verdict was decided on: ((E|q_k_end|^2 - f) / (E|q_k_from|^2 - f))^(1/(2 "
                          "(k_end - k_from))), f the noise floor's mean square (0 for the open loop); NaN when no rate "
                          "decided", "1/step"),
-        "verdict_rate_low": ("lower end of verdict_rate's 95% interval", "1/step"),
-        "verdict_rate_high": ("upper end of verdict_rate's 95% interval", "1/step"),
+        "verdict_rate_low": ("lower end of verdict_rate's interval at `level`", "1/step"),
+        "verdict_rate_high": ("upper end of verdict_rate's interval at `level`", "1/step"),
         "k_end": ("last step of verdict_rate: k_to, or the step before the loop is at rest (its mean square "
                   "below 2 noise floors'); -1 without a rate", "step"),
         "exact_rate": ("the ideal loop's (state feedback, true plant) exact rate over the same window", "1/step"),
@@ -123,9 +123,13 @@ COLUMNS: dict[str, dict[str, tuple[str, str | None]]] = {
                       "rest diverged; NaN: none)", "state"),
         "rms_k_to": ("sqrt(E|q_k_to|^2), compared with the floor", "state"),
         "tail_khat": ("Pareto k-hat of the paths' |q_k_to|^2 (`verdict.tail_index`, as PSIS computes it): above 0.7 "
-                      "a few paths carry the mean square and the rate's interval needs more paths; NaN below 20 "
-                      "paths", None),
-        "paths": ("number of sample paths", None),
+                      "a few paths carry the mean square and the rate's interval needs more paths (closed_loop.paths "
+                      "auto runs more); NaN below 20 paths", None),
+        "paths": ("number of sample paths (closed_loop.paths auto: the last look's)", None),
+        "level": ("the level of the rate intervals: 0.95, or with closed_loop.paths auto 1 - 0.05 / looks (the looks "
+                  "share the 5%)", None),
+        "paths_needed": ("undetermined by an interval that holds 1: about how many paths would separate the rate "
+                         "from 1 (NaN otherwise)", None),
         "failed_fraction": ("fraction of paths that failed", None),
         "x_error_rms": ("RMS of x_{k|k-1} - q_k over steps and paths", "state"),
         "q_rms_final": ("sqrt(E|q_K|^2) at the last step", "state"),
@@ -241,6 +245,10 @@ RUN_SUMMARY_KEYS: dict[str, tuple[str, str | None]] = {
                     "state"),
     "loop": ("the closed loop's feedback: the estimate fed back, whether the observer carries xi, whether the EnKF "
              "is told the disturbance", None),
+    "loop_looks": ("closed_loop.paths auto: every look, in order: its paths, its intervals' level and per loop the "
+                   "verdict, [rate, low, high], tail k-hat and paths_needed", None),
+    "loop_paths_asking": ("closed_loop.paths auto: the loops whose verdict still asked for paths when "
+                          "closed_loop.max_paths was reached (empty: the looks settled every verdict)", None),
     "{loop}_status": ("ok, partially_failed or failed (every path): whether paths diverged", None),
     "{loop}_verdict": ("stable, unstable, undetermined or failed (metrics table's verdict)", None),
     "{loop}_verdict_reason": ("the verdict in words, with its evidence", None),
@@ -248,7 +256,8 @@ RUN_SUMMARY_KEYS: dict[str, tuple[str, str | None]] = {
     "{loop}_tail_khat": ("Pareto k-hat of the paths' |q_k_to|^2 (metrics `tail_khat`): above 0.7 a few paths carry "
                          "the mean square", None),
     "{loop}_estimation": ("the estimate fed back, the RMS of its error, the loop's RMS at k_to", "state"),
-    "{loop}_rate": ("[rate, low, high]: the plain empirical rate over the window with its 95% interval", "1/step"),
+    "{loop}_rate": ("[rate, low, high]: the plain empirical rate over the window with its interval (metrics `level`)",
+                    "1/step"),
     "{loop}_failed": ("failed paths: fraction, first and median step, reasons (only where a path failed)", None),
     "closed_loop_through_y": ("where the loop is not found stable although its gain stabilizes the true plant: the "
                               "exact rate of the loop through y with the best linear observer found", "1/step"),

@@ -291,6 +291,7 @@ def loop_lines(s: dict) -> list[str]:
         lines.append(f"  loop: u_k = F {'x_{k|k}' if c['estimate'] == 'filtered' else 'x_{k|k-1}'} + d_k, the EnKF "
                      f"{'told' if c['filter_sees_disturbance'] else 'not told'} d_k, its xi "
                      f"{'drawn from the design moments' if c['observer_xi'] == 'model' else 'a random walk'}")
+    lines += looks_line(s)
     for loop, label in (("closed_loop", "closed loop"), ("open_loop", "open loop  "), ("online", "online     ")):
         if f"{loop}_status" not in s:
             continue
@@ -303,6 +304,18 @@ def loop_lines(s: dict) -> list[str]:
         if loop == "closed_loop":
             lines += gap(s)
     return lines
+
+
+def looks_line(s: dict) -> list[str]:
+    """closed_loop.paths auto: the paths the loops were judged on, and why the looks stopped there."""
+    looks = s.get("loop_looks")
+    if not looks:
+        return []
+    asking = [name.replace("_", " ") for name in s.get("loop_paths_asking") or ()]
+    why = f"the budget closed_loop.max_paths reached, {' and '.join(asking)} asking for more" if asking else \
+        "the pilot decided" if len(looks) == 1 else "every verdict settled"
+    return [f"  paths: auto, judged on {' then '.join(str(look['paths']) for look in looks)} ({why}); intervals at "
+            f"{100 * looks[-1]['level']:g}%, the 5% shared by the looks"]
 
 
 def online_lines(s: dict) -> list[str]:

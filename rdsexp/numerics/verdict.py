@@ -89,6 +89,39 @@ def tail_index(values: np.ndarray) -> float:
     return float((n * k_hat + 10 * 0.5) / (n + 10))           # the prior's shrinkage, as PSIS has it
 
 
+def look_level(looks: int, level: float = LEVEL) -> float:
+    """The level of every look's intervals where a run may stop at any of `looks` looks (closed_loop.paths auto):
+    1 - (1 - level) / looks (Bonferroni). Whichever look it stops at, the chance that an interval it reports
+    misses is at most the chance that any look's does, at most 1 - level: optional stopping keeps the level."""
+    return 1 - (1 - level) / looks
+
+
+def asks_for_paths(word: str, paths_needed: float, tail_khat: float, fed_back: bool) -> bool:
+    """Whether more paths could change a verdict or firm it up: undetermined by an interval that holds 1 (with the
+    paths it would need, `Verdict.needs`: finite), or, in a loop whose estimate is fed back (closed, online),
+    decisive while a few paths carry the mean square at the window's end (`tail_index` above HEAVY_TAIL: there
+    the closed loops' intervals held a near-truth for 81-83% against 98-100%, docs/verdicts.md). A failed loop,
+    or one without a window or below its floor, says the same at any path count."""
+    if word == "undetermined":
+        return bool(np.isfinite(paths_needed))
+    return fed_back and word in ("stable", "unstable") and bool(tail_khat > HEAVY_TAIL)
+
+
+def judge_at_looks(sq: np.ndarray, looks: tuple[int, ...], fed_back: bool, **judge) -> tuple[Verdict, int]:
+    """closed_loop.paths auto's rule on paths simulated beforehand, sq (K+1, >= looks[-1]): `judge_loop` on the
+    first P paths of each look at `look_level`, up to the first whose verdict does not `asks_for_paths` (the
+    pipeline simulates each look's paths only when it gets there). judge: judge_loop's other arguments, failed_at
+    and failure for every path. Returns the verdict and the paths it was judged on."""
+    failed_at, failure = judge.pop("failed_at"), judge.pop("failure")
+    for P in looks:
+        v = judge_loop(sq[:, :P], failed_at=failed_at[:P], failure=failure[:P], level=look_level(len(looks)), **judge)
+        window = judge.get("window")
+        khat = tail_index(sq[window[1], :P]) if window is not None else np.nan
+        if not asks_for_paths(v.word, np.nan if v.needs is None else v.needs, khat, fed_back):
+            break
+    return v, P
+
+
 def window_start(d: np.ndarray, n: int) -> int:
     """First step of an automatic window: the first step after the disturbance d (K+1, m) has ended
     for good, and at least n (the EnKF has seen n outputs, enough to observe x)."""
@@ -131,6 +164,7 @@ class Verdict:
     high: float = float("nan")
     k_end: int = -1
     window_rate: tuple[float, float, float] = (float("nan"),) * 3     # plain, over the whole window (NaN: none)
+    needs: int | None = None     # undetermined by an interval that contains 1: the paths that would separate it
 
 
 @dataclass(frozen=True)
@@ -308,14 +342,16 @@ def sign_test(only_a: int, only_b: int) -> float:
 
 
 def judge_loop(sq: np.ndarray, *, failed_at: np.ndarray, failure: np.ndarray, window: tuple[int, int] | None,
-               exact_rms: np.ndarray | None, floor: Floor | None, open_loop: bool = False) -> Verdict:
+               exact_rms: np.ndarray | None, floor: Floor | None, open_loop: bool = False,
+               level: float = LEVEL) -> Verdict:
     """The verdict of one loop, from its paths' ||q_k||^2 sq (K+1, P) (NaN after a path failed).
 
     failed_at (P,) the step each path failed at (-1: never), failure (P,) why; window: the rate
     window (None: no window above the floor could be placed); exact_rms (K+1,): sqrt(E||x_k||^2) of the
     ideal loop (state feedback on the true plant; None: unknown); floor: the loop at rest (None: no floor,
     as for the open loop, whose observer does not act on the plant, or not measured); open_loop: a
-    diverged plant state is then the plant's growth."""
+    diverged plant state is then the plant's growth; level: of the rate intervals (the looks of
+    closed_loop.paths auto share the 5% between them, `experiment.pipeline.looks`)."""
     bad = failed_at >= 0
     if bad.any():
         reasons = {r: int(np.sum(failure[bad] == r)) for r in dict.fromkeys(failure[bad])}
@@ -344,7 +380,7 @@ def judge_loop(sq: np.ndarray, *, failed_at: np.ndarray, failure: np.ndarray, wi
     # squares, so it only pulls the rate towards 1, and an interval that clears 1 without subtracting it is
     # evidence as it stands. Where it does not, the floor's mean square is subtracted and the window cut
     # where the loop is at rest (a loop that decayed onto its floor has decayed).
-    plain = rate_interval(sq[k_from], sq[k_to], k_to - k_from)
+    plain = rate_interval(sq[k_from], sq[k_to], k_to - k_from, level=level)
     evidence = [(k_to, plain, f"k = {k_from}..{k_to}")]
     if floor is not None and not _decisive(plain):
         rest = at_rest_from(sq, k_from, k_to, floor)
@@ -353,11 +389,11 @@ def judge_loop(sq: np.ndarray, *, failed_at: np.ndarray, failure: np.ndarray, wi
             return Verdict("undetermined", f"the loop is at its noise floor ({floor.rms:.3g}) from k = {k_from + 1}: "
                                            f"no decay above it to measure", k_end=k_from, window_rate=plain)
         at_rest = "" if rest is None else f", at rest from k = {rest} (its mean square within {AT_REST:g} floors')"
-        evidence.append((k_end, rate_interval(sq[k_from], sq[k_end], k_end - k_from, floor.samples),
+        evidence.append((k_end, rate_interval(sq[k_from], sq[k_end], k_end - k_from, floor.samples, level),
                          f"k = {k_from}..{k_end}{at_rest}, the floor's mean square subtracted"))
     # the evidence that decides; where none does, the plain interval (the subtracted one is the wider)
     k_end, (rate, low, high), over = next((e for e in evidence if _decisive(e[1])), evidence[0])
-    shown = f"{rate:.4f} [{low:.4f}, {high:.4f}]"
+    shown, percent = f"{rate:.4f} [{low:.4f}, {high:.4f}]", f"{100 * level:g}%"
     if not np.isfinite(rate):
         return Verdict("undetermined", "no rate: the state is 0 or not finite in the window", k_end=k_end,
                        window_rate=plain)
@@ -371,13 +407,13 @@ def judge_loop(sq: np.ndarray, *, failed_at: np.ndarray, failure: np.ndarray, wi
             return Verdict("undetermined", f"these paths decay ({shown}, {over}) but the ideal loop's exact rate over "
                                            f"{steps} is {exact:.4f} >= 1: its mean square is carried by paths this "
                                            f"sample does not have", rate, low, high, k_end, plain)
-        return Verdict("stable", f"the loop decays: the rate's 95% interval [{low:.4f}, {high:.4f}] lies below 1 "
-                                 f"({over})", rate, low, high, k_end, plain)
+        return Verdict("stable", f"the loop decays: the rate's {percent} interval [{low:.4f}, {high:.4f}] lies "
+                                 f"below 1 ({over})", rate, low, high, k_end, plain)
     if low > 1:
-        return Verdict("unstable", f"the loop grows: the rate's 95% interval [{low:.4f}, {high:.4f}] lies above 1 "
-                                   f"({over})", rate, low, high, k_end, plain)
+        return Verdict("unstable", f"the loop grows: the rate's {percent} interval [{low:.4f}, {high:.4f}] lies "
+                                   f"above 1 ({over})", rate, low, high, k_end, plain)
     need = paths_needed(rate, low, high, sq.shape[1])
     hint = f"; about {need} paths would separate this rate from 1" if need else ""
-    return Verdict("undetermined", f"the rate's 95% interval [{low:.4f}, {high:.4f}] contains 1 ({over}): these "
-                                   f"paths show neither decay nor growth at 95%{hint}", rate, low, high, k_end,
-                   plain)
+    return Verdict("undetermined", f"the rate's {percent} interval [{low:.4f}, {high:.4f}] contains 1 ({over}): "
+                                   f"these paths show neither decay nor growth at {percent}{hint}", rate, low, high,
+                   k_end, plain, need)

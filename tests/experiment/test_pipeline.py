@@ -428,7 +428,7 @@ def test_the_online_loop_borrows_the_fixed_gain_loops_floor_only_where_it_holds(
     assert runs["holds"].holds and not runs["grows"].holds
     exp = experiment("controller=online", "closed_loop.paths=8", "closed_loop.open_loop=false")
     for name, floor in runs.items():
-        monkeypatch.setattr(pipeline.run, "noise_floor", lambda *args, floor=floor: floor)
+        monkeypatch.setattr(pipeline.loops, "noise_floor", lambda *args, floor=floor: floor)
         metrics = pipeline.run_experiment(exp).tables["metrics"].set_index("experiment")
         closed, online = metrics.loc["closed_loop"], metrics.loc["online"]
         assert closed["floor_rms"] == floor.rms
@@ -484,3 +484,36 @@ def test_the_loops_gain_is_measured_against_the_optimum_for_the_true_law(extra, 
         ratio = exact_costs(exp.plant, None, F)["lq_cost"] / exact_costs(exp.plant, None, best.F)["lq_cost"]
         assert out.summary[kind] == pytest.approx(ratio, rel=1e-9) and out.summary[kind] >= 1 - 1e-9
         assert "rate_excess_plant" not in out.summary
+
+
+@pytest.mark.slow
+def test_auto_paths_look_again_while_a_verdict_asks_and_match_a_fixed_run_of_the_paths_they_stopped_at():
+    """closed_loop.paths=auto (pilot 4, budget 64: looks at 4, 16 and 64 paths): each look but the last has a loop
+    whose verdict asks for paths (`verdict.asks_for_paths`), the last has none or is the budget, and the intervals
+    are at 1 - 5% / 3. The loops are those of a fixed run of the paths the looks stopped at, row for row and bit
+    for bit (each path its own streams), for any chunk size; the verdicts differ only by their level."""
+    from rdsexp.numerics.verdict import asks_for_paths, look_level
+    auto = ["closed_loop.paths=auto", "closed_loop.pilot_paths=4", "closed_loop.max_paths=64"]
+    for seed in (0, 5):
+        out = pipeline.run_experiment(experiment(*auto, f"seed={seed}", "gain.designs=[]"))
+        looks = out.summary["loop_looks"]
+        assert [look["paths"] for look in looks] == [4, 16, 64][:len(looks)]
+        asking = [[name for name, v in look.items() if isinstance(v, dict) and asks_for_paths(
+            v["verdict"], np.nan if v["paths_needed"] is None else v["paths_needed"],
+            np.nan if v["tail_khat"] is None else v["tail_khat"], name != "open_loop")] for look in looks]
+        assert all(asking[:-1]) and (not asking[-1] or looks[-1]["paths"] == 64)
+        assert out.summary["loop_paths_asking"] == (asking[-1] if looks[-1]["paths"] == 64 else [])
+        metrics = out.tables["metrics"]
+        assert (metrics["level"] == look_level(3)).all() and (metrics["paths"] == looks[-1]["paths"]).all()
+        P = looks[-1]["paths"]
+        fixed = pipeline.run_experiment(experiment(f"closed_loop.paths={P}", f"seed={seed}", "gain.designs=[]"))
+        chunked = pipeline.run_experiment(experiment(*auto, f"seed={seed}", "gain.designs=[]",
+                                                     "closed_loop.chunk_paths=3"))
+        order = lambda t: t.sort_values(["experiment", "path", "k"], kind="stable", ignore_index=True)
+        pd.testing.assert_frame_equal(order(out.tables["trajectories"]), order(fixed.tables["trajectories"]),
+                                      check_exact=True)
+        for name in ("trajectories", "metrics", "paths"):
+            pd.testing.assert_frame_equal(chunked.tables[name], out.tables[name], check_exact=True)
+        same = ["experiment", "k_from", "k_to", "exact_rate", "rms_k_to", "tail_khat", "paths", "failed_fraction",
+                "x_error_rms", "q_rms_final"]
+        pd.testing.assert_frame_equal(metrics[same], fixed.tables["metrics"][same], check_exact=True)

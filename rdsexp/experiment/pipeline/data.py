@@ -17,7 +17,7 @@ from ...numerics.systems import AffineRandomSystem, MomentModel
 from ..config import Experiment
 from ..montecarlo import MEMORY_BUDGET, Simulation
 from .identification import two_point_ends, usable_paths
-from .loops import Sample, judge_loops, loop_observer, noise_floor, simulate_loops
+from .loops import Sample, loop_observer, run_loops
 from .results import DesignSet, Identified, Validation
 from .tables import path_table
 
@@ -152,9 +152,8 @@ def loops_on_model(exp: Experiment, stages, dist: MomentModel, designs: DesignSe
     loops' paths; returns the summary entry."""
     sexp = dataclasses.replace(exp, plant=model_system(exp, dist), q0=np.ones(exp.model.n), data=None)
     observer = loop_observer(sexp, dist)
-    loops = simulate_loops(sexp, stages, designs.gain, observer, sink, sample, suffix=ON_MODEL)
-    floor = noise_floor(sexp, observer, designs.gain) if exp.loop.floor_paths > 0 else None
-    judged = judge_loops(sexp, loops, floor, designs.gain)
+    judged, _ = run_loops(sexp, stages, designs.gain, observer, sink, sample, suffix=ON_MODEL)
+    loops = judged.loops
     rename = lambda frame: frame.assign(experiment=frame["experiment"] + ON_MODEL)
     tables["metrics"], tables["exact"] = rename(judged.metrics), rename(judged.exact)
     tables["paths"] = pd.concat([tables["paths"], rename(path_table(loops))], ignore_index=True)

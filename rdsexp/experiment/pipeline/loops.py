@@ -16,7 +16,18 @@ import pandas as pd
 
 from ...numerics.analysis import rms_band
 from ...numerics.simulation import Trajectories
-from ...numerics.verdict import Floor, judge_loop, place_window, rate_interval, tail_index, window_start
+from ...numerics.verdict import (
+    HEAVY_TAIL,
+    LEVEL,
+    Floor,
+    asks_for_paths,
+    judge_loop,
+    look_level,
+    place_window,
+    rate_interval,
+    tail_index,
+    window_start,
+)
 from ..config import Experiment
 from ..montecarlo import LoopSummary, Simulation, run_chunks
 from .results import JudgedLoops, RateWindow
@@ -42,17 +53,20 @@ class Sample:
 
 
 def simulate_loops(exp: Experiment, stages: Stages, F: np.ndarray, observer, sink, sample: Sample,
-                   suffix: str = "") -> dict[str, LoopSummary]:
+                   suffix: str = "", paths: tuple[int, int] | None = None) -> dict[str, LoopSummary]:
     """The closed loop with gain F (m, n) and, with closed_loop.open_loop, the open loop, each in chunks of
     paths: rows to the sink chunk by chunk (named loop + suffix), the recorded paths to `sample`; returns a
-    LoopSummary per loop. The open loop is a cached stage (CACHED_LOOPS)."""
+    LoopSummary per loop. paths: (first, stop), the paths first..stop - 1 (None: every path of a fixed count).
+    The open loop is a cached stage (CACHED_LOOPS)."""
+    start, stop = paths or (0, exp.loop.paths)
     loops = {}
     for name, gain in [("closed_loop", F)] + ([("open_loop", None)] if exp.loop.open_loop else []):
         with stages.timed(name + suffix), \
-                stages.progress(name.replace("_", " "), exp.loop.paths * exp.loop.disturbance.shape[0]) as progress:
+                stages.progress(name.replace("_", " "), (stop - start) * exp.loop.disturbance.shape[0]) as progress:
             parts = []
-            chunks = loop_chunks(Simulation.of(exp, observer, gain, root_seed(exp, name)), name, exp.loop.workers,
-                                 progress, stages if name in CACHED_LOOPS else Stages(cache=None))
+            sim = Simulation.of(exp, observer, gain, root_seed(exp, name), paths=stop, first_path=start)
+            chunks = loop_chunks(sim, name, exp.loop.workers, progress,
+                                 stages if name in CACHED_LOOPS else Stages(cache=None))
             with closing(chunks):
                 for first, tr in chunks:
                     rows = trajectory_table(name + suffix, tr, first, d_columns=carries_d(exp))
@@ -65,15 +79,82 @@ def simulate_loops(exp: Experiment, stages: Stages, F: np.ndarray, observer, sin
 
 
 def judge_loops(exp: Experiment, loops: dict[str, LoopSummary], floor: Floor | None,
-                F: np.ndarray | None) -> JudgedLoops:
-    """The ideal loops' exact curves (gain F), the rate window and every loop's metrics and verdict. The noise
-    floor each loop is judged against: the closed loop's own; the online loop's the closed loop's where that one
-    holds (`Floor.holds`: that it grows or fails at rest is a claim about that loop, not the online one, whose
-    own run at rest is a learning transient, not a floor); the open loop's is 0."""
+                F: np.ndarray | None, level: float = LEVEL) -> JudgedLoops:
+    """The ideal loops' exact curves (gain F), the rate window and every loop's metrics and verdict, with rate
+    intervals at `level`. The noise floor each loop is judged against: the closed loop's own; the online loop's
+    the closed loop's where that one holds (`Floor.holds`: that it grows or fails at rest is a claim about that
+    loop, not the online one, whose own run at rest is a learning transient, not a floor); the open loop's is 0."""
     exact = exact_table(exp, F)
     window = rate_window(exp, exact, floor, loops.get("closed_loop"))
     floors = {"closed_loop": floor, "online": floor if floor is not None and floor.holds else None}
-    return JudgedLoops(loops, floor, exact, window, metrics_table(exp, loops, window, floors, exact))
+    return JudgedLoops(loops, floor, exact, window, metrics_table(exp, loops, window, floors, exact, level))
+
+
+def run_loops(exp: Experiment, stages: Stages, F: np.ndarray, observer, sink, sample: Sample, suffix: str = "",
+              online=None) -> tuple[JudgedLoops, object]:
+    """The loops with gain F judged at each look of closed_loop.paths (`LoopSettings.looks`): a fixed count is one
+    look at the 95% level; auto runs the pilot's paths, judges every loop, and while a verdict is undetermined by
+    an interval that holds 1 (`Verdict.needs`) or a few paths carry the closed (or online) loop's mean square
+    (`needs_more`), adds paths up to the next look, until the last (closed_loop.max_paths). Every look's
+    intervals are at 1 - 5% / L for L looks (Bonferroni): whichever look the run stops at, the chance that any
+    of its intervals misses is at most 5%, as a fixed count's. Each path keeps its own streams, so a run that
+    stops at P paths has the loops of a fixed run of P paths, row for row.
+
+    The noise floor (the loop at rest, closed_loop.floor_paths paths) is measured once, before the looks.
+    online: None, or online(first, stop) -> OnlineResult of those paths (`online.online_loop`), extended with
+    the others. Returns the last look's JudgedLoops (`looks`: every look's paths, level and verdicts when there
+    were several possible) and the online loop's result."""
+    looks = exp.loop.looks
+    level = look_level(len(looks))
+    floor = None
+    if F is not None and exp.loop.floor_paths > 0:
+        with stages.timed("noise_floor" + suffix):
+            floor = noise_floor(exp, observer, F)
+    loops, online_result, record, first = {}, None, [], 0
+    for look, stop in enumerate(looks):
+        added = simulate_loops(exp, stages, F, observer, sink, sample, suffix, (first, stop)) if F is not None else {}
+        if online is not None:
+            with stages.timed("online"):
+                part = online(first, stop)
+            online_result = part if online_result is None else online_result.extended(part)
+            added["online"] = part.loop
+        loops = {name: LoopSummary.concat([loops[name], loop]) if name in loops else loop
+                 for name, loop in added.items()}
+        with stages.timed("metrics"):
+            judged = judge_loops(exp, loops, floor, F, level)
+        if len(looks) > 1:
+            finite = lambda v: float(v) if np.isfinite(v) else None
+            record.append({"paths": stop, "level": level,
+                           **{row.experiment: {"verdict": row.verdict, "rate": [row.rate, row.rate_low, row.rate_high],
+                                               "tail_khat": finite(row.tail_khat),
+                                               "paths_needed": finite(row.paths_needed)}
+                              for row in judged.metrics.itertuples()}})
+        more = needs_more(judged.metrics)
+        if not more or look == len(looks) - 1:
+            break
+        first = stop
+    if len(looks) > 1:
+        judged = dataclasses.replace(judged, looks=record, asking=more,
+                                     metrics=budget_reached(judged.metrics, exp.loop.max_paths))
+    return judged, online_result
+
+
+def needs_more(metrics: pd.DataFrame) -> list[str]:
+    """The loops whose verdict `verdict.asks_for_paths` (the closed and online loops feed their estimate back)."""
+    asks = [asks_for_paths(row.verdict, row.paths_needed, row.tail_khat, row.experiment in ("closed_loop", "online"))
+            for row in metrics.itertuples()]
+    return metrics.loc[asks, "experiment"].tolist()
+
+
+def budget_reached(metrics: pd.DataFrame, budget: int) -> pd.DataFrame:
+    """The last look's metrics with the reason of each loop `needs_more` still names saying the budget ended it."""
+    out = metrics.copy()
+    for i in out.index[out["experiment"].isin(needs_more(metrics))]:
+        heavy = out.at[i, "verdict"] != "undetermined"
+        out.at[i, "verdict_reason"] += (f"; closed_loop.max_paths = {budget} reached with a few paths still carrying "
+                                        f"the mean square (tail k-hat {out.at[i, 'tail_khat']:.2f} > {HEAVY_TAIL:g})"
+                                        if heavy else f"; budget reached: closed_loop.max_paths = {budget}")
+    return out
 
 
 CACHED_LOOPS = ("open_loop",)      # loops the stage cache keeps: the open loop does not depend on the gain, so
@@ -129,7 +210,7 @@ def noise_floor(exp: Experiment, enkf, F: np.ndarray) -> Floor:
     horizon, whether it grows there, and which paths failed (`verdict.Floor`)."""
     K = exp.loop.horizon
     tr = Simulation.of(exp, enkf, F, root_seed(exp, "noise_floor"), d=np.zeros((K + 1, exp.model.m)),
-                       q0=np.zeros(exp.plant.n), paths=min(exp.loop.floor_paths, exp.loop.paths),
+                       q0=np.zeros(exp.plant.n), paths=min(exp.loop.floor_paths, exp.loop.looks[-1]),
                        filter_sees_d=True, keep_members=False).run()
     return Floor.of(np.sum(tr.q ** 2, axis=-1), tr.failed_at)
 
@@ -151,8 +232,8 @@ def rate_window(exp: Experiment, exact: pd.DataFrame, floor: Floor | None, close
 
 
 def metrics_table(exp: Experiment, loops: dict[str, LoopSummary], window: RateWindow, floors: dict[str, Floor | None],
-                  exact: pd.DataFrame) -> pd.DataFrame:
-    """Per loop: empirical rate over the rate window with its 95% interval (`verdict.rate_interval`), the
+                  exact: pd.DataFrame, level: float = LEVEL) -> pd.DataFrame:
+    """Per loop: empirical rate over the rate window with its `level` interval (`verdict.rate_interval`), the
     ideal loop's exact rate over the same window, the noise floor, the verdict, its reason and the rate it
     was decided on (`judge_loop`: over k_from..k_end, k_end before k_to where the loop reached its floor,
     the floor's mean square subtracted), failures, estimation quality.
@@ -171,11 +252,11 @@ def metrics_table(exp: Experiment, loops: dict[str, LoopSummary], window: RateWi
         ideal = exact.loc[exact["experiment"] == name, "rms"].to_numpy()
         verdict = judge_loop(loop.sq, failed_at=loop.failed_at, failure=loop.failure,
                              window=window.k if window.placed else None, exact_rms=ideal if ideal.size else None,
-                             floor=loop_floor, open_loop=name == "open_loop")
+                             floor=loop_floor, open_loop=name == "open_loop", level=level)
         # the rate over the window as the paper measures it (no floor subtracted); the verdict's own rate is
         # over k_from..k_end with the floor's mean square subtracted
         interval = verdict.window_rate if np.isfinite(verdict.window_rate[0]) else \
-            rate_interval(loop.sq[k_from], loop.sq[k_to], k_to - k_from)
+            rate_interval(loop.sq[k_from], loop.sq[k_to], k_to - k_from, level=level)
         with np.errstate(all="ignore"):
             exact_rate = (ideal[k_to] / ideal[k_from]) ** (1 / (k_to - k_from)) if ideal.size else np.nan
             end_rms = float(np.sqrt(np.mean(loop.sq[k_to])))
@@ -186,6 +267,7 @@ def metrics_table(exp: Experiment, loops: dict[str, LoopSummary], window: RateWi
                      "verdict_rate_high": verdict.high, "k_end": verdict.k_end, "exact_rate": exact_rate,
                      "floor_rms": (0.0 if name == "open_loop" else np.nan) if loop_floor is None else loop_floor.rms,
                      "rms_k_to": end_rms, "tail_khat": tail_index(loop.sq[k_to]), "paths": loop.sq.shape[1],
+                     "level": level, "paths_needed": np.nan if verdict.needs is None else float(verdict.needs),
                      "failed_fraction": float(np.mean(loop.failed_at >= 0)),
                      "x_error_rms": loop.rms_of("x_pred_err"),
                      "q_rms_final": float(np.sqrt(np.mean(loop.sq[-1]))),
@@ -204,4 +286,5 @@ ESTIMATION = ("x_rmse", "x_spread_error", "xi_rmse", "xi_spread_error")
 
 METRIC_COLUMNS = ("experiment", "verdict", "verdict_reason", "status", "rate", "rate_low", "rate_high", "k_from",
                   "k_to", "verdict_rate", "verdict_rate_low", "verdict_rate_high", "k_end", "exact_rate", "floor_rms",
-                  "rms_k_to", "tail_khat", "paths", "failed_fraction", "x_error_rms", "q_rms_final", *ESTIMATION)
+                  "rms_k_to", "tail_khat", "paths", "level", "paths_needed", "failed_fraction", "x_error_rms",
+                  "q_rms_final", *ESTIMATION)

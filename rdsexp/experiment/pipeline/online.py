@@ -28,23 +28,26 @@ from .tables import carries_d, gain_columns, trajectory_table, with_gains
 START_HALVINGS = 10
 
 
-def online_loop(exp: Experiment, stages: Stages, sink, sample: Sample) -> OnlineResult:
-    """The online closed loop: per-path gains re-designed from the path's own xi_{k|k}.
+def online_loop(exp: Experiment, stages: Stages, sink, sample: Sample, first: int = 0,
+                stop: int | None = None) -> OnlineResult:
+    """The online closed loop of paths first..stop - 1 (None: every path of a fixed count): per-path gains
+    re-designed from the path's own xi_{k|k}.
 
     In chunks of paths, and worker processes, like the other loops (`run_chunks`; one controller per
     chunk), rows streamed to the sink with the gain in use (F[i,j])."""
+    stop = exp.loop.paths if stop is None else stop
     m, n = exp.model.m, exp.model.n
     enkf = online_observer(exp)
     F0, info = initial_gain(exp, enkf)
     K = exp.loop.disturbance.shape[0] - 1
     parts, controllers = [], []
-    sim = Simulation.of(exp, enkf, F0, root_seed(exp, "online"))
+    sim = Simulation.of(exp, enkf, F0, root_seed(exp, "online"), paths=stop, first_path=first)
     # the prior guess, as the nominal gain sees it: a thin window acts only where it agrees (OnlineController)
     A_guess, B_guess, _, _ = exp.plant.at(exp.identification.xi_guess)
     # a component the EnKF draws from its two-point law is modeled with that law's variance too
     make = partial(OnlineController, exp.model, exp.controller.online, F0, horizon=K, at_guess=(A_guess, B_guess),
                    two_point=enkf.two_point)
-    with stages.progress("online", exp.loop.paths * (K + 1)) as progress:
+    with stages.progress("online", (stop - first) * (K + 1)) as progress:
         for first, tr, controller in run_chunks(sim, workers=exp.loop.workers, progress=progress, controller=make):
             count = tr.q.shape[1]
             history = controller.gain_history()

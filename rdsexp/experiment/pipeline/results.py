@@ -7,6 +7,7 @@ summary in one place.
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -154,11 +155,14 @@ class JudgedLoops:
     exact: pd.DataFrame
     window: RateWindow
     metrics: pd.DataFrame
+    looks: list = field(default_factory=list)     # closed_loop.paths auto: each look's paths, level and verdicts
+    asking: list = field(default_factory=list)    # and the loops still asking for paths at the budget
 
     def summary(self) -> dict:
         return {"rate_window": list(self.window.k),
                 "rate_window_source": self.window.source if self.window.placed else "none",
-                "noise_floor": np.nan if self.floor is None else self.floor.rms}
+                "noise_floor": np.nan if self.floor is None else self.floor.rms,
+                **({"loop_looks": self.looks, "loop_paths_asking": self.asking} if self.looks else {})}
 
 
 @dataclass
@@ -173,6 +177,11 @@ class OnlineResult:
     controller: pd.DataFrame | None = None
     paths: pd.DataFrame | None = None
     metrics: dict = field(default_factory=dict)
+
+    def extended(self, more: OnlineResult) -> OnlineResult:
+        """This loop's paths followed by `more`'s (a later look of closed_loop.paths auto), before `analyse`."""
+        return dataclasses.replace(self, loop=LoopSummary.concat([self.loop, more.loop]),
+                                   controllers=self.controllers + more.controllers)
 
 
 @dataclass

@@ -1,8 +1,8 @@
 """A run computed from its validated Experiment, stage by stage, into tables and a summary (no file system).
 
 Simulated runs and data runs go through the same stage functions: identification and modeling
-(`identification`), the moments' uncertainty, synthesis (`design.design_set`), the loops
-(`loops.simulate_loops`, `judge_loops`), the online loop (`online`), and the summary (`record`).
+(`identification`), the moments' uncertainty, synthesis (`design.design_set`), the loops and the online loop
+(`loops.run_loops`, `online`: simulated and judged at each look of closed_loop.paths), and the summary (`record`).
 """
 from __future__ import annotations
 
@@ -17,7 +17,7 @@ from ..montecarlo import LoopSummary
 from .data import failed_paths, loops_on_model, validate_holdout
 from .design import against_optimum, design_set, design_spread
 from .identification import identify_and_model, identify_recorded, model_recorded, moment_uncertainty, noise_sensitivity
-from .loops import METRIC_COLUMNS, Sample, judge_loops, loop_observer, noise_floor, root_seed, simulate_loops
+from .loops import METRIC_COLUMNS, Sample, loop_observer, root_seed, run_loops
 from .online import analyse_online, online_loop
 from .record import data_summary, run_summary
 from .results import Identified
@@ -83,24 +83,16 @@ def run_experiment(exp: Experiment, sink=None, cache=None) -> Outcome:
         sample.members.append(members_table("identification", identified.trajectories))
         sink.append("members", sample.members[0])
     F = designs.gain
-    loops = simulate_loops(exp, stages, F, observer, sink, sample) if F is not None else {}
-    if not loops:                              # no gain to simulate: the table's columns, no rows
+    if F is None:                              # no gain to simulate: the table's columns, no rows
         rows = trajectory_table("closed_loop", None, exp=exp)
         if exp.controller.kind == "online":    # and the gain columns the online loop's rows bring
             rows = with_gains(rows, np.zeros((0, exp.model.m, exp.model.n)))
         sink.append("trajectories", rows)
-    floor = None
-    if "closed_loop" in loops and exp.loop.floor_paths > 0:
-        with stages.timed("noise_floor"):
-            floor = noise_floor(exp, observer, F)
-    online = None
-    if exp.controller.kind == "online":
-        with stages.timed("online"):
-            online = online_loop(exp, stages, sink, sample)
-            loops["online"] = online.loop
+    online_paths = partial(online_loop, exp, stages, sink, sample) if exp.controller.kind == "online" else None
+    judged, online = run_loops(exp, stages, F, observer, sink, sample, online=online_paths)
+    loops = judged.loops
 
     with stages.timed("metrics"):
-        judged = judge_loops(exp, loops, floor, F)
         tables = {"identification": trajectory_table("identification", identified.trajectories),
                   "paths": path_table({"identification": LoopSummary.of(identified.trajectories, exp), **loops}),
                   "model": model_table(exp, identified.moments), "gains": gains_table(exp, designs),

@@ -22,8 +22,9 @@ log = logging.getLogger("rdsexp")
 
 @contextmanager
 def timed(timings: dict, stage: str):
-    """Time the block into timings[stage] and log the stage with its seconds (rdsexp.log); an
-    unexpected exception inside becomes a StageError naming the innermost stage."""
+    """Time the block into timings[stage] (added to a previous block of the same stage: the loops of each look) and
+    log the stage with its seconds (rdsexp.log); an unexpected exception inside becomes a StageError naming the
+    innermost stage."""
     start = time.perf_counter()
     log.info("%s ...", stage)
     try:
@@ -32,8 +33,9 @@ def timed(timings: dict, stage: str):
         raise
     except Exception as err:
         raise StageError(stage, err) from err
-    timings[stage] = round(time.perf_counter() - start, 4)
-    log.info("%s done in %.3f s", stage, timings[stage])
+    seconds = time.perf_counter() - start
+    timings[stage] = round(timings.get(stage, 0.0) + seconds, 4)      # a stage of every look adds up
+    log.info("%s done in %.3f s", stage, seconds)
 
 
 class Stages:
