@@ -32,7 +32,7 @@ observable (PBH test with a relative margin 1e-3), or when the `proposed` design
 gives no gain with exact rate below 0.95 on the true plant (every plant is mean-square stabilizable
 with a margin). Each plant file (DIR/plant/rp<i>.yaml, `name: rp<i>`) is run as
 
-    python -m rdsexp --config-dir DIR plant=rp<i> closed_loop.paths=20 store=STORE [overrides]
+    python -m rdsexp --config-dir DIR plant=rp<i> closed_loop.paths=auto store=STORE [overrides]
 
 --jobs at a time, each with a timeout, its output in a log file per plant, LOGS/rp<i>.log with LOGS =
 STORE/random_plants_logs (beside --out). A plant whose run does not end stable with no failed path
@@ -40,7 +40,7 @@ is copied to LOGS/plant/rp<i>.yaml (`python -m rdsexp --config-dir LOGS plant=rp
 The table is also written as CSV (--out, default STORE/random_plants.csv), with each run's
 directory, code version (the runs of one table should share it) and the reason of a failure.
 
-    python experiments/random_plants.py [--n 50] [--seed 0] [--paths 20] [--jobs 2] [--timeout 600]
+    python experiments/random_plants.py [--n 50] [--seed 0] [--paths auto] [--jobs 2] [--timeout 600]
         [--store /tmp/random_plants/store-SEED] [--out CSV] [--keep-plants DIR]
         [--override KEY=VALUE ...] [--only-draw] [--guess-off SD]
 
@@ -398,7 +398,7 @@ def read_record(outcome: Outcome) -> dict:
     """What the table shows from a run's record and metrics table (missing keys stay None)."""
     row = {"run_status": None, "modeling_status": None, "synthesis_status": None, "rate_plant": None,
            "verdict": None, "verdict_reason": None, "closed_loop_status": None, "cl_rate": None, "cl_low": None,
-           "cl_high": None, "failed_fraction": None, "run_seconds": None, "code_version": None,
+           "cl_high": None, "cl_paths": None, "failed_fraction": None, "run_seconds": None, "code_version": None,
            "online_failed_fraction": None, "online_final_rate": None, "offline_rate_plant": None,
            "lost_online_only": None, "lost_offline_only": None, "lost_more_p": None, "lost_held_unstable": None,
            "cost_ratio_plant": None, "rate_excess_plant": None}
@@ -428,7 +428,7 @@ def read_record(outcome: Outcome) -> dict:
                 for key, column in (("verdict", "verdict"), ("verdict_reason", "verdict_reason"),
                                     ("failed_fraction", "failed_fraction"),
                                     ("cl_rate", "rate"), ("cl_low", "rate_low"), ("cl_high", "rate_high"),
-                                    ("closed_loop_status", "status")):
+                                    ("cl_paths", "paths"), ("closed_loop_status", "status")):
                     if row[key] is None and column in loop.index and not _missing(loop[column]):
                         row[key] = loop[column].item() if hasattr(loop[column], "item") else loop[column]
             online = metrics[metrics["experiment"] == "online"]       # controller=online: its row
@@ -563,6 +563,7 @@ def print_results(table: pd.DataFrame) -> None:
         "cl_rate": table["cl_rate"].map(_f),
         "interval": [interval(r) for r in table.itertuples()],
         "failed": table["failed_fraction"].map(lambda v: _f(v, ".2f")),
+        "paths": table["cl_paths"].map(lambda v: _f(v, ".0f")),
         "y_rate": table["y_rate"].map(_f),
         "e2e": [end_to_end(r) for r in table.itertuples()],
         "s": table["wall_seconds"].map(lambda v: f"{v:.0f}"),
@@ -595,6 +596,14 @@ def print_results(table: pd.DataFrame) -> None:
     contradictions = table[bad & good_gain]
     print(f"\ncompleted {completed}/{N}, modeled {modeled}/{N}, stable with no failed path {stable}/{N} "
           f"({stable / max(N, 1):.0%}; {basis})")
+    looped = table["closed_loop_status"].map(lambda v: not _missing(v))
+    decisive = int(table.loc[looped, "verdict"].isin(("stable", "unstable")).sum())
+    budget = int(table.loc[looped, "verdict_reason"].map(lambda v: "max_paths" in str(v)).sum())
+    paths = pd.to_numeric(table.loc[looped, "cl_paths"], errors="coerce").dropna()
+    if len(paths):
+        print(f"closed loops decisive (stable or unstable): {decisive}/{int(looped.sum())} "
+              f"({decisive / max(int(looped.sum()), 1):.0%}); closed_loop.max_paths reached: {budget}; paths judged "
+              f"on: median {paths.median():.0f}, 95th percentile {paths.quantile(0.95):.0f}, max {paths.max():.0f}")
     print(f"contradictions (closed loop not found stable although rate_plant < 1): {len(contradictions)}"
           + (f": {', '.join(contradictions['plant'])}" if len(contradictions) else ""))
     unexplained = [r.plant for r in contradictions.itertuples() if not _explained(r.log)]
@@ -692,7 +701,8 @@ def main(argv=None):
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--n", type=int, default=50, help="number of plants (default 50)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the draw (default 0)")
-    parser.add_argument("--paths", type=int, default=20, help="closed_loop.paths of every run (default 20)")
+    parser.add_argument("--paths", type=lambda v: v if v == "auto" else int(v), default="auto",
+                        help="closed_loop.paths of every run: a count or auto (default auto, rdsexp's)")
     parser.add_argument("--jobs", type=int, default=2, help="runs at a time (default 2)")
     parser.add_argument("--timeout", type=float, default=600, help="seconds per run (default 600)")
     parser.add_argument("--store", type=Path, help="run store (default /tmp/random_plants/store-SEED)")
@@ -706,7 +716,7 @@ def main(argv=None):
                         help="every run's identification.xi_guess SD standard deviations of each component off the "
                              "plant file's mean, signs alternating (`wrong_guess`; default 1; 0: none, xi = 0)")
     args = parser.parse_args(argv)
-    if args.n < 1 or args.jobs < 1 or args.paths < 1:
+    if args.n < 1 or args.jobs < 1 or (args.paths != "auto" and args.paths < 1):
         parser.error("--n, --jobs and --paths must be positive")
     args.store = (args.store or Path(f"/tmp/random_plants/store-{args.seed}")).resolve()
     out = (args.out or args.store / "random_plants.csv").resolve()
