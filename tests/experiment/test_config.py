@@ -90,3 +90,21 @@ def test_sweep_with_failed_job_writes_summary_and_exits_1(tmp_path):
     summary = pd.read_parquet(sweep / "summary.parquet")
     assert list(summary["status"]) == ["complete", "error", "complete"]
     assert "injected failure" in json.loads((sweep / "1" / "run.json").read_text())["error"]
+
+
+def test_auto_paths_look_at_four_times_the_previous_count_up_to_the_budget():
+    """closed_loop.paths auto: looks from the pilot, each 4 times the last, the budget last (a last step of fewer
+    than half the previous count merged into it); a fixed count is one look; the paper's plant keeps 200."""
+    import numpy as np
+
+    from rdsexp.experiment.config import LoopSettings, build
+    settings = lambda paths, budget: LoopSettings(paths=paths, disturbance=np.zeros((2, 1)), filter_sees_disturbance=True,
+                                                  open_loop=True, rate_window=None, floor_paths=20, observer_xi="model",
+                                                  estimate="predicted", chunk_paths=None, workers=1, max_paths=budget)
+    assert settings(50, 2000).looks == (50, 200, 800, 2000)
+    assert settings(50, 1000).looks == (50, 200, 1000)
+    assert settings(50, 50).looks == (50,)
+    assert settings(30, None).looks == (30,)
+    with initialize_config_module(config_module="rdsexp.conf", version_base="1.3"):
+        assert build(compose("config", overrides=["plant=dropout"])).loop.looks == (50, 200, 800, 2000)
+        assert build(compose("config")).loop.looks == (200,)

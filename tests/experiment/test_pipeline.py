@@ -517,3 +517,18 @@ def test_auto_paths_look_again_while_a_verdict_asks_and_match_a_fixed_run_of_the
         same = ["experiment", "k_from", "k_to", "exact_rate", "rms_k_to", "tail_khat", "paths", "failed_fraction",
                 "x_error_rms", "q_rms_final"]
         pd.testing.assert_frame_equal(metrics[same], fixed.tables["metrics"][same], check_exact=True)
+
+
+def test_auto_paths_extend_the_online_loop_with_the_others():
+    """controller=online with closed_loop.paths=auto: the online loop runs the looks' paths with the closed and open
+    loops, each path's decisions in the controller table once, judged on the last look's paths at its level."""
+    out = pipeline.run_experiment(experiment("controller=online", "closed_loop.paths=auto", "closed_loop.pilot_paths=4",
+                                             "closed_loop.max_paths=16", "seed=0", "gain.designs=[]"))
+    looks = out.summary["loop_looks"]
+    P = looks[-1]["paths"]
+    assert all("online" in look for look in looks)
+    metrics = out.tables["metrics"].set_index("experiment")
+    assert metrics.loc["online", "paths"] == P == metrics.loc["closed_loop", "paths"]
+    initial = out.tables["controller"].query("k == -1")
+    assert sorted(initial["path"]) == list(range(P))
+    assert sorted(out.tables["trajectories"].query("experiment == 'online'")["path"].unique()) == list(range(P))
