@@ -95,6 +95,8 @@ _DECLARED = (
     Metric("closed_loop_rate", "closed loop's rate", RATE, "1/step", interval=True, listed=True, per_job=True,
            plotted=True, objective=MINIMIZE, exact="rate_plant"),
     Metric("closed_loop_verdict", "closed loop's verdict", VERDICT, listed=True, per_job=True),
+    Metric("closed_loop_paths", "closed loop's paths (closed_loop.paths auto: the last look's)", COUNT, listed=True,
+           per_job=True),
     Metric("closed_loop_failed_fraction", "closed loop's failed paths", FRACTION, zero_if="closed_loop_status",
            per_job=True, plotted=True, objective=MINIMIZE),
     Metric("open_loop_rate", "open loop's rate", RATE, "1/step", interval=True, per_job=True, plotted=True,

@@ -255,6 +255,7 @@ RUN_SUMMARY_KEYS: dict[str, tuple[str, str | None]] = {
     "{loop}_exact_rate": ("exact rate of the ideal loop over the same window", "1/step"),
     "{loop}_tail_khat": ("Pareto k-hat of the paths' |q_k_to|^2 (metrics `tail_khat`): above 0.7 a few paths carry "
                          "the mean square", None),
+    "{loop}_paths": ("the paths the loop was judged on (closed_loop.paths auto: the last look's)", None),
     "{loop}_estimation": ("the estimate fed back, the RMS of its error, the loop's RMS at k_to", "state"),
     "{loop}_rate": ("[rate, low, high]: the plain empirical rate over the window with its interval (metrics `level`)",
                     "1/step"),

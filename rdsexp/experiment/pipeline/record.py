@@ -110,6 +110,7 @@ def loop_summary(exp: Experiment, row, loop) -> dict:
          f"{name}_estimation": {"estimate": exp.loop.estimate, "x_error_rms": fed_back, "rms_k_to": row.rms_k_to},
          # the paths' |q_k_to|^2 tail (`verdict.tail_index`); None below 20 paths
          f"{name}_tail_khat": float(row.tail_khat) if np.isfinite(row.tail_khat) else None,
+         f"{name}_paths": int(row.paths),             # closed_loop.paths auto: the last look's
          f"{name}_rate": [row.rate, row.rate_low, row.rate_high]}
     bad = loop.failed_at >= 0
     if bad.any():
