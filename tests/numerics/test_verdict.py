@@ -323,3 +323,20 @@ def test_a_few_paths_carrying_the_mean_square_ask_for_more_paths():
     u = judge_loop(near, failed_at=np.full(P, -1), failure=np.full(P, ""), window=window, exact_rms=None, floor=None)
     assert u.word == "undetermined" and u.needs is not None and asks_for_paths(u.word, u.needs, np.nan, True)
     assert look_level(1) == LEVEL and look_level(4) == pytest.approx(0.9875)
+
+
+def test_an_open_loop_whose_plant_diverged_grows_even_where_the_enkf_estimate_failed_first():
+    """The open loop's observer does not act on the plant: 32 of 40 paths whose plant state diverged and 8 whose
+    EnKF estimate did (tracking that growth) read unstable, the fractions in the reason; the EnKF failing alone,
+    or any failure in a closed loop, reads failed."""
+    sq = np.full((11, 40), np.nan)
+    sq[:5] = 1.2 ** (2 * np.arange(5))[:, None]
+    failed_at = np.full(40, 5)
+    failure = np.array(["diverged"] * 32 + ["filter_diverged"] * 8, dtype=object)
+    judge = lambda fail, **kw: judge_loop(sq, failed_at=failed_at, failure=fail, window=(0, 10), exact_rms=None,
+                                          floor=None, **kw)
+    v = judge(failure, open_loop=True)
+    assert v.word == "unstable" and "state diverged on 80% of paths" in v.reason
+    assert "EnKF estimate failed on 20%" in v.reason
+    assert judge(np.full(40, "filter_diverged", dtype=object), open_loop=True).word == "failed"
+    assert judge(failure).word == "failed"
