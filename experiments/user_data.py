@@ -74,7 +74,7 @@ def main(argv=None):
     args.out.mkdir(parents=True, exist_ok=True)
     name = write_config(args.out, args.outputs)
     data = write(args.out / f"user_{args.seed}.csv", args.seed, args.paths, sd=args.sd, outputs=args.outputs)
-    print(f"{data} (model={name}; rdsexp --config-dir {args.out} data={data} model={name} plant=recorded)")
+    print(f"{data} (model={name}; rdsexp --config-dir {args.out} data={data} model={name})")
 
 
 if __name__ == "__main__":

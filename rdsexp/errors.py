@@ -29,6 +29,11 @@ class ConfigError(ValueError):
     """A configuration value that rdsexp cannot run with (one line: key, value, what is allowed)."""
 
 
+class DataError(ConfigError):
+    """A data file a data run cannot use (one line: file, row as a spreadsheet counts it, column, what is wrong):
+    a configuration error of the data, labelled so."""
+
+
 class WriteError(RuntimeError):
     """A write to the run store failed (disk full, permission denied, read-only file system)."""
 

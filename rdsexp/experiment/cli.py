@@ -157,6 +157,11 @@ def _main() -> None:
             sys.exit(Exit.CONFIG)
     # `data=FILE`: the data file of a data run, short for data.file=FILE (data is a mapping: file, holdout)
     sys.argv = [sys.argv[0], *(data_shorthand(arg) for arg in sys.argv[1:])]
+    # a data run needs no plant: without one named, its plant group is `recorded` (no system, rdsexp's defaults
+    # for a system of one's own) rather than the paper's, whose system the user's model need not match
+    if any(arg.startswith("data.file=") for arg in sys.argv[1:]) and \
+            not any(arg.lstrip("+~").startswith("plant=") for arg in sys.argv[1:]):
+        sys.argv.append("plant=recorded")
     if {"--help", "-h"} & set(sys.argv[1:]):
         text = help_text(sys.argv[1:])
         if text is not None:

@@ -6,8 +6,8 @@ EnKF is told the applied input u). CSV (`.csv`, `.csv.gz`) or parquet (`.parquet
 path k runs 0, 1, 2, ... in file order. Paths of different lengths are cut to the shortest (the EnKF
 runs them as one batch), which must hold the modeling window k = 0..K0+K1.
 
-Every defect is one ConfigError line naming the file, the row (1 = the first data row) and the column,
-raised before any compute.
+Every defect is one DataError line naming the file, the row as a spreadsheet numbers it (the header is row 1,
+the first data row row 2) and the column, raised before any compute.
 """
 from __future__ import annotations
 
@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from ..errors import ConfigError
+from ..errors import DataError
 from ..numerics.simulation import Recorded
 
 SUFFIXES = (".csv", ".csv.gz", ".parquet", ".pq")
@@ -55,51 +55,51 @@ def file_sha256(path) -> str:
 
 
 def read_table(path: Path) -> pd.DataFrame:
-    """The file as a DataFrame (CSV or parquet by its suffix); ConfigError when it cannot be read."""
+    """The file as a DataFrame (CSV or parquet by its suffix); DataError when it cannot be read."""
     name = str(path)
     if not name.endswith(SUFFIXES):
-        raise ConfigError(f"data.file: {name}: unreadable, expected a {', '.join(SUFFIXES)} file")
+        raise DataError(f"data.file: {name}: unreadable, expected a {', '.join(SUFFIXES)} file")
     try:
         return pd.read_parquet(path) if name.endswith((".parquet", ".pq")) else pd.read_csv(path)
     except Exception as err:              # noqa: BLE001 -- any reader failure is the same one line
         text = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
-        raise ConfigError(f"data.file: {name}: unreadable ({text})") from None
+        raise DataError(f"data.file: {name}: unreadable ({text})") from None
 
 
 def load(path, m: int, ny: int, min_steps: int) -> RecordedData:
     """Read and check the data file for a model with m inputs and ny outputs whose window needs
-    `min_steps` steps (K0 + K1 + 1) on every path. One-line ConfigError on any defect."""
+    `min_steps` steps (K0 + K1 + 1) on every path. One-line DataError on any defect."""
     path = Path(path)
     name = str(path)
     if not path.is_file():
-        raise ConfigError(f"data.file: {name}: unreadable (no such file)")
+        raise DataError(f"data.file: {name}: unreadable (no such file)")
     table = read_table(path)
-    where = lambda row, column: f"data.file: {name}, row {row + 1}, column {column}"
+    where = lambda row, column: f"data.file: {name}, row {row + 2}, column {column}"   # the header is row 1
     indexed = {}
     for column in table.columns:
         match = INDEXED.match(str(column))
         if match:
             indexed.setdefault(match.group(1), []).append(int(match.group(2)))
         elif str(column) not in ("path", "k"):
-            raise ConfigError(f"data.file: {name}, column {column}: unknown, expected path, k, u[i], y[i], d[i]")
+            raise DataError(f"data.file: {name}, column {column}: unknown, expected path, k, u[i], y[i], d[i]")
     for family, width, what in (("u", m, "inputs m"), ("y", ny, "outputs ny")):
         found = sorted(indexed.get(family, []))
         for column in ("path", "k") if family == "u" else ():
             if column not in table.columns:
-                raise ConfigError(f"data.file: {name}, column {column}: missing")
+                raise DataError(f"data.file: {name}, column {column}: missing")
         for i in range(width):
             if i not in found:
-                raise ConfigError(f"data.file: {name}, column {family}[{i}]: missing (the model has {what} = {width})")
+                raise DataError(f"data.file: {name}, column {family}[{i}]: missing (the model has {what} = {width})")
         if found and found[-1] >= width:
-            raise ConfigError(f"data.file: {name}, column {family}[{found[-1]}]: the model has {what} = {width} "
+            raise DataError(f"data.file: {name}, column {family}[{found[-1]}]: the model has {what} = {width} "
                               f"({family}[0]..{family}[{width - 1}])")
     if set(indexed) - {"u", "y", "d"}:
         extra = sorted(set(indexed) - {"u", "y", "d"})[0]
-        raise ConfigError(f"data.file: {name}, column {extra}[{indexed[extra][0]}]: unknown, expected u[i], y[i], d[i]")
+        raise DataError(f"data.file: {name}, column {extra}[{indexed[extra][0]}]: unknown, expected u[i], y[i], d[i]")
     d_cols = [f"d[{i}]" for i in sorted(indexed.get("d", []))]
     u_cols, y_cols = [f"u[{i}]" for i in range(m)], [f"y[{i}]" for i in range(ny)]
     if not len(table):
-        raise ConfigError(f"data.file: {name}: no rows")
+        raise DataError(f"data.file: {name}: no rows")
     for column in ["k", *u_cols, *y_cols, *d_cols]:
         values = pd.to_numeric(table[column], errors="coerce").to_numpy(dtype=float)
         bad = ~np.isfinite(values)
@@ -107,13 +107,13 @@ def load(path, m: int, ny: int, min_steps: int) -> RecordedData:
             row = int(np.flatnonzero(bad)[0])
             raw = table[column].iloc[row]
             shown = str(raw.item() if hasattr(raw, "item") else raw)
-            raise ConfigError(f"{where(row, column)}: {shown} is not a finite number")
+            raise DataError(f"{where(row, column)}: {shown} is not a finite number")
         if column == "k" and not np.all(values == np.round(values)):
             row = int(np.flatnonzero(values != np.round(values))[0])
-            raise ConfigError(f"{where(row, column)}: {values[row]!r} is not an integer step")
+            raise DataError(f"{where(row, column)}: {values[row]!r} is not an integer step")
     if table["path"].isna().any():
         row = int(np.flatnonzero(table["path"].isna().to_numpy())[0])
-        raise ConfigError(f"{where(row, 'path')}: missing path id")
+        raise DataError(f"{where(row, 'path')}: missing path id")
     # k runs 0, 1, 2, ... within each path, in file order
     k = table["k"].to_numpy(dtype=float).astype(np.int64)
     position = table.groupby("path", sort=False).cumcount().to_numpy()
@@ -122,14 +122,17 @@ def load(path, m: int, ny: int, min_steps: int) -> RecordedData:
         row = int(np.flatnonzero(wrong)[0])
         path_id = table["path"].iloc[row]
         expected = int(position[row])
-        raise ConfigError(f"{where(row, 'k')}: k = {k[row]} in path {path_id}, expected {expected} (k must run "
+        if row > 0 and table["path"].iloc[row - 1] == path_id and k[row - 1] == k[row]:
+            # a row written twice: name the row it repeats, not the step that should follow
+            raise DataError(f"{where(row, 'k')}: path {path_id}, k = {k[row]} repeats row {row + 1}")
+        raise DataError(f"{where(row, 'k')}: k = {k[row]} in path {path_id}, expected {expected} (k must run "
                           f"0, 1, 2, ... within a path)")
     lengths = table.groupby("path", sort=True).size()
     short = lengths[lengths < min_steps]
     if len(short):
         path_id, steps = short.index[0], int(short.iloc[0])
         row = int(np.flatnonzero((table["path"] == path_id).to_numpy())[-1])
-        raise ConfigError(f"{where(row, 'k')}: path {path_id} has {steps} recorded steps, fewer than the window "
+        raise DataError(f"{where(row, 'k')}: path {path_id} has {steps} recorded steps, fewer than the window "
                           f"needs (K0 + K1 + 1 = {min_steps})")
     steps = int(lengths.min())          # ragged paths: every path cut to the shortest (one batch)
     kept = table[k < steps].sort_values(["path", "k"], kind="stable")

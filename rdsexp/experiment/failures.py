@@ -6,6 +6,7 @@ records the status in run.json, prints `message` and exits with `exit_code`; a s
 and goes on with the next job.
 
     ConfigError   config_error   exit 2   "<key>: <value> is not allowed, ..."
+    DataError     config_error   exit 2   "data.file: <file>, row <n>, column <c>: ..." (labelled data error)
     WriteError    write_error    exit 1   "cannot write <path>: <reason>"
     StageError    error          exit 1   "stage <name>: <type>: <first line>", traceback kept
     other         error          exit 1   "stage run: <type>: <first line>", traceback kept
@@ -15,7 +16,7 @@ from __future__ import annotations
 import traceback
 from dataclasses import dataclass
 
-from ..errors import ConfigError, Exit, StageError, WriteError, one_line
+from ..errors import ConfigError, DataError, Exit, StageError, WriteError, one_line
 
 
 @dataclass(frozen=True)
@@ -27,17 +28,19 @@ class Failure:
     exit_code: int
     message: str
     traceback: str | None = None
+    label: str = ""             # the terminal line's label: config error, data error, or none
 
     @property
     def line(self) -> str:
         """The one line the terminal shows."""
-        return f"rdsexp: {'config error: ' if self.status == 'config_error' else ''}{self.message}"
+        return f"rdsexp: {self.label + ': ' if self.label else ''}{self.message}"
 
 
 def failure(err: Exception) -> Failure:
     """The Failure of an exception that ended a run (see the module's table)."""
     if isinstance(err, ConfigError):
-        return Failure("config_error", Exit.CONFIG, str(err))
+        label = "data error" if isinstance(err, DataError) else "config error"
+        return Failure("config_error", Exit.CONFIG, str(err), label=label)
     if isinstance(err, WriteError):
         return Failure("write_error", Exit.FAILED, str(err))
     trace = "".join(traceback.format_exception(err))

@@ -111,7 +111,7 @@ _DECLARED = (
     Metric("open_loop_verdict", "open loop's verdict", VERDICT),
     Metric("online_verdict", "online loop's verdict", VERDICT),
     Metric("closed_loop_status", "closed loop's paths: ok, partially_failed or failed", TEXT),
-    Metric("modeling_status", "modeling status", TEXT),
+    Metric("modeling_status", "modeling status", TEXT, listed=True),
     Metric("synthesis_status", "design status of the loop's gain", TEXT),
     Metric("xi_mean_error", "RMS error of the modeled mean of xi", NUMBER, "xi", objective=MINIMIZE),
     Metric("xi_std_error", "RMS error of the modeled std of xi", NUMBER, "xi", objective=MINIMIZE),

@@ -1,6 +1,7 @@
 """Data runs: recorded (u, y) in place of the plant (`rdsexp data=FILE model=NAME`), the export of a run's
 identification in the data format, the round trip between them, provenance and the bad-data errors."""
 import json
+import re
 
 import numpy as np
 import pandas as pd
@@ -31,7 +32,7 @@ def round_trip(tmp_path_factory):
     rdsexp(*SMALL, cwd=cwd)
     (original,) = runs_of(cwd)
     assert runs_main(["export", "--data", str(original), "--out", str(cwd / "d.csv")]) == 0
-    proc = rdsexp("data=d.csv", "model=paper", *SMALL, cwd=cwd)
+    proc = rdsexp("data=d.csv", "model=paper", "plant=paper", *SMALL, cwd=cwd)     # the paper's method lines
     (data_run,) = [r for r in runs_of(cwd) if r != original]
     return cwd, original, data_run, proc
 
@@ -86,7 +87,7 @@ def test_data_run_provenance_reuse_and_verify(round_trip):
     table.to_csv(cwd / "d.csv", index=False, float_format="%.17g")
     changed = rdsexp("verify", str(data_run), module="rdsexp.runs", cwd=cwd, check=False)
     assert changed.returncode != 0 and "has changed since the run" in changed.stdout
-    rdsexp("data=d.csv", "model=paper", *SMALL, cwd=cwd)
+    rdsexp("data=d.csv", "model=paper", "plant=paper", *SMALL, cwd=cwd)
     newest = info_of(runs_of(cwd)[-1])
     assert newest["config_hash"] != info["config_hash"] and not newest.get("reused_from")
 
@@ -110,9 +111,11 @@ def defect(change):
 BAD = {
     "missing column": (lambda r: r.pop("y[1]"), r"column y\[1\]: missing \(the model has outputs ny = 2\)"),
     "missing k": (lambda r: r.pop("k"), r"column k: missing"),
-    "nan": (lambda r: r["y[0]"].__setitem__(4, np.nan), r"row 5, column y\[0\]: nan is not a finite number"),
-    "inf": (lambda r: r["u[0]"].__setitem__(7, np.inf), r"row 8, column u\[0\]: inf is not a finite number"),
-    "k not increasing": (lambda r: r["k"].__setitem__(3, 1), r"row 4, column k: k = 1 in path 0, expected 3"),
+    "nan": (lambda r: r["y[0]"].__setitem__(4, np.nan), r"row 6, column y\[0\]: nan is not a finite number"),
+    "inf": (lambda r: r["u[0]"].__setitem__(7, np.inf), r"row 9, column u\[0\]: inf is not a finite number"),
+    "k not increasing": (lambda r: r["k"].__setitem__(3, 1), r"row 5, column k: k = 1 in path 0, expected 3"),
+    "row written twice": (lambda r: [r.__setitem__(c, np.insert(v, 4, v[3])) for c, v in list(r.items())],
+                          r"row 6, column k: path 0, k = 3 repeats row 5"),
     "too wide": (lambda r: r.__setitem__("u[1]", np.ones(12)), r"column u\[1\]: the model has inputs m = 1"),
     "too short": (lambda r: None, r"path 0 has 6 recorded steps, fewer than the window needs \(K0 \+ K1 \+ 1 = 8\)"),
 }
@@ -120,6 +123,7 @@ BAD = {
 
 @pytest.mark.parametrize("case", BAD, ids=BAD)
 def test_bad_data_is_one_line_naming_file_row_column(tmp_path, case):
+    """One DataError line with the file, the row as a spreadsheet numbers it (the header is row 1) and the column."""
     change, message = BAD[case]
     path = tmp_path / "bad.csv"
     write(path, defect(change))
@@ -148,7 +152,7 @@ def test_bad_data_on_the_command_line_exits_2_and_records_nothing(tmp_path):
     rows.to_csv(tmp_path / "bad.csv", index=False)
     proc = rdsexp("data=bad.csv", "model=paper", *SMALL, cwd=tmp_path, check=False)
     assert proc.returncode == 2
-    assert "bad.csv" in proc.stderr and "row 3" in proc.stderr
+    assert re.match(r"rdsexp: data error: data.file: \S*bad.csv, row 4, column y\[0\]", proc.stderr)   # header: 1
     assert not (tmp_path / "outputs" / "runs").exists() or not any((tmp_path / "outputs" / "runs").iterdir())
 
 
@@ -158,7 +162,7 @@ def test_dropout_example_with_holdout_validation(tmp_path):
     predictive ensembles of y on the 6 held-out paths under the modeled law and the nominal model."""
     from tests.conftest import REPO
     example = REPO / "examples" / "dropout"
-    proc = rdsexp("--config-dir", str(example), f"data={example / 'dropout.csv'}", "model=dropout", "plant=recorded",
+    proc = rdsexp("--config-dir", str(example), f"data={example / 'dropout.csv'}", "model=dropout",
                   "data.holdout=0.2", "enkf.ensemble_size=20", "identification.passes=1", "data.loops=true",
                   "closed_loop.paths=10", "closed_loop.floor_paths=5", cwd=tmp_path)
     (run_dir,) = runs_of(tmp_path)
@@ -197,7 +201,7 @@ def test_recorded_paths_whose_estimate_fails_are_left_out(round_trip):
     one = pd.read_csv(cwd / "d.csv")
     wild = one.assign(path=1, **{f"y[{i}]": one[f"y[{i}]"] * 1e9 * (1 + one["k"]) for i in range(3)})
     pd.concat([one, wild, one.assign(path=2)]).to_csv(cwd / "three.csv", index=False, float_format="%.17g")
-    rdsexp("data=three.csv", "model=paper", *SMALL, cwd=cwd)
+    rdsexp("data=three.csv", "model=paper", "plant=paper", *SMALL, cwd=cwd)
     s = info_of(max(runs_of(cwd), key=lambda r: r.stat().st_mtime))["summary"]
     assert s["identification_failed_paths"]["count"] == 1 and s["identification_failed_paths"]["of"] == 3
     assert s["modeling_status"] == "ok" and s["modeling_uncertainty"]["over"] == "paths"
@@ -209,7 +213,7 @@ def test_a_data_run_bounds_the_effect_of_the_noise_its_enkf_assumes(tmp_path):
     configured with that noise models (same seeds: recomputed here from the config alone)."""
     from tests.conftest import REPO
     example = REPO / "examples" / "dropout"
-    common = ["--config-dir", str(example), f"data={example / 'dropout.csv'}", "model=dropout", "plant=recorded",
+    common = ["--config-dir", str(example), f"data={example / 'dropout.csv'}", "model=dropout",
               "enkf.ensemble_size=20", "identification.passes=1", "identification.resamples=20",
               "identification.estimator=paper"]         # (the simulated estimator estimates the noise instead)
     for where in ("base", "scaled"):
@@ -228,3 +232,14 @@ def test_a_data_run_bounds_the_effect_of_the_noise_its_enkf_assumes(tmp_path):
     assert t["xi_mean"] == v["xi_mean"][2] and t["xi_std"] == v["xi_std"][2]
     with pytest.raises(AssertionError, match="noise_sensitivity"):
         rdsexp(*common, "identification.noise_sensitivity=[0]", cwd=tmp_path)
+
+
+def test_the_docs_sample_file_is_valid_data_for_the_shipped_model():
+    """docs/data/sample.csv, the sample the data page offers: the first 3 paths of the shipped example, read as a
+    data run reads it with the example's model (m = 1, ny = 1) and the default window (101 steps)."""
+    from tests.conftest import REPO
+    sample = datafile.load(REPO / "docs" / "data" / "sample.csv", m=1, ny=1, min_steps=101)
+    example = datafile.load(REPO / "examples" / "dropout" / "dropout.csv", m=1, ny=1, min_steps=101)
+    assert sample.recorded.paths == 3 and sample.recorded.steps == 101
+    np.testing.assert_array_equal(sample.recorded.y, example.recorded.y[:, :3])
+    np.testing.assert_array_equal(sample.recorded.u, example.recorded.u[:, :3])

@@ -33,7 +33,7 @@ def test_the_views_are_todays_lists():
     """What list, show SWEEP, the sweep recording, MLflow and the tuning objectives read from the registry."""
     names = lambda ms: [m.name for m in ms]                      # noqa: E731
     assert names(metrics.listed()) == ["lam", "rate_plant", "closed_loop_rate", "closed_loop_verdict",
-                                       "closed_loop_paths", "objective_mean", "objective_se"]
+                                       "closed_loop_paths", "modeling_status", "objective_mean", "objective_se"]
     assert names(metrics.per_job()) == ["lam", "rate_plant", "closed_loop_rate", "closed_loop_verdict",
                                         "closed_loop_paths", "closed_loop_failed_fraction", "open_loop_rate"]
     assert names(metrics.plotted()) == ["lam", "rate_plant", "closed_loop_rate", "closed_loop_failed_fraction",
