@@ -3,6 +3,7 @@ rdsexp.experiment.catalog), and `plot`, a figure of any sweep (rdsexp.report.swe
 layer above the store and is added here.
 
     rdsexp-runs plot SWEEP|--where "..." --x KEY [--x KEY2] --y METRIC [--hue KEY] [--logx] [--logy] [--out DIR]
+    rdsexp-runs plot RUN [--out DIR]   (the run's figure: each loop's RMS against its exact curve, the law of xi)
     rdsexp-runs export --mlflow URI [SWEEP|RUN] [--where "..."] [--experiment NAME] [--no-tables] [--root DIR]
     rdsexp-runs export --data RUN --out FILE [--root DIR]   (a run's identification u, y in the data format)
 """
@@ -11,11 +12,11 @@ import sys
 from pathlib import Path
 
 from .experiment.catalog import *  # noqa: F403
-from .experiment.catalog import DEFAULT_ROOT, locate_sweep, search
+from .experiment.catalog import DEFAULT_ROOT, locate_sweep, open_run, search
 from .experiment.catalog import __all__ as _catalog
 from .experiment.catalog import main as _main
 
-__all__ = [*_catalog, "cli", "plot"]
+__all__ = [*_catalog, "cli", "plot", "plot_run"]
 
 
 def plot(sweep: str | None = None, *, x, y: str, where: str | None = None, hue: str | None = None,
@@ -41,11 +42,28 @@ def plot(sweep: str | None = None, *, x, y: str, where: str | None = None, hue: 
     return points, sweep_plot.plot(table, keys, y, hue=hue, logx=logx, logy=logy, out=out, name=name)
 
 
+def plot_run(run, out=None, root=DEFAULT_ROOT) -> Path:
+    """Draw a stored run's figure (`rdsexp.experiment.figure`: each loop's RMS against its exact curve, the
+    modeled law of xi) from its tables into `out` (a directory; default the run's own). Returns the file. A run
+    recorded with its figure (tracking.figure) keeps it: without `out`, that file is returned, not redrawn."""
+    from .experiment.figure import draw, squares_of
+    from .experiment.store import layout
+    stored = open_run(run, root)
+    out = Path(out) if out is not None else stored.dir
+    target = out / layout.FIGURE
+    if out == stored.dir and target.exists():         # what the run recorded is never overwritten
+        return target
+    out.mkdir(parents=True, exist_ok=True)
+    return draw(target, squares_of(stored.table("trajectories")), stored.table("metrics"), stored.table("exact"),
+                stored.record.summary)
+
+
 def _add_plot_arguments(p) -> None:
-    p.add_argument("sweep", nargs="?", help="a sweep directory or name (default: the runs --where selects)")
+    p.add_argument("sweep", nargs="?", help="a sweep directory or name, or a run (its figure: no --x or --y) "
+                                            "(default: the runs --where selects)")
     p.add_argument("--where", help='filter, e.g. "plant == \'mine\' and enkf.q_scale >= 1"')
-    p.add_argument("--x", action="append", required=True, help="the swept key (twice, or KEY1,KEY2: a heatmap)")
-    p.add_argument("--y", required=True, help="the metric, e.g. closed_loop_rate")
+    p.add_argument("--x", action="append", help="the swept key (twice, or KEY1,KEY2: a heatmap)")
+    p.add_argument("--y", help="the metric, e.g. closed_loop_rate")
     p.add_argument("--hue", help="a key drawn as one line per value")
     p.add_argument("--logx", action="store_true")
     p.add_argument("--logy", action="store_true")
@@ -55,6 +73,11 @@ def _add_plot_arguments(p) -> None:
 
 
 def _plot_command(args) -> int:
+    if args.x is None and args.y is None and args.sweep is not None and args.where is None:
+        print(plot_run(args.sweep, out=args.out, root=args.root))          # a run's own figure
+        return 0
+    if args.x is None or args.y is None:
+        raise ValueError("plot: a sweep's figure needs --x and --y (a run's figure takes neither)")
     keys = [k.strip() for part in args.x for k in part.split(",") if k.strip()]
     points, paths = plot(args.sweep, x=keys[0] if len(keys) == 1 else keys, y=args.y, where=args.where,
                          hue=args.hue, logx=args.logx, logy=args.logy, out=args.out, name=args.name,
@@ -97,7 +120,7 @@ def _export_command(args) -> int:
 
 
 COMMANDS = {"plot": ("a metric against swept keys: mean over seeds, 95%% interval, failed fraction; PNG, PDF, "
-                     "lineage", _add_plot_arguments, _plot_command),
+                     "lineage; or a run's figure", _add_plot_arguments, _plot_command),
             "export": ("stored runs to an MLflow tracking server (a sweep: a parent run and its jobs; once each)",
                        _add_export_arguments, _export_command)}
 

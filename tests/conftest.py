@@ -82,7 +82,8 @@ def in_process(module: str, args: list[str], cwd) -> subprocess.CompletedProcess
     from hydra.core.global_hydra import GlobalHydra
     from hydra.core.hydra_config import HydraConfig
 
-    from rdsexp.experiment import catalog, cli
+    from rdsexp import runs
+    from rdsexp.experiment import cli
     out, err, code = io.StringIO(), io.StringIO(), 0
     saved = os.getcwd(), sys.argv, signal.getsignal(signal.SIGINT)
     GlobalHydra.instance().clear()                    # a compose() a test left initialized
@@ -91,7 +92,7 @@ def in_process(module: str, args: list[str], cwd) -> subprocess.CompletedProcess
         sys.argv = [module, *args]
         with redirect_stdout(out), redirect_stderr(err):
             try:
-                code = catalog.main(args) if module == "rdsexp.runs" else cli.main()
+                code = runs.main(args) if module == "rdsexp.runs" else cli.main()
             except SystemExit as exit_:
                 if isinstance(exit_.code, str):        # sys.exit("message"): printed, exit code 1
                     print(exit_.code, file=sys.stderr)

@@ -423,11 +423,12 @@ class LoopSettings:
 @dataclass(frozen=True)
 class TrackingSettings:
     """conf/tracking: what a run records: level off | summary | full (every ensemble member), the
-    Rerun recording (never with level off) and how many paths of each loop it shows."""
+    Rerun recording (never with level off), how many paths of each loop it shows, and the static figure."""
 
     level: str
     recording: bool
     recorded_paths: int
+    figure: bool = True                   # figure.png beside the tables (`experiment.figure`)
 
     @classmethod
     def from_config(cls, cfg) -> TrackingSettings:
@@ -437,7 +438,9 @@ class TrackingSettings:
         if level not in TRACKING_LEVELS:
             raise ConfigError(f"tracking.level: {level!r} is not allowed, expected one of "
                               f"{', '.join(TRACKING_LEVELS)}")
-        return cls(level=level, recording=recording and level != "off", recorded_paths=recorded_paths)
+        figure = _flag(cfg, "tracking.figure")
+        return cls(level=level, recording=recording and level != "off", recorded_paths=recorded_paths,
+                   figure=figure and level != "off")
 
 
 @dataclass(frozen=True)

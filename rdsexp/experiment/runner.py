@@ -17,7 +17,7 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
-from ..errors import WriteError
+from ..errors import WriteError, one_line
 from .config import Experiment, build, check_overrides
 from .metrics import MAXIMIZE, REGISTRY, exact_counterpart
 from .pipeline import SPAWN_KEYS, TABLES, Outcome, run_experiment, timed
@@ -51,6 +51,17 @@ def record(writer: RunWriter, outcome: Outcome, exp: Experiment, info: dict, str
                 info["recording"] = entry
             else:                                   # RERUN=off in the environment: rerun wrote nothing
                 log.info("no recording: Rerun is disabled (RERUN=off)")
+    if exp.tracking.figure:
+        with timed(timings, "figure"):
+            from .figure import draw  # matplotlib is imported only when drawing
+            try:
+                info["figure"] = writer.store_recording(lambda tmp: bool(draw(
+                    tmp, outcome.squares, outcome.tables["metrics"], outcome.tables["exact"], outcome.summary)),
+                    name=layout.FIGURE)
+            except WriteError:
+                raise
+            except Exception as err:    # a view of the results, not a result: the run stays complete without it
+                log.warning("figure not drawn: %s", one_line(err))
     info.update(status="complete", finished=provenance.now(), summary=outcome.summary, tables=hashes,
                 timings=timings, seconds=round(sum(v for v in timings.values() if isinstance(v, float)), 3))
     if amend is not None:

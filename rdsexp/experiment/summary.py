@@ -15,7 +15,7 @@ from .store import layout
 def summary_text(info: dict, run_dir: Path) -> str:
     """A run's summary as the terminal shows it, a few lines: the plant and model, the key numbers
     (beside the reference numbers when the config carries them), plainly what failed, the run
-    directory and how to view it."""
+    directory, its figure and how to view its recording."""
     s = info.get("summary", {})
     lines = [*header_lines(info, s), *identification_lines(s), *model_lines(s), *gain_lines(s), *data_lines(s),
              *design_lines(s), *loop_lines(s), *online_lines(s)]
@@ -23,6 +23,8 @@ def summary_text(info: dict, run_dir: Path) -> str:
     if reused:
         lines.append(f"  {reused}")
     lines.append(f"  run directory: {run_dir}")
+    if (run_dir / layout.FIGURE).exists():
+        lines.append(f"  figure: {run_dir / layout.FIGURE}")
     if (run_dir / layout.RECORDING).exists():
         lines.append(f"  view: rerun {run_dir / layout.RECORDING}")
     return "\n".join(lines)

@@ -30,6 +30,7 @@ RUN_JSON = "run.json"
 HYDRA_DIR = ".hydra"
 HYDRA_CONFIG = f"{HYDRA_DIR}/config.yaml"
 RECORDING = "recording.rrd"
+FIGURE = "figure.png"                # the run's static figure (`experiment.figure`)
 LOG = "rdsexp.log"
 DIFF = "uncommitted.diff"
 

@@ -40,16 +40,17 @@ class RunWriter:
         """Store whole tables read-only; {name: run.json entry}."""
         return {name: files.store_table(self.dir / table_file(name), table) for name, table in tables.items()}
 
-    def store_recording(self, write: Callable[[Path], bool]) -> dict | None:
-        """The recording: `write(tmp)` writes it at a temporary path and says whether it did (Rerun
-        may be disabled); it is then stored read-only. Returns its run.json entry, or None."""
-        tmp = files.tmp_name(self.dir / RECORDING)
+    def store_recording(self, write: Callable[[Path], bool], name: str = RECORDING) -> dict | None:
+        """The recording (or another file of the run, `name`: its figure): `write(tmp)` writes it at a temporary
+        path and says whether it did (Rerun may be disabled); it is then stored read-only. Returns its run.json
+        entry, or None."""
+        tmp = files.tmp_name(self.dir / name)
         try:
             written = write(tmp)
         except OSError as err:
             tmp.unlink(missing_ok=True)
-            raise WriteError(self.dir / RECORDING, err) from err
-        return files.store_file(tmp, self.dir / RECORDING) if written else None
+            raise WriteError(self.dir / name, err) from err
+        return files.store_file(tmp, self.dir / name) if written else None
 
     def finish(self, info: dict) -> dict:
         """The final run.json."""

@@ -1,0 +1,46 @@
+"""A run's static figure (figure.png, `rdsexp.experiment.figure`): written beside the tables, named by the console,
+drawn again from the stored tables to the same bytes by `rdsexp-runs plot RUN`, off with tracking.figure=false."""
+import json
+
+import numpy as np
+import pandas as pd
+from conftest import SMALL, rdsexp
+
+from rdsexp.experiment import pipeline
+from rdsexp.experiment.figure import squares_of
+
+
+def test_a_run_writes_its_figure_and_the_catalog_draws_the_same_from_the_stored_tables(tmp_path):
+    proc = rdsexp("plant=dropout", *SMALL, "tracking.recording=false", cwd=tmp_path)
+    (run_dir,) = sorted((tmp_path / "outputs" / "runs").iterdir())
+    figure = run_dir / "figure.png"
+    assert figure.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert f"figure: {figure}" in proc.stdout
+    info = json.loads((run_dir / "run.json").read_text())
+    assert info["figure"]["file"] == "figure.png" and "figure" in info["timings"]
+    # the run's own figure is what the catalog returns; drawn elsewhere from the stored tables, the same bytes
+    shown = rdsexp("plot", str(run_dir), module="rdsexp.runs", cwd=tmp_path)
+    assert shown.stdout.strip() == str(figure)
+    rdsexp("plot", str(run_dir), "--out", str(tmp_path / "again"), module="rdsexp.runs", cwd=tmp_path)
+    assert (tmp_path / "again" / "figure.png").read_bytes() == figure.read_bytes()
+    # a run without its figure gets it from the catalog, in its directory
+    rdsexp("plant=dropout", *SMALL, "tracking.recording=false", "tracking.figure=false", "seed=1", cwd=tmp_path)
+    (other,) = [d for d in (tmp_path / "outputs" / "runs").iterdir() if d != run_dir]
+    assert not (other / "figure.png").exists() and "figure" not in json.loads((other / "run.json").read_text())
+    rdsexp("plot", str(other), module="rdsexp.runs", cwd=tmp_path)
+    assert (other / "figure.png").exists()
+
+
+def test_the_stored_trajectories_give_the_loops_squares_the_run_kept():
+    """`squares_of` a run's trajectories table is the ||q_k||^2 (K+1, P) per loop the run drew its figure from."""
+    from hydra import compose, initialize_config_module
+
+    from rdsexp.experiment.config import build
+    with initialize_config_module(config_module="rdsexp.conf", version_base="1.3"):
+        exp = build(compose("config", overrides=[*SMALL, "tracking=summary", "closed_loop.paths=5"]))
+    out = pipeline.run_experiment(exp)
+    squares = squares_of(out.tables["trajectories"])
+    assert set(squares) == set(out.squares) == {"closed_loop", "open_loop"}
+    for name, sq in out.squares.items():
+        np.testing.assert_allclose(squares[name], sq, rtol=1e-12)
+    assert isinstance(out.tables["metrics"], pd.DataFrame)
