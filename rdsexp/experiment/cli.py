@@ -146,6 +146,8 @@ def _main() -> None:
     # an ignored SIGINT): Python's default handler raises KeyboardInterrupt, which ends the run
     # with run.json "interrupted" (`hydra_main`) and every finished file complete
     signal.signal(signal.SIGINT, signal.default_int_handler)
+    from .pipeline.stage import announce_stages
+    announce_stages(not sys.stderr.isatty())        # a terminal has the progress bars; elsewhere, a line per stage
     for arg in sys.argv[1:]:
         # enkf.Q's default is the mapping {x, xi, matrix}: Hydra cannot merge a list into it and
         # would end with a stack of merge errors; say in one line where a matrix goes

@@ -284,3 +284,14 @@ def test_output_into_a_reader_that_stopped_is_no_traceback(module):
     finally:
         os.close(write)
     assert proc.stderr == "" and proc.returncode == 0
+
+
+def test_a_run_whose_stderr_is_no_terminal_prints_a_line_per_stage(tmp_path):
+    """Without a terminal (no progress bars), each outer stage says on stderr that it is done and in how long, in
+    order; the summary with its verdicts stays on stdout."""
+    proc = rdsexp(*SMALL, "tracking=off", cwd=tmp_path)
+    lines = [line for line in proc.stderr.splitlines() if line.startswith("rdsexp: ")]
+    stages = [line.split(": ", 1)[1].rsplit(" done in ", 1)[0] for line in lines]
+    assert stages[:3] == ["identification", "noise sensitivity", "synthesis"] and "closed loop" in stages
+    assert all(re.fullmatch(r"rdsexp: [a-z ]+ done in \d+\.\d s", line) for line in lines)
+    assert "closed loop rate" in proc.stdout and "done in" not in proc.stdout

@@ -92,7 +92,7 @@ def run_experiment(exp: Experiment, sink=None, cache=None) -> Outcome:
     judged, online = run_loops(exp, stages, F, observer, sink, sample, online=online_paths)
     loops = judged.loops
 
-    with stages.timed("metrics"):
+    with stages.timed("loop_tables"):
         tables = {"identification": trajectory_table("identification", identified.trajectories),
                   "paths": path_table({"identification": LoopSummary.of(identified.trajectories, exp), **loops}),
                   "model": model_table(exp, identified.moments), "gains": gains_table(exp, designs),

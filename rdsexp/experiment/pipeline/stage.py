@@ -18,6 +18,13 @@ from tqdm.contrib.logging import logging_redirect_tqdm
 from ...errors import ConfigError, StageError, WriteError
 
 log = logging.getLogger("rdsexp")
+_ANNOUNCE = {"on": False}       # `announce_stages`: the command line's stage lines
+
+
+def announce_stages(on: bool) -> None:
+    """Print a line per stage of a run (`Stages.timed`'s outermost ones) with its seconds on stderr: what the command
+    line does where stderr is no terminal (a log file, a CI job, a sweep's worker), which has no progress bar."""
+    _ANNOUNCE["on"] = on
 
 
 @contextmanager
@@ -54,9 +61,19 @@ class Stages:
     def __init__(self, cache=None):
         self.cache = cache
         self.timings: dict = {}
+        self._open = 0                  # stages open now (a stage inside another is not announced)
 
+    @contextmanager
     def timed(self, name: str):
-        return timed(self.timings, name)
+        start, self._open = time.perf_counter(), self._open + 1
+        try:
+            with timed(self.timings, name):
+                yield
+        finally:
+            self._open -= 1
+        if _ANNOUNCE["on"] and not self._open:
+            print(f"rdsexp: {name.replace('_', ' ')} done in {time.perf_counter() - start:.1f} s", file=sys.stderr,
+                  flush=True)
 
     @staticmethod
     @contextmanager
