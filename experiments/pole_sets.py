@@ -39,9 +39,9 @@ NAME, ALL_NAME = "pole_sets", "pole_sets_all"
 
 
 def library_plants() -> list[str]:
-    """Names of the plant files shipped in conf/plant/."""
+    """Names of the plant files shipped in conf/plant/ (`recorded`, a data run's settings, has no system)."""
     folder = importlib.resources.files("rdsexp.conf") / "plant"
-    return sorted(p.name[:-5] for p in folder.iterdir() if p.name.endswith(".yaml"))
+    return sorted(p.name[:-5] for p in folder.iterdir() if p.name.endswith(".yaml") and p.name != "recorded.yaml")
 
 
 def experiment(plant: str):

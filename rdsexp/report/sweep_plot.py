@@ -163,19 +163,26 @@ def _spec(table: pd.DataFrame, x, y: str, hue: str | None) -> Spec:
     return Spec(keys, ycol, hcol, rows, left_out, values[placed], order, numeric)
 
 
-# what must be one value within a line's point or a heatmap's cell: runs of other plants (their content) or
-# other path counts are other experiments, not seeds of one
-NOT_POOLED = {"plant_hash": "plants", "params.closed_loop.paths": "path counts"}
+# what must be one value within a line's point or a heatmap's cell: runs of other plants (their content) or any
+# other setting are other experiments, not seeds of one. Settings that do not change a run's numbers are pooled:
+# the seed (what a point averages over), where and how the run was stored, its chunks and workers (the same
+# bytes), what it tracked, a tuning objective's own settings.
+NOT_POOLED = {"plant_hash": "plants"}
+POOLED = ("params.seed", "params.store", "params.reuse", "params.cache", "params.closed_loop.workers",
+          "params.closed_loop.chunk_paths", "params.tracking.", "params.objective", "params.hydra.")
 
 
 def _check_pooling(rows: pd.DataFrame, group: list[str]) -> None:
-    """ValueError (one line) when a point of `group` would pool runs of different plants or path counts."""
-    for col, what in NOT_POOLED.items():
+    """ValueError (one line) when a point of `group` would pool runs of different plants or settings (any config
+    value but those in POOLED and the swept keys): the line names the key and its values."""
+    settings = [c for c in rows.columns if c.startswith("params.") and not c.startswith(POOLED)]
+    for col in [*NOT_POOLED, *settings]:
         if col not in rows.columns or col in group:
             continue
         for point, members in rows.groupby(group, dropna=False, sort=False):
             values = sorted(set(map(str, members[col])))
             if len(values) > 1:
+                what = NOT_POOLED.get(col, "settings")
                 at = ", ".join(f"{g}={v}" for g, v in zip(group, point if isinstance(point, tuple) else (point,)))
                 raise ValueError(f"{what} differ within the point {at}: {col} is {', '.join(values)}; select one "
                                  f"with where, or split them with hue={col}")

@@ -120,13 +120,14 @@ def test_points_without_values_one_value_and_no_failed_path_column(tmp_path):
 
 
 def test_keys_resolve_like_search_and_categories_keep_their_order(sweep):
-    a = sweep_plot.aggregate(sweep, "ensemble_size", "closed_loop_rate")
-    b = sweep_plot.aggregate(sweep, "params.enkf.ensemble_size", "metrics.closed_loop_rate")
+    a = sweep_plot.aggregate(sweep, "ensemble_size", "closed_loop_rate", hue="q_scale")
+    b = sweep_plot.aggregate(sweep, "params.enkf.ensemble_size", "metrics.closed_loop_rate", hue="params.enkf.q_scale")
     pd.testing.assert_frame_equal(a, b)
-    assert a["enkf.ensemble_size"].tolist() == [10, 20, 40]
+    assert a["enkf.ensemble_size"].tolist()[:3] == [10, 20, 40]
     sweep["params.gain.source"] = np.where(sweep["params.enkf.ensemble_size"] == 40, "reported", "identified")
-    assert sweep_plot.aggregate(sweep, "gain.source", "closed_loop_rate")["gain.source"].tolist() == \
-        ["reported", "identified"]                                  # order of appearance, not sorted
+    one = sweep[sweep["params.enkf.q_scale"] == sweep["params.enkf.q_scale"].iloc[0]].drop(columns="params.enkf.q_scale")
+    assert sweep_plot.aggregate(one, ["gain.source", "ensemble_size"], "closed_loop_rate")[
+        "gain.source"].unique().tolist() == ["reported", "identified"]    # order of appearance, not sorted
 
 
 def test_heatmap_cells(sweep):
@@ -196,14 +197,17 @@ def test_drawing_twice_gives_identical_bytes(sweep, tmp_path):
     (dict(x=["ensemble_size", "params.enkf.ensemble_size"], y="closed_loop_rate"), "x names the same column twice"),
     (dict(x="ensemble_size", y="closed_loop_verdict"), "y 'closed_loop_verdict' (metrics.closed_loop_verdict) is not a number"),
     (dict(x=["ensemble_size", "q_scale"], y="closed_loop_rate", hue="seed"), "hue does not apply to a heatmap"),
-    (dict(x="plant", y="closed_loop_rate", logx=True), "logx: plant has values that are not positive numbers"),
+    (dict(x="plant", y="closed_loop_rate", logx=True, one=True), "logx: plant has values that are not positive numbers"),
     (dict(x=["ensemble_size", "q_scale"], y="closed_loop_rate", logx=True), "logx does not apply to a heatmap"),
-    (dict(x="ensemble_size", y="closed_loop_rate", logy=True, negative=True), "logy: the mean of closed_loop_rate is not positive"),
+    (dict(x="ensemble_size", y="closed_loop_rate", logy=True, negative=True, one=True), "logy: the mean of closed_loop_rate is not positive"),
 ])
 def test_bad_requests_fail_with_one_line_before_drawing(sweep, tmp_path, call, message):
     sweep["metrics.closed_loop_verdict"] = "stable"
     if call.pop("negative", False):
         sweep["metrics.closed_loop_rate"] -= 1
+    if call.pop("one", False):          # one setting but the key drawn (a point pools seeds only)
+        sweep = sweep[(sweep["params.enkf.q_scale"] == sweep["params.enkf.q_scale"].iloc[0])
+                      & ((call["x"] != "plant") | (sweep["params.enkf.ensemble_size"] == 10))]
     with pytest.raises(ValueError, match="^" + message.replace("(", r"\(").replace(")", r"\)")) as err:
         sweep_plot.plot(sweep, out=tmp_path / "fig", **call)
     assert "\n" not in str(err.value)
@@ -228,19 +232,23 @@ def test_a_run_json_that_is_missing_or_names_another_run_stops_the_figure(sweep,
     other = sweep.copy()
     other.loc[3, "id"] = "someone/else"
     with pytest.raises(LineageError, match="names run 'sweep/3', the runs table 'someone/else'"):
-        sweep_plot.plot(other, "ensemble_size", "closed_loop_rate", out=tmp_path / "fig")
+        sweep_plot.plot(other, "ensemble_size", "closed_loop_rate", hue="q_scale", out=tmp_path / "fig")
     (tmp_path / sweep.loc[5, "dir"] / "run.json").unlink()
     with pytest.raises(DamagedRecord, match="run.json: missing"):
-        sweep_plot.plot(sweep, "ensemble_size", "closed_loop_rate", out=tmp_path / "fig")
+        sweep_plot.plot(sweep, "ensemble_size", "closed_loop_rate", hue="q_scale", out=tmp_path / "fig")
     assert not (tmp_path / "fig").exists()
 
 
 @pytest.mark.parametrize("column, value, what", [("plant_hash", "66772176229f", "plants"),
-                                                 ("params.closed_loop.paths", 50, "path counts")])
+                                                 ("params.closed_loop.paths", 50, "settings"),
+                                                 ("params.identification.passes", 10, "settings")])
 def test_a_point_that_would_pool_other_plants_or_path_counts_is_refused(sweep, tmp_path, column, value, what):
-    """Two plant files of one name that differ, or a 50-path run among 30-path ones, under one point or cell:
-    one line naming the point and the values, nothing drawn; split by hue (lines) or selected, it draws."""
-    sweep[column] = sweep.get(column, pd.Series(["d238f1965554" if column == "plant_hash" else 30] * len(sweep)))
+    """Two plant files of one name that differ, a 50-path run among 30-path ones, or any other setting that differs
+    under one point or cell (not the seed, not the key drawn): one line naming the point, the key and its values,
+    nothing drawn; split by hue (lines) or selected, it draws."""
+    sweep = sweep[sweep["params.enkf.q_scale"] == sweep["params.enkf.q_scale"].iloc[0]].copy()   # one setting
+    sweep[column] = sweep.get(column, pd.Series(["d238f1965554" if column == "plant_hash" else 30] * len(sweep),
+                                                index=sweep.index))
     sweep.loc[sweep["params.enkf.ensemble_size"] == 40, column] = \
         np.where(sweep.loc[sweep["params.enkf.ensemble_size"] == 40, "params.seed"] == 2, value, sweep[column].iloc[0])
     for x in ("ensemble_size", ["ensemble_size", "q_scale"]):
