@@ -289,6 +289,24 @@ def _diff_sweeps(ta: pd.DataFrame, tb: pd.DataFrame) -> pd.DataFrame:
     return pd.DataFrame(rows, columns=["what", "key", "a", "b"])
 
 
+CELL = 40      # `diff`'s table keeps its cells this short; longer texts (verdict reasons) are listed below it
+
+
+def diff_text(differences: pd.DataFrame, cell: int = CELL) -> str:
+    """`diff`'s table as the terminal shows it: within about 120 columns, a value longer than `cell` characters
+    replaced by a note [n] and written out in full below the table."""
+    notes, table = [], differences.copy()
+    for column in ("a", "b"):
+        def short(value, column=column):
+            text = str(value)
+            if len(text) <= cell:
+                return value
+            notes.append(f"[{len(notes) + 1}] {column}: {text}")
+            return f"[{len(notes)}]"
+        table[column] = [short(v) for v in table[column]]
+    return table.to_string(index=False) + ("\n\n" + "\n".join(notes) if notes else "")
+
+
 def compare_tables(stored: pd.DataFrame, fresh: pd.DataFrame) -> list[str]:
     """Differences between two versions of a table, column by column; [] when identical."""
     problems = []
@@ -449,7 +467,7 @@ def _command(args) -> int:
         return _report(check(Path(args.dir), move=args.quarantine))
     if args.command == "diff":
         differences = diff(args.a, args.b, Path(args.root))
-        print(differences.to_string(index=False) if len(differences) else "no differences")
+        print(diff_text(differences) if len(differences) else "no differences")
         return 0
     root = Path(args.root)
     sweep = locate_sweep(args.run, root) if not layout.is_run(Path(args.run)) else None

@@ -374,3 +374,16 @@ def test_the_plant_content_is_part_of_a_runs_identity(tmp_path):
     one = provenance.plant_hash({"A": np.ones((1, 2, 2))}, {"family": "bernoulli", "prob": 1})
     assert one == provenance.plant_hash({"A": [[[1, 1], [1, 1.0]]]}, {"prob": 1.0, "family": "bernoulli"})
     assert one != provenance.plant_hash({"A": np.ones((1, 2, 2))}, {"family": "bernoulli", "prob": 0.999})
+
+
+def test_diff_keeps_its_table_within_120_columns_with_long_texts_below():
+    """`rdsexp-runs diff`: a verdict reason in a cell would widen the table to hundreds of columns; it is a note [n]
+    there, written out in full below the table."""
+    from rdsexp.experiment.catalog import diff_text
+    reason = "the loop decays: the rate's 95% interval [0.9219, 0.9458] lies below 1 (k = 50..95) " * 3
+    table = pd.DataFrame([{"what": "metric", "key": "closed_loop_verdict_reason", "a": reason, "b": "short"},
+                          {"what": "metric", "key": "closed_loop_rate", "a": 0.93, "b": 0.94}])
+    text = diff_text(table)
+    head, notes = text.split("\n\n")
+    assert all(len(line) <= 120 for line in head.splitlines()) and "[1]" in head and "short" in head
+    assert notes == f"[1] a: {reason}"
