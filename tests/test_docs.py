@@ -124,3 +124,15 @@ def test_readme_is_a_landing_page():
     # every page of the site is linked from it
     for page in (REPO / "docs").rglob("*.md"):
         assert f"docs/{page.relative_to(REPO / 'docs').as_posix()}" in text, page
+
+
+def test_the_pages_math_becomes_mathml_and_code_stays_as_it_is():
+    """experiments/docs_math.py: $...$ and $$...$$ outside code become MathML (the site renders them without a
+    script); a shell's $run in a code span or fence, and a price of $5 and $10, stay text."""
+    from docs_math import mathml
+    page = "a `$run` and $x_{k+1}$,\n```bash\necho $HOME $x$\n```\ncosts $5 and $10, and\n$$a^2$$\n"
+    out = mathml(page)
+    assert out.count("<math ") == 2 and 'display="block"' in out and "<msub><mi>x</mi>" in out
+    assert "`$run`" in out and "echo $HOME $x$" in out and "costs $5 and $10" in out
+    pages = [p.read_text() for p in (REPO / "docs").glob("*.md")]
+    assert sum(mathml(p).count("<math ") for p in pages) >= 8        # the formulas the guides write in LaTeX
