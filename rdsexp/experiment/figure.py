@@ -11,6 +11,7 @@ no pyplot state, no backend chosen for the caller.
 """
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -57,7 +58,8 @@ def loop_panel(ax, loops: list, squares: dict[str, np.ndarray], exact: pd.DataFr
     """Each loop's RMS over its finite paths with its ideal loop's exact curve; the window shaded."""
     for row in loops:
         sq = squares[row.experiment]
-        with np.errstate(all="ignore"):
+        with np.errstate(all="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)     # a step every path failed before: NaN, not drawn
             rms = np.sqrt(np.nanmean(sq, axis=1))
         color = LOOP_COLORS.get(row.experiment.replace("_on_model", ""), None)
         shown = f"{row.rate:.4f} [{row.rate_low:.4f}, {row.rate_high:.4f}]" if np.isfinite(row.rate) else "no rate"

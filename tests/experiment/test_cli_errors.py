@@ -2,6 +2,7 @@
 has, a YAML syntax error, Ctrl-C during a run or a sweep; and overrides on both sides of -m."""
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -14,9 +15,17 @@ from conftest import SMALL, rdsexp, serial
 TINY = ["closed_loop.paths=2", "enkf.ensemble_size=10", "closed_loop.horizon=20", "tracking.level=off"]
 
 
+STAGE_LINE = re.compile(r"rdsexp: [a-z ]+ done in \d+\.\d s")     # a stage done (stderr is no terminal here)
+
+
+def error_lines(stderr: str) -> list[str]:
+    """stderr's lines but the stages' progress lines."""
+    return [line for line in stderr.strip().splitlines() if not STAGE_LINE.fullmatch(line)]
+
+
 def one_line(proc) -> str:
-    """The only line on stderr (no traceback, no Hydra report around it)."""
-    lines = proc.stderr.strip().splitlines()
+    """The only line on stderr (no traceback, no Hydra report around it) beside the stages' progress lines."""
+    lines = error_lines(proc.stderr)
     assert len(lines) == 1, proc.stderr
     return lines[0]
 
@@ -119,7 +128,7 @@ def interrupt_when(proc, started, timeout=60.0) -> str:
             proc.wait()
     assert proc.returncode == 130, stderr
     assert "Traceback" not in stderr and "KeyboardInterrupt" not in stderr
-    lines = stderr.strip().splitlines()
+    lines = error_lines(stderr)
     assert len(lines) == 1, stderr
     return lines[0]
 
@@ -198,7 +207,7 @@ def test_ctrl_c_that_breaks_hydras_cleanup_is_still_one_line_and_exit_130(monkey
 
 @pytest.mark.parametrize("args, message", [
     (["plant=loss"], "plant=loss: no such plant; did you mean lossy?; options: cart_pole, dropout, lossy, "
-                     "multiplicative, paper, two_carts"),
+                     "multiplicative, paper, recorded, two_carts"),
     (["gain=proposd"], "gain=proposd: no such gain; did you mean proposed?; options: lqr_mean, ms_lqr, nominal_lmi, "
                        "pole_placement, policy_iteration, proposed, robust_box"),
     (["+sweep=seed"], "sweep=seed: no such sweep; did you mean seeds?; options: "),
