@@ -14,7 +14,7 @@ REPO = Path(__file__).resolve().parent.parent
 # the paper's experiment shrunk to run in about a second
 SMALL = ["closed_loop.paths=4", "enkf.ensemble_size=20", "closed_loop.horizon=30", "closed_loop.rate_window=[10,20]",
          "closed_loop.disturbance.until=10", "identification.horizon=30", "identification.K0=5",
-         "identification.K1=20"]
+         "identification.K1=20", "tracking.figure=false"]     # the figure: tests/experiment/test_figure.py
 # the shipped sweeps run their jobs in one worker process per core (conf/hydra/launcher/parallel.yaml);
 # a test's sweeps of tiny jobs run one after the other in the process that launched them: no worker
 # start-up per sweep (CI's time), an injected fault or a patch applies to every job, and a test's

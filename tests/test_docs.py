@@ -51,7 +51,7 @@ NOT_RUN = {
     r"python3 -m venv|pip install": "installs an environment (CI runs the README's two commands)",
     r"^rerun |rdsexp-runs view|experiments/docs_screenshots\.py": "opens the Rerun viewer (a window)",
     r"^apt-get install": "installs system packages",
-    r"^mlflow server": "starts a server that runs until stopped",
+    r"^mlflow server|^optuna-dashboard ": "starts a server that runs until stopped",
     r"hydra/launcher=(slurm|ray_cluster)": "needs a Slurm or Ray cluster",
     r"python experiments/(paper|benchmark_\w+|coverage|random_plants|pole_sets|robust_width|closed_loop_rate"
     r"|identification_input|fig_\w+|reproduction_table|data_round_trip|data_validation|online_defaults"

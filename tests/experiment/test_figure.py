@@ -11,7 +11,7 @@ from rdsexp.experiment.figure import squares_of
 
 
 def test_a_run_writes_its_figure_and_the_catalog_draws_the_same_from_the_stored_tables(tmp_path):
-    proc = rdsexp("plant=dropout", *SMALL, "tracking.recording=false", cwd=tmp_path)
+    proc = rdsexp("plant=dropout", *SMALL, "tracking.recording=false", "tracking.figure=true", cwd=tmp_path)
     (run_dir,) = sorted((tmp_path / "outputs" / "runs").iterdir())
     figure = run_dir / "figure.png"
     assert figure.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

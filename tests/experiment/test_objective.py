@@ -1,4 +1,5 @@
-"""`objective=METRIC`: the job returns one float for an optimizing sweeper, and +sweep=tune_enkf runs Optuna."""
+"""`objective=METRIC`: the job returns one float for an optimizing sweeper, and +sweep=tune_enkf runs Optuna (rdsexp's
+Hydra sweeper, hydra_plugins/rdsexp_optuna)."""
 import io
 import json
 import math
@@ -59,7 +60,6 @@ def test_tune_enkf_averages_each_trial_over_seeds_and_holds_out_the_best(tmp_pat
     """Three Optuna trials of two seeds each on a small paper plant: every seed a complete run in the study's
     directory; each trial's stored mean and standard error recomputed from its stored runs; Optuna minimized
     those means; the best trial re-run on two fresh seeds, recorded, found by the catalog and reported."""
-    pytest.importorskip("hydra_plugins.hydra_optuna_sweeper")
     proc = rdsexp("+sweep=tune_enkf", "hydra.sweeper.n_trials=3", "objective_seeds=2", "tracking.recording=false",
                   *SMALL, cwd=tmp_path, timeout=600)
     (sweep,) = (tmp_path / "outputs" / "sweeps").iterdir()
@@ -79,6 +79,12 @@ def test_tune_enkf_averages_each_trial_over_seeds_and_holds_out_the_best(tmp_pat
         means[trial["id"]] = recorded["mean"]
     best = yaml.safe_load((sweep / "optimization_results.yaml").read_text())
     assert best["best_value"] == pytest.approx(min(means.values()))
+    # the study's storage, as optuna-dashboard opens it: three complete trials, their values the trials' means
+    import optuna
+    study = optuna.load_study(study_name="tune_enkf", storage=f"sqlite:///{sweep / 'study.db'}")
+    assert [t.state for t in study.trials] == [optuna.trial.TrialState.COMPLETE] * 3
+    assert sorted(t.value for t in study.trials) == pytest.approx(sorted(means.values()), rel=1e-12)
+    assert study.best_params == best["best_params"]
     best_id = min(means, key=means.get)
     held = runs["heldout.seed3"]["objective"]
     assert held["role"] == "heldout" and held["of"] == best_id and held["seeds"] == [2, 3]

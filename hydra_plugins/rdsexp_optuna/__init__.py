@@ -1,0 +1,1 @@
+"""rdsexp's Hydra sweeper on Optuna (`hydra/sweeper: rdsexp_optuna`): trials by Optuna's ask-and-tell API."""
