@@ -243,3 +243,15 @@ def test_the_docs_sample_file_is_valid_data_for_the_shipped_model():
     assert sample.recorded.paths == 3 and sample.recorded.steps == 101
     np.testing.assert_array_equal(sample.recorded.y, example.recorded.y[:, :3])
     np.testing.assert_array_equal(sample.recorded.u, example.recorded.u[:, :3])
+
+
+def test_a_data_run_needs_no_plant_wherever_it_is_started(round_trip, tmp_path):
+    """`rdsexp data=FILE model=NAME` as the README writes it, from a directory outside the checkout and without a
+    plant: the data defaults (plant group `recorded`: no system, rdsexp's defaults for a system of one's own, the
+    simulated estimator), recorded in run.json's overrides so that verify re-runs the same."""
+    cwd, *_ = round_trip
+    proc = rdsexp(f"data={cwd / 'd.csv'}", "model=paper", *SMALL, "identification.replicates=100", cwd=tmp_path)
+    (run_dir,) = runs_of(tmp_path)
+    info = info_of(run_dir)
+    assert info["status"] == "complete" and "plant=recorded" in info["overrides"]
+    assert info["summary"]["modeling_estimator"]["name"] == "simulated" and "  data d.csv (sha256" in proc.stdout
