@@ -135,8 +135,10 @@ def simulated_moments(exp: Experiment, stages: Stages, ident: Trajectories, iden
             prior = tuple(np.append(edge, bound) for edge, bound in zip(prior, NOISE_BOX))
         if len(per_path) > 1:
             info["summary_paths"] = len(per_path)
-        posterior, info["usable"], z = posterior_rounds(exp, enkf, replay, s_obs, len(per_path), prior,
-                                                        (ends, low, high))
+        rounds = POSTERIOR_ROUNDS[len(per_path) > 1] + 1
+        with stages.progress("modeling", rounds * settings.replicates) as progress:    # a bar on a terminal
+            posterior, info["usable"], z = posterior_rounds(exp, enkf, replay, s_obs, len(per_path), prior,
+                                                            (ends, low, high), progress)
         if posterior is None:       # the window's moments, said so
             info["fallback"] = (f"{max(info['usable'])} of {settings.replicates} replicates identified (needs "
                                 f"{10 * (len(prior[0]) + 1)}): the window's moments of xi_{{k|k}} kept")
@@ -161,19 +163,19 @@ def simulated_moments(exp: Experiment, stages: Stages, ident: Trajectories, iden
 
 
 def posterior_rounds(exp: Experiment, enkf, replay: Replay, s_obs: np.ndarray, paths: int, box,
-                     laws) -> tuple[tuple | None, list[int], np.ndarray | None]:
+                     laws, progress=None) -> tuple[tuple | None, list[int], np.ndarray | None]:
     """The replicate rounds of `simulated_moments`: (adjusted draws (N, d), weights (N,)) of the posterior, or None
     where no round identified enough replicates to regress on (10 per regressor), each round's count of
     identified replicates, and where s_obs lies among the last round's replicates (`indirect.misfit`). Each round
     after the first draws from the box the previous posterior spans (POSTERIOR_ROUNDS of them; one more where the
     first round's identifications mostly failed). s_obs: the mean of `paths` paths' summaries
-    (`indirect.averaged`). `laws`: (ends, low, high)."""
+    (`indirect.averaged`). `laws`: (ends, low, high). progress(replicates): called as each chunk is done."""
     settings = exp.identification
     posterior, rounds, usable, z = None, 0, [], None
     wanted = POSTERIOR_ROUNDS[paths > 1]
     for round_ in range(1, wanted + 2):
         theta = indirect.uniform_draws(*box, settings.replicates, [exp.seed, REPLICATE_STREAM, round_])
-        s = replicate_summaries(exp, enkf, replay, theta, *laws, round_)
+        s = replicate_summaries(exp, enkf, replay, theta, *laws, round_, progress)
         ok = np.all(np.isfinite(s), axis=1)
         usable.append(int(ok.sum()))
         if ok.sum() >= 10 * (theta.shape[1] + 1):
@@ -232,10 +234,11 @@ def two_point_ends(exp: Experiment) -> tuple[np.ndarray, np.ndarray, np.ndarray]
 
 
 def replicate_summaries(exp: Experiment, enkf, replay: Replay, theta: np.ndarray, ends, low, high,
-                        round_: int) -> np.ndarray:
+                        round_: int, progress=None) -> np.ndarray:
     """(R, S): the `summary_statistics` of R identification runs of the model as `replay` says, path r drawing xi
     from theta[r] (`indirect.path_laws`; a noisy replay's last column is its log10 noise scale) with `enkf`; NaN
-    where a run failed. In chunks of paths within the Monte Carlo's memory budget (each path its own streams)."""
+    where a run failed. In chunks of paths within the Monte Carlo's memory budget (each path its own streams);
+    progress(replicates) after each chunk."""
     model, settings = exp.model, exp.identification
     total = settings.covariance == "total"
     R, n = len(theta), model.n
@@ -257,6 +260,8 @@ def replicate_summaries(exp: Experiment, enkf, replay: Replay, theta: np.ndarray
             scale = 10.0 ** theta[part, -1, None, None]
             noise = PlantNoise(scale * enkf.Q[:n, :n], scale * enkf.R)
         out.append(summary_statistics(exp, chunk.run(first, len(laws[part]), keep_xi_cov=total, plant_noise=noise)))
+        if progress is not None:
+            progress(len(laws[part]))
     return np.concatenate(out)
 
 
