@@ -363,7 +363,7 @@ class LoopSettings:
     @property
     def looks(self) -> tuple[int, ...]:
         """The path counts at which the loops are judged: (paths,) when fixed; auto: the pilot, then LOOK_GROWTH
-        times the previous count, the last one max_paths (`pipeline.looks`)."""
+        times the previous count, the last one max_paths (`pipeline.loops.run_loops`)."""
         if self.max_paths is None:
             return (self.paths,)
         looks = [self.paths]
@@ -376,7 +376,7 @@ class LoopSettings:
     @classmethod
     def from_config(cls, cfg, model: AffineRandomSystem, plant: AffineRandomSystem) -> LoopSettings:
         paths, max_paths = get(cfg, "closed_loop.paths"), None
-        if paths == "auto":                 # looks from a pilot up to a budget (pipeline.looks)
+        if paths == "auto":                 # looks from a pilot up to a budget (pipeline.loops.run_loops)
             paths = _number(get(cfg, "closed_loop.pilot_paths"), "closed_loop.pilot_paths", integer=True, low=2)
             max_paths = _number(get(cfg, "closed_loop.max_paths"), "closed_loop.max_paths", integer=True, low=paths)
         elif isinstance(paths, str):

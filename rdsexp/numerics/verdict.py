@@ -351,7 +351,7 @@ def judge_loop(sq: np.ndarray, *, failed_at: np.ndarray, failure: np.ndarray, wi
     ideal loop (state feedback on the true plant; None: unknown); floor: the loop at rest (None: no floor,
     as for the open loop, whose observer does not act on the plant, or not measured); open_loop: a
     diverged plant state is then the plant's growth; level: of the rate intervals (the looks of
-    closed_loop.paths auto share the 5% between them, `experiment.pipeline.looks`)."""
+    closed_loop.paths auto share the 5% between them, `experiment.pipeline.loops.run_loops`)."""
     bad = failed_at >= 0
     if bad.any():
         reasons = {r: int(np.sum(failure[bad] == r)) for r in dict.fromkeys(failure[bad])}
