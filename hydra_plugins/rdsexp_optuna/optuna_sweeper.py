@@ -22,6 +22,8 @@ from hydra.core.plugins import Plugins
 from hydra.plugins.sweeper import Sweeper
 from omegaconf import DictConfig, OmegaConf
 
+from rdsexp.errors import ConfigError
+
 log = logging.getLogger(__name__)
 SAMPLERS = ("tpe", "random")
 
@@ -60,7 +62,7 @@ def distribution(override: Override):
             return optuna.distributions.IntDistribution(int(value.start), int(value.end), log=log_scale)
         return optuna.distributions.FloatDistribution(float(value.start), float(value.end), log=log_scale)
     if override.is_sweep_override():
-        raise ValueError(f"hydra.sweeper.params: {override.input_line}: only interval(...), tag(log, interval(...)) "
+        raise ConfigError(f"hydra.sweeper.params: {override.input_line}: only interval(...), tag(log, interval(...)) "
                          f"and choice(...) are searched")
     return None
 
@@ -68,11 +70,16 @@ def distribution(override: Override):
 class OptunaSweeper(Sweeper):
     def __init__(self, direction: str, study_name: str | None, storage: str | None, n_trials: int, n_jobs: int,
                  sampler: Any, params: Any) -> None:
+        try:
+            import optuna  # noqa: F401  (before any trial: a missing extra is one line, not a traceback)
+        except ImportError:
+            raise ConfigError('hydra/sweeper=rdsexp_optuna: Optuna is not installed; pip install -e ".[tune]"') \
+                from None
         if direction not in ("minimize", "maximize"):
-            raise ValueError(f"hydra.sweeper.direction: {direction!r} is not allowed, expected minimize or maximize")
+            raise ConfigError(f"hydra.sweeper.direction: {direction!r} is not allowed, expected minimize or maximize")
         sampler = OmegaConf.to_container(sampler, resolve=True) if OmegaConf.is_config(sampler) else dict(sampler)
         if sampler.get("name", "tpe") not in SAMPLERS:
-            raise ValueError(f"hydra.sweeper.sampler.name: {sampler.get('name')!r} is not allowed, expected one of "
+            raise ConfigError(f"hydra.sweeper.sampler.name: {sampler.get('name')!r} is not allowed, expected one of "
                              f"{', '.join(SAMPLERS)}")
         self.direction, self.study_name, self.storage = direction, study_name, storage
         self.n_trials, self.n_jobs, self.sampler = int(n_trials), max(1, int(n_jobs)), sampler

@@ -283,6 +283,8 @@ def config_error_text(err: BaseException) -> str | None:
         chain.append(err)
         err = err.__cause__ or err.__context__
     for err in chain:
+        if isinstance(err, ConfigError):    # raised inside Hydra's machinery (a sweeper's settings): its own line
+            return str(err)
         if isinstance(err, yaml.MarkedYAMLError) and err.problem_mark is not None:
             return yaml_error_text(err)
         missing = re.match(r"In '[^']*': Could not find '([^'/]+)/([^']+)'\s+Available options in '[^']+':\s+(.*?)"

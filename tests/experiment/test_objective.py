@@ -103,3 +103,13 @@ def test_tune_enkf_averages_each_trial_over_seeds_and_holds_out_the_best(tmp_pat
     assert shown.loc[runs["heldout.seed3"]["id"], "metrics.objective_mean"] == pytest.approx(held["mean"], rel=1e-9)
     assert f"tuning: best trial {best_id}: closed_loop_rate {means[best_id]:.4f}" in proc.stdout
     assert "held out on fresh seeds [2, 3]" in proc.stdout and "exact counterpart rate_plant" in proc.stdout
+
+
+def test_a_bad_sweeper_setting_is_one_line_before_any_trial(tmp_path):
+    """rdsexp's Optuna sweeper checks its settings (and that Optuna is installed) before any trial: one config-error
+    line, exit 2, nothing written (Hydra has made the sweep's directory, empty)."""
+    proc = rdsexp("+sweep=tune_enkf", "hydra.sweeper.direction=up", *SMALL, cwd=tmp_path, check=False)
+    assert proc.returncode == 2
+    assert proc.stderr.strip().splitlines()[-1] == ("rdsexp: config error: hydra.sweeper.direction: 'up' is not allowed, "
+                                                    "expected minimize or maximize")
+    assert not [p for p in (tmp_path / "outputs").rglob("*") if p.is_file()]
