@@ -110,6 +110,7 @@ def run_loops(exp: Experiment, stages: Stages, F: np.ndarray, observer, sink, sa
     if F is not None and exp.loop.floor_paths > 0:
         with stages.timed("noise_floor" + suffix):
             floor = noise_floor(exp, observer, F)
+    finite = lambda v: float(v) if np.isfinite(v) else None
     loops, online_result, record, first = {}, None, [], 0
     for look, stop in enumerate(looks):
         added = simulate_loops(exp, stages, F, observer, sink, sample, suffix, (first, stop)) if F is not None else {}
@@ -123,7 +124,6 @@ def run_loops(exp: Experiment, stages: Stages, F: np.ndarray, observer, sink, sa
         with stages.timed("metrics"):
             judged = judge_loops(exp, loops, floor, F, level)
         if len(looks) > 1:
-            finite = lambda v: float(v) if np.isfinite(v) else None
             record.append({"paths": stop, "level": level,
                            **{row.experiment: {"verdict": row.verdict, "rate": [row.rate, row.rate_low, row.rate_high],
                                                "tail_khat": finite(row.tail_khat),
@@ -135,7 +135,7 @@ def run_loops(exp: Experiment, stages: Stages, F: np.ndarray, observer, sink, sa
         first = stop
     if len(looks) > 1:
         judged = dataclasses.replace(judged, looks=record, asking=more,
-                                     metrics=budget_reached(judged.metrics, exp.loop.max_paths))
+                                     metrics=budget_reached(judged.metrics, exp.loop.max_paths, more))
     return judged, online_result
 
 
@@ -146,10 +146,11 @@ def needs_more(metrics: pd.DataFrame) -> list[str]:
     return metrics.loc[asks, "experiment"].tolist()
 
 
-def budget_reached(metrics: pd.DataFrame, budget: int) -> pd.DataFrame:
-    """The last look's metrics with the reason of each loop `needs_more` still names saying the budget ended it."""
+def budget_reached(metrics: pd.DataFrame, budget: int, asking: list[str]) -> pd.DataFrame:
+    """The last look's metrics with the reason of each loop still `asking` (`needs_more`) saying the budget ended
+    it."""
     out = metrics.copy()
-    for i in out.index[out["experiment"].isin(needs_more(metrics))]:
+    for i in out.index[out["experiment"].isin(asking)]:
         heavy = out.at[i, "verdict"] != "undetermined"
         out.at[i, "verdict_reason"] += (f"; closed_loop.max_paths = {budget} reached with a few paths still carrying "
                                         f"the mean square (tail k-hat {out.at[i, 'tail_khat']:.2f} > {HEAVY_TAIL:g})"
