@@ -1,9 +1,9 @@
 """A run's static figure, `figure.png` beside its tables: what a headless machine (an SSH session, a cluster node)
 shows of a run without the Rerun viewer.
 
-Left, each loop's RMS sqrt(E||q_k||^2) over its paths against the exact curve of its ideal loop (state feedback on
-the true plant, the `exact` table), the rate window shaded and, in the legend, the rate, its interval and the
-verdict; right, the modeled mean and standard deviation of each component of xi with their 95% intervals
+Left, each loop's RMS sqrt(E||q_k||^2) over its paths, with its 95% band, against the exact curve of its ideal
+loop (state feedback on the true plant, the `exact` table), the rate window shaded and, in the legend, the rate,
+its interval and the verdict; right, the modeled mean and standard deviation of each component of xi with their 95% intervals
 (`modeling_uncertainty`), beside the plant file's law where there is one. Drawn from what the run keeps (the
 loops' ||q_k||^2, the metrics and exact tables, the summary), in the run (`runner.record`) or from a stored run
 (`squares_of`: its trajectories table; `rdsexp-runs plot RUN`). Matplotlib's object interface on an Agg canvas:
@@ -11,11 +11,12 @@ no pyplot state, no backend chosen for the caller.
 """
 from __future__ import annotations
 
-import warnings
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
+
+from ..numerics.analysis import rms_band
 
 LOOP_COLORS = {"closed_loop": "C0", "open_loop": "C1", "online": "C2"}
 
@@ -55,17 +56,16 @@ def draw(path: Path, squares: dict[str, np.ndarray], metrics: pd.DataFrame, exac
 
 
 def loop_panel(ax, loops: list, squares: dict[str, np.ndarray], exact: pd.DataFrame, summary: dict) -> None:
-    """Each loop's RMS over its finite paths with its ideal loop's exact curve; the window shaded."""
+    """Each loop's RMS over its finite paths with its 95% band (`analysis.rms_band`) and its ideal loop's exact curve;
+    the window shaded."""
     for row in loops:
-        sq = squares[row.experiment]
-        with np.errstate(all="ignore"), warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)     # a step every path failed before: NaN, not drawn
-            rms = np.sqrt(np.nanmean(sq, axis=1))
+        rms, low, high = rms_band(squares[row.experiment])     # the band the tables and recordings show
         color = LOOP_COLORS.get(row.experiment.replace("_on_model", ""), None)
         shown = f"{row.rate:.4f} [{row.rate_low:.4f}, {row.rate_high:.4f}]" if np.isfinite(row.rate) else "no rate"
         ax.semilogy(np.arange(rms.size), rms, color=color,
                     label=f"{row.experiment.replace('_', ' ')}: {row.verdict}, {shown} ({100 * row.level:g}%, "
                           f"{row.paths} paths)")
+        ax.fill_between(np.arange(rms.size), low, high, color=color, alpha=0.2, linewidth=0)
         ideal = exact.loc[exact["experiment"] == row.experiment, "rms"].to_numpy()
         if ideal.size:
             ax.semilogy(np.arange(ideal.size), ideal, color=color, linestyle="--", linewidth=1,
