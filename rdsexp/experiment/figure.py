@@ -3,11 +3,11 @@ shows of a run without the Rerun viewer.
 
 Left, each loop's RMS sqrt(E||q_k||^2) over its paths, with its 95% band, against the exact curve of its ideal
 loop (state feedback on the true plant, the `exact` table), the rate window shaded and, in the legend, the rate,
-its interval and the verdict; right, the modeled mean and standard deviation of each component of xi with their 95% intervals
-(`modeling_uncertainty`), beside the plant file's law where there is one. Drawn from what the run keeps (the
-loops' ||q_k||^2, the metrics and exact tables, the summary), in the run (`runner.record`) or from a stored run
-(`squares_of`: its trajectories table; `rdsexp-runs plot RUN`). Matplotlib's object interface on an Agg canvas:
-no pyplot state, no backend chosen for the caller.
+its interval and the verdict; right, the modeled mean and standard deviation of each component of xi with their
+95% intervals (`modeling_uncertainty`), beside the plant file's law where there is one. Drawn from what the run
+keeps (the loops' ||q_k||^2, the metrics and exact tables, the summary), in the run (`runner.record`) or from a
+stored run (`squares_of`: its trajectories table; `rdsexp-runs plot RUN`). Matplotlib's object interface on an
+Agg canvas: no pyplot state, no backend chosen for the caller.
 """
 from __future__ import annotations
 
