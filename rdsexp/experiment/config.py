@@ -245,6 +245,7 @@ class IdentificationSettings:
     replicates: int = 400       # simulated: identification runs of the model, one law of xi each
     prior_width: float = 2.5    # simulated: the prior box in the paper estimator's stds (`indirect.prior_box`)
     accept: float = 0.5         # simulated: the fraction of replicates nearest the summary that are weighted
+    paths: int = 1              # identification runs of a simulated plant (a data run: its recorded paths)
 
     @classmethod
     def from_config(cls, cfg, plant: AffineRandomSystem, data_run: bool = False) -> IdentificationSettings:
@@ -283,7 +284,8 @@ class IdentificationSettings:
         replicates = _number(get(cfg, "identification.replicates"), "identification.replicates", integer=True, low=20)
         width = _number(get(cfg, "identification.prior_width"), "identification.prior_width", low=0, low_open=True)
         accept = _number(get(cfg, "identification.accept"), "identification.accept", low=0, high=1, low_open=True)
-        return cls(estimator=estimator, replicates=replicates, prior_width=width, accept=accept,
+        paths = _number(get(cfg, "identification.paths"), "identification.paths", integer=True, low=1)
+        return cls(estimator=estimator, replicates=replicates, prior_width=width, accept=accept, paths=paths,
                    input=u_id, K0=K0, K1=K1, feedback=feedback, gain=F_id, xi_guess=xi_guess, prior=prior,
                    covariance=covariance, xi_model=xi_model, passes=passes, resamples=resamples, block=block,
                    noise_scales=scales)
@@ -538,7 +540,7 @@ def model_prior(cfg, model: AffineRandomSystem) -> AffineRandomSystem:
 PLANT_KEYS = ("name", "A", "B", "C", "D", "xi", "q0", "poles", "reference", "model", "designs", "rate_window",
               "identification_feedback", "identification_covariance", "identification_xi", "initial_xi",
               "identification_estimator", "filter_sees_disturbance", "observer_xi", "loop_estimate", "nominal",
-              "loop_paths")
+              "loop_paths", "identification_paths")
 
 
 def check_plant_keys(cfg) -> None:
@@ -867,7 +869,7 @@ TOP_LEVEL = ("seed", "reuse", "cache", "objective", "objective_penalty", "data")
 # keys `build` reads with a default when the group's file does not set them: `+key=value` may add them
 OPTIONAL_KEYS = ("plant.name", "plant.C", "plant.D", "plant.q0", "plant.poles", "plant.reference", "plant.nominal",
                  "plant.identification_feedback", "plant.identification_covariance", "plant.identification_xi",
-                 "plant.identification_estimator", "plant.loop_paths",
+                 "plant.identification_estimator", "plant.loop_paths", "plant.identification_paths",
                  "plant.rate_window", "plant.filter_sees_disturbance",
                  "plant.observer_xi", "plant.initial_xi", "plant.loop_estimate", "plant.designs", "plant.model",
                  "model.name",

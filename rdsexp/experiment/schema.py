@@ -275,8 +275,8 @@ RUN_SUMMARY_KEYS: dict[str, tuple[str, str | None]] = {
     "rate_model": ("a data run: the exact mean-square rate of the loop's gain on the identified moments", "1/step"),
     "design_rates": ("a data run: every design's status, exact rate on the identified moments and its spread over "
                      "the moments' draws (median, 5%, 95%, worst)", "1/step"),
-    "identification_failed_paths": ("a data run: recorded paths whose EnKF estimate failed, left out of the "
-                                    "modeling: count, of how many, reasons", None),
+    "identification_failed_paths": ("identification paths (recorded, or identification.paths simulated) whose EnKF "
+                                    "estimate failed, left out of the modeling: count, of how many, reasons", None),
     "loops_on_model": ("a data run with data.loops: the closed and open loops simulated on the identified model "
                        "(xi ~ N of its moments), labelled 'simulated on the model, not the plant': rate window, "
                        "verdict, rate with its interval, the ideal loop's exact rate on the model", "1/step"),

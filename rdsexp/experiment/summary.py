@@ -91,9 +91,9 @@ def identification_lines(s: dict) -> list[str]:
             if unstable(ident.get("rate_plant")):
                 line += " (it does not stabilize the true plant in mean square)"
         lines.append(line)
-    if s.get("identification_failed_paths"):          # a data run: paths left out of the modeling
+    if s.get("identification_failed_paths"):          # paths left out of the modeling
         f = s["identification_failed_paths"]
-        lines.append(f"  {f['count']} of {f['of']} recorded paths left out of the modeling (their EnKF estimate "
+        lines.append(f"  {f['count']} of {f['of']} {paths_word(s)} paths left out of the modeling (their EnKF estimate "
                      f"failed: " + ", ".join(f"{r} {c}" for r, c in f["reasons"].items()) + ")")
     passes = s.get("identification_passes")
     if passes:
@@ -132,10 +132,15 @@ def model_lines(s: dict) -> list[str]:
     return lines
 
 
+def paths_word(s: dict) -> str:
+    """recorded (a data run's summary, or its modeling_estimator) or identification (a simulated run's)."""
+    return "recorded" if s.get("data") or s.get("recorded") else "identification"
+
+
 def drawn_over(u: dict) -> str:
     """What the modeled moments' draws (`modeling_uncertainty`) are draws of, in words."""
-    return {"paths": "bootstrap draws of the recorded paths", "simulated replicates": "draws of their posterior"}.get(
-        u.get("over"), "block-bootstrap draws of the window")
+    words = {"paths": "bootstrap draws of the identification paths", "simulated replicates": "draws of their posterior"}
+    return words.get(u.get("over"), "block-bootstrap draws of the window")
 
 
 def estimator_lines(estimator: dict) -> list[str]:
@@ -143,13 +148,15 @@ def estimator_lines(estimator: dict) -> list[str]:
     statuses at_prior_edge and weakly_identified name."""
     lines = []
     usable = " and ".join(map(str, estimator["usable"]))
-    recorded = estimator.get("summary_paths")            # a data run: the mean of the recorded paths' summaries
-    read = f"on {recorded} recorded paths (their mean) " if recorded else ""
-    runs = "runs of the model replaying the recorded inputs" if recorded else "runs of the model"
+    several = estimator.get("summary_paths")       # the mean of several identification paths' summaries
+    read = f"on {several} {paths_word(estimator)} paths (their mean) " if several else ""
+    runs = "identification runs of the model" + (" replaying the recorded inputs" if estimator.get("recorded") else "")
+    if estimator.get("replicate_paths"):        # a simulated run's identification.paths, after a first round of one
+        runs = f"replicates of the identification on the model, of 1 path each then {estimator['replicate_paths']}"
     line = (f"    modeled by simulation: the window's xi_{{k|k}} read {read}mean {vec(estimator['summary_mean'])}, "
             f"std {vec(estimator['summary_std'])}")
     if estimator["usable"]:                 # (no replicates where the summary itself is not finite)
-        line += f"; matched over {len(estimator['usable'])} x {estimator['replicates']} identification {runs} " \
+        line += f"; matched over {len(estimator['usable'])} x {estimator['replicates']} {runs} " \
                 f"({usable} identified)"
     if estimator.get("summary_filter", "random_walk") != "random_walk":
         line += f"; the window read from a run whose EnKF draws xi {estimator['summary_filter']}"

@@ -45,6 +45,7 @@ def test_keys_rdsexp_reads_may_be_added(override):
     ("enkf.initial.xi=mean", "enkf.initial.xi: 'mean' is not allowed, expected one of guess, zero"),
     ("closed_loop.floor_paths=-1", "closed_loop.floor_paths: -1 is not allowed"),
     ("identification.xi_model=foo", "identification.xi_model: 'foo' is not allowed, expected one of random_walk, iterated"),
+    ("identification.paths=0", "identification.paths: 0 is not allowed, expected an integer >= 1"),
     ("identification.passes=0", "identification.passes: 0 is not allowed, expected an integer >= 1"),
     ("identification.resamples=-1", "identification.resamples: -1 is not allowed, expected an integer >= 0"),
     ("identification.block=0", "identification.block: 0 is not allowed, expected an integer >= 1"),

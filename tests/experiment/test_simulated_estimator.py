@@ -58,8 +58,11 @@ def test_the_stated_interval_holds_the_law(tmp_path):
 
 
 def test_the_same_numbers_whatever_the_chunks(tmp_path, monkeypatch):
-    exp = experiment(tmp_path, "seed=3")
+    """Replicates of several identification paths each (identification.paths) give the same bytes in chunks of one
+    path, where a replicate's paths fall in different chunks."""
+    exp = experiment(tmp_path, "seed=3", "identification.paths=3", "identification.replicates=60")
     whole, whole_draws = modeled(exp)
+    assert whole.estimator["replicate_paths"] == 3
     monkeypatch.setattr(identification, "MEMORY_BUDGET", 1)          # one replicate path per chunk
     parts, parts_draws = modeled(exp)
     np.testing.assert_array_equal(whole.moments.mean, parts.moments.mean)
@@ -139,28 +142,31 @@ SCALAR = {"name": "scalar", "A": [[[0.0]], [[1.0]]], "B": [[[1.0]], [[0.0]]], "C
 
 
 @pytest.mark.slow
-def test_the_error_shrinks_with_data_on_a_fully_observed_scalar_system(tmp_path):
-    """x+ = xi_k x + u_k, y = x, xi_k ~ N(0.5, 0.2^2): four times the identification window roughly halves the
-    modeled mean's and std's RMS error over seeds (asserted: by a factor above 1.4, where sqrt(4) = 2 is expected and
-    12 seeds estimate each RMS within about 20%), and the stated interval holds the truth at about its level at both."""
+def test_the_error_shrinks_with_paths_on_a_fully_observed_scalar_system(tmp_path):
+    """x+ = xi_k x + u_k, y = x, xi_k ~ N(0.5, 0.2^2): four times the identification paths (identification.paths,
+    each replicate run as many times) roughly halves the modeled mean's and std's RMS error over seeds (asserted: by
+    a factor above 1.4, where sqrt(4) = 2 is expected and 12 seeds estimate each RMS within about 20%), and the
+    stated interval holds the truth at about its level at both."""
     (tmp_path / "plant").mkdir()
     (tmp_path / "plant" / "scalar.yaml").write_text(yaml.safe_dump(SCALAR))
     rms, hits = {}, 0
-    for horizon in (60, 240):
+    for paths in (1, 4):
         errors = []
         for seed in range(12):
             with initialize_config_module(config_module="rdsexp.conf", version_base="1.3"):
                 exp = build(compose("config", overrides=[
                     f"hydra.searchpath=[file://{tmp_path}]", "plant=scalar", "model=plant", *SMALL, "tracking=off",
-                    f"identification.horizon={horizon}", "identification.K0=10", f"identification.K1={horizon - 10}",
-                    "identification.replicates=200", f"seed={seed}"]))
+                    "identification.horizon=60", "identification.K0=10", "identification.K1=50",
+                    f"identification.paths={paths}", "identification.replicates=200", f"seed={seed}"]))
             identified, posterior = modeled(exp)
+            assert identified.trajectories.failed_at.size == paths
+            assert identified.estimator.get("replicate_paths", 1) == paths
             sd = posterior.summary()["modeling_uncertainty"]
             error = np.array([identified.moments.mean[0] - 0.5, np.sqrt(identified.moments.cov[0, 0]) - 0.2])
             errors.append(error)
             hits += np.sum(np.abs(error) <= 1.96 * np.array([sd["xi_mean_sd"][0], sd["xi_std_sd"][0]]))
-        rms[horizon] = np.sqrt(np.mean(np.square(errors), axis=0))
-    assert np.all(rms[60] / rms[240] > 1.4), rms
+        rms[paths] = np.sqrt(np.mean(np.square(errors), axis=0))
+    assert np.all(rms[1] / rms[4] > 1.4), rms
     assert hits >= binom.ppf(0.0015, 48, 0.95), f"{hits} of 48 intervals hold the truth"
 
 

@@ -1,5 +1,5 @@
 """The run summary's words about the loop: its controller and why its verdict differs from the gain's rate."""
-from rdsexp.experiment.summary import gap, held_gains, initial_gain, lost_paths
+from rdsexp.experiment.summary import estimator_lines, gap, held_gains, identification_lines, initial_gain, lost_paths
 
 
 def summary(estimate, verdict="unstable", rate=0.6, reason="the loop grows"):
@@ -59,3 +59,18 @@ def test_the_gains_lost_paths_held_say_which_loop_grew():
     assert line(0.0, 0.92891) == ("every gain the lost paths held is mean-square stable on the true plant (exact rate up to "
                                   "0.9289): what grew is the loop through the EnKF's estimate (or the switching "
                                   "between gains), not the ideal loop of any one gain")
+
+
+def test_identification_paths_are_named_recorded_in_a_data_run_and_simulated_otherwise():
+    left_out = {"count": 1, "of": 4, "reasons": {"diverged": 1}}
+    assert "1 of 4 identification paths left out of the modeling (their EnKF estimate failed: diverged 1)" in \
+        identification_lines({"identification_failed_paths": left_out})[0]
+    assert "1 of 4 recorded paths left out" in identification_lines({"identification_failed_paths": left_out,
+                                                                      "data": {"name": "d"}})[0]
+    estimator = {"usable": [400, 398], "replicates": 400, "summary_mean": [0.7], "summary_std": [0.3],
+                 "summary_paths": 4, "replicate_paths": 4}
+    line = estimator_lines(estimator)[0]
+    assert "read on 4 identification paths (their mean)" in line
+    assert "matched over 2 x 400 replicates of the identification on the model, of 1 path each then 4" in line
+    line = estimator_lines(estimator | {"replicate_paths": None, "recorded": True, "summary_paths": 60})[0]
+    assert "read on 60 recorded paths" in line and "identification runs of the model replaying the recorded" in line

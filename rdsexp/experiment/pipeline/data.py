@@ -16,9 +16,9 @@ from ...numerics.simulation import bytes_per_path, path_generators
 from ...numerics.systems import AffineRandomSystem, MomentModel
 from ..config import Experiment
 from ..montecarlo import MEMORY_BUDGET, Simulation
-from .identification import two_point_ends, usable_paths
+from .identification import two_point_ends
 from .loops import Sample, loop_observer, run_loops
-from .results import DesignSet, Identified, Validation
+from .results import DesignSet, Validation
 from .tables import path_table
 
 VALIDATION_KEY = (4,)          # SeedSequence(seed, spawn_key=(4,)): the held-out paths' EnKF (stages use 0-2)
@@ -122,17 +122,6 @@ def score_holdout(exp: Experiment, moments: MomentModel, k_from: int) -> tuple[n
         sums[-1] += finite.sum(axis=(0, 1))
         failed += int(np.sum(tr.failed_at >= 0))
     return sums, failed, path_coverage
-
-
-def failed_paths(exp: Experiment, identified: Identified) -> dict | None:
-    """The recorded paths left out of the modeling (`identification.identified_moments`): how many and why;
-    None where every path was used or there is no model."""
-    ident = identified.trajectories
-    bad = ~usable_paths(exp, ident)
-    if not bad.any() or identified.moments is None:
-        return None
-    reasons = pd.Series(ident.failure[bad]).replace("", "the filtered xi is not finite").value_counts()
-    return {"count": int(bad.sum()), "of": int(bad.size), "reasons": {str(r): int(c) for r, c in reasons.items()}}
 
 
 def model_system(exp: Experiment, dist: MomentModel) -> AffineRandomSystem:

@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+import pandas as pd
 
 from ...numerics import indirect
 from ...numerics.enkf import xi_ends
@@ -31,9 +32,11 @@ from .stage import Stages
 
 UNCERTAINTY_STREAM = 3   # SeedSequence([seed, 3]): the modeling window's bootstrap (stages use spawn keys 0-2)
 REPLICATE_STREAM = 4     # [seed, 4, round]: the simulated estimator's replicates and their laws (their own streams)
-POSTERIOR_ROUNDS = 2, 4  # the simulated estimator's rounds with a posterior for one identification path, and for
-                        # several recorded ones, whose mean pins the law down far inside the box of two rounds
-                        # (a user's simulator, 80 paths: median errors 0.09 / 0.18 with 2 rounds, 0.06 / 0.11 with 4)
+POSTERIOR_ROUNDS = 2, 4  # the simulated estimator's rounds with a posterior where replicates run as many paths as
+                        # the identification (after a first round of one path each), and where a data run's
+                        # replicates of one path are averaged to its recorded paths' mean, which pins the law down
+                        # far inside the box of two rounds (a user's simulator, 80 paths: median errors 0.09 / 0.18
+                        # with 2 rounds, 0.06 / 0.11 with 4)
 NOISE_BOX = (-6.0, 1.0)  # a data run's prior on log10 of the noise scale (`Replay.noisy`): 1e-6 to 10 times the
                         # noise the EnKF assumes
 MISFIT = 4.0           # the data's summary this many sds off the nearest replicates' (`indirect.misfit`): status misfit
@@ -47,22 +50,24 @@ def identify_and_model(exp: Experiment, stages: Stages, seed) -> Identified:
     # the identification input is added on top of the feedback; the EnKF is told the applied input
     total = exp.identification.covariance == "total"
     identify = lambda F, enkf=exp.filter.enkf: Simulation.of(
-        exp, enkf, F, seed, d=exp.identification.input, paths=1, filter_sees_d=True).run(keep_xi_cov=total)
+        exp, enkf, F, seed, d=exp.identification.input, paths=exp.identification.paths,
+        filter_sees_d=True).run(keep_xi_cov=total)
     ident = identify(F_id)
-    if info.get("used") == "open_loop" and ident.failure[0] in ("diverged", "filter_diverged"):
+    if info.get("used") == "open_loop" and np.isin(ident.failure, ("diverged", "filter_diverged")).any():
         # auto chose the open loop on the guess, which knows no spread of xi (the spread only raises
         # the mean-square rate): the plant grew until it, or first the EnKF's estimate of it, diverged
         # (random plants: 3 of 200 open-loop mean-square unstable plants stable at their mean),
         # so identify again under nominal feedback
         F_id, retry = identification_feedback(exp, force_nominal=True)
         if F_id is not None:
-            info = retry | {"open_loop_diverged_at": int(ident.failed_at[0]),
-                            "open_loop_failure": str(ident.failure[0])}
+            first = int(np.flatnonzero(np.isin(ident.failure, ("diverged", "filter_diverged")))[0])
+            info = retry | {"open_loop_diverged_at": int(ident.failed_at[first]),
+                            "open_loop_failure": str(ident.failure[first])}
             ident = identify(F_id)
     if exp.identification.estimator == "simulated" and exp.model.p:
         q0 = exp.q0 if exp.q0.shape == (exp.model.n,) else np.zeros(exp.model.n)
         return simulated_moments(exp, stages, ident, lambda enkf: identify(F_id, enkf),
-                                 Replay(exp.identification.input, F_id, q0), info)
+                                 Replay(exp.identification.input, F_id, q0, paths=exp.identification.paths), info)
     return model_moments(exp, stages, ident, lambda enkf: identify(F_id, enkf), info)
 
 
@@ -72,12 +77,15 @@ class Replay:
     recorded path (K+1, P_rec, m), replicate r replaying recorded path r mod P_rec; the feedback F (m, n) (None:
     the inputs as they are); the plant's initial state q0 (n,). noisy (a data run): the replicates' plant carries
     enkf.Q's x block and enkf.R as process and output noise, times a scale theta's last component estimates
-    (log10, in NOISE_BOX): recorded outputs are noisy by an amount nobody states, and the summary depends on it."""
+    (log10, in NOISE_BOX): recorded outputs are noisy by an amount nobody states, and the summary depends on it.
+    paths: the identification runs of each replicate, every one with its own draws of the replicate's law, whose
+    summaries it averages as the observed one averages those of its identification.paths runs."""
 
     d: np.ndarray
     F: np.ndarray | None
     q0: np.ndarray
     noisy: bool = False
+    paths: int = 1
 
 
 def model_recorded(exp: Experiment, stages: Stages, ident: Trajectories, seed) -> Identified:
@@ -96,7 +104,7 @@ def model_recorded(exp: Experiment, stages: Stages, ident: Trajectories, seed) -
 def simulated_moments(exp: Experiment, stages: Stages, ident: Trajectories, identify, replay: Replay,
                       feedback: dict) -> Identified:
     """The modeling stage of identification.estimator = simulated (`numerics.indirect`): the paper's estimator on
-    the identification run is the summary (several recorded paths: the mean of theirs); rounds of
+    the identification run is the summary (several paths: the mean of theirs); rounds of
     identification.replicates runs of the model as `replay` says, each path drawing xi from its own law, give the
     posterior of the law's mean and stds (and of a data run's noise scale): the first from the prior box, each
     next one from the box the previous posterior spans. A replicate whose identification failed, as the observed
@@ -135,8 +143,12 @@ def simulated_moments(exp: Experiment, stages: Stages, ident: Trajectories, iden
             prior = tuple(np.append(edge, bound) for edge, bound in zip(prior, NOISE_BOX))
         if len(per_path) > 1:
             info["summary_paths"] = len(per_path)
-        rounds = POSTERIOR_ROUNDS[len(per_path) > 1] + 1
-        with stages.progress("modeling", rounds * settings.replicates) as progress:    # a bar on a terminal
+        if replay.noisy:
+            info["recorded"] = True
+        if replay.paths > 1:
+            info["replicate_paths"] = replay.paths
+        rounds = POSTERIOR_ROUNDS[len(per_path) > replay.paths]     # (the first of one path each)
+        with stages.progress("modeling", settings.replicates * (1 + (rounds - 1) * replay.paths)) as progress:
             posterior, info["usable"], z = posterior_rounds(exp, enkf, replay, s_obs, len(per_path), prior,
                                                             (ends, low, high), progress)
         if posterior is None:       # the window's moments, said so
@@ -168,18 +180,23 @@ def posterior_rounds(exp: Experiment, enkf, replay: Replay, s_obs: np.ndarray, p
     where no round identified enough replicates to regress on (10 per regressor), each round's count of
     identified replicates, and where s_obs lies among the last round's replicates (`indirect.misfit`). Each round
     after the first draws from the box the previous posterior spans (POSTERIOR_ROUNDS of them; one more where the
-    first round's identifications mostly failed). s_obs: the mean of `paths` paths' summaries
-    (`indirect.averaged`). `laws`: (ends, low, high). progress(replicates): called as each chunk is done."""
+    first round's identifications mostly failed). s_obs: the mean of `paths` paths' summaries. A replicate of
+    fewer paths than that (a data run's, of one) is made one of `paths` by `indirect.averaged`. Replicates of
+    replay.paths > 1 paths (a simulated run's identification.paths) run that many only once a first posterior
+    has placed the box: the rounds before run one path each and are averaged, which places the box well enough
+    (four paths on the calibration plants: the same errors and coverage as two rounds of every path after it, in
+    two thirds of the time). `laws`: (ends, low, high). progress(paths): called as each chunk is done."""
     settings = exp.identification
     posterior, rounds, usable, z = None, 0, [], None
-    wanted = POSTERIOR_ROUNDS[paths > 1]
+    wanted = POSTERIOR_ROUNDS[paths > replay.paths]
     for round_ in range(1, wanted + 2):
         theta = indirect.uniform_draws(*box, settings.replicates, [exp.seed, REPLICATE_STREAM, round_])
-        s = replicate_summaries(exp, enkf, replay, theta, *laws, round_, progress)
+        runs = replay if posterior is not None else dataclasses.replace(replay, paths=1)
+        s = replicate_summaries(exp, enkf, runs, theta, *laws, round_, progress)
         ok = np.all(np.isfinite(s), axis=1)
         usable.append(int(ok.sum()))
         if ok.sum() >= 10 * (theta.shape[1] + 1):
-            if paths > 1:
+            if paths > runs.paths:          # replicates of one run against the mean of several
                 s = indirect.averaged(theta, s, paths)
             posterior = indirect.adjusted_posterior(theta, s, s_obs, *box, settings.accept)
             z = indirect.misfit(s, s_obs, settings.accept)
@@ -235,12 +252,14 @@ def two_point_ends(exp: Experiment) -> tuple[np.ndarray, np.ndarray, np.ndarray]
 
 def replicate_summaries(exp: Experiment, enkf, replay: Replay, theta: np.ndarray, ends, low, high,
                         round_: int, progress=None) -> np.ndarray:
-    """(R, S): the `summary_statistics` of R identification runs of the model as `replay` says, path r drawing xi
-    from theta[r] (`indirect.path_laws`; a noisy replay's last column is its log10 noise scale) with `enkf`; NaN
-    where a run failed. In chunks of paths within the Monte Carlo's memory budget (each path its own streams);
-    progress(replicates) after each chunk."""
+    """(R, S): the `summary_statistics` of R replicates of the identification of the model as `replay` says,
+    replicate r's replay.paths runs drawing xi from theta[r] (`indirect.path_laws`; a noisy replay's last column is
+    its log10 noise scale) with `enkf`, averaged over the runs that did not fail; NaN where every run failed. In
+    chunks of paths within the Monte Carlo's memory budget (each path its own streams); progress(paths) after each
+    chunk."""
     model, settings = exp.model, exp.identification
     total = settings.covariance == "total"
+    theta = np.repeat(theta, replay.paths, axis=0)          # replicate r: paths r P .. r P + P - 1
     R, n = len(theta), model.n
     d = replay.d if replay.d.ndim == 2 else replay.d[:, np.arange(R) % replay.d.shape[1]]
     sim = Simulation.of(exp, enkf, replay.F, np.random.SeedSequence([exp.seed, REPLICATE_STREAM, round_]),
@@ -262,7 +281,10 @@ def replicate_summaries(exp: Experiment, enkf, replay: Replay, theta: np.ndarray
         out.append(summary_statistics(exp, chunk.run(first, len(laws[part]), keep_xi_cov=total, plant_noise=noise)))
         if progress is not None:
             progress(len(laws[part]))
-    return np.concatenate(out)
+    s = np.concatenate(out).reshape(R // replay.paths, replay.paths, -1)
+    finite = np.all(np.isfinite(s), axis=2, keepdims=True)
+    with np.errstate(invalid="ignore"):
+        return np.where(finite, s, 0.0).sum(axis=1) / np.where(finite.any(axis=1), finite.sum(axis=1), np.nan)
 
 
 def summary_names(model) -> list[str]:
@@ -308,9 +330,9 @@ def model_moments(exp: Experiment, stages: Stages, ident: Trajectories, identify
 
 def identified_moments(exp: Experiment, ident: Trajectories) -> tuple[MomentModel | None, str]:
     """The moments modeled from an identification run's xi_{k|k} over the window K0..K0+K1
-    (identification.covariance), or (None, why not). Several recorded paths: the paths whose EnKF
-    estimate failed are left out (`usable_paths`; the summary says how many), unless every one failed."""
-    xi = ident.xi(ident.psi_filt_mean)                  # (K+1, P, p): one path simulated, or the recorded paths
+    (identification.covariance), or (None, why not). Several paths (identification.paths, or recorded): the paths
+    whose EnKF estimate failed are left out (`usable_paths`; the summary says how many), unless every one failed."""
+    xi = ident.xi(ident.psi_filt_mean)                  # (K+1, P, p): the simulated or recorded paths
     K0, K1 = exp.identification.K0, exp.identification.K1
     ok = usable_paths(exp, ident)
     if xi.shape[1] > 1 and ok.any() and not ok.all():
@@ -332,6 +354,17 @@ def usable_paths(exp: Experiment, ident: Trajectories) -> np.ndarray:
     K0, K1 = exp.identification.K0, exp.identification.K1
     xi = ident.xi(ident.psi_filt_mean)[K0:K0 + K1 + 1]
     return (ident.failed_at < 0) & np.all(np.isfinite(xi), axis=(0, 2))
+
+
+def left_out_paths(exp: Experiment, identified: Identified) -> dict | None:
+    """The identification paths (simulated or recorded) left out of the modeling (`identified_moments`): how
+    many, of how many, and why; None where every path was used or there is no model."""
+    ident = identified.trajectories
+    bad = ~usable_paths(exp, ident)
+    if not bad.any() or identified.moments is None:
+        return None
+    reasons = pd.Series(ident.failure[bad]).replace("", "the filtered xi is not finite").value_counts()
+    return {"count": int(bad.sum()), "of": int(bad.size), "reasons": {str(r): int(c) for r, c in reasons.items()}}
 
 
 def select_paths(tr: Trajectories, keep: np.ndarray) -> Trajectories:
@@ -375,7 +408,7 @@ def iterate_identification(exp: Experiment, identify, ident, dist, failure: str)
 def moment_uncertainty(exp: Experiment, identified: Identified) -> Uncertainty | None:
     """The modeled moments' uncertainty: identification.resamples bootstrap draws of the modeling window of the
     run the moments come from (`modeling.moment_draws`: moving blocks of one path's window; `path_moment_draws`:
-    over the recorded paths), seeded by the run's seed. None without resamples or without a model."""
+    over the identification paths), seeded by the run's seed. None without resamples or without a model."""
     settings, ident = exp.identification, identified.trajectories
     if identified.posterior is not None:
         return identified.posterior
@@ -383,10 +416,10 @@ def moment_uncertainty(exp: Experiment, identified: Identified) -> Uncertainty |
         return None
     total = settings.covariance == "total"
     ok = usable_paths(exp, ident)
-    if ident.failed_at.size > 1 and ok.any() and not ok.all():        # recorded paths whose estimate failed
+    if ident.failed_at.size > 1 and ok.any() and not ok.all():        # paths whose estimate failed
         ident = select_paths(ident, ok)
     xi, xi_cov = ident.xi(ident.psi_filt_mean), ident.xi_filt_cov if total else None
-    if xi.shape[1] > 1:             # several (recorded) paths: a bootstrap over the paths
+    if xi.shape[1] > 1:             # several paths: a bootstrap over the paths
         mean, cov = path_moment_draws(xi, settings.K0, settings.K1, xi_cov, resamples=settings.resamples,
                                       seed=[exp.seed, UNCERTAINTY_STREAM])
     else:

@@ -11,6 +11,7 @@ from ...numerics.distributions import expected_crps
 from ...numerics.enkf import truth_map
 from ..config import Experiment
 from .design import safe_rate
+from .identification import left_out_paths
 from .results import DesignSet, Identified, JudgedLoops, OnlineResult, Uncertainty, Validation
 
 CRPS_SEED, CRPS_DRAWS = 20240, 20_000   # the plant's xi drawn for the summary's xi_crps (Monte Carlo error < 1%)
@@ -30,6 +31,8 @@ def stages_summary(exp: Experiment, identified: Identified, uncertainty: Uncerta
         s |= uncertainty.summary()
     if sensitivity is not None:
         s["noise_sensitivity"] = sensitivity
+    if (left_out := left_out_paths(exp, identified)) is not None:
+        s["identification_failed_paths"] = left_out
     dist, chosen = identified.moments, designs.chosen
     if dist is not None:
         s.update(nbar=int(exp.model.Gbar(dist).shape[0]), xi_mean=dist.mean.tolist(),
@@ -143,7 +146,7 @@ def loop_through_outputs(exp: Experiment, F: np.ndarray | None, s: dict) -> dict
 
 
 def data_summary(exp: Experiment, identified: Identified, uncertainty: Uncertainty | None, designs: DesignSet,
-                 spread: dict, validation: Validation | None, on_model: dict | None, failed_paths: dict | None,
+                 spread: dict, validation: Validation | None, on_model: dict | None,
                  sensitivity: dict | None = None) -> dict:
     """A data run's key numbers: the data file, the modeled moments, and each design's exact rate on the
     identified model with its spread over the moments' draws. Nothing here is a number on a true plant."""
@@ -164,6 +167,4 @@ def data_summary(exp: Experiment, identified: Identified, uncertainty: Uncertain
         s["validation"] = validation.summary
     if on_model is not None:
         s["loops_on_model"] = on_model
-    if failed_paths is not None:
-        s["identification_failed_paths"] = failed_paths
     return s

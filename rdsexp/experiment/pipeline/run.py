@@ -14,7 +14,7 @@ import pandas as pd
 
 from ..config import Experiment
 from ..montecarlo import LoopSummary
-from .data import failed_paths, loops_on_model, validate_holdout
+from .data import loops_on_model, validate_holdout
 from .design import against_optimum, design_set, design_spread
 from .identification import identify_and_model, identify_recorded, model_recorded, moment_uncertainty, noise_sensitivity
 from .loops import METRIC_COLUMNS, Sample, loop_observer, root_seed, run_loops
@@ -165,8 +165,7 @@ def run_on_data(exp: Experiment, sink=None, cache=None) -> Outcome:
         sink.append("trajectories", trajectory_table("closed_loop", None, exp=exp))
     if isinstance(sink, MemorySink):
         tables |= sink.tables()
-    summary = data_summary(exp, identified, uncertainty, designs, spread, validation, on_model,
-                           failed_paths(exp, identified), sensitivity)
+    summary = data_summary(exp, identified, uncertainty, designs, spread, validation, on_model, sensitivity)
     return Outcome(tables=tables, summary=summary, timings=stages.timings,
                    recorded=pd.concat([tables["identification"], *sample.rows], ignore_index=True),
                    recorded_members=members_table("identification", identified.trajectories) if keep else None,
