@@ -306,11 +306,13 @@ def write_summary(rec: rr.RecordingStream, tables: dict[str, pd.DataFrame], traj
 
 
 def _xi(rec, tables: dict, window, xi_true) -> None:
-    """xi_{k|k} of the identification run, the true and modeled means, the window's histograms."""
+    """xi_{k|k} of the identification's first path, the true and modeled means, and the histograms of xi_{k|k}
+    over the window of every identification path (what the modeling reads)."""
     ident, model = tables["identification"], tables["model"]
     if not len(ident) or not any(c.startswith("xi_filt_mean[") for c in ident.columns):
         return                            # no identification run, or no xi to estimate (p = 0)
     ks, xi = _values(ident[ident["path"] == 0], "xi_filt_mean")
+    _, every = _values(ident, "xi_filt_mean")                             # (K+1, P, p)
     modeled = model[model["quantity"] == "mean"].sort_values("row")["value"].to_numpy()
     k0, k1 = window if window is not None else (int(ks[0]), int(ks[-1]))
     inside = (ks >= k0) & (ks <= k1)
@@ -322,7 +324,7 @@ def _xi(rec, tables: dict, window, xi_true) -> None:
                   f"modeled mean[{i}] (k = {k0}..{k1})", color, 3.0)
         if xi_true is not None and i < len(xi_true) and np.isfinite(xi_true[i]):
             _line(rec, f"/summary/xi/xi{i}/true_mean", ks, np.full(len(ks), xi_true[i]), f"true mean[{i}]", GREY, 1.0)
-        samples = xi[inside, 0, i]
+        samples = every[inside, :, i].ravel()
         samples = samples[np.isfinite(samples)]
         if len(samples):
             counts, edges = np.histogram(samples, bins=min(15, max(len(samples) // 4, 1)))
