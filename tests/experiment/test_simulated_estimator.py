@@ -87,25 +87,25 @@ def test_the_paper_plant_keeps_the_paper_estimator(tmp_path):
     assert experiment(tmp_path).identification.estimator == "simulated"
 
 
-def data_experiment(tmp_path, seed, *extra, model=None):
+def data_experiment(tmp_path, seed, *extra, model=None, paths=40, steps=101):
     """A data run's Experiment on a new data set of `experiments/user_data.py` (a simulator rdsexp does not know):
-    40 paths, noise sd 0.01 (the EnKF assumes 0.1 unless told), the model file's structure (or `model`)."""
+    `paths` x `steps`, noise sd 0.01 (the EnKF assumes 0.1 unless told), the model file's structure (or `model`)."""
     from tests.conftest import REPO
     sys.path.insert(0, str(REPO / "experiments"))
     import user_data
     name = user_data.write_config(tmp_path)
     if model is not None:
         (tmp_path / "model" / f"{name}.yaml").write_text(yaml.safe_dump(model))
-    data = user_data.write(tmp_path / f"d{seed}.csv", seed, paths=40)
+    data = user_data.write(tmp_path / f"d{seed}.csv", seed, paths=paths, steps=steps)
     with initialize_config_module(config_module="rdsexp.conf", version_base="1.3"):
         return build(compose("config", overrides=[
             f"hydra.searchpath=[file://{tmp_path}]", f"data.file={data}", f"model={name}", "plant=recorded",
             "tracking=off", "identification.replicates=200", f"seed={seed}", *extra])), user_data
 
 
-def data_run(tmp_path, seed, *extra):
+def data_run(tmp_path, seed, *extra, **data):
     from rdsexp.experiment.pipeline.run import run_on_data
-    exp, user_data = data_experiment(tmp_path, seed, *extra)
+    exp, user_data = data_experiment(tmp_path, seed, *extra, **data)
     return exp, run_on_data(exp).summary, user_data
 
 
@@ -130,9 +130,11 @@ def test_a_data_run_of_a_users_own_simulator_holds_the_law_and_estimates_its_noi
 
 
 def test_a_data_runs_replicates_are_the_same_whatever_the_chunks(tmp_path, monkeypatch):
-    _, whole, _ = data_run(tmp_path, 1, "identification.replicates=60", "identification.accept=1")
+    small = ("identification.replicates=60", "identification.accept=1", "identification.horizon=50",
+             "identification.K0=10", "identification.K1=40")
+    _, whole, _ = data_run(tmp_path, 1, *small, paths=12, steps=51)
     monkeypatch.setattr(identification, "MEMORY_BUDGET", 1)          # one replicate path per chunk
-    _, parts, _ = data_run(tmp_path, 1, "identification.replicates=60", "identification.accept=1")
+    _, parts, _ = data_run(tmp_path, 1, *small, paths=12, steps=51)
     assert whole["xi_mean"] == parts["xi_mean"] and whole["xi_std"] == parts["xi_std"]
     assert whole["modeling_estimator"]["noise_scale"] == parts["modeling_estimator"]["noise_scale"]
 
