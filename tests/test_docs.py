@@ -42,7 +42,8 @@ def nav_pages(node) -> list[str]:
 
 
 NAV = yaml.load((REPO / "mkdocs.yml").read_text(), Loader=yaml.BaseLoader)["nav"]     # !! tags as text
-# the guides' examples run in tests/test_docs_guides.py: two files, so that --dist loadfile shares them out
+# the guides' examples run in tests/test_docs_guides.py and tests/test_docs_guides_second.py, every other guide
+# each: three files, so that --dist loadfile shares the site's slowest tests out rather than ending on one file
 GUIDES = {REPO / "docs" / p for section in NAV if isinstance(section, dict) and "Guides" in section
           for p in nav_pages(section["Guides"])}
 
@@ -88,8 +89,14 @@ def test_examples_run(page, tmp_path):
     run_examples(page, tmp_path)
 
 
-def test_the_guides_run_in_their_own_file():
+def guides_half(half: int) -> list:
+    """Every other guide with examples to run (half 0 or 1): one of the two files of guides' tests."""
+    return [p for p in RUN if p in GUIDES][half::2]
+
+
+def test_the_guides_run_in_their_own_files():
     assert GUIDES and GUIDES <= set(PAGES)
+    assert set(guides_half(0)) | set(guides_half(1)) == GUIDES & set(RUN) and guides_half(0) and guides_half(1)
 
 
 def test_the_home_page_is_the_readmes_tour():

@@ -1,9 +1,10 @@
-"""The guides' examples (the site's Guides section), in a file of their own beside tests/test_docs.py so that
-`--dist loadfile` runs the two halves of the site's examples in two workers."""
+"""Half of the guides' examples (the site's Guides section; the other half: tests/test_docs_guides_second.py), in
+files of their own beside tests/test_docs.py so that `--dist loadfile` shares the site's examples out over the
+workers."""
 import pytest
-from test_docs import GUIDES, REPO, RUN, run_examples
+from test_docs import REPO, guides_half, run_examples
 
-PAGES = [p for p in RUN if p in GUIDES]
+PAGES = guides_half(0)
 
 
 @pytest.mark.parametrize("page", PAGES, ids=[str(p.relative_to(REPO)) for p in PAGES])

@@ -237,8 +237,8 @@ RUN_SUMMARY_KEYS: dict[str, tuple[str, str | None]] = {
     "rate_plant": ("the exact mean-square rate of the loop's gain on the true plant (state feedback)", "1/step"),
     "designs": ("status of every design on the identified moments, by method", None),
     "gain_fallback": ("the method the loop used instead of the one asked for, which and why", None),
-    "gain_choice": ("the designed gain against the identification's gain over the moments' draws: worst and median "
-                    "exact rates of each, and which the loop kept", "1/step"),
+    "gain_choice": ("the designed gain against the identification's gain over the moments' draws: the exact rate's "
+                    "95% quantile (which decides), median and worst of each, and which the loop kept", "1/step"),
     "rate_window": ("[k_from, k_to] of the rate window", "step"),
     "rate_window_source": ("where the window came from: config, auto, or none", None),
     "noise_floor": ("RMS of the loop started at rest (the EnKF's noise floor; NaN: not measured, inf: diverged)",

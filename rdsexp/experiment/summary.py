@@ -195,9 +195,10 @@ def gain_lines(s: dict) -> list[str]:
     if s.get("gain_choice"):           # the designed gain against the identification's, over the moments' draws
         c = s["gain_choice"]
         lines.append(f"  gain choice: {'kept the identification gain' if c['kept'] == 'identification' else 'designed'}"
-                     f"; worst exact rate over {c['draws']} draws of the modeled moments: designed "
-                     f"{c['designed_worst']:.4f}, identification's {c['identification_worst']:.4f} (medians "
-                     f"{c['designed_median']:.4f}, {c['identification_median']:.4f})")
+                     f"; exact rate's {c['quantile']:.0%} quantile over {c['draws']} draws of the modeled moments: "
+                     f"designed {c['designed_quantile']:.4f}, identification's {c['identification_quantile']:.4f} "
+                     f"(medians {c['designed_median']:.4f}, {c['identification_median']:.4f}; worst "
+                     f"{c['designed_worst']:.4f}, {c['identification_worst']:.4f})")
     if s.get("modeling_uncertainty"):
         u = s["modeling_uncertainty"]
         lines.append(f"    modeled moments' spread over {u['resamples']} {drawn_over(u)}: xi mean "

@@ -22,6 +22,7 @@ from .stage import Stages
 
 log = logging.getLogger("rdsexp")
 LMI_METHODS = ("proposed", "nominal_lmi", "robust_box")      # designs that solve semidefinite programs
+RISK = 0.95     # the quantile of a gain's exact rate over the moments' draws that the gain choice reads
 
 
 def design_set(exp: Experiment, stages: Stages, dist: MomentModel | None, uncertainty: Uncertainty | None,
@@ -29,7 +30,7 @@ def design_set(exp: Experiment, stages: Stages, dist: MomentModel | None, uncert
     """Every design of a run (simulated or data): the loop's method and gain.designs on the identified moments
     and, when the config gives them, on the moments a paper reports; gain.source fixed: the given F with its
     exact rate; gain.fallback where the loop's method is not_applicable; and the identification's gain (run
-    under `feedback["F"]`) where it is safer at its worst over the moments' draws (`safer_gain`)."""
+    under `feedback["F"]`) where the designed gain risks instability over the moments' draws (`safer_gain`)."""
     designs = {}
     for source, moments in (("identified", dist), ("reported", exp.reported)):
         for method in exp.design.methods if moments is not None else ():
@@ -115,18 +116,21 @@ def safe_synthesize(model, moments, method: str, options: dict, lmi_max_n: int |
 def safer_gain(exp: Experiment, dist: MomentModel, chosen: SynthesisResult, draws: tuple[np.ndarray, np.ndarray],
                F_id: np.ndarray) -> tuple[dict, SynthesisResult | None]:
     """The identification ran under a feedback gain F_id (m, n): the exact rates of the designed gain and of
-    F_id at every draw of the modeled moments (means (B, p), covariances (B, p, p)), at their worst over the
-    draws. The designed gain is the optimum at the point estimate only; where it is worse at its worst than
-    the gain the plant was run with, the loop keeps F_id. Returns (the comparison and the choice, for the
-    summary's gain_choice; F_id as a SynthesisResult with status `kept`, or None: the designed gain stays)."""
+    F_id at every draw of the modeled moments (means (B, p), covariances (B, p, p)). The designed gain is the
+    optimum of its objective at the point estimate; it stays unless it risks instability over the moments'
+    uncertainty: where its rate's RISK quantile over the draws is at or above 1 (it fails to stabilize more than
+    1 - RISK of the laws the data allow) and F_id's is lower, the loop keeps F_id. A rate that cannot be computed
+    counts as unstable. Returns (the comparison and the choice, for the summary's gain_choice; F_id as a
+    SynthesisResult with status `kept`, or None: the designed gain stays)."""
     Abar, Bbar = moment_factors(exp.model, *draws)
     with np.errstate(all="ignore"):
-        designed = rates(Abar, Bbar, np.broadcast_to(chosen.F, (len(Abar),) + chosen.F.shape))
-        held = rates(Abar, Bbar, np.broadcast_to(F_id, (len(Abar),) + F_id.shape))
-    worst_designed, worst_held = float(np.max(designed)), float(np.max(held))
-    keep = worst_held < worst_designed
-    choice = {"kept": "identification" if keep else "designed", "draws": int(len(Abar)),
-              "designed_worst": worst_designed, "identification_worst": worst_held,
+        designed, held = (np.nan_to_num(rates(Abar, Bbar, np.broadcast_to(F, (len(Abar),) + F.shape)), nan=np.inf)
+                          for F in (chosen.F, F_id))
+    risk_designed, risk_held = (float(np.quantile(r, RISK, method="inverted_cdf")) for r in (designed, held))
+    keep = risk_designed >= 1 and risk_held < risk_designed
+    choice = {"kept": "identification" if keep else "designed", "draws": int(len(Abar)), "quantile": RISK,
+              "designed_quantile": risk_designed, "identification_quantile": risk_held,
+              "designed_worst": float(np.max(designed)), "identification_worst": float(np.max(held)),
               "designed_median": float(np.median(designed)), "identification_median": float(np.median(held))}
     if not keep:
         return choice, None

@@ -23,8 +23,9 @@ STATUSES = {
     "not_applicable": "the method does not apply to this system or config (pole placement without poles, or an LMI "
                       "design on more states than gain.lmi_max_n)",
     "fixed": "a given gain (gain.source=fixed): no design, its exact rate",
-    "kept": "the identification run's own gain, kept: the designed gain was worse at its worst over the modeled "
-            "moments' bootstrap draws (gain_choice); its exact rate on the identified moments",
+    "kept": "the identification run's own gain, kept: the designed gain's exact rate was at or above 1 at the 95% "
+            "quantile of the modeled moments' draws and the identification gain's lower (gain_choice); its exact "
+            "rate on the identified moments",
     "failed: <reason>": "the method raised or returned a gain that is not finite; the reason follows",
 }
 MEAN_MODEL = "_on_mean_model"     # nominal_lmi's suffix: what it certifies is the LTI mean model
