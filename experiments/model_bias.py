@@ -1,0 +1,99 @@
+"""Where a modeled mean's bias comes from: the simulator, the data, or the simulated estimator itself.
+
+For a library plant at its true law theta* = (the plant file's means, stds), with the identification as a
+default run makes it (`identification.paths` runs, open loop or its feedback):
+
+1. the simulator: `--reps` replicate paths at theta* against as many runs of the plant (seeds 0, 1, ... of
+   `identification.paths` paths each); per summary statistic, both means and the two-sample Kolmogorov-Smirnov
+   p-value (the replicates must simulate the plant's law);
+2. the estimator on noiseless data: `posterior_rounds` (the rounds a run makes) given s* = the mean summary at
+   theta* (no data noise), with the prior box the run would take about s* and with that box centred on theta*'s
+   means; a consistent estimator reads theta* there, up to its Monte Carlo error;
+3. plain rejection: the 1%, 3% and 10% of `--reps` replicates from the run's last box nearest s* (scaled as the
+   estimator scales them), their mean theta (no regression adjustment).
+
+    python experiments/model_bias.py [--plant multiplicative] [--reps 1600]
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+from scipy.stats import ks_2samp
+
+from rdsexp.experiment.montecarlo import Simulation
+from rdsexp.experiment.pipeline import identification as ident
+from rdsexp.numerics import indirect
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from model_calibration import FAST, experiment  # noqa: E402
+
+
+def finite(s: np.ndarray) -> np.ndarray:
+    return s[np.all(np.isfinite(s), axis=1)]
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--plant", default="multiplicative")
+    parser.add_argument("--reps", type=int, default=1600)
+    args = parser.parse_args(argv)
+    start = time.perf_counter()
+    exp = experiment(args.plant, None, ["seed=0", *FAST])
+    ends, low, high = ident.two_point_ends(exp)
+    law = exp.plant.check_distribution(None)
+    truth = np.concatenate([law.mean, np.sqrt(np.diag(law.cov))[~ends]])
+    F_id, _ = ident.identification_feedback(exp)
+    paths = exp.identification.paths
+    replay = ident.Replay(exp.identification.input, F_id, exp.q0, paths=paths)
+    names = ident.summary_names(exp.model)
+    at = lambda theta, count, stream, runs=replay: finite(ident.replicate_summaries(
+        exp, exp.filter.enkf, runs, np.repeat(theta[None], count, 0), ends, low, high, stream))
+
+    one = ident.Replay(exp.identification.input, F_id, exp.q0, paths=1)
+    replicates = at(truth, args.reps, 1001, one)
+    def identification_run(seed: int) -> np.ndarray:       # a default run's identification, as identify_and_model
+        e = experiment(args.plant, None, [f"seed={seed}", *FAST])
+        sim = Simulation.of(e, e.filter.enkf, F_id, np.random.SeedSequence(e.seed, spawn_key=(0,)),
+                            d=e.identification.input, paths=paths, filter_sees_d=True)
+        return ident.summary_statistics(e, sim.run(keep_xi_cov=True))
+    plant = finite(np.concatenate([identification_run(seed) for seed in range(args.reps // paths)]))
+    print(f"1. the simulator at the true law ({len(replicates)} replicate paths, {len(plant)} plant paths)")
+    for j, name in enumerate(names):
+        print(f"   {name:36s} replicates {replicates[:, j].mean():8.3f}  plant {plant[:, j].mean():8.3f}  "
+              f"KS p {ks_2samp(replicates[:, j], plant[:, j]).pvalue:.3f}")
+
+    s_star = at(truth, 400, 1002).mean(axis=0)
+    p = ends.size
+    print(f"2. the estimator given the noiseless summary s* (true means {np.round(truth[:p], 3).tolist()})")
+    box = indirect.prior_box(s_star[:2 * p], ends, low, high, exp.identification.prior_width)
+    centred = indirect.prior_box(np.concatenate([truth[:p], s_star[p:2 * p]]), ends, low, high,
+                                 exp.identification.prior_width)
+    last = None
+    for label, prior in (("the run's prior box", box), ("the box centred on the true means", centred)):
+        (adjusted, w), usable, _ = ident.posterior_rounds(exp, exp.filter.enkf, replay, s_star, paths, prior,
+                                                          (ends, low, high))
+        mean = w @ adjusted / w.sum()
+        sd = np.sqrt(w @ (adjusted - mean) ** 2 / w.sum())
+        print(f"   {label:36s} means {np.round(mean[:p], 3).tolist()} (sd {np.round(sd[:p], 3).tolist()}), "
+              f"stds {np.round(mean[p:], 3).tolist()}; identified {usable}")
+        last = indirect.posterior_box(adjusted, w, *prior) if last is None else last     # the run's last box
+
+    theta = indirect.uniform_draws(*last, args.reps, 1003)
+    s = ident.replicate_summaries(exp, exp.filter.enkf, replay, theta, ends, low, high, 1003)
+    ok = np.all(np.isfinite(s), axis=1)
+    theta, s = theta[ok], s[ok]
+    distance = np.sqrt((((s - s_star) / s.std(axis=0)) ** 2).sum(axis=1))
+    print(f"3. plain rejection: of {len(s)} replicates from the last box, the nearest to s*")
+    for share in (0.01, 0.03, 0.1):
+        near = distance <= np.quantile(distance, share)
+        print(f"   {share:4.0%} ({near.sum():4d}): means {np.round(theta[near, :p].mean(axis=0), 3).tolist()}, "
+              f"stds {np.round(theta[near, p:].mean(axis=0), 3).tolist()}")
+    print(f"\n{time.perf_counter() - start:.0f} s")
+
+
+if __name__ == "__main__":
+    main()
