@@ -10,7 +10,10 @@ default run makes it (`identification.paths` runs, open loop or its feedback):
    theta* (no data noise), with the prior box the run would take about s* and with that box centred on theta*'s
    means; a consistent estimator reads theta* there, up to its Monte Carlo error;
 3. plain rejection: the 1%, 3% and 10% of `--reps` replicates from the run's last box nearest s* (scaled as the
-   estimator scales them), their mean theta (no regression adjustment).
+   estimator scales them), their mean theta (no regression adjustment);
+4. one bias correction by simulation, a candidate (not in rdsexp): the estimate theta^ given s* and given three
+   noisy summaries at theta* (identification.paths paths each), the estimate theta^^ given the noiseless summary
+   at theta^, and 2 theta^ - theta^^.
 
     python experiments/model_bias.py [--plant multiplicative] [--reps 1600]
 """
@@ -92,6 +95,19 @@ def main(argv=None):
         near = distance <= np.quantile(distance, share)
         print(f"   {share:4.0%} ({near.sum():4d}): means {np.round(theta[near, :p].mean(axis=0), 3).tolist()}, "
               f"stds {np.round(theta[near, p:].mean(axis=0), 3).tolist()}")
+
+    def estimate(summary: np.ndarray) -> np.ndarray:            # the posterior mean from the run's prior box
+        prior = indirect.prior_box(summary[:2 * p], ends, low, high, exp.identification.prior_width)
+        (adjusted, w), _, _ = ident.posterior_rounds(exp, exp.filter.enkf, replay, summary, paths, prior,
+                                                     (ends, low, high))
+        return w @ adjusted / w.sum()
+    noisy = at(truth, 3, 1004)
+    print("4. one bias correction by simulation at the estimate: theta^ -> 2 theta^ - theta^^ (means | stds)")
+    for label, summary in (("noiseless s*", s_star), *((f"noisy summary {i}", noisy[i]) for i in range(3))):
+        first = estimate(summary)
+        corrected = 2 * first - estimate(at(first, 400, 1005).mean(axis=0))
+        print(f"   {label:18s} {np.round(first[:p], 3).tolist()} -> {np.round(corrected[:p], 3).tolist()} | "
+              f"{np.round(first[p:], 3).tolist()} -> {np.round(corrected[p:], 3).tolist()}")
     print(f"\n{time.perf_counter() - start:.0f} s")
 
 
