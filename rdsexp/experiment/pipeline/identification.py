@@ -53,14 +53,15 @@ def identify_and_model(exp: Experiment, stages: Stages, seed) -> Identified:
         exp, enkf, F, seed, d=exp.identification.input, paths=exp.identification.paths,
         filter_sees_d=True).run(keep_xi_cov=total)
     ident = identify(F_id)
-    if info.get("used") == "open_loop" and np.isin(ident.failure, ("diverged", "filter_diverged")).any():
+    diverged = np.isin(ident.failure, ("diverged", "filter_diverged"))
+    if info.get("used") == "open_loop" and diverged.any():
         # auto chose the open loop on the guess, which knows no spread of xi (the spread only raises
         # the mean-square rate): the plant grew until it, or first the EnKF's estimate of it, diverged
         # (random plants: 3 of 200 open-loop mean-square unstable plants stable at their mean),
         # so identify again under nominal feedback
         F_id, retry = identification_feedback(exp, force_nominal=True)
         if F_id is not None:
-            first = int(np.flatnonzero(np.isin(ident.failure, ("diverged", "filter_diverged")))[0])
+            first = int(np.flatnonzero(diverged)[0])
             info = retry | {"open_loop_diverged_at": int(ident.failed_at[first]),
                             "open_loop_failure": str(ident.failure[first])}
             ident = identify(F_id)
