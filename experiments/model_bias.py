@@ -9,8 +9,8 @@ default run makes it (`identification.paths` runs, open loop or its feedback):
 2. the estimator on noiseless data: `posterior_rounds` (the rounds a run makes) given s* = the mean summary at
    theta* (no data noise), with the prior box the run would take about s* and with that box centred on theta*'s
    means; a consistent estimator reads theta* there, up to its Monte Carlo error;
-3. plain rejection: the 1%, 3% and 10% of `--reps` replicates from the run's last box nearest s* (scaled as the
-   estimator scales them), their mean theta (no regression adjustment);
+3. plain rejection: the 1%, 3% and 10% of `--reps` replicates from the run's last box nearest s* (each summary
+   scaled by its spread), their mean theta (no likelihood);
 4. one bias correction by simulation, a candidate (not in rdsexp): the estimate theta^ given s* and given three
    noisy summaries at theta* (identification.paths paths each), the estimate theta^^ given the noiseless summary
    at theta^, and 2 theta^ - theta^^.

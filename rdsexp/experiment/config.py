@@ -244,7 +244,6 @@ class IdentificationSettings:
     estimator: str = "paper"    # paper: eq. (sample-mean); simulated: `numerics.indirect` on the paper's as summary
     replicates: int = 400       # simulated: identification runs of the model, one law of xi each
     prior_width: float = 2.5    # simulated: the prior box in the paper estimator's stds (`indirect.prior_box`)
-    accept: float = 0.5         # simulated: the fraction of replicates nearest the summary that are weighted
     paths: int = 1              # identification runs of a simulated plant (a data run: its recorded paths)
 
     @classmethod
@@ -283,9 +282,8 @@ class IdentificationSettings:
         scales = tuple(_number(v, "identification.noise_sensitivity", low=0, low_open=True) for v in scales)
         replicates = _number(get(cfg, "identification.replicates"), "identification.replicates", integer=True, low=20)
         width = _number(get(cfg, "identification.prior_width"), "identification.prior_width", low=0, low_open=True)
-        accept = _number(get(cfg, "identification.accept"), "identification.accept", low=0, high=1, low_open=True)
         paths = _number(get(cfg, "identification.paths"), "identification.paths", integer=True, low=1)
-        return cls(estimator=estimator, replicates=replicates, prior_width=width, accept=accept, paths=paths,
+        return cls(estimator=estimator, replicates=replicates, prior_width=width, paths=paths,
                    input=u_id, K0=K0, K1=K1, feedback=feedback, gain=F_id, xi_guess=xi_guess, prior=prior,
                    covariance=covariance, xi_model=xi_model, passes=passes, resamples=resamples, block=block,
                    noise_scales=scales)

@@ -169,7 +169,7 @@ def estimator_lines(estimator: dict) -> list[str]:
     if estimator.get("misfit"):
         m = estimator["misfit"]
         lines.append(f"    misfit: no law the replicates tried reproduces the data's {m['summary']} ({m['z']:+.1f} sds "
-                     f"off the nearest replicates', bound {m['bound']:g}): the window's moments of xi_{{k|k}} kept. "
+                     f"off the posterior mean law's, bound {m['bound']:g}): the window's moments of xi_{{k|k}} kept. "
                      f"The model's structure, the noise the EnKF assumes, or (data recorded under feedback) the "
                      f"replicates' open-loop replay of the recorded inputs differ from what made the data")
     if estimator.get("at_prior_edge"):

@@ -1,4 +1,4 @@
-"""The moments of xi by simulation: approximate Bayesian computation with the paper's estimator as summary.
+"""The moments of xi by simulation: a synthetic likelihood with the paper's estimator as summary.
 
 The paper's estimator (eq. sample-mean: the moments of xi_{k|k} over the window) is biased: the EnKF's
 filtered means are shrunk toward its random walk, and its covariance mixes the spread of xi with the
@@ -13,18 +13,20 @@ removes it. But rdsexp can run the same identification on the model at any law o
    `distributions.PathLaws`);
 3. the same identification (input, feedback, EnKF, window) of the model on each replicate, batched over
    paths: its summary s_r;
-4. the replicates nearest s_obs weighted (Epanechnikov kernel), and theta_r moved along a weighted linear
-   regression of theta on s to s = s_obs (`adjusted_posterior`: Beaumont, Zhang & Balding 2002).
+4. a regression of s on theta over the replicates (`emulator`: the summary's expectation at any law in the box,
+   and the covariance of its residual), and the posterior of theta given s_obs under the box prior with that
+   Gaussian likelihood of s given theta (`synthetic_posterior`: Wood 2010), drawn by importance sampling.
 
-The weighted adjusted thetas are draws of the posterior of theta given s_obs under the box prior. Their
-mean is the modeled law, their spread its uncertainty: it contains the estimator's bias and its noise, and
-where s says little about a component (an output that barely sees it) the posterior stays as wide as the
-box. A two-point component (a Bernoulli dropout: `EnKF.two_point`) has its std fixed by its mean.
+The likelihood models the summary given the law, so the posterior's mass sits where the law's expected summary
+is the observed one, and its spread contains the data's noise and the regression's own error; where s says
+little about a component (an output that barely sees it) the posterior stays as wide as the box. A two-point
+component (a Bernoulli dropout: `EnKF.two_point`) has its std fixed by its mean.
 """
 from __future__ import annotations
 
 import numpy as np
-from scipy.special import expit
+from scipy.optimize import minimize
+from scipy.stats import chi2
 
 from .distributions import PathLaws
 
@@ -52,15 +54,15 @@ def uniform_draws(lo: np.ndarray, hi: np.ndarray, count: int, seed) -> np.ndarra
     return lo + (hi - lo) * np.random.default_rng(seed).random((count, lo.size))
 
 
-def posterior_box(adjusted: np.ndarray, w: np.ndarray, lo: np.ndarray, hi: np.ndarray,
-                  margin: float = 0.25) -> tuple[np.ndarray, np.ndarray]:
-    """The box the next round draws from: the span of the weighted draws (N, d), widened by `margin` of it on
-    each side, within [lo, hi]. The posterior under the first box lies inside (up to the margin), so the same
-    prior restricted to it gives the same posterior, resolved by more replicates where it has its mass."""
-    kept = adjusted[w > 0]
-    low, high = kept.min(axis=0), kept.max(axis=0)
-    pad = margin * (high - low)
-    new_lo, new_hi = np.maximum(lo, low - pad), np.minimum(hi, high + pad)
+def posterior_box(draws: np.ndarray, w: np.ndarray, lo: np.ndarray, hi: np.ndarray,
+                  margin: float = 0.25, tail: float = 1e-3) -> tuple[np.ndarray, np.ndarray]:
+    """The box the next round draws from: the span of the weighted draws (N, d) between their `tail` and 1 - `tail`
+    weighted quantiles, widened by `margin` of it on each side, within [lo, hi]. The posterior under the first box
+    lies inside (up to the tails and the margin), so the same prior restricted to it gives the same posterior,
+    resolved by more replicates where it has its mass."""
+    span = np.array([weighted_quantiles(column, w, [tail, 1 - tail]) for column in draws.T]).reshape(-1, 2)
+    pad = margin * (span[:, 1] - span[:, 0])
+    new_lo, new_hi = np.maximum(lo, span[:, 0] - pad), np.minimum(hi, span[:, 1] + pad)
     return new_lo, np.maximum(new_hi, new_lo)
 
 
@@ -83,68 +85,6 @@ def path_laws(theta: np.ndarray, ends: np.ndarray, low: np.ndarray, high: np.nda
     mean, cov = moments_of(theta, ends, low, high)
     sqrt = np.sqrt(np.einsum("rii->ri", cov))[..., None] * np.eye(ends.size)
     return PathLaws(mean, sqrt, ends if ends.any() else None, low, high)
-
-
-def adjusted_posterior(theta: np.ndarray, s: np.ndarray, s_obs: np.ndarray, lo: np.ndarray, hi: np.ndarray,
-                       accept: float) -> tuple[np.ndarray, np.ndarray]:
-    """Draws of theta given s_obs: the local-linear regression adjustment (Beaumont, Zhang & Balding 2002).
-
-    theta (R, d) drawn from the box prior [lo, hi], s (R, ds) their summaries (rows with a non-finite s are
-    left out: the replicate's identification failed), s_obs (ds,). The fraction `accept` of the replicates
-    nearest s_obs (distance scaled by s's spread over the replicates) get Epanechnikov weights; theta is
-    regressed on s by weighted least squares and moved to s = s_obs, then kept in the box.
-    Returns the adjusted draws (N, d) and their weights (N,), N > 0 the weighted replicates."""
-    ok = np.all(np.isfinite(s), axis=1)
-    theta, s = theta[ok], s[ok]
-    dev = s - s_obs
-    scale = s.std(axis=0)
-    scale = np.where(scale > 0, scale, 1.0)
-    dist = np.sqrt(((dev / scale) ** 2).sum(axis=1))
-    h = np.quantile(dist, accept)
-    w = np.clip(1 - (dist / h) ** 2, 0, None) if h > 0 else (dist == 0).astype(float)
-    keep = w > 0
-    theta, dev, w = theta[keep], dev[keep], w[keep]
-    X = np.concatenate([np.ones((len(w), 1)), dev / scale], axis=1)
-    # the regression on the logit of theta's place in the box, so that the adjusted draws stay inside it without
-    # piling up on an edge where the regression extrapolates (a std of 0, a probability of 1)
-    span = np.where(hi > lo, hi - lo, 1.0)
-    place = np.clip((theta - lo) / span, 1e-9, 1 - 1e-9)
-    logit = np.log(place) - np.log1p(-place)
-    # weighted least squares, a minimum-norm solution where the kept summaries are collinear
-    beta = np.linalg.lstsq(X * np.sqrt(w)[:, None], logit * np.sqrt(w)[:, None], rcond=None)[0]
-    adjusted = lo + span * expit(logit - (dev / scale) @ beta[1:])
-    return np.where(hi > lo, adjusted, lo), w
-
-
-def misfit(s: np.ndarray, s_obs: np.ndarray, accept: float) -> np.ndarray:
-    """(ds,): where s_obs lies among the replicates' summaries s (R, ds) nearest to it (the fraction `accept`, as
-    `adjusted_posterior` weights them): (s_obs - their mean) / their sd per component. Where the model reproduces
-    the data these are of order 1; a component many sds off is a summary no law in the box reaches, and the
-    regression adjustment would extrapolate to it."""
-    s = s[np.all(np.isfinite(s), axis=1)]
-    scale = s.std(axis=0)
-    scale = np.where(scale > 0, scale, 1.0)
-    dist = np.sqrt((((s - s_obs) / scale) ** 2).sum(axis=1))
-    near = s[dist <= np.quantile(dist, accept)]
-    spread = near.std(axis=0)
-    return (s_obs - near.mean(axis=0)) / np.where(spread > 0, spread, scale)
-
-
-def averaged(theta: np.ndarray, s: np.ndarray, paths: int) -> np.ndarray:
-    """(R, ds): summaries of one path per replicate made those of the mean over `paths` paths, as the observed
-    summary of several recorded paths is: the regression of s on theta (R, d) (quadratic in theta where there are
-    at least 5 replicates per coefficient, else linear) plus the residual over sqrt(paths). The mean of `paths`
-    i.i.d. summaries has the regression of one and 1/paths of its covariance. Rows with a non-finite s stay NaN."""
-    ok = np.all(np.isfinite(s), axis=1)
-    t = theta[ok]
-    t = (t - t.mean(axis=0)) / np.where(t.std(axis=0) > 0, t.std(axis=0), 1.0)
-    pairs = np.triu_indices(t.shape[1])
-    quadratic = (t.shape[1] + 1) * (t.shape[1] + 2) // 2 * 5 <= len(t)
-    X = np.concatenate([np.ones((len(t), 1)), t] + ([t[:, pairs[0]] * t[:, pairs[1]]] if quadratic else []), axis=1)
-    fit = X @ np.linalg.lstsq(X, s[ok], rcond=None)[0]
-    out = np.full(s.shape, np.nan)
-    out[ok] = fit + (s[ok] - fit) / np.sqrt(paths)
-    return out
 
 
 def weighted_quantiles(values: np.ndarray, w: np.ndarray, q) -> np.ndarray:
@@ -180,3 +120,88 @@ def weighted_draws(adjusted: np.ndarray, w: np.ndarray, count: int, seed) -> np.
     """(count, d): draws from the weighted adjusted thetas (multinomial by weight, default_rng(seed))."""
     pick = np.random.default_rng(seed).choice(len(w), size=count, p=w / w.sum())
     return adjusted[pick]
+
+
+def emulator(theta: np.ndarray, s: np.ndarray, lo: np.ndarray, hi: np.ndarray):
+    """The regression of the summary on the law over a round's replicates: s_r = mu(theta_r) + e_r with mu
+    quadratic in theta where there are at least 5 replicates per coefficient, else linear, and e_r of one
+    covariance Sigma. theta (R, d) drawn in the box [lo, hi] (d,), s (R, ds), finite. Replicates whose residual is
+    beyond the 0.999 quantile of its chi-square (an estimate near divergence) are left out of the fit, twice.
+    Returns mu and h (theta (M, d) -> (M, ds), (M,): the fitted mean and its leverage, the fit's variance at theta
+    in units of Sigma) and Sigma's whitening W (ds, k), k its numerical rank: W^T Sigma W = I_k."""
+    centre, half = (hi + lo) / 2, np.where(hi > lo, (hi - lo) / 2, 1.0)
+    pairs = np.triu_indices(theta.shape[1])
+    quadratic = (theta.shape[1] + 1) * (theta.shape[1] + 2) // 2 * 5 <= len(theta)
+
+    def features(t):
+        t = (t - centre) / half
+        return np.concatenate([np.ones((len(t), 1)), t] + ([t[:, pairs[0]] * t[:, pairs[1]]] if quadratic else []),
+                              axis=1)
+    X, keep = features(theta), np.ones(len(theta), dtype=bool)
+    for _ in range(3):                      # fit, leave out the outlying replicates, fit again (twice)
+        beta = np.linalg.lstsq(X[keep], s[keep], rcond=None)[0]
+        e = s - X @ beta
+        dof = max(int(keep.sum()) - X.shape[1], 1)
+        lam, U = np.linalg.eigh(e[keep].T @ e[keep] / dof)
+        rank = lam > 1e-12 * max(lam.max(), 1e-300)
+        W = U[:, rank] / np.sqrt(lam[rank])
+        d2 = ((e @ W) ** 2).sum(axis=1)
+        keep = d2 <= chi2.ppf(0.999, rank.sum())
+    G = np.linalg.pinv(X[keep].T @ X[keep])
+    mu = lambda t: features(t) @ beta
+    h = lambda t: np.einsum("mk,kl,ml->m", features(t), G, features(t))
+    return mu, h, W
+
+
+def synthetic_posterior(theta: np.ndarray, s: np.ndarray, s_obs: np.ndarray, lo: np.ndarray, hi: np.ndarray,
+                        ratio: float, count: int = 10000, seed=0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Draws of theta given s_obs under the uniform prior on the box [lo, hi] (d,), by a Gaussian synthetic
+    likelihood (Wood 2010) whose mean and covariance are the `emulator`'s regression on a round's replicates
+    theta (R, d), s (R, ds) (rows with a non-finite s left out: their identification failed): s_obs ~ N(mu(theta),
+    (ratio + h(theta)) Sigma), ratio = the observed summary's covariance over a replicate's (its paths are
+    averaged over more or fewer runs), h the regression's own error at theta. The likelihood of the summary given
+    the law, not of the law given the summary, so that its maximum is where the law's expected summary is s_obs,
+    whatever the box.
+
+    Importance sampling, `count` draws from default_rng(seed), in three steps from half the box's uniform and half
+    a normal: first about the likelihood's maximum (bounded quasi-Newton from the best of `count` uniform draws)
+    with twice the sds of its Gauss-Newton curvature (plus the box's own, where the summary is flat), then about
+    the previous step's weighted mean with twice its weighted covariance. A posterior far narrower than the box
+    (many recorded paths) is found and resolved alike. Returns the last step's draws (count, d), their weights
+    (count,), and s_obs's place among the summaries of the posterior mean's law ((s_obs - mu) / sd per component,
+    of order 1 where the model reproduces the data)."""
+    ok = np.all(np.isfinite(s), axis=1)
+    mu, h, W = emulator(theta[ok], s[ok], lo, hi)
+    k, free = W.shape[1], hi > lo
+    span = np.where(free, hi - lo, 0.0)
+
+    def log_likelihood(t):
+        spread = ratio + h(t)
+        return -0.5 * (((s_obs - mu(t)) @ W) ** 2).sum(axis=1) / spread - 0.5 * k * np.log(spread)
+    rng = np.random.default_rng(seed)
+    draws = lo + span * rng.random((count, lo.size))
+    start = draws[np.argmax(log_likelihood(draws))]
+    centre = minimize(lambda t: -log_likelihood(t[None])[0], start, method="L-BFGS-B",
+                      bounds=list(zip(lo, hi))).x
+    step = 1e-4 * np.where(free, span, 1.0)
+    J = (mu(centre + np.diag(step)) - mu(centre[None])) / step[:, None] @ W        # (d, k): whitened d mu / d theta
+    box_precision = np.where(free, 12 / np.where(free, span, 1.0) ** 2, 1.0)
+    cov = np.linalg.inv(J @ J.T / (ratio + h(centre[None])[0]) + np.diag(box_precision))
+    for _ in range(3):
+        cov = cov[np.ix_(free, free)] + np.diag((1e-3 * span[free]) ** 2)
+        root = np.linalg.cholesky(4 * cov)                      # the normal: twice the sds
+        draws = lo + span * rng.random((count, lo.size))
+        half = count // 2
+        draws[half:, free] = centre[free] + rng.standard_normal((count - half, free.sum())) @ root.T
+        z = np.linalg.solve(root, (draws[:, free] - centre[free]).T)
+        log_n = -0.5 * (z ** 2).sum(axis=0) - np.log(np.diag(root)).sum() - 0.5 * free.sum() * np.log(2 * np.pi)
+        log_q = np.logaddexp(-np.log(span[free]).sum(), log_n) - np.log(2)
+        inside = np.all((draws >= lo) & (draws <= hi), axis=1)
+        log_w = np.where(inside, log_likelihood(draws) - log_q, -np.inf)
+        w = np.exp(log_w - log_w.max())
+        centre = w @ draws / w.sum()
+        dev = draws - centre
+        cov = (w[:, None] * dev).T @ dev / w.sum()
+    mean = centre[None]
+    z = (s_obs - mu(mean)[0]) / np.sqrt(np.diag(np.linalg.pinv(W @ W.T)) * (ratio + h(mean)[0]))
+    return draws, w, z

@@ -130,7 +130,7 @@ def test_a_data_run_of_a_users_own_simulator_holds_the_law_and_estimates_its_noi
 
 
 def test_a_data_runs_replicates_are_the_same_whatever_the_chunks(tmp_path, monkeypatch):
-    small = ("identification.replicates=60", "identification.accept=1", "identification.horizon=50",
+    small = ("identification.replicates=60", "identification.horizon=50",
              "identification.K0=10", "identification.K1=40")
     _, whole, _ = data_run(tmp_path, 1, *small, paths=12, steps=51)
     monkeypatch.setattr(identification, "MEMORY_BUDGET", 1)          # one replicate path per chunk

@@ -41,21 +41,21 @@ def test_moments_of_a_two_point_component_follow_its_mean():
     np.testing.assert_allclose(cov[:, 0, 1], 0.5 * std[:, 0] * std[:, 1], rtol=1e-15)
 
 
-def interval(adjusted, w, level=0.95):
+def interval(draws, w, level=0.95):
     """Weighted (1 - level) / 2 and (1 + level) / 2 quantiles of each column."""
-    out = []
-    for column in adjusted.T:
-        order = np.argsort(column)
-        cdf = np.cumsum(w[order]) / w.sum()
-        out.append(np.interp([(1 - level) / 2, (1 + level) / 2], cdf, column[order]))
-    return np.array(out)
+    return np.array([indirect.weighted_quantiles(column, w, [(1 - level) / 2, (1 + level) / 2]) for column in draws.T])
+
+
+def covers_at_its_level(covered: int, runs: int) -> bool:
+    """The count of 95% intervals that hold the truth within 3 binomial sds of the nominal count."""
+    return binom.ppf(0.0015, runs, 0.95) <= covered <= runs - binom.ppf(0.0015, runs, 0.05)
 
 
 def test_the_posterior_interval_covers_at_its_level_and_stays_wide_where_nothing_is_seen():
     """theta = (a, b) in the box [-3, 3]^2; the summary sees a with noise 0.3 and a nonlinear bias, b not at all.
     Over many truths the 95% interval of a covers at its level (tolerance: 3 binomial sds), and b's interval
     spans most of the box."""
-    lo, hi, noise, R, runs = np.full(2, -3.0), np.full(2, 3.0), 0.3, 4000, 200
+    lo, hi, noise, R, runs = np.full(2, -3.0), np.full(2, 3.0), 0.3, 1000, 200
     summary = lambda theta, e: np.stack([0.6 * theta[..., 0] + 0.1 * theta[..., 0] ** 2 + noise * e[..., 0],
                                          e[..., 1]], axis=-1)
     covered, widths = 0, []
@@ -64,25 +64,55 @@ def test_the_posterior_interval_covers_at_its_level_and_stays_wide_where_nothing
         truth = rng.uniform(-2, 2, 2)
         s_obs = summary(truth, rng.standard_normal(2))
         theta = lo + (hi - lo) * rng.random((R, 2))
-        adjusted, w = indirect.adjusted_posterior(theta, summary(theta, rng.standard_normal((R, 2))), s_obs,
-                                                  lo, hi, accept=0.1)
-        bounds = interval(adjusted, w)
+        draws, w, _ = indirect.synthetic_posterior(theta, summary(theta, rng.standard_normal((R, 2))), s_obs,
+                                                   lo, hi, ratio=1.0, count=2000, seed=seed)
+        bounds = interval(draws, w)
         covered += bounds[0, 0] <= truth[0] <= bounds[0, 1]
         widths.append(bounds[1, 1] - bounds[1, 0])
-    low_count = binom.ppf(0.0015, runs, 0.95)              # 3 sd below the nominal count
-    assert covered >= low_count, f"{covered} of {runs} intervals hold a (nominal 95%)"
-    assert covered <= runs - binom.ppf(0.0015, runs, 0.05)
+    assert covers_at_its_level(covered, runs), f"{covered} of {runs} intervals hold a (nominal 95%)"
     assert np.median(widths) > 0.85 * 0.95 * (hi - lo)[1]
 
 
-def test_failed_replicates_are_left_out():
+def test_a_linear_summary_gives_the_exact_posterior():
+    """s = a + B theta + e, e ~ N(0, Sigma) of 3 correlated components, theta in a box far wider than the
+    posterior: the posterior is normal, mean the generalized least squares estimate and covariance
+    ratio (B^T Sigma^-1 B)^-1 (ratio: the observed summary averages 1 / ratio replicates' runs). Its mean agrees
+    within 3 sds of the regression's error (its 6 coefficients fitted on R replicates move the mean by about
+    sqrt(6 / (R ratio)) posterior sds), its sds and correlation within the sampling's error."""
+    rng = np.random.default_rng(4)
+    B = np.array([[1.0, 0.5], [0.2, -1.0], [0.7, 0.7]])
+    L = np.array([[0.3, 0, 0], [0.1, 0.2, 0], [-0.1, 0.05, 0.25]])
+    lo, hi, R, ratio = np.full(2, -4.0), np.full(2, 4.0), 4000, 0.25
+    theta = lo + (hi - lo) * rng.random((R, 2))
+    s = 1.0 + theta @ B.T + rng.standard_normal((R, 3)) @ L.T
+    truth = np.array([0.3, -0.5])
+    s_obs = 1.0 + B @ truth + np.sqrt(ratio) * L @ rng.standard_normal(3)
+    draws, w, z = indirect.synthetic_posterior(theta, s, s_obs, lo, hi, ratio=ratio, count=8000, seed=1)
+    info = B.T @ np.linalg.inv(L @ L.T) @ B
+    exact_cov = ratio * np.linalg.inv(info)
+    exact_mean = np.linalg.solve(info, B.T @ np.linalg.inv(L @ L.T) @ (s_obs - 1.0))
+    mean = w @ draws / w.sum()
+    cov = (w[:, None] * (draws - mean)).T @ (draws - mean) / w.sum()
+    sd = np.sqrt(np.diag(exact_cov))
+    assert np.all(np.abs(mean - exact_mean) < 3 * np.sqrt(6 / (R * ratio)) * sd), (mean, exact_mean, sd)
+    np.testing.assert_allclose(np.sqrt(np.diag(cov)), sd, rtol=0.08)
+    assert abs(cov[0, 1] / np.sqrt(cov[0, 0] * cov[1, 1]) - exact_cov[0, 1] / sd.prod()) < 0.05
+    assert np.all(np.abs(z) < 4)
+
+
+def test_failed_and_outlying_replicates_are_left_out():
+    """Replicates whose summary is not finite (their identification failed) or far off the regression (an estimate
+    near divergence) do not move the posterior."""
     rng = np.random.default_rng(1)
-    theta = rng.random((200, 1))
-    s = theta + 0.01 * rng.standard_normal((200, 1))
-    s[::4] = np.nan                                             # their identification failed
-    adjusted, w = indirect.adjusted_posterior(theta, s, np.array([0.5]), np.zeros(1), np.ones(1), accept=0.5)
-    assert np.all(np.isfinite(adjusted)) and len(w) <= 150 and np.all(w > 0)
-    assert abs(w @ adjusted[:, 0] / w.sum() - 0.5) < 0.01
+    theta = rng.random((400, 1))
+    s = theta + 0.01 * rng.standard_normal((400, 1))
+    s[::4] = np.nan
+    clean = indirect.synthetic_posterior(theta, s, np.array([0.5]), np.zeros(1), np.ones(1), ratio=1.0)
+    s[1::20] = 1e6                                              # 5%: far off
+    draws, w, _ = indirect.synthetic_posterior(theta, s, np.array([0.5]), np.zeros(1), np.ones(1), ratio=1.0)
+    assert np.all(np.isfinite(draws)) and np.all(np.isfinite(w)) and w.sum() > 0
+    mean = lambda d, w: w @ d[:, 0] / w.sum()
+    assert abs(mean(draws, w) - 0.5) < 0.003 and abs(mean(draws, w) - mean(*clean[:2])) < 0.002
 
 
 def test_a_posterior_stopped_by_the_box_is_told_apart_from_a_law_at_its_own_edge():
@@ -103,35 +133,41 @@ def test_a_posterior_stopped_by_the_box_is_told_apart_from_a_law_at_its_own_edge
     assert not indirect.at_the_edge(draws, w, lo, hi, ends).any()
 
 
-def test_a_boundary_truth_keeps_its_posterior_inside_the_box_and_spread():
-    """A std near 0 that the summary reads with noise: the regression on the logit keeps every adjusted draw inside
-    the box and spread (no pile at the edge), and the 95% interval holds the truth at about its level."""
-    lo, hi, R, runs, covered = np.zeros(1), np.ones(1), 2000, 200, 0
+def test_a_boundary_truth_keeps_its_posterior_inside_the_box():
+    """A std near 0 that the summary reads with noise: every draw stays inside the box and the 95% interval holds
+    the truth at about its level."""
+    lo, hi, R, runs, covered = np.zeros(1), np.ones(1), 1000, 200, 0
     for seed in range(runs):
         rng = np.random.default_rng(seed)
         truth = rng.uniform(0.0, 0.1)
         s_obs = np.array([truth + 0.05 * rng.standard_normal()])
         theta = rng.random((R, 1))
-        adjusted, w = indirect.adjusted_posterior(theta, theta + 0.05 * rng.standard_normal((R, 1)), s_obs, lo, hi,
-                                                  accept=0.1)
-        assert np.all((adjusted > 0) & (adjusted < 1)) and np.unique(adjusted).size == adjusted.size
-        bounds = interval(adjusted, w)[0]
+        draws, w, _ = indirect.synthetic_posterior(theta, theta + 0.05 * rng.standard_normal((R, 1)), s_obs, lo, hi,
+                                                   ratio=1.0, count=2000, seed=seed)
+        assert np.all((draws[w > 0] >= 0) & (draws[w > 0] <= 1))
+        bounds = interval(draws, w)[0]
         covered += bounds[0] <= truth <= bounds[1]
-    assert binom.ppf(0.0015, runs, 0.95) <= covered <= runs - binom.ppf(0.0015, runs, 0.05), covered
+    assert covers_at_its_level(covered, runs), covered
 
 
-def test_summaries_of_one_path_made_those_of_a_mean_of_many():
-    """s = 1 + 2 theta + theta^2 + e, e ~ N(0, 0.5^2): `averaged` keeps the regression and divides the residual's
-    sd by sqrt(paths) (to within the Monte Carlo error of 4000 replicates: 5%); failed rows stay NaN."""
-    rng = np.random.default_rng(0)
-    theta = rng.uniform(-1, 1, (4000, 1))
-    mean = 1 + 2 * theta + theta ** 2
-    s = mean + 0.5 * rng.standard_normal(theta.shape)
-    s[7] = np.nan
-    out = indirect.averaged(theta, s, paths=25)
-    assert np.isnan(out[7]).all() and np.isfinite(np.delete(out, 7, axis=0)).all()
-    residual = np.delete(out - mean, 7, axis=0)
-    assert abs(residual.std() / (0.5 / 5) - 1) < 0.05 and abs(residual.mean()) < 3 * 0.1 / np.sqrt(4000)
+def test_a_mean_of_many_paths_against_replicates_of_one():
+    """s = 1 + 2 theta + theta^2 + e per path, e ~ N(0, 0.5^2); the observed summary is the mean of 25 paths, each
+    replicate runs one: with ratio 1 / 25 the 95% interval covers at its level, and is about a fifth of the
+    width it has for one observed path (the regression's own error widens it a little)."""
+    lo, hi, R, runs, covered, widths = -np.ones(1), np.ones(1), 1000, 200, 0, []
+    mean = lambda theta: 1 + 2 * theta + theta ** 2
+    for seed in range(runs):
+        rng = np.random.default_rng(seed)
+        truth = rng.uniform(-0.8, 0.8)
+        s_obs = np.array([mean(truth) + 0.5 * rng.standard_normal(25).mean()])
+        theta = lo + (hi - lo) * rng.random((R, 1))
+        s = mean(theta) + 0.5 * rng.standard_normal((R, 1))
+        draws, w, _ = indirect.synthetic_posterior(theta, s, s_obs, lo, hi, ratio=1 / 25, count=2000, seed=seed)
+        bounds = interval(draws, w)[0]
+        covered += bounds[0] <= truth <= bounds[1]
+        widths.append((bounds[1] - bounds[0]) * (2 + 2 * truth) / (2 * 1.96 * 0.5))     # in units of one path's
+    assert covers_at_its_level(covered, runs), covered
+    assert 0.19 < np.median(widths) < 0.24, np.median(widths)
 
 
 def test_weighted_quantiles_are_the_weighted_distributions():
@@ -146,13 +182,17 @@ def test_weighted_quantiles_are_the_weighted_distributions():
 
 
 def test_a_summary_no_law_reaches_is_a_misfit():
-    """s = (theta, theta^2 + e): an observed summary some law makes lies among the nearest replicates (|z| of order
-    1 in every component over many truths); one whose second component no theta in the box reaches is many sds off."""
+    """s = (theta, theta^2 + e): an observed summary some law makes lies among the posterior mean law's summaries
+    (|z| of order 1 in every component over many truths); one whose second component no theta in the box reaches
+    is many sds off."""
     rng = np.random.default_rng(3)
+    lo, hi = -np.ones(1), np.ones(1)
     theta = rng.uniform(-1, 1, (2000, 1))
     s = np.column_stack([theta[:, 0] + 0.1 * rng.standard_normal(2000), theta[:, 0] ** 2 + 0.1 * rng.standard_normal(2000)])
-    worst = [np.abs(indirect.misfit(s, np.array([t + 0.1 * rng.standard_normal(), t ** 2 + 0.1 * rng.standard_normal()]),
-                                    0.5)).max() for t in rng.uniform(-0.9, 0.9, 100)]
+    worst = [np.abs(indirect.synthetic_posterior(theta, s, np.array([t + 0.1 * rng.standard_normal(),
+                                                                     t ** 2 + 0.1 * rng.standard_normal()]),
+                                                 lo, hi, ratio=1.0, count=1000)[2]).max()
+             for t in rng.uniform(-0.9, 0.9, 100)]
     assert np.quantile(worst, 0.95) < 3
-    z = indirect.misfit(s, np.array([0.5, -1.0]), 0.5)        # theta^2 >= 0: no law gives -1
-    assert z[1] < -4 and abs(z[0]) < 3
+    z = indirect.synthetic_posterior(theta, s, np.array([0.5, -1.0]), lo, hi, ratio=1.0)[2]    # theta^2 >= 0
+    assert z[1] < -4

@@ -39,7 +39,8 @@ POSTERIOR_ROUNDS = 2, 4  # the simulated estimator's rounds with a posterior whe
                         # with 2 rounds, 0.06 / 0.11 with 4)
 NOISE_BOX = (-6.0, 1.0)  # a data run's prior on log10 of the noise scale (`Replay.noisy`): 1e-6 to 10 times the
                         # noise the EnKF assumes
-MISFIT = 4.0           # the data's summary this many sds off the nearest replicates' (`indirect.misfit`): status misfit
+MISFIT = 4.0           # the data's summary this many sds off the posterior mean law's (`indirect.synthetic_posterior`):
+                       # status misfit
 PASS_TOL = 1e-3        # iterated identification: stop when the moments move less than this (relative)
 
 
@@ -111,8 +112,8 @@ def simulated_moments(exp: Experiment, stages: Stages, ident: Trajectories, iden
     next one from the box the previous posterior spans. A replicate whose identification failed, as the observed
     one did not, is left out; where too few were identified to regress on, the next round draws from the box the
     identified ones span (`posterior_rounds`). The posterior mean is the model, its weighted draws the
-    uncertainty (`Identified.posterior`); where no law in the box reproduces the summary (`indirect.misfit`
-    beyond MISFIT), the window's moments are kept and the status says misfit.
+    uncertainty (`Identified.posterior`); where no law in the box reproduces the summary (a component of it beyond
+    MISFIT sds of the posterior mean law's), the window's moments are kept and the status says misfit.
 
     Where the random-walk run failed (its xi drifted until the estimate, or the plant under its feedback,
     diverged), the summary is read from a run of `identify(enkf)` whose EnKF draws each step's xi i.i.d. about
@@ -129,7 +130,7 @@ def simulated_moments(exp: Experiment, stages: Stages, ident: Trajectories, iden
         if summary is None:
             return Identified(ident, None, failure, feedback, covariance=settings.covariance)
         info = {"name": "simulated", "replicates": settings.replicates, "prior_width": settings.prior_width,
-                "accept": settings.accept, "summary_mean": summary.mean.tolist(),
+                "summary_mean": summary.mean.tolist(),
                 "summary_std": np.sqrt(np.diag(summary.cov)).tolist(), "summary_filter": summary_filter}
         ends, low, high = two_point_ends(exp)
         per_path = summary_statistics(exp, ident)
@@ -177,14 +178,14 @@ def simulated_moments(exp: Experiment, stages: Stages, ident: Trajectories, iden
 
 def posterior_rounds(exp: Experiment, enkf, replay: Replay, s_obs: np.ndarray, paths: int, box,
                      laws, progress=None) -> tuple[tuple | None, list[int], np.ndarray | None]:
-    """The replicate rounds of `simulated_moments`: (adjusted draws (N, d), weights (N,)) of the posterior, or None
-    where no round identified enough replicates to regress on (10 per regressor), each round's count of
-    identified replicates, and where s_obs lies among the last round's replicates (`indirect.misfit`). Each round
-    after the first draws from the box the previous posterior spans (POSTERIOR_ROUNDS of them; one more where the
-    first round's identifications mostly failed). s_obs: the mean of `paths` paths' summaries. A replicate of
-    fewer paths than that (a data run's, of one) is made one of `paths` by `indirect.averaged`. Replicates of
-    replay.paths > 1 paths (a simulated run's identification.paths) run that many only once a first posterior
-    has placed the box: the rounds before run one path each and are averaged, which places the box well enough
+    """The replicate rounds of `simulated_moments`: (draws (N, d), weights (N,)) of the posterior, or None where no
+    round identified enough replicates to regress on (10 per regressor), each round's count of identified
+    replicates, and where s_obs lies among the summaries of the posterior mean's law (`indirect.synthetic_posterior`).
+    Each round after the first draws from the box the previous posterior spans (POSTERIOR_ROUNDS of them; one more
+    where the first round's identifications mostly failed). s_obs: the mean of `paths` paths' summaries; a
+    replicate's is the mean of fewer (a data run's: one) or as many, and the likelihood's covariance scales by the
+    ratio. Replicates of replay.paths > 1 paths (a simulated run's identification.paths) run that many only once a
+    first posterior has placed the box: the rounds before run one path each, which places the box well enough
     (four paths on the calibration plants: the same errors and coverage as two rounds of every path after it, in
     two thirds of the time). `laws`: (ends, low, high). progress(paths): called as each chunk is done."""
     settings = exp.identification
@@ -197,10 +198,9 @@ def posterior_rounds(exp: Experiment, enkf, replay: Replay, s_obs: np.ndarray, p
         ok = np.all(np.isfinite(s), axis=1)
         usable.append(int(ok.sum()))
         if ok.sum() >= 10 * (theta.shape[1] + 1):
-            if paths > runs.paths:          # replicates of one run against the mean of several
-                s = indirect.averaged(theta, s, paths)
-            posterior = indirect.adjusted_posterior(theta, s, s_obs, *box, settings.accept)
-            z = indirect.misfit(s, s_obs, settings.accept)
+            # s_obs is the mean of `paths` runs' summaries, a replicate's of runs.paths
+            *posterior, z = indirect.synthetic_posterior(theta, s, s_obs, *box, runs.paths / paths,
+                                                         seed=[exp.seed, REPLICATE_STREAM, round_, 1])
             box, rounds = indirect.posterior_box(*posterior, *box), rounds + 1
             if rounds == wanted:
                 break
