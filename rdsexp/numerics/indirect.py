@@ -203,5 +203,7 @@ def synthetic_posterior(theta: np.ndarray, s: np.ndarray, s_obs: np.ndarray, lo:
         dev = draws - centre
         cov = (w[:, None] * dev).T @ dev / w.sum()
     mean = centre[None]
-    z = (s_obs - mu(mean)[0]) / np.sqrt(np.diag(np.linalg.pinv(W @ W.T)) * (ratio + h(mean)[0]))
+    sd = np.sqrt(np.clip(np.diag(np.linalg.pinv(W @ W.T)), 0, None) * (ratio + h(mean)[0]))
+    with np.errstate(divide="ignore", invalid="ignore"):        # a summary no replicate varies: no misfit to read
+        z = np.where(sd > 0, (s_obs - mu(mean)[0]) / sd, 0.0)
     return draws, w, z
