@@ -109,6 +109,18 @@ def at_the_edge(adjusted: np.ndarray, w: np.ndarray, lo: np.ndarray, hi: np.ndar
     return w @ edge / w.sum() > share
 
 
+def pressed(draws: np.ndarray, w: np.ndarray, lo: np.ndarray, hi: np.ndarray, prior_lo: np.ndarray,
+            prior_hi: np.ndarray, share: float = 0.05) -> np.ndarray:
+    """(d,) bool: the components whose posterior draws (N, d), weighted by w (N,), put more than `share` of their
+    weight within 1% of an edge of the box [lo, hi] they were drawn under that lies inside the prior box
+    [prior_lo, prior_hi] (by more than 1% of the box): a box placed by an earlier round, not the prior, cuts the
+    posterior there."""
+    margin = 0.01 * (hi - lo)
+    low = (draws <= lo + margin) & (lo > prior_lo + margin)
+    high = (draws >= hi - margin) & (hi < prior_hi - margin)
+    return w @ (low | high) / w.sum() > share
+
+
 def narrowed(adjusted: np.ndarray, w: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     """(d,): each component's posterior sd over the prior box's, (hi - lo) / sqrt(12): near 1 where the data
     did not narrow the box (the outputs do not tell that component), small where they pinned it down."""

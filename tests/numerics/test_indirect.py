@@ -133,6 +133,20 @@ def test_a_posterior_stopped_by_the_box_is_told_apart_from_a_law_at_its_own_edge
     assert not indirect.at_the_edge(draws, w, lo, hi, ends).any()
 
 
+def test_a_posterior_cut_by_a_placed_box_is_told_apart_from_one_cut_by_the_prior():
+    """Draws piling at an edge of a round's box that lies inside the prior box are pressed (a later round must reach
+    past it); at an edge the round's box shares with the prior, or well inside, they are not."""
+    prior_lo, prior_hi = np.array([0.0, 0.0]), np.array([10.0, 10.0])
+    lo, hi = np.array([2.0, 0.0]), np.array([4.0, 3.0])        # component 0 placed inside; 1 shares the prior's lower edge
+    w = np.ones(100)
+    for column, value, flagged in [(0, 2.0, True), (0, 4.0, True), (1, 0.0, False), (1, 3.0, True), (0, 3.0, False)]:
+        draws = np.tile([3.0, 1.5], (100, 1))
+        draws[:10, column] = value
+        expect = np.zeros(2, dtype=bool)
+        expect[column] = flagged
+        np.testing.assert_array_equal(indirect.pressed(draws, w, lo, hi, prior_lo, prior_hi), expect)
+
+
 def test_a_boundary_truth_keeps_its_posterior_inside_the_box():
     """A std near 0 that the summary reads with noise: every draw stays inside the box and the 95% interval holds
     the truth at about its level."""
