@@ -181,14 +181,15 @@ def posterior_rounds(exp: Experiment, enkf, replay: Replay, s_obs: np.ndarray, p
     """The replicate rounds of `simulated_moments`: (draws (N, d), weights (N,)) of the posterior, or None where no
     round identified enough replicates to regress on (10 per regressor), each round's count of identified
     replicates, and where s_obs lies among the summaries of the posterior mean's law (`indirect.synthetic_posterior`).
-    Each round after the first draws from the box the previous posterior spans, within the prior box
-    (POSTERIOR_ROUNDS of them; one more where the first round's identifications mostly failed, and one more where
-    the last posterior presses an edge its own round's box drew inside the prior's: `indirect.pressed`). s_obs: the mean of `paths` paths' summaries; a
-    replicate's is the mean of fewer (a data run's: one) or as many, and the likelihood's covariance scales by the
-    ratio. Replicates of replay.paths > 1 paths (a simulated run's identification.paths) run that many only once a
-    first posterior has placed the box: the rounds before run one path each, which places the box well enough
-    (four paths on the calibration plants: the same errors and coverage as two rounds of every path after it, in
-    two thirds of the time). `laws`: (ends, low, high). progress(paths): called as each chunk is done."""
+    Each round after the first draws from the box the previous posterior spans (POSTERIOR_ROUNDS of them; one more
+    where the first round's identifications mostly failed, and one more where the last posterior presses an edge its
+    own round's box drew inside the prior's, `indirect.pressed`, whose components' box may then reach past it).
+    s_obs: the mean of `paths` paths' summaries; a replicate's is the mean of fewer (a data run's: one) or as many,
+    and the likelihood's covariance scales by the ratio. Replicates of replay.paths > 1 paths (a simulated run's
+    identification.paths) run that many only once a first posterior has placed the box: the rounds before run one
+    path each, which places the box well enough (four paths on the calibration plants: the same errors and coverage
+    as two rounds of every path after it, in two thirds of the time). `laws`: (ends, low, high). progress(paths):
+    called as each chunk is done."""
     settings = exp.identification
     posterior, rounds, usable, z, prior = None, 0, [], None, box
     wanted = POSTERIOR_ROUNDS[paths > replay.paths]
@@ -202,12 +203,13 @@ def posterior_rounds(exp: Experiment, enkf, replay: Replay, s_obs: np.ndarray, p
             # s_obs is the mean of `paths` runs' summaries, a replicate's of runs.paths
             *posterior, z = indirect.synthetic_posterior(theta, s, s_obs, *box, runs.paths / paths,
                                                          seed=[exp.seed, REPLICATE_STREAM, round_, 1])
-            # the next box may reach past this one, up to the prior's: a posterior that presses an edge this
-            # round's box drew inside the prior's (a box placed on a rougher posterior) is cut by it, not by the
-            # prior, and takes one more round (POSTERIOR_ROUNDS + 1) from the box it then spans
-            pressed = indirect.pressed(*posterior, *box, *prior).any()
-            box, rounds = indirect.posterior_box(*posterior, *prior), rounds + 1
-            if rounds > wanted or (rounds == wanted and not pressed):
+            # a posterior that presses an edge this round's box drew inside the prior's (a box placed on a rougher
+            # posterior) is cut by it, not by the prior: in those components the next box may reach past this one,
+            # up to the prior's, and one more round (POSTERIOR_ROUNDS + 1) draws from the box it then spans
+            pressed = indirect.pressed(*posterior, *box, *prior)
+            limits = np.where(pressed, prior[0], box[0]), np.where(pressed, prior[1], box[1])
+            box, rounds = indirect.posterior_box(*posterior, *limits), rounds + 1
+            if rounds > wanted or (rounds == wanted and not pressed.any()):
                 break
         elif ok.sum() >= 2 and posterior is None:
             # most laws of the box make the identification diverge, as the observed one did not: the next round
