@@ -77,13 +77,13 @@ def main(argv=None):
                                  exp.identification.prior_width)
     last = None
     for label, prior in (("the run's prior box", box), ("the box centred on the true means", centred)):
-        (adjusted, w), usable, _ = ident.posterior_rounds(exp, exp.filter.enkf, replay, s_star, paths, prior,
+        (draws, w), usable, _ = ident.posterior_rounds(exp, exp.filter.enkf, replay, s_star, paths, prior,
                                                           (ends, low, high))
-        mean = w @ adjusted / w.sum()
-        sd = np.sqrt(w @ (adjusted - mean) ** 2 / w.sum())
+        mean = w @ draws / w.sum()
+        sd = np.sqrt(w @ (draws - mean) ** 2 / w.sum())
         print(f"   {label:36s} means {np.round(mean[:p], 3).tolist()} (sd {np.round(sd[:p], 3).tolist()}), "
               f"stds {np.round(mean[p:], 3).tolist()}; identified {usable}")
-        last = indirect.posterior_box(adjusted, w, *prior) if last is None else last     # the run's last box
+        last = indirect.posterior_box(draws, w, *prior) if last is None else last     # the run's last box
 
     theta = indirect.uniform_draws(*last, args.reps, 1003)
     s = ident.replicate_summaries(exp, exp.filter.enkf, replay, theta, ends, low, high, 1003)
@@ -98,9 +98,9 @@ def main(argv=None):
 
     def estimate(summary: np.ndarray) -> np.ndarray:            # the posterior mean from the run's prior box
         prior = indirect.prior_box(summary[:2 * p], ends, low, high, exp.identification.prior_width)
-        (adjusted, w), _, _ = ident.posterior_rounds(exp, exp.filter.enkf, replay, summary, paths, prior,
+        (draws, w), _, _ = ident.posterior_rounds(exp, exp.filter.enkf, replay, summary, paths, prior,
                                                      (ends, low, high))
-        return w @ adjusted / w.sum()
+        return w @ draws / w.sum()
     noisy = at(truth, 3, 1004)
     print("4. one bias correction by simulation at the estimate: theta^ -> 2 theta^ - theta^^ (means | stds)")
     for label, summary in (("noiseless s*", s_star), *((f"noisy summary {i}", noisy[i]) for i in range(3))):

@@ -94,15 +94,15 @@ def weighted_quantiles(values: np.ndarray, w: np.ndarray, q) -> np.ndarray:
     return np.interp(q, cdf, values[order])
 
 
-def at_the_edge(adjusted: np.ndarray, w: np.ndarray, lo: np.ndarray, hi: np.ndarray, ends: np.ndarray,
+def at_the_edge(draws: np.ndarray, w: np.ndarray, lo: np.ndarray, hi: np.ndarray, ends: np.ndarray,
                 share: float = 0.05) -> np.ndarray:
     """(d,) bool: the components of theta whose posterior puts more than `share` of its weight within 1% of the
     prior box [lo, hi] at an edge that is not the law's own: either end of a mean that is not two-point, the
     upper end of a std (a std of 0 and a two-point component's ends are laws the box rightly holds). There the
     box, not the data, stops the posterior: its interval may be cut short."""
     p = ends.size
-    near_lo = adjusted <= lo + 0.01 * (hi - lo)
-    near_hi = adjusted >= hi - 0.01 * (hi - lo)
+    near_lo = draws <= lo + 0.01 * (hi - lo)
+    near_hi = draws >= hi - 0.01 * (hi - lo)
     check_lo = np.concatenate([~ends, np.zeros(lo.size - p, dtype=bool)])
     check_hi = np.concatenate([~ends, np.ones(lo.size - p, dtype=bool)])
     edge = (near_lo & check_lo) | (near_hi & check_hi)
@@ -121,17 +121,17 @@ def pressed(draws: np.ndarray, w: np.ndarray, lo: np.ndarray, hi: np.ndarray, pr
     return w @ (low | high) / w.sum() > share
 
 
-def narrowed(adjusted: np.ndarray, w: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+def narrowed(draws: np.ndarray, w: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     """(d,): each component's posterior sd over the prior box's, (hi - lo) / sqrt(12): near 1 where the data
     did not narrow the box (the outputs do not tell that component), small where they pinned it down."""
-    mean = w @ adjusted / w.sum()
-    return np.sqrt(w @ (adjusted - mean) ** 2 / w.sum()) / np.maximum((hi - lo) / np.sqrt(12), 1e-300)
+    mean = w @ draws / w.sum()
+    return np.sqrt(w @ (draws - mean) ** 2 / w.sum()) / np.maximum((hi - lo) / np.sqrt(12), 1e-300)
 
 
-def weighted_draws(adjusted: np.ndarray, w: np.ndarray, count: int, seed) -> np.ndarray:
-    """(count, d): draws from the weighted adjusted thetas (multinomial by weight, default_rng(seed))."""
+def weighted_draws(draws: np.ndarray, w: np.ndarray, count: int, seed) -> np.ndarray:
+    """(count, d): draws from the weighted draws (N, d) (multinomial by weight, default_rng(seed))."""
     pick = np.random.default_rng(seed).choice(len(w), size=count, p=w / w.sum())
-    return adjusted[pick]
+    return draws[pick]
 
 
 def emulator(theta: np.ndarray, s: np.ndarray, lo: np.ndarray, hi: np.ndarray):

@@ -161,19 +161,19 @@ def simulated_moments(exp: Experiment, stages: Stages, ident: Trajectories, iden
             worst = int(np.argmax(np.abs(z)))
             info["misfit"] = {"summary": summary_names(model)[worst], "z": float(z[worst]), "bound": MISFIT}
             return Identified(ident, summary, "", feedback, covariance=settings.covariance, estimator=info)
-        adjusted, w = posterior
-        info |= diagnostics(adjusted, w, prior, ends, replay.noisy)
-        xi_part = adjusted[:, :len(prior[0]) - replay.noisy]
+        draws, w = posterior
+        info |= diagnostics(draws, w, prior, ends, replay.noisy)
+        xi_part = draws[:, :len(prior[0]) - replay.noisy]
         # independent components, the laws the replicates draw from (the paper estimator's correlations are as
         # biased as its stds, and designs on them did worse on the calibration plants)
         mean, cov = indirect.moments_of(w @ xi_part / w.sum(), ends, low, high)
-        draws = None
+        spread = None
         if settings.resamples:          # the uncertainty: identification.resamples draws of the posterior
             picks = indirect.weighted_draws(xi_part, w, settings.resamples, [exp.seed, UNCERTAINTY_STREAM])
-            draws = Uncertainty(*indirect.moments_of(picks, ends, low, high), settings.resamples, 0,
-                                "simulated replicates")
+            spread = Uncertainty(*indirect.moments_of(picks, ends, low, high), settings.resamples, 0,
+                                 "simulated replicates")
     return Identified(ident, MomentModel(mean=mean, cov=cov), "", feedback, covariance=settings.covariance,
-                      estimator=info, posterior=draws)
+                      estimator=info, posterior=spread)
 
 
 def posterior_rounds(exp: Experiment, enkf, replay: Replay, s_obs: np.ndarray, paths: int, box,
@@ -220,7 +220,7 @@ def posterior_rounds(exp: Experiment, enkf, replay: Replay, s_obs: np.ndarray, p
     return posterior, usable, z
 
 
-def diagnostics(adjusted: np.ndarray, w: np.ndarray, prior, ends: np.ndarray, noisy: bool = False) -> dict:
+def diagnostics(draws: np.ndarray, w: np.ndarray, prior, ends: np.ndarray, noisy: bool = False) -> dict:
     """The posterior's account for the summary and the status: its effective number of replicates, how much the
     data narrowed each component's prior box (`indirect.narrowed`), and the components of xi's law at the box's
     edge (`at_prior_edge`) or hardly narrowed (`weakly_identified`, above `indirect.WEAK`). noisy: the last
@@ -228,17 +228,17 @@ def diagnostics(adjusted: np.ndarray, w: np.ndarray, prior, ends: np.ndarray, no
     times the noise the EnKF assumes), not a status (its box's low end is noise too small to matter)."""
     p = ends.size
     names = [f"xi mean {i + 1}" for i in range(p)] + [f"xi std {i + 1}" for i in np.flatnonzero(~ends)]
-    ratio = indirect.narrowed(adjusted, w, *prior)
+    ratio = indirect.narrowed(draws, w, *prior)
     out = {"effective": float(w.sum() ** 2 / (w ** 2).sum()), "narrowed": ratio.tolist()}
     xi = slice(0, len(names))
-    edge = indirect.at_the_edge(adjusted[:, xi], w, prior[0][xi], prior[1][xi], ends)
+    edge = indirect.at_the_edge(draws[:, xi], w, prior[0][xi], prior[1][xi], ends)
     if edge.any():                  # the box, not the data, stops the posterior there
         out["at_prior_edge"] = [names[i] for i in np.flatnonzero(edge)]
     weak = ratio[xi] > indirect.WEAK
     if weak.any():                  # the data hardly narrowed the prior box: the outputs do not tell
         out["weakly_identified"] = [names[i] for i in np.flatnonzero(weak)]
     if noisy:
-        q = indirect.weighted_quantiles(adjusted[:, -1], w, [0.025, 0.5, 0.975])
+        q = indirect.weighted_quantiles(draws[:, -1], w, [0.025, 0.5, 0.975])
         out["noise_scale"] = {"median": float(10 ** q[1]), "low": float(10 ** q[0]), "high": float(10 ** q[2]),
                               "box": [10 ** prior[0][-1], 10 ** prior[1][-1]]}
     return out
