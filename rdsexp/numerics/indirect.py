@@ -7,7 +7,7 @@ removes it. But rdsexp can run the same identification on the model at any law o
 
 1. the summary s of the identification run (`s_obs`): the paper estimator's mean (p) and std (p), and any
    other statistic the caller computes the same way on every run (rdsexp adds the outputs' and the
-   innovations' log mean squares);
+   innovations' log mean squares and the outputs' lag-1 and cross correlations);
 2. theta = (mean of xi (p), std of every component that is not two-point) drawn uniformly from a box
    around the paper estimator's moments (`prior_box`), one law per replicate path (`path_laws`,
    `distributions.PathLaws`);
@@ -216,6 +216,8 @@ def synthetic_posterior(theta: np.ndarray, s: np.ndarray, s_obs: np.ndarray, lo:
         cov = (w[:, None] * dev).T @ dev / w.sum()
     mean = centre[None]
     sd = np.sqrt(np.clip(np.diag(np.linalg.pinv(W @ W.T)), 0, None) * (ratio + h(mean)[0]))
-    with np.errstate(divide="ignore", invalid="ignore"):        # a summary no replicate varies: no misfit to read
-        z = np.where(sd > 0, (s_obs - mu(mean)[0]) / sd, 0.0)
+    # a summary no replicate varies (beyond Sigma's numerical rank: its sd is round-off) has no misfit to read
+    varied = sd > 1e-6 * sd.max()
+    with np.errstate(divide="ignore", invalid="ignore"):
+        z = np.where(varied, (s_obs - mu(mean)[0]) / sd, 0.0)
     return draws, w, z

@@ -169,10 +169,11 @@ def test_dropout_example_with_holdout_validation(tmp_path):
     s = info_of(run_dir)["summary"]
     assert s["data"]["identification_paths"] == 24 and s["data"]["holdout_paths"] == 6
     # the simulated estimator's replicates replay the 24 paths' recorded inputs open loop; these were recorded under
-    # a stabilizing gain, so no law reproduces their outputs' energy: misfit, the window's moments kept, said so
+    # a stabilizing gain, so no law reproduces their outputs (their energy, their correlation in time): misfit, the
+    # window's moments kept, said so
     estimator = s["modeling_estimator"]
     assert s["modeling_status"] == "misfit" and estimator["summary_paths"] == 24 and "noise_sensitivity" not in s
-    assert estimator["misfit"]["summary"] == "log mean square of y[0]" and estimator["misfit"]["z"] < -4
+    assert estimator["misfit"]["summary"].endswith("of y[0]") and abs(estimator["misfit"]["z"]) > 4
     assert s["xi_mean"] == estimator["summary_mean"] and s["modeling_uncertainty"]["over"] == "paths"
     assert "read on 24 recorded paths" in proc.stdout and "misfit: no law the replicates tried" in proc.stdout
     table = pd.read_parquet(run_dir / "validation.parquet")

@@ -210,3 +210,18 @@ def test_a_summary_no_law_reaches_is_a_misfit():
     assert np.quantile(worst, 0.95) < 3
     z = indirect.synthetic_posterior(theta, s, np.array([0.5, -1.0]), lo, hi, ratio=1.0)[2]    # theta^2 >= 0
     assert z[1] < -4
+
+
+def test_a_summary_no_replicate_varies_reads_no_misfit():
+    """A summary every replicate reads alike up to round-off (a correlation at its clip where every replicate's
+    outputs grow) reads z = 0: it holds no evidence, where 1 / its round-off sd would read 1e16 sds. The other
+    components still read theirs."""
+    rng = np.random.default_rng(4)
+    lo, hi = -np.ones(1), np.ones(1)
+    theta = rng.uniform(-1, 1, (1000, 1))
+    flat = np.arctanh(0.9999) + 1e-16 * rng.standard_normal(1000)
+    s = np.column_stack([theta[:, 0] + 0.1 * rng.standard_normal(1000), flat])
+    z = indirect.synthetic_posterior(theta, s, np.array([0.2, 1.5]), lo, hi, ratio=1.0, count=1000)[2]
+    assert z[1] == 0 and abs(z[0]) < 3
+    z = indirect.synthetic_posterior(theta, s, np.array([3.0, 1.5]), lo, hi, ratio=1.0, count=1000)[2]
+    assert z[0] > 4 and z[1] == 0

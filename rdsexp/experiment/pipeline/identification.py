@@ -300,14 +300,17 @@ def summary_names(model) -> list[str]:
     return [*(f"window mean of xi {i + 1}" for i in range(model.p)),
             *(f"window std of xi {i + 1}" for i in range(model.p)),
             *(f"log mean square of y[{i}]" for i in range(model.ny)),
-            *(f"log mean square of innovation {i}" for i in range(model.ny))]
+            *(f"log mean square of innovation {i}" for i in range(model.ny)),
+            *(f"lag-1 correlation of y[{i}]" for i in range(model.ny)),
+            *(f"correlation of y[{i}] and y[{j}]" for i in range(model.ny) for j in range(i + 1, model.ny))]
 
 
 def summary_statistics(exp: Experiment, tr: Trajectories) -> np.ndarray:
-    """(P, 2p + 2 ny): what the simulated estimator matches, per identification path: the paper estimator's
-    mean and std of xi over the window (eq. sample-mean, with identification.covariance), and the log mean
+    """(P, 2p + 2 ny + ny (ny + 1) / 2): what the simulated estimator matches, per identification path: the paper
+    estimator's mean and std of xi over the window (eq. sample-mean, with identification.covariance); the log mean
     square of each output and of the EnKF's innovation y_k - C x_{k|k-1} - D u_k there (the spread of xi moves
-    the outputs' energy, which the filtered means of one output may not show). NaN where the path failed."""
+    the outputs' energy, which the filtered means of one output may not show); and the outputs' lag-1 and
+    cross correlations (`correlation`). NaN where the path failed."""
     settings, model = exp.identification, exp.model
     window = slice(settings.K0, settings.K0 + settings.K1 + 1)
     total = settings.covariance == "total"
@@ -322,7 +325,21 @@ def summary_statistics(exp: Experiment, tr: Trajectories) -> np.ndarray:
                          for c, Cj, Dj in zip(np.moveaxis(coefficients, -1, 0), model.C, model.D))
     with np.errstate(divide="ignore", invalid="ignore"):
         energy = np.log(np.concatenate([time_mean(y ** 2), time_mean(innovation ** 2)], axis=1))
-    return np.concatenate([mean, np.sqrt(np.einsum("pii->pi", cov)), energy], axis=1)
+    # the second-order moments system identification reads: each output's lag-1 correlation (the mean dynamics)
+    # and the outputs' correlations with each other
+    ny = model.ny
+    correlations = [*(correlation(y[1:, :, i], y[:-1, :, i]) for i in range(ny)),
+                    *(correlation(y[:, :, i], y[:, :, j]) for i in range(ny) for j in range(i + 1, ny))]
+    return np.concatenate([mean, np.sqrt(np.einsum("pii->pi", cov)), energy, np.stack(correlations, axis=1)],
+                          axis=1)
+
+
+def correlation(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(P,): Fisher's z, artanh r, of the uncentered correlation r of a and b, each (T, P), over the steps (clipped
+    at |r| = 0.9999; NaN where either is identically 0): nearer normal than r, as the synthetic likelihood assumes."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r = time_mean(a * b) / np.sqrt(time_mean(a ** 2) * time_mean(b ** 2))
+    return np.arctanh(np.clip(r, -0.9999, 0.9999))
 
 
 def model_moments(exp: Experiment, stages: Stages, ident: Trajectories, identify, feedback: dict) -> Identified:
