@@ -337,7 +337,7 @@ def summary_statistics(exp: Experiment, tr: Trajectories) -> np.ndarray:
 def correlation(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """(P,): Fisher's z, artanh r, of the uncentered correlation r of a and b, each (T, P), over the steps: nearer
     normal than r, as the synthetic likelihood assumes. As 0.5 log(|a^ + b^|^2 / |a^ - b^|^2) (a^ = a / |a|), so
-    that an r near 1 (a slow output's lag-1 correlation, 1 - r ~ 1e-6) keeps its digits; within +-20 (r = 1 in
+    that an r near 1 (a slow output's lag-1 correlation, 1 - r down to 1e-15) keeps its digits; within +-20 (r = 1 in
     floating point), NaN where a or b is identically 0."""
     with np.errstate(divide="ignore", invalid="ignore"):
         a, b = a / np.sqrt(time_mean(a ** 2)), b / np.sqrt(time_mean(b ** 2))
