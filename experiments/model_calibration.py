@@ -25,8 +25,8 @@ data set per seed), identified with rdsexp's defaults for a system of one's own:
 0.01 where the EnKF assumes 0.1), `user_matched` (the EnKF told the data's noise), `user_one_output` (the first
 state only). Their end-to-end figure is the gain's exact LQ cost on the true law over the optimum's.
 
-    python experiments/model_calibration.py [--seeds 20] [--random 10] [--plants a,b] [--data a,b]
-        [--override KEY=VALUE ...]
+    python experiments/model_calibration.py [--seeds 20] [--random 10] [--random-from 0] [--plants a,b]
+        [--data a,b] [--override KEY=VALUE ...]
 """
 from __future__ import annotations
 
@@ -181,6 +181,7 @@ def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--seeds", type=int, default=20)
     parser.add_argument("--random", type=int, default=10, help="random plants (random_plants.py's draw, seed 0)")
+    parser.add_argument("--random-from", type=int, default=0, help="skip the random plants before this one")
     parser.add_argument("--plants", default=",".join(LIBRARY + ("unst3",)))
     parser.add_argument("--data", default="", help=f"data runs, of {', '.join(DATA_SETS)}")
     parser.add_argument("--override", nargs="*", default=[], metavar="KEY=VALUE")
@@ -192,7 +193,7 @@ def main(argv=None):
         (config_dir / "plant").mkdir()
         (config_dir / "plant" / "unst3.yaml").write_text(yaml.safe_dump(UNST3 | {"nominal": [1.0, 0.0]}))
         plants = [(name, None if name in LIBRARY else config_dir) for name in args.plants.split(",") if name]
-        for plant in random_plants.draw_plants(args.random, 0):
+        for plant in random_plants.draw_plants(args.random, 0)[args.random_from:]:
             path = random_plants.write_plant(plant, config_dir, "model_calibration.py")
             content = yaml.safe_load(path.read_text())
             content["nominal"] = random_plants.wrong_guess(plant, 0, 1.0).tolist()
