@@ -82,13 +82,16 @@ def loop_panel(ax, loops: list, squares: dict[str, np.ndarray], exact: pd.DataFr
 
 
 def xi_panel(ax_mean, ax_std, summary: dict) -> None:
-    """The modeled mean and std of each component of xi with 95% intervals (1.96 stated sds), the plant's beside."""
+    """The modeled mean and std of each component of xi with 95% intervals (1.96 stated sds; a std's cut at 0, where
+    no std lies), the plant's beside."""
     uncertainty = summary.get("modeling_uncertainty") or {}
     for ax, what in ((ax_mean, "mean"), (ax_std, "std")):
         modeled = np.asarray(summary[f"xi_{what}"], dtype=float)
         index = np.arange(modeled.size)
         sd = np.asarray(uncertainty.get(f"xi_{what}_sd") or np.full(modeled.size, np.nan), dtype=float)
-        ax.errorbar(index, modeled, yerr=np.where(np.isfinite(sd), 1.96 * sd, 0), fmt="o", color="C0", capsize=4,
+        half = np.where(np.isfinite(sd), 1.96 * sd, 0)
+        below = np.minimum(half, np.maximum(modeled, 0)) if what == "std" else half
+        ax.errorbar(index, modeled, yerr=[below, half], fmt="o", color="C0", capsize=4,
                     label="modeled (95% interval)" if np.isfinite(sd).any() else "modeled")
         truth = summary.get(f"plant_xi_{what}")
         if truth is not None:

@@ -44,3 +44,21 @@ def test_the_stored_trajectories_give_the_loops_squares_the_run_kept():
     for name, sq in out.squares.items():
         np.testing.assert_allclose(squares[name], sq, rtol=1e-12)
     assert isinstance(out.tables["metrics"], pd.DataFrame)
+
+
+def test_the_xi_panels_intervals_are_the_stated_ones_and_a_std_stops_at_zero():
+    """The panel's bars span modeled +- 1.96 stated sd (what `model_calibration.py` scores), except that a std's
+    bar stops at 0, where no std lies."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from rdsexp.experiment.figure import xi_panel
+    summary = {"xi_mean": [0.0, 1.0], "xi_std": [0.1, 0.5], "plant_xi_mean": [0.0, 1.0], "plant_xi_std": [0.2, 0.4],
+               "modeling_uncertainty": {"xi_mean_sd": [0.2, 0.1], "xi_std_sd": [0.2, 0.1]}}
+    fig, (ax_mean, ax_std) = plt.subplots(2)
+    xi_panel(ax_mean, ax_std, summary)
+    span = lambda ax: np.array([seg[:, 1] for seg in ax.containers[0].lines[2][0].get_segments()])
+    np.testing.assert_allclose(span(ax_mean), [[-0.392, 0.392], [0.804, 1.196]])
+    np.testing.assert_allclose(span(ax_std), [[0.0, 0.492], [0.304, 0.696]])
+    plt.close(fig)
