@@ -16,6 +16,7 @@ from rdsexp.experiment.pipeline import identification
 from rdsexp.experiment.pipeline.identification import identify_and_model, moment_uncertainty
 from rdsexp.experiment.pipeline.loops import root_seed
 from rdsexp.experiment.pipeline.stage import Stages
+from rdsexp.numerics.modeling import correlation_z
 
 # open-loop unstable, identified under nominal feedback: a Bernoulli(0.8) actuator link and a normal gain on A
 PLANT = {"name": "link", "A": [[[1.05, 0.2], [0.0, 0.95]], [[0, 0], [0, 0]], [[0.3, 0], [0, 0]]],
@@ -237,23 +238,23 @@ def test_outputs_identically_zero_keep_the_window_moments_and_say_why(tmp_path):
 
 
 def test_the_summarys_correlations_are_fishers_z_to_the_last_digits():
-    """`identification.correlation` is artanh of the uncentered correlation, to round-off where r is moderate, and
+    """`modeling.correlation_z` is artanh of the uncentered correlation, to round-off where r is moderate, and
     keeps its digits for two slow outputs whose r is 1 - 1e-15 to 1 - 1e-13 (the long-double reference within
     1e-3; r itself keeps one or two digits of 1 - r there); +-20 at r = +-1, NaN for an output identically 0."""
     rng = np.random.default_rng(5)
     a = rng.standard_normal((80, 6))
     b = 0.4 * a + rng.standard_normal((80, 6))
     r = (a * b).sum(axis=0) / np.sqrt((a * a).sum(axis=0) * (b * b).sum(axis=0))
-    np.testing.assert_allclose(identification.correlation(a, b), np.arctanh(r), rtol=0, atol=1e-13)
+    np.testing.assert_allclose(correlation_z(a, b), np.arctanh(r), rtol=0, atol=1e-13)
     ramp = 1 + np.linspace(0, 1, 101)[:, None] * np.ones((1, 4))
     for scale in (1e-7, 1e-6):
         slow = ramp + scale * rng.standard_normal(ramp.shape)
         x, y = slow.astype(np.longdouble), ramp.astype(np.longdouble)
         unit = lambda v: v / np.sqrt((v * v).sum(axis=0))
         exact = 0.5 * np.log(((unit(x) + unit(y)) ** 2).sum(axis=0) / ((unit(x) - unit(y)) ** 2).sum(axis=0))
-        z = identification.correlation(slow, ramp)
+        z = correlation_z(slow, ramp)
         assert np.all(np.isfinite(z)) and np.all(z < 20)
         np.testing.assert_allclose(z, exact.astype(float), rtol=0, atol=1e-3)
     flat = np.ones((10, 1))
-    assert identification.correlation(flat, flat)[0] == 20 and identification.correlation(flat, -flat)[0] == -20
-    assert np.isnan(identification.correlation(np.zeros((10, 1)), flat)[0])
+    assert correlation_z(flat, flat)[0] == 20 and correlation_z(flat, -flat)[0] == -20
+    assert np.isnan(correlation_z(np.zeros((10, 1)), flat)[0])

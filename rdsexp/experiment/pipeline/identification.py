@@ -14,6 +14,7 @@ import pandas as pd
 from ...numerics import indirect
 from ...numerics.enkf import xi_ends
 from ...numerics.modeling import (
+    correlation_z,
     model_distribution,
     moment_draws,
     nominal_gain,
@@ -310,7 +311,7 @@ def summary_statistics(exp: Experiment, tr: Trajectories) -> np.ndarray:
     estimator's mean and std of xi over the window (eq. sample-mean, with identification.covariance); the log mean
     square of each output and of the EnKF's innovation y_k - C x_{k|k-1} - D u_k there (the spread of xi moves
     the outputs' energy, which the filtered means of one output may not show); and the outputs' lag-1 and
-    cross correlations (`correlation`). NaN where the path failed."""
+    cross correlations (`modeling.correlation_z`). NaN where the path failed."""
     settings, model = exp.identification, exp.model
     window = slice(settings.K0, settings.K0 + settings.K1 + 1)
     total = settings.covariance == "total"
@@ -328,20 +329,10 @@ def summary_statistics(exp: Experiment, tr: Trajectories) -> np.ndarray:
     # the second-order moments system identification reads: each output's lag-1 correlation (the mean dynamics)
     # and the outputs' correlations with each other
     ny = model.ny
-    correlations = [*(correlation(y[1:, :, i], y[:-1, :, i]) for i in range(ny)),
-                    *(correlation(y[:, :, i], y[:, :, j]) for i in range(ny) for j in range(i + 1, ny))]
+    correlations = [*(correlation_z(y[1:, :, i], y[:-1, :, i]) for i in range(ny)),
+                    *(correlation_z(y[:, :, i], y[:, :, j]) for i in range(ny) for j in range(i + 1, ny))]
     return np.concatenate([mean, np.sqrt(np.einsum("pii->pi", cov)), energy, np.stack(correlations, axis=1)],
                           axis=1)
-
-
-def correlation(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """(P,): Fisher's z, artanh r, of the uncentered correlation r of a and b, each (T, P), over the steps: nearer
-    normal than r, as the synthetic likelihood assumes. As 0.5 log(|a^ + b^|^2 / |a^ - b^|^2) (a^ = a / |a|), so
-    that an r near 1 (a slow output's lag-1 correlation, 1 - r down to 1e-15) keeps its digits; within +-20 (r = 1 in
-    floating point), NaN where a or b is identically 0."""
-    with np.errstate(divide="ignore", invalid="ignore"):
-        a, b = a / np.sqrt(time_mean(a ** 2)), b / np.sqrt(time_mean(b ** 2))
-        return np.clip(0.5 * np.log(time_mean((a + b) ** 2) / time_mean((a - b) ** 2)), -20.0, 20.0)
 
 
 def model_moments(exp: Experiment, stages: Stages, ident: Trajectories, identify, feedback: dict) -> Identified:
