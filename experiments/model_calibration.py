@@ -25,12 +25,17 @@ data set per seed), identified with rdsexp's defaults for a system of one's own:
 0.01 where the EnKF assumes 0.1), `user_matched` (the EnKF told the data's noise), `user_one_output` (the first
 state only). Their end-to-end figure is the gain's exact LQ cost on the true law over the optimum's.
 
-    python experiments/model_calibration.py [--seeds 20] [--random 10] [--random-from 0] [--plants a,b]
-        [--data a,b] [--override KEY=VALUE ...]
+Each run's row can be kept (--rows FILE, JSON lines), so that a study split over processes or sessions is pooled
+into one table (--pool FILE ...: no run, the table of the rows in those files). The last line pools every run's
+end-to-end figure over plants, the issue's "over the library and 30 random plants".
+
+    python experiments/model_calibration.py [--seeds 20] [--seed-from 0] [--random 10] [--random-from 0]
+        [--plants a,b] [--data a,b] [--override KEY=VALUE ...] [--rows FILE] [--pool FILE ...]
 """
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import tempfile
 import time
@@ -151,6 +156,7 @@ def summarize(rows: list[dict]) -> dict:
         out[f"{what}_components"] = int(known.sum())
     e2e = [r["e2e"] for r in rows if "e2e" in r]
     out["e2e_kind"] = next((r["e2e_kind"] for r in rows if "e2e_kind" in r), "")
+    out["e2e"] = np.asarray(e2e)
     out["e2e_median"] = float(np.median(e2e)) if e2e else np.nan
     out["e2e_q90"] = float(np.quantile(e2e, 0.9)) if e2e else np.nan
     return out
@@ -175,18 +181,49 @@ def print_table(results: dict[str, dict]) -> None:
           f"{sum(r['runs'] for r in results.values())}, their cover {pooled('ok_cover'):.2f}; median error: "
           f"mean {np.median([r['mean_err'] for r in modeled]):.2f} true sds, std "
           f"{np.median([r['std_err'] for r in modeled]):.2f}")
+    for kind in sorted({r["e2e_kind"] for r in results.values()} - {""}):
+        e2e = np.concatenate([r["e2e"] for r in results.values() if r["e2e_kind"] == kind])
+        print(f"end to end over every run ({kind}): median {np.median(e2e):.3f}, q90 {np.quantile(e2e, 0.9):.3f} "
+              f"({e2e.size} runs)")
+
+
+def save(rows: list[dict], path: Path, plant: str, seeds) -> None:
+    """Append a plant's rows to `path`, a JSON line each (arrays as lists, with the plant and the seed)."""
+    with open(path, "a") as f:
+        for seed, row in zip(seeds, rows):
+            f.write(json.dumps({"plant": plant, "seed": seed} | {k: v.tolist() if isinstance(v, np.ndarray) else v
+                                                                 for k, v in row.items()}) + "\n")
+
+
+def pooled(paths: list[str]) -> dict[str, dict]:
+    """The table's entries from the rows kept in `paths` (one row per plant and seed: a later file's row wins)."""
+    rows = {}
+    for path in paths:
+        for line in Path(path).read_text().splitlines():
+            row = json.loads(line)
+            rows[(row.pop("plant"), row.pop("seed"))] = {k: np.asarray(v) if isinstance(v, list) else v
+                                                         for k, v in row.items()}
+    plants = dict.fromkeys(plant for plant, _ in rows)
+    return {plant: summarize([row for (name, _), row in sorted(rows.items()) if name == plant]) for plant in plants}
 
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--seeds", type=int, default=20)
+    parser.add_argument("--seed-from", type=int, default=0, help="skip the seeds before this one")
     parser.add_argument("--random", type=int, default=10, help="random plants (random_plants.py's draw, seed 0)")
     parser.add_argument("--random-from", type=int, default=0, help="skip the random plants before this one")
     parser.add_argument("--plants", default=",".join(LIBRARY + ("unst3",)))
     parser.add_argument("--data", default="", help=f"data runs, of {', '.join(DATA_SETS)}")
     parser.add_argument("--override", nargs="*", default=[], metavar="KEY=VALUE")
+    parser.add_argument("--rows", type=Path, help="append each run's row to this file (JSON lines)")
+    parser.add_argument("--pool", nargs="+", metavar="FILE", help="no run: the table of the rows in these files")
     args = parser.parse_args(argv)
+    if args.pool:
+        print_table(pooled(args.pool))
+        return
     start = time.perf_counter()
+    seeds = range(args.seed_from, args.seeds)
     results = {}
     with tempfile.TemporaryDirectory() as tmp:
         config_dir = Path(tmp)
@@ -200,13 +237,16 @@ def main(argv=None):
             path.write_text(yaml.safe_dump(content, default_flow_style=None, sort_keys=False, width=100))
             plants.append((plant.name, config_dir))
         for name, where in plants:
-            rows = [one_run(experiment(name, where, [f"seed={seed}", *FAST, *args.override]))
-                    for seed in range(args.seeds)]
+            rows = [one_run(experiment(name, where, [f"seed={seed}", *FAST, *args.override])) for seed in seeds]
             results[name] = summarize(rows)
+            if args.rows:
+                save(rows, args.rows, name, seeds)
             print(f"{name}: {results[name]['runs']} runs", file=sys.stderr)
         for name in filter(None, args.data.split(",")):
-            results[name] = summarize([one_data_run(name, seed, config_dir, args.override)
-                                       for seed in range(args.seeds)])
+            rows = [one_data_run(name, seed, config_dir, args.override) for seed in seeds]
+            results[name] = summarize(rows)
+            if args.rows:
+                save(rows, args.rows, name, seeds)
             print(f"{name}: {results[name]['runs']} runs", file=sys.stderr)
     print_table(results)
     print(f"\n{time.perf_counter() - start:.0f} s")
