@@ -173,6 +173,32 @@ def test_the_error_shrinks_with_paths_on_a_fully_observed_scalar_system(tmp_path
     assert hits >= binom.ppf(0.0015, 48, 0.95), f"{hits} of 48 intervals hold the truth"
 
 
+def test_the_progress_bar_counts_every_round_it_runs(tmp_path, monkeypatch):
+    """The modeling bar's total ends equal to the replicate paths run, where a pressed box adds a round beyond the
+    planned ones (forced here) and the later rounds run identification.paths paths per replicate."""
+    from contextlib import contextmanager
+
+    from rdsexp.numerics import indirect
+    bars = []
+
+    class Counted(Stages):
+        @staticmethod
+        @contextmanager
+        def progress(desc, total):
+            bar = {"total": total, "done": 0}
+            bars.append(bar)
+            def update(steps, more=0):
+                bar["total"] += more
+                bar["done"] += steps
+            yield update
+    monkeypatch.setattr(indirect, "pressed", lambda draws, *rest: np.ones(draws.shape[1], dtype=bool))
+    exp = experiment(tmp_path, "seed=1", "identification.paths=2", "identification.replicates=100")
+    identified = identify_and_model(exp, Counted(cache=None), root_seed(exp, "identification"))
+    rounds = len(identified.estimator["usable"])
+    assert rounds == identification.POSTERIOR_ROUNDS[0] + 1           # one beyond the planned rounds
+    assert bars == [{"total": 100 * (1 + 2 * (rounds - 1)), "done": 100 * (1 + 2 * (rounds - 1))}]
+
+
 def test_a_failed_random_walk_is_read_again_with_an_iid_xi_and_so_are_the_replicates(tmp_path, monkeypatch):
     """Where the random-walk run fails, the summary comes from a run whose EnKF draws xi i.i.d. about the prior guess
     (enkf.Q's xi block), the replicates run that same EnKF, and the summary says so."""

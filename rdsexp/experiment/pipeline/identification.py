@@ -189,14 +189,18 @@ def posterior_rounds(exp: Experiment, enkf, replay: Replay, s_obs: np.ndarray, p
     and the likelihood's covariance scales by the ratio. Replicates of replay.paths > 1 paths (a simulated run's
     identification.paths) run that many only once a first posterior has placed the box: the rounds before run one
     path each, which places the box well enough (four paths on the calibration plants: the same errors and coverage
-    as two rounds of every path after it, in two thirds of the time). `laws`: (ends, low, high). progress(paths):
-    called as each chunk is done."""
+    as two rounds of every path after it, in two thirds of the time). `laws`: (ends, low, high). progress(paths,
+    more=0): called as each chunk is done, and with `more` where a round runs other paths than the bar's total
+    counted (1 + (POSTERIOR_ROUNDS - 1) replay.paths replicate paths per replicate)."""
     settings = exp.identification
     posterior, rounds, usable, z, prior = None, 0, [], None, box
     wanted = POSTERIOR_ROUNDS[paths > replay.paths]
     for round_ in range(1, wanted + 3):
         theta = indirect.uniform_draws(*box, settings.replicates, [exp.seed, REPLICATE_STREAM, round_])
         runs = replay if posterior is not None else dataclasses.replace(replay, paths=1)
+        planned = 0 if round_ > wanted else 1 if round_ == 1 else replay.paths     # the bar's total counted these
+        if progress is not None and runs.paths != planned:       # a round beyond the planned ones, or a failed one's
+            progress(0, more=(runs.paths - planned) * settings.replicates)
         s = replicate_summaries(exp, enkf, runs, theta, *laws, round_, progress)
         ok = np.all(np.isfinite(s), axis=1)
         usable.append(int(ok.sum()))

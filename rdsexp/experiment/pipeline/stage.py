@@ -78,10 +78,16 @@ class Stages:
     @staticmethod
     @contextmanager
     def progress(desc: str, total: int):
-        """A progress bar of `total` steps (silent when not on a terminal), yielding its update(steps);
-        console log lines go through it (`console_to_tqdm`) rather than breaking it."""
+        """A progress bar of `total` steps (silent when not on a terminal), yielding its update(steps, more=0):
+        `more` steps not counted in `total` (work the stage finds it must do) are added to it. Console log lines go
+        through the bar (`console_to_tqdm`) rather than breaking it."""
         with tqdm(total=total, desc=desc, disable=None, leave=False, file=sys.stderr) as bar, console_to_tqdm():
-            yield bar.update
+            def update(steps: int, more: int = 0):
+                if more:
+                    bar.total += more
+                    bar.refresh()
+                bar.update(steps)
+            yield update
 
     def cached(self, name: str, compute, *, label: str | None = None, **inputs) -> tuple[object, bool]:
         """(the stage's value, whether it was reused rather than computed in this run)."""
