@@ -94,19 +94,23 @@ def weighted_quantiles(values: np.ndarray, w: np.ndarray, q) -> np.ndarray:
     return np.interp(q, cdf, values[order])
 
 
+def edge_share(draws: np.ndarray, w: np.ndarray, lo: np.ndarray, hi: np.ndarray, low: np.ndarray,
+               high: np.ndarray) -> np.ndarray:
+    """(d,): the share of the weight w (N,) of the draws (N, d) within 1% of the box [lo, hi] of its low end (where
+    low (d,) is True) or of its high end (where high is)."""
+    margin = 0.01 * (hi - lo)
+    near = ((draws <= lo + margin) & low) | ((draws >= hi - margin) & high)
+    return w @ near / w.sum()
+
+
 def at_the_edge(draws: np.ndarray, w: np.ndarray, lo: np.ndarray, hi: np.ndarray, ends: np.ndarray,
                 share: float = 0.05) -> np.ndarray:
     """(d,) bool: the components of theta whose posterior puts more than `share` of its weight within 1% of the
     prior box [lo, hi] at an edge that is not the law's own: either end of a mean that is not two-point, the
     upper end of a std (a std of 0 and a two-point component's ends are laws the box rightly holds). There the
     box, not the data, stops the posterior: its interval may be cut short."""
-    p = ends.size
-    near_lo = draws <= lo + 0.01 * (hi - lo)
-    near_hi = draws >= hi - 0.01 * (hi - lo)
-    check_lo = np.concatenate([~ends, np.zeros(lo.size - p, dtype=bool)])
-    check_hi = np.concatenate([~ends, np.ones(lo.size - p, dtype=bool)])
-    edge = (near_lo & check_lo) | (near_hi & check_hi)
-    return w @ edge / w.sum() > share
+    stds = np.zeros(lo.size - ends.size, dtype=bool)
+    return edge_share(draws, w, lo, hi, np.concatenate([~ends, stds]), np.concatenate([~ends, ~stds])) > share
 
 
 def pressed(draws: np.ndarray, w: np.ndarray, lo: np.ndarray, hi: np.ndarray, prior_lo: np.ndarray,
@@ -116,9 +120,7 @@ def pressed(draws: np.ndarray, w: np.ndarray, lo: np.ndarray, hi: np.ndarray, pr
     [prior_lo, prior_hi] (by more than 1% of the box): a box placed by an earlier round, not the prior, cuts the
     posterior there."""
     margin = 0.01 * (hi - lo)
-    low = (draws <= lo + margin) & (lo > prior_lo + margin)
-    high = (draws >= hi - margin) & (hi < prior_hi - margin)
-    return w @ (low | high) / w.sum() > share
+    return edge_share(draws, w, lo, hi, lo > prior_lo + margin, hi < prior_hi - margin) > share
 
 
 def narrowed(draws: np.ndarray, w: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
