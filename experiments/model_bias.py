@@ -1,30 +1,38 @@
 """Where a modeled mean's bias comes from: the simulator, the data, or the simulated estimator itself.
 
-For a library plant at its true law theta* = (the plant file's means, stds), with the identification as a
+For a plant at its true law theta* = (the plant file's means, stds), with the identification as a
 default run makes it (`identification.paths` runs, open loop or its feedback):
 
 1. the simulator: `--reps` replicate paths at theta* against as many runs of the plant (seeds 0, 1, ... of
    `identification.paths` paths each); per summary statistic, both means and the two-sample Kolmogorov-Smirnov
-   p-value (the replicates must simulate the plant's law);
+   p-value (the replicates, independent normal components of theta*, must simulate the plant's law; a law of
+   another family, or with correlated components, may give other summaries at the same moments);
 2. the estimator on noiseless data: `posterior_rounds` (the rounds a run makes) given s* = the mean summary at
    theta* (no data noise), with the prior box the run would take about s* and with that box centred on theta*'s
    means; a consistent estimator reads theta* there, up to its Monte Carlo error;
 3. plain rejection: the 1%, 3% and 10% of `--reps` replicates from the run's last box nearest s* (each summary
-   scaled by its spread), their mean theta (no likelihood);
+   scaled by its spread), their mean theta (no likelihood); and the synthetic likelihood's regression
+   (`indirect.emulator`) fitted on those replicates: how far s* lies from its fit at theta* (a regression that
+   cannot follow the summary's expectation moves the likelihood's maximum off theta*), and the law whose fitted
+   summary is nearest s* (the maximum given s*, without the prior box's volume);
 4. one bias correction by simulation, a candidate (not in rdsexp): the estimate theta^ given s* and given three
    noisy summaries at theta* (identification.paths paths each), the estimate theta^^ given the noiseless summary
    at theta^, and 2 theta^ - theta^^.
 
     python experiments/model_bias.py [--plant multiplicative] [--reps 1600]
+
+--plant takes a library plant or a random plant of model_calibration.py (rp0, rp1, ...).
 """
 from __future__ import annotations
 
 import argparse
 import sys
+import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
+from scipy.optimize import minimize
 from scipy.stats import ks_2samp
 
 from rdsexp.experiment.montecarlo import Simulation
@@ -32,7 +40,7 @@ from rdsexp.experiment.pipeline import identification as ident
 from rdsexp.numerics import indirect
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from model_calibration import FAST, experiment  # noqa: E402
+from model_calibration import FAST, experiment, write_random_plants  # noqa: E402
 
 
 def finite(s: np.ndarray) -> np.ndarray:
@@ -45,7 +53,11 @@ def main(argv=None):
     parser.add_argument("--reps", type=int, default=1600)
     args = parser.parse_args(argv)
     start = time.perf_counter()
-    exp = experiment(args.plant, None, ["seed=0", *FAST])
+    config_dir = None
+    if args.plant.startswith("rp"):         # a random plant of model_calibration.py's
+        config_dir = Path(tempfile.mkdtemp())
+        write_random_plants(config_dir, int(args.plant[2:]) + 1, int(args.plant[2:]))
+    exp = experiment(args.plant, config_dir, ["seed=0", *FAST])
     ends, low, high = ident.two_point_ends(exp)
     law = exp.plant.check_distribution(None)
     truth = np.concatenate([law.mean, np.sqrt(np.diag(law.cov))[~ends]])
@@ -59,7 +71,7 @@ def main(argv=None):
     one = ident.Replay(exp.identification.input, F_id, exp.q0, paths=1)
     replicates = at(truth, args.reps, 1001, one)
     def identification_run(seed: int) -> np.ndarray:       # a default run's identification, as identify_and_model
-        e = experiment(args.plant, None, [f"seed={seed}", *FAST])
+        e = experiment(args.plant, config_dir, [f"seed={seed}", *FAST])
         sim = Simulation.of(e, e.filter.enkf, F_id, np.random.SeedSequence(e.seed, spawn_key=(0,)),
                             d=e.identification.input, paths=paths, filter_sees_d=True)
         return ident.summary_statistics(e, sim.run(keep_xi_cov=True))
@@ -95,6 +107,16 @@ def main(argv=None):
         near = distance <= np.quantile(distance, share)
         print(f"   {share:4.0%} ({near.sum():4d}): means {np.round(theta[near, :p].mean(axis=0), 3).tolist()}, "
               f"stds {np.round(theta[near, p:].mean(axis=0), 3).tolist()}")
+    mu, _, W = indirect.emulator(theta, s, *last)
+    sd = np.sqrt(np.diag(np.linalg.pinv(W @ W.T)))
+    misfit = (s_star - mu(truth[None])[0]) / sd
+    worst = np.argsort(-np.abs(misfit))[:3]
+    fit = minimize(lambda t: (((s_star - mu(t[None])[0]) @ W) ** 2).sum(), truth, method="L-BFGS-B",
+                   bounds=list(zip(*last)))
+    print("   the emulator fitted on them (indirect.emulator) at theta*: s* - fit in residual sds, largest "
+          + ", ".join(f"{names[j]} {misfit[j]:+.2f}" for j in worst)
+          + f"; the fit's nearest law to s*: means {np.round(fit.x[:p], 3).tolist()}, stds "
+          f"{np.round(fit.x[p:], 3).tolist()}")
 
     def estimate(summary: np.ndarray) -> np.ndarray:            # the posterior mean from the run's prior box
         prior = indirect.prior_box(summary[:2 * p], ends, low, high, exp.identification.prior_width)

@@ -69,6 +69,19 @@ def optimum(exp, method: str) -> float:
     return exact_costs(exp.plant, None, synthesize(exp.plant, truth, "ms_lqr").F)["lq_cost"]
 
 
+def write_random_plants(config_dir: Path, count: int, first: int = 0) -> list[str]:
+    """Plant files rp<first>..rp<count - 1> of random_plants.py's draw (seed 0) in config_dir/plant, each with a
+    nominal one standard deviation off its law's mean (blind); their names."""
+    names = []
+    for plant in random_plants.draw_plants(count, 0)[first:]:
+        path = random_plants.write_plant(plant, config_dir, "model_calibration.py")
+        content = yaml.safe_load(path.read_text())
+        content["nominal"] = random_plants.wrong_guess(plant, 0, 1.0).tolist()
+        path.write_text(yaml.safe_dump(content, default_flow_style=None, sort_keys=False, width=100))
+        names.append(plant.name)
+    return names
+
+
 def one_run(exp) -> dict:
     """The modeled moments against the truth, the stated sds, the status and the end-to-end figure of one run."""
     from rdsexp.experiment.pipeline import run_experiment
@@ -232,12 +245,7 @@ def main(argv=None):
         (config_dir / "plant").mkdir()
         (config_dir / "plant" / "unst3.yaml").write_text(yaml.safe_dump(UNST3 | {"nominal": [1.0, 0.0]}))
         plants = [(name, None if name in LIBRARY else config_dir) for name in args.plants.split(",") if name]
-        for plant in random_plants.draw_plants(args.random, 0)[args.random_from:]:
-            path = random_plants.write_plant(plant, config_dir, "model_calibration.py")
-            content = yaml.safe_load(path.read_text())
-            content["nominal"] = random_plants.wrong_guess(plant, 0, 1.0).tolist()
-            path.write_text(yaml.safe_dump(content, default_flow_style=None, sort_keys=False, width=100))
-            plants.append((plant.name, config_dir))
+        plants += [(name, config_dir) for name in write_random_plants(config_dir, args.random, args.random_from)]
         for name, where in plants:
             rows = [one_run(experiment(name, where, [f"seed={seed}", *FAST, *args.override])) for seed in seeds]
             results[name] = summarize(rows)
