@@ -56,7 +56,7 @@ NOT_RUN = {
     r"hydra/launcher=(slurm|ray_cluster)": "needs a Slurm or Ray cluster",
     r"python experiments/(paper|benchmark_\w+|coverage|random_plants|pole_sets|robust_width|closed_loop_rate"
     r"|identification_input|fig_\w+|reproduction_table|data_round_trip|data_validation|online_defaults"
-    r"|online_bound|paired_null|model_calibration)\.py": "runs for minutes (a study or a benchmark)",
+    r"|online_bound|paired_null|model_calibration|model_bias)\.py": "runs for minutes (a study or a benchmark)",
     r"\+sweep=\w+": "a shipped sweep: tens to hundreds of runs at 200 paths (minutes)",
     r"closed_loop\.paths=10000|--huge": "thousands of paths (minutes, 0.6 GB)",
     r"^export |^eval ": "changes the shell it runs in",
