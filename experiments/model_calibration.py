@@ -26,8 +26,8 @@ data set per seed), identified with rdsexp's defaults for a system of one's own:
 state only). Their end-to-end figure is the gain's exact LQ cost on the true law over the optimum's.
 
 Each run's row can be kept (--rows FILE, JSON lines), so that a study split over processes or sessions is pooled
-into one table (--pool FILE ...: no run, the table of the rows in those files). The last line pools every run's
-end-to-end figure over plants, the issue's "over the library and 30 random plants".
+into one table (--pool FILE ...: no run, the table of the rows in those files). The last lines pool over plants:
+the intervals' coverage over every modeled component of every run, and every run's end-to-end figure.
 
     python experiments/model_calibration.py [--seeds 20] [--seed-from 0] [--random 10] [--random-from 0]
         [--plants a,b] [--data a,b] [--override KEY=VALUE ...] [--rows FILE] [--pool FILE ...]
@@ -197,7 +197,7 @@ def print_table(results: dict[str, dict]) -> None:
           f"{sum(r['runs'] for r in results.values())}, their cover {pooled('ok_cover'):.2f}; median error: "
           f"mean {np.median([r['mean_err'] for r in modeled]):.2f} true sds, std "
           f"{np.median([r['std_err'] for r in modeled]):.2f}")
-    # the issue's figure: the intervals over every modeled component of every run, each plant as many as it has
+    # the intervals over every modeled component of every run: each plant weighs as many components as it has
     share = lambda key, count: (sum(r[key] * r[count] for r in modeled if r[count]) /
                                 max(sum(r[count] for r in modeled), 1))
     print(f"pooled over components: mean cover {share('mean_cover', 'mean_components'):.3f}, std cover "
