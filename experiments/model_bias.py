@@ -6,7 +6,10 @@ default run makes it (`identification.paths` runs, open loop or its feedback):
 1. the simulator: `--reps` replicate paths at theta* against as many runs of the plant (seeds 0, 1, ... of
    `identification.paths` paths each); per summary statistic, both means and the two-sample Kolmogorov-Smirnov
    p-value (the replicates, independent normal components of theta*, must simulate the plant's law; a law of
-   another family, or with correlated components, may give other summaries at the same moments);
+   another family, or with correlated components, may give other summaries at the same moments); and the same
+   runs under other laws of the same means and stds (`same_moments`: the normal with the law's correlations,
+   uniform and symmetric two-point components), each statistic's shift from the replicates' in their sds:
+   which of correlation and shape moves the summary;
 2. the estimator on noiseless data: `posterior_rounds` (the rounds a run makes) given s* = the mean summary at
    theta* (no data noise), with the prior box the run would take about s* and with that box centred on theta*'s
    means; a consistent estimator reads theta* there, up to its Monte Carlo error;
@@ -38,6 +41,8 @@ from scipy.stats import ks_2samp
 from rdsexp.experiment.montecarlo import Simulation
 from rdsexp.experiment.pipeline import identification as ident
 from rdsexp.numerics import indirect
+from rdsexp.numerics.distributions import Discrete, Independent, Uniform
+from rdsexp.numerics.systems import AffineRandomSystem, MomentModel
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from model_calibration import FAST, experiment, write_random_plants  # noqa: E402
@@ -45,6 +50,31 @@ from model_calibration import FAST, experiment, write_random_plants  # noqa: E40
 
 def finite(s: np.ndarray) -> np.ndarray:
     return s[np.all(np.isfinite(s), axis=1)]
+
+
+def same_moments(law, ends: np.ndarray, low: np.ndarray, high: np.ndarray) -> dict:
+    """Laws of xi with the law's means and stds other than the replicates' (independent normal components; a
+    two-point component its own law): the normal with the law's correlations (where it has some and no two-point
+    component), and independent uniform and symmetric two-point components. Which of correlation and shape moves
+    the summary."""
+    mean, std = law.mean, np.sqrt(np.diag(law.cov))
+
+    def components(shape: str) -> Independent:
+        out = []
+        for m, s, two, lo, hi in zip(mean, std, ends, low, high):
+            if two:
+                q = (m - lo) / (hi - lo)
+                out.append(Discrete([[lo], [hi]], [1 - q, q]))
+            elif shape == "uniform":
+                out.append(Uniform([m - np.sqrt(3) * s], [m + np.sqrt(3) * s]))
+            else:
+                out.append(Discrete([[m - s], [m + s]], [0.5, 0.5]))
+        return Independent(out)
+    laws = {"uniform components": components("uniform"), "two-point components": components("two_point")}
+    correlated = np.abs(law.cov - np.diag(np.diag(law.cov))).max() > 0
+    if correlated and not ends.any():
+        laws = {"normal, its correlations": MomentModel(mean, law.cov)} | laws
+    return laws
 
 
 def main(argv=None):
@@ -70,16 +100,29 @@ def main(argv=None):
 
     one = ident.Replay(exp.identification.input, F_id, exp.q0, paths=1)
     replicates = at(truth, args.reps, 1001, one)
-    def identification_run(seed: int) -> np.ndarray:       # a default run's identification, as identify_and_model
+    laws = {"plant": None} | same_moments(law, ends, low, high)        # None: the plant file's own law
+    def identification_runs(seed: int) -> dict[str, np.ndarray]:   # a default run's identification, each law
         e = experiment(args.plant, config_dir, [f"seed={seed}", *FAST])
-        sim = Simulation.of(e, e.filter.enkf, F_id, np.random.SeedSequence(e.seed, spawn_key=(0,)),
-                            d=e.identification.input, paths=paths, filter_sees_d=True)
-        return ident.summary_statistics(e, sim.run(keep_xi_cov=True))
-    plant = finite(np.concatenate([identification_run(seed) for seed in range(args.reps // paths)]))
+        out = {}
+        for label, dist in laws.items():
+            plant = e.plant if dist is None else AffineRandomSystem(e.plant.A, e.plant.B, e.plant.C, e.plant.D,
+                                                                     xi_dist=dist)
+            sim = Simulation.of(e, e.filter.enkf, F_id, np.random.SeedSequence(e.seed, spawn_key=(0,)), plant=plant,
+                                d=e.identification.input, paths=paths, filter_sees_d=True)
+            out[label] = ident.summary_statistics(e, sim.run(keep_xi_cov=True))
+        return out
+    runs = [identification_runs(seed) for seed in range(args.reps // paths)]
+    under = {label: finite(np.concatenate([r[label] for r in runs])) for label in laws}
+    plant = under["plant"]
     print(f"1. the simulator at the true law ({len(replicates)} replicate paths, {len(plant)} plant paths)")
     for j, name in enumerate(names):
         print(f"   {name:36s} replicates {replicates[:, j].mean():8.3f}  plant {plant[:, j].mean():8.3f}  "
               f"KS p {ks_2samp(replicates[:, j], plant[:, j]).pvalue:.3f}")
+    print("   the same means and stds under other laws: (mean summary - replicates') / replicates' sd")
+    print(f"   {'':36s} " + "".join(f"{label[:22]:>24s}" for label in under))
+    for j, name in enumerate(names):
+        print(f"   {name:36s} " + "".join(f"{(u[:, j].mean() - replicates[:, j].mean()) / replicates[:, j].std():24.2f}"
+                                        for u in under.values()))
 
     s_star = at(truth, 400, 1002).mean(axis=0)
     p = ends.size
