@@ -70,10 +70,10 @@ def same_moments(law, ends: np.ndarray, low: np.ndarray, high: np.ndarray) -> di
             else:
                 out.append(Discrete([[m - s], [m + s]], [0.5, 0.5]))
         return Independent(out)
-    laws = {"uniform components": components("uniform"), "two-point components": components("two_point")}
+    laws = {"uniform": components("uniform"), "two-point": components("two_point")}
     correlated = np.abs(law.cov - np.diag(np.diag(law.cov))).max() > 0
     if correlated and not ends.any():
-        laws = {"normal, its correlations": MomentModel(mean, law.cov)} | laws
+        laws = {"correlated normal": MomentModel(mean, law.cov)} | laws
     return laws
 
 
@@ -119,10 +119,10 @@ def main(argv=None):
         print(f"   {name:36s} replicates {replicates[:, j].mean():8.3f}  plant {plant[:, j].mean():8.3f}  "
               f"KS p {ks_2samp(replicates[:, j], plant[:, j]).pvalue:.3f}")
     print("   the same means and stds under other laws: (mean summary - replicates') / replicates' sd")
-    print(f"   {'':36s} " + "".join(f"{label[:22]:>24s}" for label in under))
+    print(f"   {'':36s} " + "".join(f"{label:>20s}" for label in under))
     for j, name in enumerate(names):
-        print(f"   {name:36s} " + "".join(f"{(u[:, j].mean() - replicates[:, j].mean()) / replicates[:, j].std():24.2f}"
-                                        for u in under.values()))
+        shift = [(u[:, j].mean() - replicates[:, j].mean()) / replicates[:, j].std() for u in under.values()]
+        print(f"   {name:36s} " + "".join(f"{v:20.2f}" for v in shift))
 
     s_star = at(truth, 400, 1002).mean(axis=0)
     p = ends.size
