@@ -151,7 +151,8 @@ def simulated_moments(exp: Experiment, stages: Stages, ident: Trajectories, iden
         if replay.paths > 1:
             info["replicate_paths"] = replay.paths
         rounds = POSTERIOR_ROUNDS[len(per_path) > replay.paths]     # (the first of one path each)
-        with stages.progress("modeling", settings.replicates * (1 + (rounds - 1) * replay.paths)) as progress:
+        planned = sum(planned_paths(r, rounds, replay.paths) for r in range(1, rounds + 1))
+        with stages.progress("modeling", settings.replicates * planned) as progress:
             posterior, info["usable"], z = posterior_rounds(exp, enkf, replay, s_obs, len(per_path), prior,
                                                             (ends, low, high), progress)
         if posterior is None:       # the window's moments, said so
@@ -191,14 +192,14 @@ def posterior_rounds(exp: Experiment, enkf, replay: Replay, s_obs: np.ndarray, p
     path each, which places the box well enough (four paths on the calibration plants: the same errors and coverage
     as two rounds of every path after it, in two thirds of the time). `laws`: (ends, low, high). progress(paths,
     more=0): called as each chunk is done, and with `more` where a round runs other paths than the bar's total
-    counted (1 + (POSTERIOR_ROUNDS - 1) replay.paths replicate paths per replicate)."""
+    counted (`planned_paths`)."""
     settings = exp.identification
     posterior, rounds, usable, z, prior = None, 0, [], None, box
     wanted = POSTERIOR_ROUNDS[paths > replay.paths]
     for round_ in range(1, wanted + 3):
         theta = indirect.uniform_draws(*box, settings.replicates, [exp.seed, REPLICATE_STREAM, round_])
         runs = replay if posterior is not None else dataclasses.replace(replay, paths=1)
-        planned = 0 if round_ > wanted else 1 if round_ == 1 else replay.paths     # the bar's total counted these
+        planned = planned_paths(round_, wanted, replay.paths)       # what the bar's total counted for this round
         if progress is not None and runs.paths != planned:       # a round beyond the planned ones, or a failed one's
             progress(0, more=(runs.paths - planned) * settings.replicates)
         s = replicate_summaries(exp, enkf, runs, theta, *laws, round_, progress)
@@ -223,6 +224,12 @@ def posterior_rounds(exp: Experiment, enkf, replay: Replay, s_obs: np.ndarray, p
         else:
             break
     return posterior, usable, z
+
+
+def planned_paths(round_: int, wanted: int, paths: int) -> int:
+    """The paths per replicate `posterior_rounds` plans for round `round_` (from 1) of `wanted`: one in the first,
+    `paths` in the others, none beyond them (a pressed box's extra round, a failed round's repeat are unplanned)."""
+    return 0 if round_ > wanted else 1 if round_ == 1 else paths
 
 
 def diagnostics(draws: np.ndarray, w: np.ndarray, prior, ends: np.ndarray, noisy: bool = False) -> dict:
