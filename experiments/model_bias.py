@@ -5,8 +5,9 @@ default run makes it (`identification.paths` runs, open loop or its feedback):
 
 1. the simulator: `--reps` replicate paths at theta* against as many runs of the plant (seeds 0, 1, ... of
    `identification.paths` paths each); per summary statistic, both means and the two-sample Kolmogorov-Smirnov
-   p-value (the replicates, independent normal components of theta*, must simulate the plant's law; a law of
-   another family, or with correlated components, may give other summaries at the same moments); and the same
+   p-value (the replicates draw theta*'s moments in the laws `identification.replicate_laws` says: random shapes
+   and correlations by default, independent normal components with `--override
+   identification.replicate_laws=independent_normal`; a law beyond them may give other summaries); and the same
    runs under other laws of the same means and stds (`same_moments`: the normal with the law's correlations,
    uniform and symmetric two-point components), each statistic's shift from the replicates' in their sds:
    which of correlation and shape moves the summary;
@@ -22,7 +23,7 @@ default run makes it (`identification.paths` runs, open loop or its feedback):
    noisy summaries at theta* (identification.paths paths each), the estimate theta^^ given the noiseless summary
    at theta^, and 2 theta^ - theta^^.
 
-    python experiments/model_bias.py [--plant multiplicative] [--reps 1600]
+    python experiments/model_bias.py [--plant multiplicative] [--reps 1600] [--override KEY=VALUE ...]
 
 --plant takes a library plant or a random plant of model_calibration.py (rp0, rp1, ...).
 """
@@ -53,10 +54,9 @@ def finite(s: np.ndarray) -> np.ndarray:
 
 
 def same_moments(law, ends: np.ndarray, low: np.ndarray, high: np.ndarray) -> dict:
-    """Laws of xi with the law's means and stds other than the replicates' (independent normal components; a
-    two-point component its own law): the normal with the law's correlations (where it has some and no two-point
-    component), and independent uniform and symmetric two-point components. Which of correlation and shape moves
-    the summary."""
+    """Laws of xi with the law's means and stds (a two-point component its own law): the normal with the law's
+    correlations (where it has some and no two-point component), and independent uniform and symmetric two-point
+    components. Which of correlation and shape moves the summary."""
     mean, std = law.mean, np.sqrt(np.diag(law.cov))
 
     def components(shape: str) -> Independent:
@@ -81,13 +81,14 @@ def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--plant", default="multiplicative")
     parser.add_argument("--reps", type=int, default=1600)
+    parser.add_argument("--override", nargs="*", default=[], metavar="KEY=VALUE")
     args = parser.parse_args(argv)
     start = time.perf_counter()
     config_dir = None
     if args.plant.startswith("rp"):         # a random plant of model_calibration.py's
         config_dir = Path(tempfile.mkdtemp())
         write_random_plants(config_dir, int(args.plant[2:]) + 1, int(args.plant[2:]))
-    exp = experiment(args.plant, config_dir, ["seed=0", *FAST])
+    exp = experiment(args.plant, config_dir, ["seed=0", *FAST, *args.override])
     ends, low, high = ident.two_point_ends(exp)
     law = exp.plant.check_distribution(None)
     truth = np.concatenate([law.mean, np.sqrt(np.diag(law.cov))[~ends]])
@@ -102,7 +103,7 @@ def main(argv=None):
     replicates = at(truth, args.reps, 1001, one)
     laws = {"plant": None} | same_moments(law, ends, low, high)        # None: the plant file's own law
     def identification_runs(seed: int) -> dict[str, np.ndarray]:   # a default run's identification, each law
-        e = experiment(args.plant, config_dir, [f"seed={seed}", *FAST])
+        e = experiment(args.plant, config_dir, [f"seed={seed}", *FAST, *args.override])
         out = {}
         for label, dist in laws.items():
             plant = e.plant if dist is None else AffineRandomSystem(e.plant.A, e.plant.B, e.plant.C, e.plant.D,

@@ -30,6 +30,7 @@ TRACKING_LEVELS = ("off", "summary", "full")
 FEEDBACK_MODES = ("none", "nominal", "auto")     # identification.feedback, or a gain F (m x n)
 OBSERVER_XI = ("random_walk", "model")   # closed_loop.observer_xi: the paper's xi random walk, or i.i.d. model draws
 ESTIMATORS = ("paper", "simulated")      # identification.estimator: eq. (sample-mean), or `numerics.indirect`
+REPLICATE_LAWS = ("random_shapes", "independent_normal")    # identification.replicate_laws (`indirect.random_shapes`)
 XI_MODELS = ("random_walk", "iterated")   # identification.xi_model: the paper's, or passes drawing xi i.i.d.
 INITIAL_XI = ("guess", "zero")       # enkf.initial.xi: members' xi at identification.xi_guess, or at 0 (the paper)
 LOOK_GROWTH = 4                      # closed_loop.paths auto: each look judges 4 times the previous look's paths
@@ -244,6 +245,7 @@ class IdentificationSettings:
     estimator: str = "paper"    # paper: eq. (sample-mean); simulated: `numerics.indirect` on the paper's as summary
     replicates: int = 400       # simulated: identification runs of the model, one law of xi each
     prior_width: float = 2.5    # simulated: the prior box in the paper estimator's stds (`indirect.prior_box`)
+    replicate_laws: str = "random_shapes"   # simulated: the replicates' laws at theta's moments (REPLICATE_LAWS)
     paths: int = 1              # identification runs of a simulated plant (a data run: its recorded paths)
 
     @classmethod
@@ -283,7 +285,11 @@ class IdentificationSettings:
         replicates = _number(get(cfg, "identification.replicates"), "identification.replicates", integer=True, low=20)
         width = _number(get(cfg, "identification.prior_width"), "identification.prior_width", low=0, low_open=True)
         paths = _number(get(cfg, "identification.paths"), "identification.paths", integer=True, low=1)
-        return cls(estimator=estimator, replicates=replicates, prior_width=width, paths=paths,
+        laws = OmegaConf.select(cfg, "identification.replicate_laws", default="random_shapes")
+        if laws not in REPLICATE_LAWS:
+            raise ConfigError(f"identification.replicate_laws: {laws!r} is not allowed, expected one of "
+                              f"{', '.join(REPLICATE_LAWS)}")
+        return cls(estimator=estimator, replicates=replicates, prior_width=width, paths=paths, replicate_laws=laws,
                    input=u_id, K0=K0, K1=K1, feedback=feedback, gain=F_id, xi_guess=xi_guess, prior=prior,
                    covariance=covariance, xi_model=xi_model, passes=passes, resamples=resamples, block=block,
                    noise_scales=scales)

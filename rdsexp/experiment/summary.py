@@ -153,6 +153,8 @@ def estimator_lines(estimator: dict) -> list[str]:
     runs = "identification runs of the model" + (" replaying the recorded inputs" if estimator.get("recorded") else "")
     if estimator.get("replicate_paths"):        # a simulated run's identification.paths, after a first round of one
         runs = f"replicates of the identification on the model, of 1 path each then {estimator['replicate_paths']}"
+    runs += {"random_shapes": ", each in a law of random shape and correlation",
+             "independent_normal": ", each in independent normal components"}.get(estimator.get("replicate_laws"), "")
     line = (f"    modeled by simulation: the window's xi_{{k|k}} read {read}mean {vec(estimator['summary_mean'])}, "
             f"std {vec(estimator['summary_std'])}")
     if estimator["usable"]:                 # (no replicates where the summary itself is not finite)

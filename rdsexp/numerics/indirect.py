@@ -10,7 +10,8 @@ removes it. But rdsexp can run the same identification on the model at any law o
    innovations' log mean squares and the outputs' lag-1 and cross correlations);
 2. theta = (mean of xi (p), std of every component that is not two-point) drawn uniformly from a box
    around the paper estimator's moments (`prior_box`), one law per replicate path (`path_laws`,
-   `distributions.PathLaws`);
+   `distributions.PathLaws`), of those moments and a random shape and correlation (`random_shapes`: theta
+   states neither, so what the summary reads of them belongs in the regression's residual, not in its mean);
 3. the same identification (input, feedback, EnKF, window) of the model on each replicate, batched over
    paths: its summary s_r;
 4. a regression of s on theta over the replicates (`emulator`: the summary's expectation at any law in the box,
@@ -24,11 +25,13 @@ component (a Bernoulli dropout: `EnKF.two_point`) has its std fixed by its mean.
 """
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 from scipy.optimize import minimize
 from scipy.stats import chi2
 
-from .distributions import PathLaws
+from .distributions import SHAPES, PathLaws
 
 WEAK = 0.8      # `narrowed` above this: the data hardly narrowed the prior box, the component is weakly identified
 
@@ -80,11 +83,45 @@ def moments_of(theta: np.ndarray, ends: np.ndarray, low: np.ndarray, high: np.nd
     return mean, std[..., :, None] * corr * std[..., None, :]
 
 
-def path_laws(theta: np.ndarray, ends: np.ndarray, low: np.ndarray, high: np.ndarray) -> PathLaws:
-    """The replicates' laws: path r draws xi from theta[r] (R, d), independent components (`moments_of`)."""
+@dataclasses.dataclass(frozen=True)
+class Shapes:
+    """The replicates' laws beyond theta's moments, one per replicate: root (R, p, p + 1) rows of unit length, the
+    loadings of a correlated standard normal w = root z on z ~ N(0, I) (correlation root root^T); shape (R, p)
+    codes into `distributions.SHAPES`; high_prob (R, p) a two-point shape's probability of its high point
+    (`PathLaws`)."""
+
+    root: np.ndarray
+    shape: np.ndarray
+    high_prob: np.ndarray
+
+    def take(self, rows) -> Shapes:
+        """The replicates `rows` (an index array or slice)."""
+        return Shapes(self.root[rows], self.shape[rows], self.high_prob[rows])
+
+
+def random_shapes(count: int, p: int, seed) -> Shapes:
+    """`count` laws' shapes at any moments (default_rng(seed)): the correlation of a Wishart(I, p + 1) draw (each
+    correlation spread over (-1, 1), uniform for p = 2), each component normal, uniform or two-point with equal
+    probability, a two-point's high point with probability uniform in (0.1, 0.9) (skewness up to 2.7). The model
+    states xi's means and stds only; a replicate drawn from one such law makes the regression's residual hold
+    what the summary reads of the rest of the law (correlations, tails, atoms), which no moment fixes."""
+    rng = np.random.default_rng(seed)
+    G = rng.standard_normal((count, p, p + 1))
+    # G's rows normalized: root root^T is G G^T's correlation, without a factorization (elementwise: the same
+    # bytes on every CPU)
+    root = G / np.sqrt((G ** 2).sum(axis=2, keepdims=True))
+    return Shapes(root, rng.integers(0, len(SHAPES), (count, p)), rng.uniform(0.1, 0.9, (count, p)))
+
+
+def path_laws(theta: np.ndarray, ends: np.ndarray, low: np.ndarray, high: np.ndarray,
+              shapes: Shapes | None = None) -> PathLaws:
+    """The replicates' laws: path r draws xi from theta[r] (R, d) (`moments_of`), with shapes[r] (`random_shapes`;
+    None: independent normal components)."""
     mean, cov = moments_of(theta, ends, low, high)
-    sqrt = np.sqrt(np.einsum("rii->ri", cov))[..., None] * np.eye(ends.size)
-    return PathLaws(mean, sqrt, ends if ends.any() else None, low, high)
+    std, two = np.sqrt(np.einsum("rii->ri", cov)), ends if ends.any() else None
+    if shapes is None:
+        return PathLaws(mean, std[..., None] * np.eye(ends.size), two, low, high)
+    return PathLaws(mean, std[..., None] * shapes.root, two, low, high, shapes.shape, shapes.high_prob)
 
 
 def weighted_quantiles(values: np.ndarray, w: np.ndarray, q) -> np.ndarray:

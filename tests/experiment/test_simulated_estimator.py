@@ -85,6 +85,10 @@ def test_the_paper_plant_keeps_the_paper_estimator(tmp_path):
         assert build(compose("config", overrides=SMALL)).identification.estimator == "paper"
         with pytest.raises(ConfigError, match="identification.estimator: 'bogus' is not allowed"):
             build(compose("config", overrides=[*SMALL, "identification.estimator=bogus"]))
+        assert build(compose("config", overrides=SMALL)).identification.replicate_laws == "random_shapes"
+        with pytest.raises(ConfigError, match="identification.replicate_laws: 'normal' is not allowed, expected one "
+                                              "of random_shapes, independent_normal"):
+            build(compose("config", overrides=[*SMALL, "identification.replicate_laws=normal"]))
     assert experiment(tmp_path).identification.estimator == "simulated"
 
 

@@ -31,6 +31,39 @@ def test_each_path_draws_its_own_law_whatever_the_batch():
         sample_paths(laws, rngs[:2], K)
 
 
+def test_random_shapes_keep_each_replicates_moments_and_draw_its_shape():
+    """A replicate's law under `indirect.random_shapes` keeps theta's means and stds (within 4 Monte Carlo sds over
+    K steps), takes the shape it was given (uniform within mean +- sqrt(3) std, two-point on two values with its
+    high one at frequency high_prob), correlates its components by the drawn correlation (normal ones), and draws
+    the same numbers for a replicate whatever the chunk."""
+    P, p, K = 12, 3, 20000
+    rng = np.random.default_rng(1)
+    theta = np.concatenate([rng.normal(size=(P, p)), rng.uniform(0.2, 2.0, (P, p))], axis=1)
+    ends, low, high = np.zeros(p, dtype=bool), np.zeros(p), np.ones(p)
+    shapes = indirect.random_shapes(P, p, 7)
+    assert set(np.unique(shapes.shape)) == {0, 1, 2}
+    corr = np.einsum("rik,rjk->rij", shapes.root, shapes.root)
+    np.testing.assert_allclose(np.einsum("rii->ri", corr), 1.0, rtol=1e-12)
+    rngs = lambda paths: path_generators(np.random.SeedSequence(5), PLANT, paths)
+    xi = sample_paths(indirect.path_laws(theta, ends, low, high, shapes), rngs(range(P)), K)     # (K, P, p)
+    mean, std = theta[:, :p], theta[:, p:]
+    np.testing.assert_array_less(np.abs(xi.mean(axis=0) - mean), 4 * std / np.sqrt(K))
+    # the sd of a sample std is std sqrt((kurtosis - 1) / (4 K)); a two-point law's kurtosis is below 10 here
+    np.testing.assert_array_less(np.abs(xi.std(axis=0) / std - 1), 4 * np.sqrt(9 / (4 * K)))
+    for r, i in zip(*np.nonzero(shapes.shape == 1)):
+        assert np.all(np.abs(xi[:, r, i] - mean[r, i]) <= np.sqrt(3) * std[r, i] * (1 + 1e-12))
+    for r, i in zip(*np.nonzero(shapes.shape == 2)):
+        values = np.unique(xi[:, r, i])
+        q = shapes.high_prob[r, i]
+        assert values.size == 2 and abs(np.mean(xi[:, r, i] == values[1]) - q) < 4 * np.sqrt(q * (1 - q) / K)
+    both = (shapes.shape == 0)[:, :, None] & (shapes.shape == 0)[:, None, :]
+    sample = np.einsum("krp,krq->rpq", xi - mean, xi - mean) / K / std[:, :, None] / std[:, None, :]
+    # (the mean of K products of unit normals of correlation rho: sd sqrt((1 + rho^2) / K))
+    np.testing.assert_array_less(np.abs(sample - corr)[both], 4 * np.sqrt(2 / K))
+    part = indirect.path_laws(theta[4:], ends, low, high, shapes.take(slice(4, None)))
+    np.testing.assert_array_equal(sample_paths(part, rngs(range(4, P)), K), xi[:, 4:])
+
+
 def test_moments_of_a_two_point_component_follow_its_mean():
     theta = np.array([[0.3, 0.8, 2.0], [0.9, -0.1, 0.5]])      # means of 2 components, the std of the second
     ends, low, high = np.array([True, False]), np.array([0.0, 0.0]), np.array([1.0, 1.0])

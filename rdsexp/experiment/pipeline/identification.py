@@ -130,7 +130,8 @@ def simulated_moments(exp: Experiment, stages: Stages, ident: Trajectories, iden
             summary, failure = identified_moments(exp, ident)
         if summary is None:
             return Identified(ident, None, failure, feedback, covariance=settings.covariance)
-        info = {"name": "simulated", "replicates": settings.replicates, "prior_width": settings.prior_width,
+        info = {"name": "simulated", "replicates": settings.replicates, "replicate_laws": settings.replicate_laws,
+                "prior_width": settings.prior_width,
                 "summary_mean": summary.mean.tolist(),
                 "summary_std": np.sqrt(np.diag(summary.cov)).tolist(), "summary_filter": summary_filter}
         ends, low, high = two_point_ends(exp)
@@ -166,8 +167,9 @@ def simulated_moments(exp: Experiment, stages: Stages, ident: Trajectories, iden
         draws, w = posterior
         info |= diagnostics(draws, w, prior, ends, replay.noisy)
         xi_part = draws[:, :len(prior[0]) - replay.noisy]
-        # independent components, the laws the replicates draw from (the paper estimator's correlations are as
-        # biased as its stds, and designs on them did worse on the calibration plants)
+        # independent components: theta states no correlation (the replicates' are drawn at random, not estimated;
+        # the paper estimator's correlations are as biased as its stds, and designs on them did worse on the
+        # calibration plants)
         mean, cov = indirect.moments_of(w @ xi_part / w.sum(), ends, low, high)
         spread = None
         if settings.resamples:          # the uncertainty: identification.resamples draws of the posterior
@@ -274,11 +276,16 @@ def replicate_summaries(exp: Experiment, enkf, replay: Replay, theta: np.ndarray
                         round_: int, progress=None) -> np.ndarray:
     """(R, S): the `summary_statistics` of R replicates of the identification of the model as `replay` says,
     replicate r's replay.paths runs drawing xi from theta[r] (`indirect.path_laws`; a noisy replay's last column is
-    its log10 noise scale) with `enkf`, averaged over the runs that did not fail; NaN where every run failed. In
-    chunks of paths within the Monte Carlo's memory budget (each path its own streams); progress(paths) after each
-    chunk."""
+    its log10 noise scale) in one law of random shape (identification.replicate_laws = random_shapes,
+    `indirect.random_shapes`, from [seed, REPLICATE_STREAM, round_, 2]) with `enkf`, averaged over the runs that
+    did not fail; NaN where every run failed. In chunks of paths within the Monte Carlo's memory budget (each path
+    its own streams); progress(paths) after each chunk."""
     model, settings = exp.model, exp.identification
     total = settings.covariance == "total"
+    shapes = None
+    if settings.replicate_laws == "random_shapes":      # one shape per replicate, shared by its paths
+        shapes = indirect.random_shapes(len(theta), model.p, [exp.seed, REPLICATE_STREAM, round_, 2])
+        shapes = shapes.take(np.repeat(np.arange(len(theta)), replay.paths))
     theta = np.repeat(theta, replay.paths, axis=0)          # replicate r: paths r P .. r P + P - 1
     R, n = len(theta), model.n
     d = replay.d if replay.d.ndim == 2 else replay.d[:, np.arange(R) % replay.d.shape[1]]
@@ -292,7 +299,8 @@ def replicate_summaries(exp: Experiment, enkf, replay: Replay, theta: np.ndarray
     for first in range(0, R, size):
         part = slice(first, first + size)
         plant = AffineRandomSystem(model.A, model.B, model.C, model.D,
-                                   xi_dist=indirect.path_laws(laws[part], ends, low, high))
+                                   xi_dist=indirect.path_laws(laws[part], ends, low, high,
+                                                              None if shapes is None else shapes.take(part)))
         chunk = dataclasses.replace(sim, plant=plant, d=d if d.ndim == 2 else d[:, part])
         noise = None
         if replay.noisy:
