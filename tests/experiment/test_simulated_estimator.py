@@ -86,8 +86,8 @@ def test_the_paper_plant_keeps_the_paper_estimator(tmp_path):
         with pytest.raises(ConfigError, match="identification.estimator: 'bogus' is not allowed"):
             build(compose("config", overrides=[*SMALL, "identification.estimator=bogus"]))
         assert build(compose("config", overrides=SMALL)).identification.replicate_laws == "random_shapes"
-        with pytest.raises(ConfigError, match="identification.replicate_laws: 'normal' is not allowed, expected one "
-                                              "of random_shapes, independent_normal"):
+        with pytest.raises(ConfigError, match="identification.replicate_laws: 'normal' is not allowed, expected auto "
+                                              "or one of random_shapes, independent_normal"):
             build(compose("config", overrides=[*SMALL, "identification.replicate_laws=normal"]))
     assert experiment(tmp_path).identification.estimator == "simulated"
 
@@ -123,6 +123,7 @@ def test_a_data_run_of_a_users_own_simulator_holds_the_law_and_estimates_its_noi
     for seed in range(6):
         exp, s, user_data = data_run(tmp_path, seed)
         assert exp.identification.estimator == "simulated" and s["modeling_status"] in ("ok", "weakly_identified")
+        assert s["modeling_estimator"]["replicate_laws"] == "independent_normal"      # auto, for a data run
         sd = s["modeling_uncertainty"]
         assert sd["over"] == "simulated replicates"
         hits += np.sum(np.abs(np.array(s["xi_mean"]) - user_data.TRUE_MEAN) <= 1.96 * np.array(sd["xi_mean_sd"]))
