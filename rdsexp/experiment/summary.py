@@ -139,7 +139,8 @@ def paths_word(s: dict) -> str:
 
 def drawn_over(u: dict) -> str:
     """What the modeled moments' draws (`modeling_uncertainty`) are draws of, in words."""
-    words = {"paths": "bootstrap draws of the identification paths", "simulated replicates": "draws of their posterior"}
+    words = {"paths": "bootstrap draws of the identification paths", "simulated replicates": "draws of their posterior",
+             "the prior box": "draws of the prior box (no law matched the data)"}
     return words.get(u.get("over"), "block-bootstrap draws of the window")
 
 

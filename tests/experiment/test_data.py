@@ -174,7 +174,7 @@ def test_dropout_example_with_holdout_validation(tmp_path):
     estimator = s["modeling_estimator"]
     assert s["modeling_status"] == "misfit" and estimator["summary_paths"] == 24 and "noise_sensitivity" not in s
     assert estimator["misfit"]["summary"].endswith("of y[0]") and abs(estimator["misfit"]["z"]) > 4
-    assert s["xi_mean"] == estimator["summary_mean"] and s["modeling_uncertainty"]["over"] == "paths"
+    assert s["xi_mean"] == estimator["summary_mean"] and s["modeling_uncertainty"]["over"] == "the prior box"
     assert "read on 24 recorded paths" in proc.stdout and "misfit: no law the replicates tried" in proc.stdout
     table = pd.read_parquet(run_dir / "validation.parquet")
     assert set(table["law"]) == {"modeled", "nominal"} and set(table["output"]) == {"0", "all"}

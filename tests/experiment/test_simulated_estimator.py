@@ -16,6 +16,7 @@ from rdsexp.experiment.pipeline import identification
 from rdsexp.experiment.pipeline.identification import identify_and_model, moment_uncertainty
 from rdsexp.experiment.pipeline.loops import root_seed
 from rdsexp.experiment.pipeline.stage import Stages
+from rdsexp.numerics import indirect
 from rdsexp.numerics.modeling import correlation_z
 
 # open-loop unstable, identified under nominal feedback: a Bernoulli(0.8) actuator link and a normal gain on A
@@ -75,9 +76,17 @@ def test_too_few_identified_replicates_keep_the_paper_moments_and_say_so(tmp_pat
     exp = experiment(tmp_path, "seed=0")
     monkeypatch.setattr(identification, "replicate_summaries",
                         lambda exp, enkf, F, theta, *rest: np.full((len(theta), 2 * exp.model.p), np.nan))
-    identified, _ = modeled(exp)
+    identified, uncertainty = modeled(exp)
     assert identified.status == "unsettled" and "0 of 200 replicates" in identified.estimator["fallback"]
     np.testing.assert_array_equal(identified.moments.mean, identified.estimator["summary_mean"])
+    # their uncertainty is the prior box's (no posterior): a uniform's sd, width / sqrt(12), within 4 Monte Carlo sds
+    # of 200 draws (a uniform sample's sd varies by sqrt((kurtosis 1.8 - 1) / (4 x 200)) = 0.032 of it)
+    assert uncertainty.over == "the prior box"
+    lo, hi = indirect.prior_box(np.concatenate([identified.estimator["summary_mean"],
+                                                identified.estimator["summary_std"]]),
+                                *identification.two_point_ends(exp), exp.identification.prior_width)
+    sd = uncertainty.summary()["modeling_uncertainty"]["xi_mean_sd"]
+    np.testing.assert_allclose(sd, (hi - lo)[:exp.model.p] / np.sqrt(12), rtol=4 * 0.032)
 
 
 def test_the_paper_plant_keeps_the_paper_estimator(tmp_path):

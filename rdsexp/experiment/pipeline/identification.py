@@ -156,17 +156,27 @@ def simulated_moments(exp: Experiment, stages: Stages, ident: Trajectories, iden
         with stages.progress("modeling", settings.replicates * planned) as progress:
             posterior, info["usable"], z = posterior_rounds(exp, enkf, replay, s_obs, len(per_path), prior,
                                                             (ends, low, high), progress)
+        xi_of = lambda draws: draws[:, :len(prior[0]) - replay.noisy]      # theta's xi part (not a noise scale)
+        spread_of = lambda xi, over: Uncertainty(*indirect.moments_of(xi, ends, low, high), settings.resamples, 0, over)
+        # no posterior matched the summary: the window's moments are kept, and their uncertainty is the prior box's,
+        # what is known without the match (the window's bootstrap knows nothing of the paper estimator's bias)
+        box = None
+        if settings.resamples:
+            box = spread_of(xi_of(indirect.uniform_draws(*prior, settings.resamples, [exp.seed, UNCERTAINTY_STREAM])),
+                            "the prior box")
         if posterior is None:       # the window's moments, said so
             info["fallback"] = (f"{max(info['usable'])} of {settings.replicates} replicates identified (needs "
                                 f"{10 * (len(prior[0]) + 1)}): the window's moments of xi_{{k|k}} kept")
-            return Identified(ident, summary, "", feedback, covariance=settings.covariance, estimator=info)
+            return Identified(ident, summary, "", feedback, covariance=settings.covariance, estimator=info,
+                              posterior=box)
         if np.max(np.abs(z)) > MISFIT:      # no law in the box reproduces what the data read: the window's moments
             worst = int(np.argmax(np.abs(z)))
             info["misfit"] = {"summary": summary_names(model)[worst], "z": float(z[worst]), "bound": MISFIT}
-            return Identified(ident, summary, "", feedback, covariance=settings.covariance, estimator=info)
+            return Identified(ident, summary, "", feedback, covariance=settings.covariance, estimator=info,
+                              posterior=box)
         draws, w = posterior
         info |= diagnostics(draws, w, prior, ends, replay.noisy)
-        xi_part = draws[:, :len(prior[0]) - replay.noisy]
+        xi_part = xi_of(draws)
         # independent components: theta states no correlation (the replicates' are drawn at random, not estimated;
         # the paper estimator's correlations are as biased as its stds, and designs on them did worse on the
         # calibration plants)
@@ -174,8 +184,7 @@ def simulated_moments(exp: Experiment, stages: Stages, ident: Trajectories, iden
         spread = None
         if settings.resamples:          # the uncertainty: identification.resamples draws of the posterior
             picks = indirect.weighted_draws(xi_part, w, settings.resamples, [exp.seed, UNCERTAINTY_STREAM])
-            spread = Uncertainty(*indirect.moments_of(picks, ends, low, high), settings.resamples, 0,
-                                 "simulated replicates")
+            spread = spread_of(picks, "simulated replicates")
     return Identified(ident, MomentModel(mean=mean, cov=cov), "", feedback, covariance=settings.covariance,
                       estimator=info, posterior=spread)
 
