@@ -158,12 +158,10 @@ def simulated_moments(exp: Experiment, stages: Stages, ident: Trajectories, iden
                                                             (ends, low, high), progress)
         xi_of = lambda draws: draws[:, :len(prior[0]) - replay.noisy]      # theta's xi part (not a noise scale)
         spread_of = lambda xi, over: Uncertainty(*indirect.moments_of(xi, ends, low, high), settings.resamples, 0, over)
-        # no posterior matched the summary: the window's moments are kept, and their uncertainty is the prior box's,
-        # what is known without the match (the window's bootstrap knows nothing of the paper estimator's bias)
-        box = None
-        if settings.resamples:
-            box = spread_of(xi_of(indirect.uniform_draws(*prior, settings.resamples, [exp.seed, UNCERTAINTY_STREAM])),
-                            "the prior box")
+        # where no posterior matched the summary, the window's moments are kept with the prior box as their
+        # uncertainty: what is known without the match (the window's bootstrap knows nothing of the estimator's bias)
+        box = spread_of(xi_of(indirect.uniform_draws(*prior, settings.resamples, [exp.seed, UNCERTAINTY_STREAM])),
+                        "the prior box") if settings.resamples else None
         if posterior is None:       # the window's moments, said so
             info["fallback"] = (f"{max(info['usable'])} of {settings.replicates} replicates identified (needs "
                                 f"{10 * (len(prior[0]) + 1)}): the window's moments of xi_{{k|k}} kept")

@@ -31,7 +31,8 @@ class Identified:
     None where modeling failed, `failure` says why; feedback: how the plant was driven (the gain, or the
     recorded inputs); passes: an iterated identification's passes (None: one pass); covariance: the
     modeling window's covariance (sample | total); estimator: identification.estimator = simulated's account
-    (replicates, usable, effective, the summary it matched), with `posterior` its draws of the moments."""
+    (replicates, usable, effective, the summary it matched), with `posterior` its draws of the moments (the prior
+    box's where no posterior matched the summary: status unsettled or misfit)."""
 
     trajectories: Trajectories
     moments: MomentModel | None
