@@ -160,18 +160,19 @@ def simulated_moments(exp: Experiment, stages: Stages, ident: Trajectories, iden
         spread_of = lambda xi, over: Uncertainty(*indirect.moments_of(xi, ends, low, high), settings.resamples, 0, over)
         # where no posterior matched the summary, the window's moments are kept with the prior box as their
         # uncertainty: what is known without the match (the window's bootstrap knows nothing of the estimator's bias)
-        box = spread_of(xi_of(indirect.uniform_draws(*prior, settings.resamples, [exp.seed, UNCERTAINTY_STREAM])),
-                        "the prior box") if settings.resamples else None
+        box = lambda: spread_of(xi_of(indirect.uniform_draws(*prior, settings.resamples,
+                                                             [exp.seed, UNCERTAINTY_STREAM])),
+                                "the prior box") if settings.resamples else None
         if posterior is None:       # the window's moments, said so
             info["fallback"] = (f"{max(info['usable'])} of {settings.replicates} replicates identified (needs "
                                 f"{10 * (len(prior[0]) + 1)}): the window's moments of xi_{{k|k}} kept")
             return Identified(ident, summary, "", feedback, covariance=settings.covariance, estimator=info,
-                              posterior=box)
+                              posterior=box())
         if np.max(np.abs(z)) > MISFIT:      # no law in the box reproduces what the data read: the window's moments
             worst = int(np.argmax(np.abs(z)))
             info["misfit"] = {"summary": summary_names(model)[worst], "z": float(z[worst]), "bound": MISFIT}
             return Identified(ident, summary, "", feedback, covariance=settings.covariance, estimator=info,
-                              posterior=box)
+                              posterior=box())
         draws, w = posterior
         info |= diagnostics(draws, w, prior, ends, replay.noisy)
         xi_part = xi_of(draws)
