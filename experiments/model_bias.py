@@ -6,8 +6,8 @@ default run makes it (`identification.paths` runs, open loop or its feedback):
 1. the simulator: `--reps` replicate paths at theta* against as many runs of the plant (seeds 0, 1, ... of
    `identification.paths` paths each); per summary statistic, both means and the two-sample Kolmogorov-Smirnov
    p-value (the replicates draw theta*'s moments in the laws `identification.replicate_laws` says: random shapes
-   and correlations by default, independent normal components with `--override
-   identification.replicate_laws=independent_normal`; a law beyond them may give other summaries); and the same
+   by default, normal with `--override identification.replicate_laws=normal`; a law beyond them may give other
+   summaries); and the same
    runs under other laws of the same means and stds (`same_moments`: the normal with the law's correlations,
    uniform and symmetric two-point components), each statistic's shift from the replicates' in their sds:
    which of correlation and shape moves the summary;
@@ -91,7 +91,9 @@ def main(argv=None):
     exp = experiment(args.plant, config_dir, ["seed=0", *FAST, *args.override])
     ends, low, high = ident.two_point_ends(exp)
     law = exp.plant.check_distribution(None)
-    truth = np.concatenate([law.mean, np.sqrt(np.diag(law.cov))[~ends]])
+    std = np.sqrt(np.diag(law.cov))
+    corr = law.cov / np.outer(std, std) + np.diag(std == 0)          # (a constant component: uncorrelated)
+    truth = np.concatenate([law.mean, std[~ends], indirect.partial_correlations(corr)])
     F_id, _ = ident.identification_feedback(exp)
     paths = exp.identification.paths
     replay = ident.Replay(exp.identification.input, F_id, exp.q0, paths=paths)

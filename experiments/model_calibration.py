@@ -9,6 +9,7 @@ per plant:
 - z: (modeled - true) / stated sd, median |z| and max |z| over components and seeds, for the mean and the std;
 - cover: the fraction of the 95% intervals (modeled +- 1.96 stated sd) that hold the truth (nominal 0.95);
 - err: median |modeled mean - true| / true sd, and median |modeled std / true std - 1|;
+- (pooled, p > 1) the correlations of each pair: their 95% intervals' coverage and the median |error|;
 - status: the modeling statuses (ok, unsettled, at_prior_edge, weakly_identified, or why no model), and the
   cover over the ok runs;
 - e2e: the end-to-end figure of the loop's gain on the true plant against the optimum for the true law (median
@@ -95,6 +96,9 @@ def one_run(exp) -> dict:
         row[what] = np.asarray(s[f"xi_{what}"]) - np.asarray(s[f"plant_xi_{what}"])
         row[f"{what}_sd"] = np.asarray(u.get(f"xi_{what}_sd", [np.nan] * len(s["xi_mean"])))
     row["true_std"] = np.asarray(s["plant_xi_std"])
+    if "xi_corr" in s:          # p > 1: the modeled correlations against the law's
+        row["corr"] = np.asarray(s["xi_corr"]) - np.asarray(s["plant_xi_corr"])
+        row["corr_sd"] = np.asarray(u.get("xi_corr_sd", [np.nan] * len(s["xi_corr"])))
     gains = out.tables["gains"]
     chosen = gains[gains["selected"]]
     method = exp.design.method
@@ -132,6 +136,8 @@ def one_data_run(name: str, seed: int, where: Path, overrides: list[str]) -> dic
         row[what] = np.asarray(s[f"xi_{what}"]) - truth
         row[f"{what}_sd"] = np.asarray(u.get(f"xi_{what}_sd", [np.nan] * 2))
     row["true_std"] = user_data.TRUE_STD
+    if "xi_corr" in s:              # the law's components are independent
+        row["corr"], row["corr_sd"] = np.asarray(s["xi_corr"]), np.asarray(u.get("xi_corr_sd", [np.nan]))
     truth = AffineRandomSystem(exp.model.A, exp.model.B, exp.model.C, exp.model.D,
                                xi_dist=from_spec(user_data.TRUE_LAW))
     chosen = out.tables["gains"][out.tables["gains"]["selected"]]
@@ -170,6 +176,13 @@ def summarize(rows: list[dict]) -> dict:
         out[f"{what}_cover"] = float(np.mean(z[known] <= 1.96)) if known.any() else np.nan
         out[f"{what}_err"] = float(np.nanmedian(rel[known])) if known.any() else np.nan
         out[f"{what}_components"] = int(known.sum())
+    # the correlations (p > 1): their intervals' coverage and the median |error|
+    corr = [(r["corr"], r["corr_sd"]) for r in modeled if "corr" in r]
+    err = np.concatenate([e for e, _ in corr]) if corr else np.zeros(0)
+    sd = np.concatenate([s for _, s in corr]) if corr else np.zeros(0)
+    out["corr_components"] = int(err.size)
+    out["corr_cover"] = float(np.mean(np.abs(err) <= 1.96 * sd)) if err.size else np.nan
+    out["corr_err"] = float(np.median(np.abs(err))) if err.size else np.nan
     e2e = [r["e2e"] for r in rows if "e2e" in r]
     out["e2e_kind"] = next((r["e2e_kind"] for r in rows if "e2e_kind" in r), "")
     out["e2e"] = np.asarray(e2e)
@@ -202,6 +215,11 @@ def print_table(results: dict[str, dict]) -> None:
                                 max(sum(r[count] for r in modeled), 1))
     print(f"pooled over components: mean cover {share('mean_cover', 'mean_components'):.3f}, std cover "
           f"{share('std_cover', 'std_components'):.3f}; ok runs' cover {share('ok_cover', 'ok_components'):.3f}")
+    correlated = [r for r in modeled if r["corr_components"]]
+    if correlated:          # (rows kept before the correlations were modeled have none)
+        print(f"correlations: cover {share('corr_cover', 'corr_components'):.3f} over "
+              f"{sum(r['corr_components'] for r in correlated)} pairs, median |error| "
+              f"{np.median([r['corr_err'] for r in correlated]):.3f} over plants")
     for kind in sorted({r["e2e_kind"] for r in results.values()} - {""}):
         e2e = np.concatenate([r["e2e"] for r in results.values() if r["e2e_kind"] == kind])
         print(f"end to end over every run ({kind}): median {np.median(e2e):.3f}, q90 {np.quantile(e2e, 0.9):.3f} "

@@ -30,8 +30,8 @@ TRACKING_LEVELS = ("off", "summary", "full")
 FEEDBACK_MODES = ("none", "nominal", "auto")     # identification.feedback, or a gain F (m x n)
 OBSERVER_XI = ("random_walk", "model")   # closed_loop.observer_xi: the paper's xi random walk, or i.i.d. model draws
 ESTIMATORS = ("paper", "simulated")      # identification.estimator: eq. (sample-mean), or `numerics.indirect`
-REPLICATE_LAWS = ("random_shapes", "independent_normal")    # identification.replicate_laws (or auto: the first for
-                                                            # a simulated run, the second for a data run)
+REPLICATE_LAWS = ("random_shapes", "normal")    # identification.replicate_laws (or auto: the first for a simulated
+                                                # run, the second for a data run)
 XI_MODELS = ("random_walk", "iterated")   # identification.xi_model: the paper's, or passes drawing xi i.i.d.
 INITIAL_XI = ("guess", "zero")       # enkf.initial.xi: members' xi at identification.xi_guess, or at 0 (the paper)
 LOOK_GROWTH = 4                      # closed_loop.paths auto: each look judges 4 times the previous look's paths
@@ -290,7 +290,7 @@ class IdentificationSettings:
         if laws == "auto":
             # a data run's replicates are one path each, their summaries' covariance scaled down to the mean of the
             # recorded paths; a shape's spread is not noise that averaging removes, and would be scaled down with it
-            laws = "independent_normal" if data_run else "random_shapes"
+            laws = "normal" if data_run else "random_shapes"
         if laws not in REPLICATE_LAWS:
             raise ConfigError(f"identification.replicate_laws: {laws!r} is not allowed, expected auto or one of "
                               f"{', '.join(REPLICATE_LAWS)}")

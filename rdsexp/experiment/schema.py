@@ -220,7 +220,8 @@ RUN_SUMMARY_KEYS: dict[str, tuple[str, str | None]] = {
     "modeling_covariance": ("how the modeled covariance was formed (identification.covariance)", None),
     "modeling_uncertainty": ("the modeled moments' spread over their draws (the simulated estimator's posterior, "
                              "or block-bootstrap draws of the paper's modeling window): resamples, block, what "
-                             "was drawn over, sd of xi's mean and std per component", "xi"),
+                             "was drawn over, sd of xi's mean and std per component and of each correlation "
+                             "(p > 1)", "xi"),
     "nbar": ("size of the LMI's basis Gbar (eq. Gbar)", None),
     "noise_sensitivity": ("the moments modeled again with the EnKF's assumed noise (enkf.Q's x block and enkf.R) "
                           "scaled by identification.noise_sensitivity's factors: the factors (1 among them), xi mean "
@@ -228,8 +229,10 @@ RUN_SUMMARY_KEYS: dict[str, tuple[str, str | None]] = {
                           "sds (range_over_sd)", "xi"),
     "xi_mean": ("modeled mean of xi (the modeling window's sample mean of the EnKF's xi)", "xi"),
     "xi_std": ("modeled standard deviation of xi, per component", "xi"),
+    "xi_corr": ("modeled correlation of each pair (i, j), i > j, of xi's components (p > 1), row by row", None),
     "plant_xi_mean": ("the plant file's xi law's mean, mapped into the model's xi", "xi"),
     "plant_xi_std": ("the plant file's xi law's standard deviation, mapped into the model's xi", "xi"),
+    "plant_xi_corr": ("the plant file's xi law's correlations, mapped into the model's xi (as xi_corr)", None),
     "xi_mean_error": ("RMS over components of xi_mean - plant_xi_mean", "xi"),
     "xi_std_error": ("RMS over components of xi_std - plant_xi_std", "xi"),
     "xi_crps": ("CRPS of the modeled marginals against the plant's xi, mean over components", "xi"),

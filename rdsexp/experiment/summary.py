@@ -121,8 +121,11 @@ def model_lines(s: dict) -> list[str]:
             line = f"    modeled xi std {vec(s['xi_std'])}"
             if s.get("modeling_covariance") == "total" and estimator.get("name", "paper") == "paper":
                 line += " (the spread of xi_{k|k} plus the EnKF's mean filtered spread)"
+            if "xi_corr" in s:
+                line += f", correlation {vec(s['xi_corr'])}"
             if "plant_xi_mean" in s:
                 line += f"; the plant file's xi: mean {vec(s['plant_xi_mean'])}, std {vec(s['plant_xi_std'])}"
+                line += f", correlation {vec(s['plant_xi_corr'])}" if "plant_xi_corr" in s else ""
             if "xi_crps" in s:           # a proper score of the modeled marginals against the plant's xi
                 line += f"; CRPS {s['xi_crps']:.4f}"
             lines.append(line)
@@ -154,8 +157,8 @@ def estimator_lines(estimator: dict) -> list[str]:
     runs = "identification runs of the model" + (" replaying the recorded inputs" if estimator.get("recorded") else "")
     if estimator.get("replicate_paths"):        # a simulated run's identification.paths, after a first round of one
         runs = f"replicates of the identification on the model, of 1 path each then {estimator['replicate_paths']}"
-    runs += {"random_shapes": ", each in a law of random shape and correlation",
-             "independent_normal": ", each in independent normal components"}.get(estimator.get("replicate_laws"), "")
+    runs += {"random_shapes": ", each in a law of random shape",
+             "normal": ", each in a normal law"}.get(estimator.get("replicate_laws"), "")
     line = (f"    modeled by simulation: the window's xi_{{k|k}} read {read}mean {vec(estimator['summary_mean'])}, "
             f"std {vec(estimator['summary_std'])}")
     if estimator["usable"]:                 # (no replicates where the summary itself is not finite)
@@ -184,6 +187,8 @@ def estimator_lines(estimator: dict) -> list[str]:
         lines.append(f"    weakly identified: the data hardly narrow the prior box of "
                      f"{', '.join(estimator['weakly_identified'])} (posterior sd above "
                      f"{WEAK:g} of the box's): the interval is the box, the value its middle")
+    if estimator.get("correlations"):       # theta's correlations left to the prior box
+        lines.append(f"    correlations {estimator['correlations']}")
     return lines
 
 
@@ -205,7 +210,8 @@ def gain_lines(s: dict) -> list[str]:
     if s.get("modeling_uncertainty"):
         u = s["modeling_uncertainty"]
         lines.append(f"    modeled moments' spread over {u['resamples']} {drawn_over(u)}: xi mean "
-                     f"sd {np.round(u['xi_mean_sd'], 4).tolist()}, xi std sd {np.round(u['xi_std_sd'], 4).tolist()}")
+                     f"sd {np.round(u['xi_mean_sd'], 4).tolist()}, xi std sd {np.round(u['xi_std_sd'], 4).tolist()}"
+                     + (f", xi correlation sd {np.round(u['xi_corr_sd'], 4).tolist()}" if "xi_corr_sd" in u else ""))
     if s.get("noise_sensitivity"):     # the moments with the EnKF's assumed noise scaled
         v = s["noise_sensitivity"]
         each = lambda rows: " / ".join(str(vec(r)) for r in rows)

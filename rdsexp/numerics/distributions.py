@@ -212,19 +212,19 @@ def _independent(specs) -> Independent:
     return Independent(parsed)          # an empty list is rejected there
 
 
-SHAPES = ("normal", "uniform", "two_point")   # `PathLaws.shape`: a component's law at its mean and std
+SHAPES = ("normal", "uniform", "two_point")   # `PathLaws.shape`: a factor's law at mean 0 and variance 1
 
 
 @dataclass(frozen=True, eq=False)
 class PathLaws:
     """One law of xi per simulated path: path j draws xi_k = mean[j] + sqrt[j] z_k, z_k ~ N(0, I_q) from its own
     stream, except the components `ends` (p,) bool, which take the two-point law on {low, high} with that mean
-    (`two_point_draw` of the same z). mean (P, p), sqrt (P, p, q) (q = p without `shape`); low, high (p,) (None:
-    no such component). With `shape` (P, p), codes into SHAPES, each component keeps its mean and std, std_i =
-    |row i of sqrt|, and the correlated normal w_i = (sqrt z)_i / std_i (N(0, 1)) sets its draw: normal mean + std
-    w; uniform on mean +- sqrt(3) std; two-point, its high point with probability high_prob (P, p) (a skewed law);
-    a two-point component of `ends` from w. A plant with these laws simulates P paths exactly (`sample_paths`),
-    not one path more."""
+    (`two_point_draw` of the same z, standardized). mean (P, p), sqrt (P, p, q); low, high (p,) (None: no such
+    component). With `shape` (P, q), codes into SHAPES, each factor of z takes that law at mean 0 and variance 1
+    (normal; uniform on +- sqrt(3); two-point, its high point with probability high_prob (P, q): a skewed law) from
+    its normal draw, so the mean and covariance sqrt sqrt^T stay, and the laws of the components are the factors'
+    mixtures (a component of `ends` still from the normal z). A plant with these laws simulates P paths exactly
+    (`sample_paths`), not one path more."""
 
     mean: np.ndarray
     sqrt: np.ndarray
@@ -242,17 +242,19 @@ class PathLaws:
             raise ValueError(f"rngs: {len(rngs)} paths, these laws are of {self.mean.shape[0]}")
         z = np.stack([g.standard_normal((steps, self.sqrt.shape[2])) for g in rngs], axis=1)      # (steps, P, q)
         # elementwise products summed per row: each path's numbers whatever the other paths in the batch
-        dev = (self.sqrt * z[..., None, :]).sum(axis=-1)
-        if self.shape is not None:
-            std = np.sqrt((self.sqrt ** 2).sum(axis=-1))                                   # (P, p)
-            z = dev / np.where(std > 0, std, 1.0)
-            u, q = ndtr(z), self.high_prob
-            dev = np.select([self.shape == SHAPES.index("uniform"), self.shape == SHAPES.index("two_point")],
-                            [std * np.sqrt(3) * (2 * u - 1),
-                             std * np.where(u < q, np.sqrt((1 - q) / q), -np.sqrt(q / (1 - q)))], dev)
+        mix = lambda factors: (self.sqrt * factors[..., None, :]).sum(axis=-1)
+        dev = mix(z)
         xi = self.mean + dev
+        if self.shape is not None:
+            u, q = ndtr(z), self.high_prob
+            two_point = np.where(u < q, np.sqrt((1 - q) / q), -np.sqrt(q / (1 - q)))
+            factors = np.select([self.shape == SHAPES.index("uniform"), self.shape == SHAPES.index("two_point")],
+                                [np.sqrt(3) * (2 * u - 1), two_point], z)
+            xi = self.mean + mix(factors)
         if self.ends is not None and self.ends.any():
-            xi = np.where(self.ends, two_point_draw(z, self.mean, self.low, self.high), xi)
+            std = np.sqrt((self.sqrt ** 2).sum(axis=-1))                                   # (P, p)
+            xi = np.where(self.ends, two_point_draw(dev / np.where(std > 0, std, 1.0), self.mean, self.low, self.high),
+                          xi)
         return xi
 
 

@@ -8,10 +8,10 @@ removes it. But rdsexp can run the same identification on the model at any law o
 1. the summary s of the identification run (`s_obs`): the paper estimator's mean (p) and std (p), and any
    other statistic the caller computes the same way on every run (rdsexp adds the outputs' and the
    innovations' log mean squares and the outputs' lag-1 and cross correlations);
-2. theta = (mean of xi (p), std of every component that is not two-point) drawn uniformly from a box
-   around the paper estimator's moments (`prior_box`), one law per replicate path (`path_laws`,
-   `distributions.PathLaws`), of those moments and a random shape and correlation (`random_shapes`: theta
-   states neither, so what the summary reads of them belongs in the regression's residual, not in its mean);
+2. theta = (mean of xi (p), std of every component that is not two-point, the partial correlations of each pair
+   (`correlation_root`)) drawn uniformly from a box around the paper estimator's moments (`prior_box`), one law per
+   replicate path (`path_laws`, `distributions.PathLaws`) of those moments, its shape at random (`random_shapes`:
+   theta does not state it, so what the summary reads of it belongs in the regression's residual, not its mean);
 3. the same identification (input, feedback, EnKF, window) of the model on each replicate, batched over
    paths: its summary s_r;
 4. a regression of s on theta over the replicates (`emulator`: the summary's expectation at any law in the box,
@@ -34,22 +34,51 @@ from scipy.stats import chi2
 from .distributions import SHAPES, PathLaws
 
 WEAK = 0.8      # `narrowed` above this: the data hardly narrowed the prior box, the component is weakly identified
+PARTIAL = 0.95  # the prior box of each partial correlation: [-PARTIAL, PARTIAL] (any point of it a valid correlation)
 
 
 def prior_box(s_obs: np.ndarray, ends: np.ndarray, low: np.ndarray, high: np.ndarray, width: float):
-    """(lo, hi) (d,): the uniform prior of theta = (mean (p), std of the components not in `ends`).
+    """(lo, hi) (d,): the uniform prior of theta = (mean (p), std of the components not in `ends`, partial
+    correlation of each pair (p (p - 1) / 2, `correlation_root`)).
 
     s_obs (2p,): the paper estimator's mean and std of xi; mean_i in s_obs mean_i +- width s_obs std_i (a
     two-point component: inside its ends low_i < high_i, off each end by 1e-3 of the box), std_i in
-    [0, width s_obs std_i]. ends (p,) bool; low, high (p,) the two-point components' ends."""
+    [0, width s_obs std_i], each partial correlation in [-PARTIAL, PARTIAL]. ends (p,) bool; low, high (p,) the
+    two-point components' ends."""
     p = ends.size
     mean, std = s_obs[:p], np.maximum(s_obs[p:], 1e-6)
     lo_m, hi_m = mean - width * std, mean + width * std
     if ends.any():
         eps = 1e-3 * (high - low)
         lo_m, hi_m = np.where(ends, low + eps, lo_m), np.where(ends, high - eps, hi_m)
-    free = ~ends
-    return np.concatenate([lo_m, np.zeros(free.sum())]), np.concatenate([hi_m, width * std[free]])
+    free, pairs = ~ends, np.full(p * (p - 1) // 2, PARTIAL)
+    return np.concatenate([lo_m, np.zeros(free.sum()), -pairs]), np.concatenate([hi_m, width * std[free], pairs])
+
+
+def correlation_columns(ends: np.ndarray) -> slice:
+    """theta's partial correlations (`prior_box`'s layout)."""
+    p, free = ends.size, int((~ends).sum())
+    return slice(p + free, p + free + p * (p - 1) // 2)
+
+
+def quadratic_replicates(d: int) -> int:
+    """The replicates the `emulator`'s quadratic fit in d components of theta takes: 5 per coefficient."""
+    return (d + 1) * (d + 2) // 2 * 5
+
+
+def correlation_root(partial: np.ndarray, p: int) -> np.ndarray:
+    """(..., p, p): the lower-triangular root L of a correlation matrix L L^T from the partial correlations (..., p (p -
+    1) / 2) of each pair (i, j), i > j, in np.tril_indices(p, -1)'s order, of xi_i and xi_j given xi_0..xi_{j-1}
+    (the C-vine of Lewandowski, Kurowicka & Joe 2009): L[i, j] = partial_ij sqrt(1 - sum_{k<j} L[i, k]^2), L[i, i]
+    what is left of row i's unit length. Every point of (-1, 1)^{p (p - 1) / 2} gives a valid correlation, and
+    elementwise arithmetic gives the same bytes on every CPU (no factorization)."""
+    L = np.zeros(partial.shape[:-1] + (p, p))
+    L[..., 0, 0] = 1.0
+    for k, (i, j) in enumerate(zip(*np.tril_indices(p, -1))):     # row by row, left to right
+        L[..., i, j] = partial[..., k] * np.sqrt(np.clip(1 - (L[..., i, :j] ** 2).sum(axis=-1), 0, None))
+        if j == i - 1:
+            L[..., i, i] = np.sqrt(np.clip(1 - (L[..., i, :i] ** 2).sum(axis=-1), 0, None))
+    return L
 
 
 def uniform_draws(lo: np.ndarray, hi: np.ndarray, count: int, seed) -> np.ndarray:
@@ -69,59 +98,78 @@ def posterior_box(draws: np.ndarray, w: np.ndarray, lo: np.ndarray, hi: np.ndarr
     return new_lo, np.maximum(new_hi, new_lo)
 
 
-def moments_of(theta: np.ndarray, ends: np.ndarray, low: np.ndarray, high: np.ndarray,
-               corr: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+def partial_correlations(corr: np.ndarray) -> np.ndarray:
+    """(p (p - 1) / 2,): the partial correlations of a positive definite correlation matrix corr (p, p), as
+    `correlation_root` takes them (its inverse, through corr's Cholesky factor)."""
+    L = np.linalg.cholesky(corr)
+    i, j = np.tril_indices(len(corr), -1)
+    left = 1 - np.array([(L[a, :b] ** 2).sum() for a, b in zip(i, j)])
+    return L[i, j] / np.sqrt(left)
+
+
+def moments_of(theta: np.ndarray, ends: np.ndarray, low: np.ndarray, high: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """theta (..., d) -> mean (..., p) and covariance (..., p, p) of xi: the stds of theta, a two-point
-    component's sqrt((mean - low)(high - mean)), with correlation `corr` (p, p) (None: independent)."""
+    component's sqrt((mean - low)(high - mean)), and the correlation of theta's partial correlations."""
+    mean, std, root = law_of(theta, ends, low, high)
+    corr = np.einsum("...ik,...jk->...ij", root, root)
+    return mean, std[..., :, None] * corr * std[..., None, :]
+
+
+def law_of(theta: np.ndarray, ends: np.ndarray, low: np.ndarray, high: np.ndarray):
+    """theta (..., d) -> mean (..., p), std (..., p) and the correlation's root (..., p, p) (`correlation_root`)."""
     p = ends.size
+    free = int((~ends).sum())
     mean = theta[..., :p]
     std = np.zeros(theta.shape[:-1] + (p,))
-    std[..., ~ends] = np.abs(theta[..., p:])
+    std[..., ~ends] = np.abs(theta[..., p:p + free])
     if ends.any():
         std[..., ends] = np.sqrt(np.clip((mean[..., ends] - low[ends]) * (high[ends] - mean[..., ends]), 0, None))
-    corr = np.eye(p) if corr is None else corr
-    return mean, std[..., :, None] * corr * std[..., None, :]
+    return mean, std, correlation_root(theta[..., p + free:p + free + p * (p - 1) // 2], p)
+
+
+def posterior_moments(draws: np.ndarray, w: np.ndarray, ends: np.ndarray, low: np.ndarray, high: np.ndarray,
+                      correlated: bool = True):
+    """The model of the weighted draws (N, d) of theta: the posterior mean of xi's mean (p,) and of each std, with
+    the posterior mean of the correlation (p, p) between them (a mean of correlations: one); correlated=False (the
+    draws' correlations are the prior's): I, the prior's mean correlation (its box is symmetric about 0)."""
+    mean, std, root = law_of(draws, ends, low, high)
+    corr = np.einsum("n,nik,njk->ij", w, root, root) / w.sum() if correlated else np.eye(ends.size)
+    std = w @ std / w.sum()
+    return w @ mean / w.sum(), std[:, None] * corr * std[None, :]
 
 
 @dataclasses.dataclass(frozen=True)
 class Shapes:
-    """The replicates' laws beyond theta's moments, one per replicate: root (R, p, p + 1) rows of unit length, the
-    loadings of a correlated standard normal w = root z on z ~ N(0, I) (correlation root root^T); shape (R, p)
-    codes into `distributions.SHAPES`; high_prob (R, p) a two-point shape's probability of its high point
-    (`PathLaws`)."""
+    """The replicates' laws beyond theta's moments, one per replicate: the shape of each of its p independent
+    standardized factors (`distributions.PathLaws`), shape (R, p) codes into `distributions.SHAPES`, high_prob (R, p)
+    a two-point factor's probability of its high point."""
 
-    root: np.ndarray
     shape: np.ndarray
     high_prob: np.ndarray
 
     def take(self, rows) -> Shapes:
         """The replicates `rows` (an index array or slice)."""
-        return Shapes(self.root[rows], self.shape[rows], self.high_prob[rows])
+        return Shapes(self.shape[rows], self.high_prob[rows])
 
 
 def random_shapes(count: int, p: int, seed) -> Shapes:
-    """`count` laws' shapes at any moments (default_rng(seed)): the correlation of a Wishart(I, p + 1) draw (each
-    correlation spread over (-1, 1), uniform for p = 2), each component normal, uniform or two-point with equal
+    """`count` laws' shapes at any moments (default_rng(seed)): each factor normal, uniform or two-point with equal
     probability, a two-point's high point with probability uniform in (0.1, 0.9) (skewness up to 2.7). The model
-    states xi's means and stds only; a replicate drawn from one such law makes the regression's residual hold
-    what the summary reads of the rest of the law (correlations, tails, atoms), which no moment fixes."""
+    states xi's means, stds and correlations; a replicate drawn from one such law makes the regression's residual
+    hold what the summary reads of the rest of the law (tails, atoms, skew), which no moment fixes."""
     rng = np.random.default_rng(seed)
-    G = rng.standard_normal((count, p, p + 1))
-    # G's rows normalized: root root^T is G G^T's correlation, without a factorization (elementwise: the same
-    # bytes on every CPU)
-    root = G / np.sqrt((G ** 2).sum(axis=2, keepdims=True))
-    return Shapes(root, rng.integers(0, len(SHAPES), (count, p)), rng.uniform(0.1, 0.9, (count, p)))
+    return Shapes(rng.integers(0, len(SHAPES), (count, p)), rng.uniform(0.1, 0.9, (count, p)))
 
 
 def path_laws(theta: np.ndarray, ends: np.ndarray, low: np.ndarray, high: np.ndarray,
               shapes: Shapes | None = None) -> PathLaws:
-    """The replicates' laws: path r draws xi from theta[r] (R, d) (`moments_of`), with shapes[r] (`random_shapes`;
-    None: independent normal components)."""
-    mean, cov = moments_of(theta, ends, low, high)
-    std, two = np.sqrt(np.einsum("rii->ri", cov)), ends if ends.any() else None
+    """The replicates' laws: path r draws xi from theta[r] (R, d) (`law_of`: mean + std L e, e of p independent
+    standardized factors), with shapes[r] (`random_shapes`; None: normal factors)."""
+    mean, std, root = law_of(theta, ends, low, high)
+    two = ends if ends.any() else None
     if shapes is None:
-        return PathLaws(mean, std[..., None] * np.eye(ends.size), two, low, high)
-    return PathLaws(mean, std[..., None] * shapes.root, two, low, high, shapes.shape, shapes.high_prob)
+        return PathLaws(mean, std[..., None] * root, two, low, high)
+    return PathLaws(mean, std[..., None] * root, two, low, high, shapes.shape, shapes.high_prob)
 
 
 def weighted_quantiles(values: np.ndarray, w: np.ndarray, q) -> np.ndarray:
@@ -182,7 +230,7 @@ def emulator(theta: np.ndarray, s: np.ndarray, lo: np.ndarray, hi: np.ndarray):
     in units of Sigma) and Sigma's whitening W (ds, k), k its numerical rank: W^T Sigma W = I_k."""
     centre, half = (hi + lo) / 2, np.where(hi > lo, (hi - lo) / 2, 1.0)
     pairs = np.triu_indices(theta.shape[1])
-    quadratic = (theta.shape[1] + 1) * (theta.shape[1] + 2) // 2 * 5 <= len(theta)
+    quadratic = quadratic_replicates(theta.shape[1]) <= len(theta)
 
     def features(t):
         t = (t - centre) / half

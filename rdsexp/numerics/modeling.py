@@ -121,6 +121,15 @@ def time_mean(a: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(np.moveaxis(a, 0, -1)).mean(axis=-1)
 
 
+def correlations(cov: np.ndarray) -> np.ndarray:
+    """(..., p (p - 1) / 2): the correlation of each pair (i, j), i > j, in np.tril_indices(p, -1)'s order, of the
+    covariances (..., p, p); 0 beside a component of no spread."""
+    i, j = np.tril_indices(cov.shape[-1], -1)
+    std = np.sqrt(np.clip(np.diagonal(cov, axis1=-2, axis2=-1), 0, None))
+    scale = std[..., i] * std[..., j]
+    return np.where(scale > 0, cov[..., i, j] / np.where(scale > 0, scale, 1.0), 0.0)
+
+
 def correlation_z(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """(P,): Fisher's z, artanh r, of the uncentered correlation r of a and b, each (T, P), over the steps: nearer
     normal than r, as the synthetic likelihood assumes. As 0.5 log(|a^ + b^|^2 / |a^ - b^|^2) (a^ = a / |a|), so

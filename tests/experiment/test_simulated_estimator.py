@@ -64,7 +64,7 @@ def test_the_same_numbers_whatever_the_chunks(tmp_path, monkeypatch):
     path, where a replicate's paths fall in different chunks."""
     exp = experiment(tmp_path, "seed=3", "identification.paths=3", "identification.replicates=60")
     whole, whole_draws = modeled(exp)
-    assert whole.estimator["replicate_paths"] == 3
+    assert whole.estimator["replicate_paths"] == 3 and "fallback" not in whole.estimator
     monkeypatch.setattr(identification, "MEMORY_BUDGET", 1)          # one replicate path per chunk
     parts, parts_draws = modeled(exp)
     np.testing.assert_array_equal(whole.moments.mean, parts.moments.mean)
@@ -95,9 +95,9 @@ def test_the_paper_plant_keeps_the_paper_estimator(tmp_path):
         with pytest.raises(ConfigError, match="identification.estimator: 'bogus' is not allowed"):
             build(compose("config", overrides=[*SMALL, "identification.estimator=bogus"]))
         assert build(compose("config", overrides=SMALL)).identification.replicate_laws == "random_shapes"
-        with pytest.raises(ConfigError, match="identification.replicate_laws: 'normal' is not allowed, expected auto "
-                                              "or one of random_shapes, independent_normal"):
-            build(compose("config", overrides=[*SMALL, "identification.replicate_laws=normal"]))
+        with pytest.raises(ConfigError, match="identification.replicate_laws: 'gaussian' is not allowed, expected auto "
+                                              "or one of random_shapes, normal"):
+            build(compose("config", overrides=[*SMALL, "identification.replicate_laws=gaussian"]))
     assert experiment(tmp_path).identification.estimator == "simulated"
 
 
@@ -132,7 +132,7 @@ def test_a_data_run_of_a_users_own_simulator_holds_the_law_and_estimates_its_noi
     for seed in range(6):
         exp, s, user_data = data_run(tmp_path, seed)
         assert exp.identification.estimator == "simulated" and s["modeling_status"] in ("ok", "weakly_identified")
-        assert s["modeling_estimator"]["replicate_laws"] == "independent_normal"      # auto, for a data run
+        assert s["modeling_estimator"]["replicate_laws"] == "normal"      # auto, for a data run
         sd = s["modeling_uncertainty"]
         assert sd["over"] == "simulated replicates"
         hits += np.sum(np.abs(np.array(s["xi_mean"]) - user_data.TRUE_MEAN) <= 1.96 * np.array(sd["xi_mean_sd"]))
@@ -145,7 +145,7 @@ def test_a_data_run_of_a_users_own_simulator_holds_the_law_and_estimates_its_noi
 
 
 def test_a_data_runs_replicates_are_the_same_whatever_the_chunks(tmp_path, monkeypatch):
-    small = ("identification.replicates=60", "identification.horizon=50",
+    small = ("identification.replicates=80", "identification.horizon=50",
              "identification.K0=10", "identification.K1=40")
     _, whole, _ = data_run(tmp_path, 1, *small, paths=12, steps=51)
     monkeypatch.setattr(identification, "MEMORY_BUDGET", 1)          # one replicate path per chunk
@@ -156,6 +156,38 @@ def test_a_data_runs_replicates_are_the_same_whatever_the_chunks(tmp_path, monke
 
 SCALAR = {"name": "scalar", "A": [[[0.0]], [[1.0]]], "B": [[[1.0]], [[0.0]]], "C": [[[1.0]]], "nominal": [0.0],
           "xi": {"family": "normal", "mean": [0.5], "cov": [[0.04]]}}
+
+
+# two states, each its own random gain, the gains correlated 0.8: only the outputs' joint spread shows the correlation
+PAIR = {"name": "pair", "A": [[[0, 0], [0, 0]], [[1, 0], [0, 0]], [[0, 0], [0, 1]]],
+        "B": [[[1, 0], [0, 1]], [[0, 0], [0, 0]], [[0, 0], [0, 0]]], "C": [[[1, 0], [0, 1]]], "nominal": [0.4, 0.4],
+        "xi": {"family": "normal", "mean": [0.5, 0.3], "cov": [[0.04, 0.032], [0.032, 0.04]]}}
+
+
+def test_the_modeled_correlation_holds_the_laws(tmp_path):
+    """A law of correlated components (0.8): over seeds the modeled correlation's stated 95% interval holds it at
+    about its level (at least the count 3 binomial sds below it), the data narrow it far inside the prior (a
+    correlation's sd under the uniform partial-correlation box is about 0.55), and its error is a fraction of what
+    independent components would make (0.8)."""
+    (tmp_path / "plant").mkdir()
+    (tmp_path / "plant" / "pair.yaml").write_text(yaml.safe_dump(PAIR))
+    hits, errors, sds = 0, [], []
+    for seed in range(8):
+        with initialize_config_module(config_module="rdsexp.conf", version_base="1.3"):
+            exp = build(compose("config", overrides=[
+                f"hydra.searchpath=[file://{tmp_path}]", "plant=pair", "model=plant", *SMALL, "tracking=off",
+                "identification.horizon=60", "identification.K0=10", "identification.K1=50",
+                "identification.replicates=200", f"seed={seed}"]))
+        identified, posterior = modeled(exp)
+        assert identified.status in ("ok", "weakly_identified")
+        cov = identified.moments.cov
+        error = cov[1, 0] / np.sqrt(cov[0, 0] * cov[1, 1]) - 0.8
+        sd = posterior.summary()["modeling_uncertainty"]["xi_corr_sd"][0]
+        hits += abs(error) <= 1.96 * sd
+        errors.append(error)
+        sds.append(sd)
+    assert hits >= binom.ppf(0.0015, 8, 0.95), f"{hits} of 8 intervals hold the correlation"
+    assert np.median(sds) < 0.2 and np.median(np.abs(errors)) < 0.15, (sds, errors)
 
 
 @pytest.mark.slow
@@ -298,3 +330,19 @@ def test_the_summarys_correlations_are_fishers_z_to_the_last_digits():
     flat = np.ones((10, 1))
     assert correlation_z(flat, flat)[0] == 20 and correlation_z(flat, -flat)[0] == -20
     assert np.isnan(correlation_z(np.zeros((10, 1)), flat)[0])
+
+
+def test_correlations_are_fitted_where_the_replicates_afford_the_quadratic_fit():
+    """theta's partial correlations join the regression while 5 replicates per coefficient of its quadratic fit
+    remain (3 components of xi at 400 replicates: 9 in theta), else they keep their prior box (4 components: 14;
+    600 replicates fit them), and the model is then independent."""
+    for p, replicates, fit_them in [(2, 400, True), (3, 400, True), (4, 400, False), (4, 600, True)]:
+        ends = np.zeros(p, dtype=bool)
+        box = indirect.prior_box(np.ones(2 * p), ends, np.zeros(p), np.ones(p), 2.5)
+        fit = identification.fitted(box, ends, replicates)
+        columns = indirect.correlation_columns(ends)
+        assert fit[:2 * p].all() and np.all(fit[columns] == fit_them) and fit.size == 2 * p + p * (p - 1) // 2
+    draws = np.concatenate([np.zeros((50, 4)), np.full((50, 4), 0.5), np.full((50, 6), 0.9)], axis=1)
+    _, cov = indirect.posterior_moments(draws, np.ones(50), np.zeros(4, dtype=bool), np.zeros(4), np.ones(4),
+                                        correlated=False)
+    np.testing.assert_array_equal(cov, 0.25 * np.eye(4))

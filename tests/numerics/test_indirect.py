@@ -22,7 +22,9 @@ def test_each_path_draws_its_own_law_whatever_the_batch():
     for j in range(P):                                          # an independent computation, path by path
         z = path_generators(np.random.SeedSequence(3), PLANT, [j])[0].standard_normal((K, p))
         np.testing.assert_allclose(xi[:, j, 1:], (mean[j] + z @ sqrt[j].T)[:, 1:], rtol=1e-13, atol=1e-13)
-        np.testing.assert_array_equal(xi[:, j, 0], two_point_draw(z[:, 0], mean[j, 0], 0.0, 1.0))
+        # the two-point component from its correlated normal, standardized
+        np.testing.assert_array_equal(xi[:, j, 0], two_point_draw((z @ sqrt[j, 0]) / np.linalg.norm(sqrt[j, 0]),
+                                                                 mean[j, 0], 0.0, 1.0))
     # a chunk of the paths draws exactly those paths' coefficients
     part = PathLaws(mean[2:], sqrt[2:], ends, low, high)
     np.testing.assert_array_equal(sample_paths(part, path_generators(np.random.SeedSequence(3), PLANT, range(2, P)), K),
@@ -32,46 +34,89 @@ def test_each_path_draws_its_own_law_whatever_the_batch():
 
 
 def test_random_shapes_keep_each_replicates_moments_and_draw_its_shape():
-    """A replicate's law under `indirect.random_shapes` keeps theta's means and stds (within 4 Monte Carlo sds over
-    K steps), takes the shape it was given (uniform within mean +- sqrt(3) std, two-point on two values with its
-    high one at frequency high_prob), correlates its components by the drawn correlation (normal ones), and draws
-    the same numbers for a replicate whatever the chunk."""
+    """A replicate's law under `indirect.random_shapes` keeps theta's means, stds and correlations (within 4 Monte
+    Carlo sds over K steps, whatever the shapes), its first component (the first factor alone) takes the factor's
+    shape (uniform within mean +- sqrt(3) std, two-point on two values with its high one at frequency high_prob),
+    and a replicate draws the same numbers whatever the chunk."""
     P, p, K = 12, 3, 20000
     rng = np.random.default_rng(1)
-    theta = np.concatenate([rng.normal(size=(P, p)), rng.uniform(0.2, 2.0, (P, p))], axis=1)
+    theta = np.concatenate([rng.normal(size=(P, p)), rng.uniform(0.2, 2.0, (P, p)), rng.uniform(-0.9, 0.9, (P, 3))],
+                           axis=1)
     ends, low, high = np.zeros(p, dtype=bool), np.zeros(p), np.ones(p)
     shapes = indirect.random_shapes(P, p, 7)
     assert set(np.unique(shapes.shape)) == {0, 1, 2}
-    corr = np.einsum("rik,rjk->rij", shapes.root, shapes.root)
-    np.testing.assert_allclose(np.einsum("rii->ri", corr), 1.0, rtol=1e-12)
     rngs = lambda paths: path_generators(np.random.SeedSequence(5), PLANT, paths)
     xi = sample_paths(indirect.path_laws(theta, ends, low, high, shapes), rngs(range(P)), K)     # (K, P, p)
-    mean, std = theta[:, :p], theta[:, p:]
+    mean, cov = indirect.moments_of(theta, ends, low, high)
+    std = np.sqrt(np.einsum("rii->ri", cov))
+    np.testing.assert_allclose(std, theta[:, p:2 * p], rtol=1e-14)
     np.testing.assert_array_less(np.abs(xi.mean(axis=0) - mean), 4 * std / np.sqrt(K))
-    # the sd of a sample std is std sqrt((kurtosis - 1) / (4 K)); a two-point law's kurtosis is below 10 here
-    np.testing.assert_array_less(np.abs(xi.std(axis=0) / std - 1), 4 * np.sqrt(9 / (4 * K)))
-    for r, i in zip(*np.nonzero(shapes.shape == 1)):
-        assert np.all(np.abs(xi[:, r, i] - mean[r, i]) <= np.sqrt(3) * std[r, i] * (1 + 1e-12))
-    for r, i in zip(*np.nonzero(shapes.shape == 2)):
-        values = np.unique(xi[:, r, i])
-        q = shapes.high_prob[r, i]
-        assert values.size == 2 and abs(np.mean(xi[:, r, i] == values[1]) - q) < 4 * np.sqrt(q * (1 - q) / K)
-    both = (shapes.shape == 0)[:, :, None] & (shapes.shape == 0)[:, None, :]
+    # the sd of a sample std is std sqrt((kurtosis - 1) / (4 K)), of a sample correlation about sqrt(kurtosis / K);
+    # the factors' kurtosis is below 9 here (a two-point of high_prob 0.1), a mixture's below its factors'
+    np.testing.assert_array_less(np.abs(xi.std(axis=0) / std - 1), 4 * np.sqrt(8 / (4 * K)))
     sample = np.einsum("krp,krq->rpq", xi - mean, xi - mean) / K / std[:, :, None] / std[:, None, :]
-    # (the mean of K products of unit normals of correlation rho: sd sqrt((1 + rho^2) / K))
-    np.testing.assert_array_less(np.abs(sample - corr)[both], 4 * np.sqrt(2 / K))
+    np.testing.assert_array_less(np.abs(sample - cov / std[:, :, None] / std[:, None, :]), 4 * np.sqrt(9 / K))
+    first = shapes.shape[:, 0]
+    for r in np.flatnonzero(first == 1):
+        assert np.all(np.abs(xi[:, r, 0] - mean[r, 0]) <= np.sqrt(3) * std[r, 0] * (1 + 1e-12))
+    for r in np.flatnonzero(first == 2):
+        values = np.unique(xi[:, r, 0])
+        q = shapes.high_prob[r, 0]
+        assert values.size == 2 and abs(np.mean(xi[:, r, 0] == values[1]) - q) < 4 * np.sqrt(q * (1 - q) / K)
     part = indirect.path_laws(theta[4:], ends, low, high, shapes.take(slice(4, None)))
     np.testing.assert_array_equal(sample_paths(part, rngs(range(4, P)), K), xi[:, 4:])
 
 
+def test_partial_correlations_give_the_correlation_whose_partial_correlations_they_are():
+    """`correlation_root` of random partial correlations (and of +-0.999) is a lower-triangular root of a
+    correlation matrix (unit diagonal, positive definite) whose partial correlation of (i, j) given components
+    0..j-1, read from the inverse of its block (an independent computation), is the one given, and which
+    `partial_correlations` reads back; p = 2 gives rho."""
+    rng = np.random.default_rng(2)
+    p = 4
+    i, j = np.tril_indices(p, -1)
+    partial = np.concatenate([rng.uniform(-1, 1, (50, 6)), np.full((1, 6), 0.999), np.full((1, 6), -0.999)])
+    L = indirect.correlation_root(partial, p)
+    np.testing.assert_array_equal(np.triu(L, 1), 0)
+    C = L @ np.swapaxes(L, 1, 2)
+    np.testing.assert_allclose(np.einsum("rii->ri", C), 1.0, rtol=1e-14)
+    assert np.all(np.linalg.eigvalsh(C)[:, 0] > 0)
+    for r in range(len(partial)):
+        for k, (a, b) in enumerate(zip(i, j)):
+            keep = [*range(b), b, a]
+            inv = np.linalg.inv(C[r][np.ix_(keep, keep)])
+            np.testing.assert_allclose(-inv[-1, -2] / np.sqrt(inv[-1, -1] * inv[-2, -2]), partial[r, k], atol=1e-9)
+        np.testing.assert_allclose(indirect.partial_correlations(C[r]), partial[r], atol=1e-9)
+    np.testing.assert_allclose(indirect.correlation_root(np.array([0.3]), 2) @ indirect.correlation_root(
+        np.array([0.3]), 2).T, [[1.0, 0.3], [0.3, 1.0]], rtol=1e-15)
+
+
 def test_moments_of_a_two_point_component_follow_its_mean():
-    theta = np.array([[0.3, 0.8, 2.0], [0.9, -0.1, 0.5]])      # means of 2 components, the std of the second
+    theta = np.array([[0.3, 0.8, 2.0, 0.5], [0.9, -0.1, 0.5, 0.5]])   # means, the std of the second, a correlation
     ends, low, high = np.array([True, False]), np.array([0.0, 0.0]), np.array([1.0, 1.0])
-    mean, cov = indirect.moments_of(theta, ends, low, high, corr=np.array([[1.0, 0.5], [0.5, 1.0]]))
+    mean, cov = indirect.moments_of(theta, ends, low, high)
     np.testing.assert_array_equal(mean, theta[:, :2])
     std = np.stack([np.sqrt(theta[:, 0] * (1 - theta[:, 0])), theta[:, 2]], axis=1)
     np.testing.assert_allclose(np.sqrt(np.einsum("rii->ri", cov)), std, rtol=1e-15)
     np.testing.assert_allclose(cov[:, 0, 1], 0.5 * std[:, 0] * std[:, 1], rtol=1e-15)
+
+
+def test_the_posterior_moments_are_the_mean_law_of_the_draws():
+    """The model of weighted draws: the weighted mean of the means and of the stds, with the weighted mean of the
+    correlations (a correlation matrix: unit diagonal, positive semidefinite)."""
+    rng = np.random.default_rng(3)
+    draws = np.concatenate([rng.normal(size=(200, 3)), rng.uniform(0.1, 1, (200, 3)), rng.uniform(-1, 1, (200, 3))],
+                           axis=1)
+    w = rng.random(200)
+    ends, low, high = np.zeros(3, dtype=bool), np.zeros(3), np.ones(3)
+    mean, cov = indirect.posterior_moments(draws, w, ends, low, high)
+    np.testing.assert_allclose(mean, w @ draws[:, :3] / w.sum(), rtol=1e-14)
+    std = w @ draws[:, 3:6] / w.sum()
+    np.testing.assert_allclose(np.sqrt(np.diag(cov)), std, rtol=1e-14)
+    corr = sum(wi * (c / np.sqrt(np.outer(np.diag(c), np.diag(c))))
+               for wi, c in zip(w, indirect.moments_of(draws, ends, low, high)[1])) / w.sum()
+    np.testing.assert_allclose(cov / np.outer(std, std), corr, rtol=1e-12)
+    assert np.linalg.eigvalsh(corr)[0] > -1e-12
 
 
 def interval(draws, w, level=0.95):

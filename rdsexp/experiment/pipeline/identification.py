@@ -15,6 +15,7 @@ from ...numerics import indirect
 from ...numerics.enkf import xi_ends
 from ...numerics.modeling import (
     correlation_z,
+    correlations,
     model_distribution,
     moment_draws,
     nominal_gain,
@@ -107,18 +108,18 @@ def model_recorded(exp: Experiment, stages: Stages, ident: Trajectories, seed) -
 def simulated_moments(exp: Experiment, stages: Stages, ident: Trajectories, identify, replay: Replay,
                       feedback: dict) -> Identified:
     """The modeling stage of identification.estimator = simulated (`numerics.indirect`): the paper's estimator on
-    the identification run is the summary (several paths: the mean of theirs); rounds of
-    identification.replicates runs of the model as `replay` says, each path drawing xi from its own law, give the
-    posterior of the law's mean and stds (and of a data run's noise scale): the first from the prior box, each
-    next one from the box the previous posterior spans. A replicate whose identification failed, as the observed
-    one did not, is left out; where too few were identified to regress on, the next round draws from the box the
-    identified ones span (`posterior_rounds`). The posterior mean is the model, its weighted draws the
-    uncertainty (`Identified.posterior`); where no law in the box reproduces the summary (a component of it beyond
-    MISFIT sds of the posterior mean law's), the window's moments are kept and the status says misfit.
+    the identification run is the summary (several paths: the mean of theirs); rounds of identification.replicates
+    runs of the model as `replay` says, each path drawing xi from its own law, give the posterior of the law's
+    means, stds and correlations (and of a data run's noise scale): the first from the prior box, each next one from
+    the box the previous posterior spans. A replicate whose identification failed, as the observed one did not, is
+    left out; where too few were identified to regress on, the next round draws from the box the identified ones
+    span (`posterior_rounds`). The posterior mean is the model, its weighted draws the uncertainty
+    (`Identified.posterior`); where no law in the box reproduces the summary (a component of it beyond MISFIT sds of
+    the posterior mean law's), the window's moments are kept and the status says misfit.
 
-    Where the random-walk run failed (its xi drifted until the estimate, or the plant under its feedback,
-    diverged), the summary is read from a run of `identify(enkf)` whose EnKF draws each step's xi i.i.d. about
-    the prior guess with enkf.Q's xi block (Assumption 1; an i.i.d. xi cannot drift), and so are the replicates'."""
+    Where the random-walk run failed (its xi drifted until the estimate, or the plant under its feedback, diverged),
+    the summary is read from a run of `identify(enkf)` whose EnKF draws each step's xi i.i.d. about the prior guess
+    with enkf.Q's xi block (Assumption 1; an i.i.d. xi cannot drift), and so are the replicates'."""
     settings, model = exp.identification, exp.model
     enkf, summary_filter = exp.filter.enkf, "random_walk"
     with stages.timed("modeling"):
@@ -176,10 +177,13 @@ def simulated_moments(exp: Experiment, stages: Stages, ident: Trajectories, iden
         draws, w = posterior
         info |= diagnostics(draws, w, prior, ends, replay.noisy)
         xi_part = xi_of(draws)
-        # independent components: theta states no correlation (the replicates' are drawn at random, not estimated;
-        # the paper estimator's correlations are as biased as its stds, and designs on them did worse on the
-        # calibration plants)
-        mean, cov = indirect.moments_of(w @ xi_part / w.sum(), ends, low, high)
+        correlated = fitted(prior, ends, settings.replicates)[indirect.correlation_columns(ends)].all()
+        if model.p > 1 and not correlated:
+            info["correlations"] = (f"not fitted: {model.p * (model.p - 1) // 2} more components of theta would cost "
+                                    "the regression its quadratic fit; their interval is the prior box's, the model "
+                                    "independent (identification.replicates affords them from "
+                                    f"{indirect.quadratic_replicates(len(prior[0]))})")
+        mean, cov = indirect.posterior_moments(xi_part, w, ends, low, high, correlated)
         spread = None
         if settings.resamples:          # the uncertainty: identification.resamples draws of the posterior
             picks = indirect.weighted_draws(xi_part, w, settings.resamples, [exp.seed, UNCERTAINTY_STREAM])
@@ -206,6 +210,7 @@ def posterior_rounds(exp: Experiment, enkf, replay: Replay, s_obs: np.ndarray, p
     settings = exp.identification
     posterior, rounds, usable, z, prior = None, 0, [], None, box
     wanted = POSTERIOR_ROUNDS[paths > replay.paths]
+    fit = fitted(box, laws[0], settings.replicates)
     for round_ in range(1, wanted + 3):
         theta = indirect.uniform_draws(*box, settings.replicates, [exp.seed, REPLICATE_STREAM, round_])
         runs = replay if posterior is not None else dataclasses.replace(replay, paths=1)
@@ -215,10 +220,13 @@ def posterior_rounds(exp: Experiment, enkf, replay: Replay, s_obs: np.ndarray, p
         s = replicate_summaries(exp, enkf, runs, theta, *laws, round_, progress)
         ok = np.all(np.isfinite(s), axis=1)
         usable.append(int(ok.sum()))
-        if ok.sum() >= 10 * (theta.shape[1] + 1):
+        if ok.sum() >= 10 * (fit.sum() + 1):
             # s_obs is the mean of `paths` runs' summaries, a replicate's of runs.paths
-            *posterior, z = indirect.synthetic_posterior(theta, s, s_obs, *box, runs.paths / paths,
-                                                         seed=[exp.seed, REPLICATE_STREAM, round_, 1])
+            draws, w, z = indirect.synthetic_posterior(theta[:, fit], s, s_obs, box[0][fit], box[1][fit],
+                                                       runs.paths / paths, seed=[exp.seed, REPLICATE_STREAM, round_, 1])
+            # the components not fitted keep their prior, the box
+            posterior = indirect.uniform_draws(*box, len(w), [exp.seed, REPLICATE_STREAM, round_, 3]), w
+            posterior[0][:, fit] = draws
             # a posterior that presses an edge this round's box drew inside the prior's (a box placed on a rougher
             # posterior) is cut by it, not by the prior: in those components the next box may reach past this one,
             # up to the prior's, and one more round (POSTERIOR_ROUNDS + 1) draws from the box it then spans
@@ -234,6 +242,18 @@ def posterior_rounds(exp: Experiment, enkf, replay: Replay, s_obs: np.ndarray, p
         else:
             break
     return posterior, usable, z
+
+
+def fitted(box, ends: np.ndarray, replicates: int) -> np.ndarray:
+    """(d,) bool: the components of theta in the prior `box` (lo, hi) that the regression fits and the posterior
+    reads: all, or all but the correlations (`indirect.correlation_columns`) where their p (p - 1) / 2 partial
+    correlations would cost the regression its quadratic fit (`indirect.quadratic_replicates`: 4 components of xi
+    at 400 replicates); the replicates then draw those from their box all the same, so that the regression's residual
+    holds what they do, and their posterior is the box."""
+    fit = np.ones(box[0].size, dtype=bool)
+    if indirect.quadratic_replicates(fit.size) > replicates:
+        fit[indirect.correlation_columns(ends)] = False
+    return fit
 
 
 def planned_paths(round_: int, wanted: int, paths: int) -> int:
@@ -283,11 +303,11 @@ def two_point_ends(exp: Experiment) -> tuple[np.ndarray, np.ndarray, np.ndarray]
 def replicate_summaries(exp: Experiment, enkf, replay: Replay, theta: np.ndarray, ends, low, high,
                         round_: int, progress=None) -> np.ndarray:
     """(R, S): the `summary_statistics` of R replicates of the identification of the model as `replay` says,
-    replicate r's replay.paths runs drawing xi from theta[r] (`indirect.path_laws`; a noisy replay's last column is
-    its log10 noise scale) in one law of random shape (identification.replicate_laws = random_shapes,
-    `indirect.random_shapes`, from [seed, REPLICATE_STREAM, round_, 2]) with `enkf`, averaged over the runs that
-    did not fail; NaN where every run failed. In chunks of paths within the Monte Carlo's memory budget (each path
-    its own streams); progress(paths) after each chunk."""
+    replicate r's replay.paths runs drawing xi from theta[r] (`indirect.path_laws`: its means, stds and
+    correlations; a noisy replay's last column is its log10 noise scale) in one law of random shape
+    (identification.replicate_laws = random_shapes, `indirect.random_shapes`, from [seed, REPLICATE_STREAM, round_,
+    2]) with `enkf`, averaged over the runs that did not fail; NaN where every run failed. In chunks of paths within
+    the Monte Carlo's memory budget (each path its own streams); progress(paths) after each chunk."""
     model, settings = exp.model, exp.identification
     total = settings.covariance == "total"
     shapes = None
@@ -327,6 +347,7 @@ def summary_names(model) -> list[str]:
     """The names of `summary_statistics`' columns."""
     return [*(f"window mean of xi {i + 1}" for i in range(model.p)),
             *(f"window std of xi {i + 1}" for i in range(model.p)),
+            *(f"window correlation of xi {i + 1} and xi {j + 1}" for i, j in zip(*np.tril_indices(model.p, -1))),
             *(f"log mean square of y[{i}]" for i in range(model.ny)),
             *(f"log mean square of innovation {i}" for i in range(model.ny)),
             *(f"lag-1 correlation of y[{i}]" for i in range(model.ny)),
@@ -334,11 +355,12 @@ def summary_names(model) -> list[str]:
 
 
 def summary_statistics(exp: Experiment, tr: Trajectories) -> np.ndarray:
-    """(P, 2p + 2 ny + ny (ny + 1) / 2): what the simulated estimator matches, per identification path: the paper
-    estimator's mean and std of xi over the window (eq. sample-mean, with identification.covariance); the log mean
-    square of each output and of the EnKF's innovation y_k - C x_{k|k-1} - D u_k there (the spread of xi moves
-    the outputs' energy, which the filtered means of one output may not show); and the outputs' lag-1 and
-    cross correlations (`modeling.correlation_z`). NaN where the path failed."""
+    """(P, p (p + 3) / 2 + 2 ny + ny (ny + 1) / 2): what the simulated estimator matches, per identification path:
+    the paper estimator's mean, std and correlations (Fisher's z) of xi over the window (eq. sample-mean, with
+    identification.covariance); the log mean square of each output and of the EnKF's innovation
+    y_k - C x_{k|k-1} - D u_k there (the spread of xi moves the outputs' energy, which the filtered means of one
+    output may not show); and the outputs' lag-1 and cross correlations (`modeling.correlation_z`). NaN where the
+    path failed."""
     settings, model = exp.identification, exp.model
     window = slice(settings.K0, settings.K0 + settings.K1 + 1)
     total = settings.covariance == "total"
@@ -356,9 +378,10 @@ def summary_statistics(exp: Experiment, tr: Trajectories) -> np.ndarray:
     # the second-order moments system identification reads: each output's lag-1 correlation (the mean dynamics)
     # and the outputs' correlations with each other
     ny = model.ny
-    correlations = [*(correlation_z(y[1:, :, i], y[:-1, :, i]) for i in range(ny)),
-                    *(correlation_z(y[:, :, i], y[:, :, j]) for i in range(ny) for j in range(i + 1, ny))]
-    return np.concatenate([mean, np.sqrt(np.einsum("pii->pi", cov)), energy, np.stack(correlations, axis=1)],
+    outputs_z = [*(correlation_z(y[1:, :, i], y[:-1, :, i]) for i in range(ny)),
+                 *(correlation_z(y[:, :, i], y[:, :, j]) for i in range(ny) for j in range(i + 1, ny))]
+    xi_z = np.arctanh(np.clip(correlations(cov), -np.tanh(20.0), np.tanh(20.0)))
+    return np.concatenate([mean, np.sqrt(np.einsum("pii->pi", cov)), xi_z, energy, np.stack(outputs_z, axis=1)],
                           axis=1)
 
 

@@ -9,6 +9,7 @@ import pandas as pd
 from ...numerics import observer_loop
 from ...numerics.distributions import expected_crps
 from ...numerics.enkf import truth_map
+from ...numerics.modeling import correlations
 from ..config import Experiment
 from .design import safe_rate
 from .identification import left_out_paths
@@ -37,6 +38,8 @@ def stages_summary(exp: Experiment, identified: Identified, uncertainty: Uncerta
     if dist is not None:
         s.update(nbar=int(exp.model.Gbar(dist).shape[0]), xi_mean=dist.mean.tolist(),
                  xi_std=np.sqrt(np.diag(dist.cov)).tolist())
+        if exp.model.p > 1:
+            s["xi_corr"] = correlations(dist.cov).tolist()
     if chosen is not None:
         s.update(synthesis_status=chosen.status, lam=chosen.lam)
     s["designs"] = {method: res.status for (source, method), (_, res) in designs.designs.items()
@@ -92,6 +95,8 @@ def model_error(exp: Experiment, identified: Identified) -> dict:
     family, dist = exp.plant.xi_dist, identified.moments
     s = {"plant_xi_mean": (T @ family.mean + t).tolist(),
          "plant_xi_std": np.sqrt(np.diag(T @ family.cov @ T.T)).tolist()}
+    if exp.model.p > 1:
+        s["plant_xi_corr"] = correlations(T @ family.cov @ T.T).tolist()
     if dist is not None and exp.model.p:        # (a model without xi has no error to measure)
         std = np.sqrt(np.diag(dist.cov)).tolist()
         for what, modeled in (("mean", dist.mean.tolist()), ("std", std)):

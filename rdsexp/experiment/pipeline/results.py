@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import pandas as pd
 
+from ...numerics.modeling import correlations
 from ...numerics.simulation import Trajectories
 from ...numerics.synthesis import SynthesisResult
 from ...numerics.systems import MomentModel
@@ -86,11 +87,13 @@ class Uncertainty:
         return self.mean, self.cov
 
     def summary(self) -> dict:
-        """The spread over the draws: std of each xi mean and of each xi std."""
+        """The spread over the draws: std of each xi mean, of each xi std and (p > 1) of each correlation."""
         std = np.sqrt(np.clip(np.diagonal(self.cov, axis1=1, axis2=2), 0, None))
-        return {"modeling_uncertainty": {"resamples": self.resamples, "block": self.block, "over": self.over,
-                                         "xi_mean_sd": self.mean.std(axis=0, ddof=1).tolist(),
-                                         "xi_std_sd": std.std(axis=0, ddof=1).tolist()}}
+        out = {"resamples": self.resamples, "block": self.block, "over": self.over,
+               "xi_mean_sd": self.mean.std(axis=0, ddof=1).tolist(), "xi_std_sd": std.std(axis=0, ddof=1).tolist()}
+        if self.mean.shape[1] > 1:
+            out["xi_corr_sd"] = correlations(self.cov).std(axis=0, ddof=1).tolist()
+        return {"modeling_uncertainty": out}
 
 
 @dataclass
