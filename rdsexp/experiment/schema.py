@@ -215,8 +215,9 @@ RUN_SUMMARY_KEYS: dict[str, tuple[str, str | None]] = {
                         None),
     "modeling_estimator": ("the estimator of the moments (identification.estimator): paper, or simulated with its "
                            "replicates and their laws (identification.replicate_laws), how many were identified, "
-                           "the effective number of its posterior draws, the prior box's width and the paper "
-                           "estimator's moments it matched", None),
+                           "the effective number of its posterior draws, the prior box's width, the paper "
+                           "estimator's moments it matched, and (correlations) why xi's correlations were left to "
+                           "their prior box", None),
     "modeling_covariance": ("how the modeled covariance was formed (identification.covariance)", None),
     "modeling_uncertainty": ("the modeled moments' spread over their draws (the simulated estimator's posterior, "
                              "or block-bootstrap draws of the paper's modeling window): resamples, block, what "
