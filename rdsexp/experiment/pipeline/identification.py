@@ -211,19 +211,27 @@ def posterior_rounds(exp: Experiment, enkf, replay: Replay, s_obs: np.ndarray, p
     posterior, rounds, usable, z, prior = None, 0, [], None, box
     wanted = POSTERIOR_ROUNDS[paths > replay.paths]
     fit = fitted(box, laws[0], settings.replicates)
+    # the window's correlations of xi are read where theta's are fitted (else they only hold the replicates' random
+    # correlations, which the regression leaves in its residual)
+    read = np.ones(s_obs.size, dtype=bool)
+    read[2 * exp.model.p:2 * exp.model.p + exp.model.p * (exp.model.p - 1) // 2] = fit[
+        indirect.correlation_columns(laws[0])].all()
     for round_ in range(1, wanted + 3):
         theta = indirect.uniform_draws(*box, settings.replicates, [exp.seed, REPLICATE_STREAM, round_])
         runs = replay if posterior is not None else dataclasses.replace(replay, paths=1)
         planned = planned_paths(round_, wanted, replay.paths)       # what the bar's total counted for this round
         if progress is not None and runs.paths != planned:       # a round beyond the planned ones, or a failed one's
             progress(0, more=(runs.paths - planned) * settings.replicates)
-        s = replicate_summaries(exp, enkf, runs, theta, *laws, round_, progress)
+        s = replicate_summaries(exp, enkf, runs, theta, *laws, round_, progress)[:, read]
         ok = np.all(np.isfinite(s), axis=1)
         usable.append(int(ok.sum()))
         if ok.sum() >= 10 * (fit.sum() + 1):
             # s_obs is the mean of `paths` runs' summaries, a replicate's of runs.paths
-            draws, w, z = indirect.synthetic_posterior(theta[:, fit], s, s_obs, box[0][fit], box[1][fit],
-                                                       runs.paths / paths, seed=[exp.seed, REPLICATE_STREAM, round_, 1])
+            draws, w, z_read = indirect.synthetic_posterior(theta[:, fit], s, s_obs[read], box[0][fit], box[1][fit],
+                                                            runs.paths / paths,
+                                                            seed=[exp.seed, REPLICATE_STREAM, round_, 1])
+            z = np.zeros(s_obs.size)        # (a summary not read: no evidence of a misfit)
+            z[read] = z_read
             # the components not fitted keep their prior, the box
             posterior = indirect.uniform_draws(*box, len(w), [exp.seed, REPLICATE_STREAM, round_, 3]), w
             posterior[0][:, fit] = draws
