@@ -74,8 +74,9 @@ def test_the_same_numbers_whatever_the_chunks(tmp_path, monkeypatch):
 
 def test_too_few_identified_replicates_keep_the_paper_moments_and_say_so(tmp_path, monkeypatch):
     exp = experiment(tmp_path, "seed=0")
+    width = len(identification.summary_names(exp.model))
     monkeypatch.setattr(identification, "replicate_summaries",
-                        lambda exp, enkf, F, theta, *rest: np.full((len(theta), len(identification.summary_names(exp.model))), np.nan))
+                        lambda exp, enkf, F, theta, *rest: np.full((len(theta), width), np.nan))
     identified, uncertainty = modeled(exp)
     assert identified.status == "unsettled" and "0 of 200 replicates" in identified.estimator["fallback"]
     np.testing.assert_array_equal(identified.moments.mean, identified.estimator["summary_mean"])
