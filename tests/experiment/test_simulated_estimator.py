@@ -347,3 +347,13 @@ def test_correlations_are_fitted_where_the_replicates_afford_the_quadratic_fit()
     _, cov = indirect.posterior_moments(draws, np.ones(50), np.zeros(4, dtype=bool), np.zeros(4), np.ones(4),
                                         correlated=False)
     np.testing.assert_array_equal(cov, 0.25 * np.eye(4))
+
+
+def test_the_misfit_bound_holds_its_level_over_the_whole_summary():
+    """The misfit bound is 4 sds for a short summary and grows with the components read, so that k standard normal
+    components all read within it at least 1 - 1e-3 of the time whatever k (exactly: 1 - (1 - 2 Phi(-b))^k)."""
+    from scipy.stats import norm
+    bounds = [identification.misfit_bound(k) for k in range(1, 200)]
+    assert bounds[0] == 4.0 and np.all(np.diff(bounds) >= 0) and bounds[-1] > 4.4
+    for k, b in zip(range(1, 200), bounds):
+        assert 1 - (1 - 2 * norm.sf(b)) ** k <= 1e-3 + 1e-12

@@ -10,6 +10,7 @@ import dataclasses
 
 import numpy as np
 import pandas as pd
+from scipy.stats import norm
 
 from ...numerics import indirect
 from ...numerics.enkf import xi_ends
@@ -41,8 +42,10 @@ POSTERIOR_ROUNDS = 2, 4  # the simulated estimator's rounds with a posterior whe
                         # with 2 rounds, 0.06 / 0.11 with 4)
 NOISE_BOX = (-6.0, 1.0)  # a data run's prior on log10 of the noise scale (`Replay.noisy`): 1e-6 to 10 times the
                         # noise the EnKF assumes
-MISFIT = 4.0           # the data's summary this many sds off the posterior mean law's (`indirect.synthetic_posterior`):
-                       # status misfit
+MISFIT = 4.0, 1e-3     # status misfit: the data's summary off the posterior mean law's (`indirect.synthetic_posterior`)
+                       # by more than 4 sds in a component, or in a summary of k components read, where the larger,
+                       # than the normal's two-sided 1 - 1e-3 / k quantile: at most that level for the whole summary
+                       # whatever its length (`misfit_bound`: 4 sds up to 16 components, 4.15 for 30, 4.26 for 50)
 PASS_TOL = 1e-3        # iterated identification: stop when the moments move less than this (relative)
 
 
@@ -146,6 +149,7 @@ def simulated_moments(exp: Experiment, stages: Stages, ident: Trajectories, iden
         prior = indirect.prior_box(s_obs[:2 * model.p], ends, low, high, settings.prior_width)
         if replay.noisy:
             prior = tuple(np.append(edge, bound) for edge, bound in zip(prior, NOISE_BOX))
+        fit = fitted(prior, ends, settings.replicates)
         if len(per_path) > 1:
             info["summary_paths"] = len(per_path)
         if replay.noisy:
@@ -166,18 +170,19 @@ def simulated_moments(exp: Experiment, stages: Stages, ident: Trajectories, iden
                                 "the prior box") if settings.resamples else None
         if posterior is None:       # the window's moments, said so
             info["fallback"] = (f"{max(info['usable'])} of {settings.replicates} replicates identified (needs "
-                                f"{10 * (len(prior[0]) + 1)}): the window's moments of xi_{{k|k}} kept")
+                                f"{10 * (fit.sum() + 1)}): the window's moments of xi_{{k|k}} kept")
             return Identified(ident, summary, "", feedback, covariance=settings.covariance, estimator=info,
                               posterior=box())
-        if np.max(np.abs(z)) > MISFIT:      # no law in the box reproduces what the data read: the window's moments
+        bound = misfit_bound(np.count_nonzero(z))       # (z = 0: a summary not read, or that no replicate varies)
+        if np.max(np.abs(z)) > bound:      # no law in the box reproduces what the data read: the window's moments
             worst = int(np.argmax(np.abs(z)))
-            info["misfit"] = {"summary": summary_names(model)[worst], "z": float(z[worst]), "bound": MISFIT}
+            info["misfit"] = {"summary": summary_names(model)[worst], "z": float(z[worst]), "bound": round(bound, 2)}
             return Identified(ident, summary, "", feedback, covariance=settings.covariance, estimator=info,
                               posterior=box())
         draws, w = posterior
         info |= diagnostics(draws, w, prior, ends, replay.noisy)
         xi_part = xi_of(draws)
-        correlated = fitted(prior, ends, settings.replicates)[indirect.correlation_columns(ends)].all()
+        correlated = fit[indirect.correlation_columns(ends)].all()
         if model.p > 1 and not correlated:
             info["correlations"] = (f"not fitted: {model.p * (model.p - 1) // 2} more components of theta would cost "
                                     "the regression its quadratic fit; their interval is the prior box's, the model "
@@ -262,6 +267,12 @@ def fitted(box, ends: np.ndarray, replicates: int) -> np.ndarray:
     if indirect.quadratic_replicates(fit.size) > replicates:
         fit[indirect.correlation_columns(ends)] = False
     return fit
+
+
+def misfit_bound(components: int) -> float:
+    """The |z| beyond which one of `components` summary components reads misfit (MISFIT)."""
+    sds, level = MISFIT
+    return max(sds, float(norm.isf(level / (2 * max(components, 1)))))
 
 
 def planned_paths(round_: int, wanted: int, paths: int) -> int:
