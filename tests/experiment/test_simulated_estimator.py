@@ -178,9 +178,9 @@ def test_the_modeled_correlation_holds_the_laws(tmp_path):
             exp = build(compose("config", overrides=[
                 f"hydra.searchpath=[file://{tmp_path}]", "plant=pair", "model=plant", *SMALL, "tracking=off",
                 "identification.horizon=60", "identification.K0=10", "identification.K1=50",
-                "identification.replicates=200", f"seed={seed}"]))
+                "identification.replicates=250", f"seed={seed}"]))
         identified, posterior = modeled(exp)
-        assert identified.status in ("ok", "weakly_identified")
+        assert identified.status in ("ok", "weakly_identified") and "correlations" not in identified.estimator
         cov = identified.moments.cov
         error = cov[1, 0] / np.sqrt(cov[0, 0] * cov[1, 1]) - 0.8
         sd = posterior.summary()["modeling_uncertainty"]["xi_corr_sd"][0]
@@ -334,10 +334,10 @@ def test_the_summarys_correlations_are_fishers_z_to_the_last_digits():
 
 
 def test_correlations_are_fitted_where_the_replicates_afford_the_quadratic_fit():
-    """theta's partial correlations join the regression while 5 replicates per coefficient of its quadratic fit
-    remain (3 components of xi at 400 replicates: 9 in theta), else they keep their prior box (4 components: 14;
-    600 replicates fit them), and the model is then independent."""
-    for p, replicates, fit_them in [(2, 400, True), (3, 400, True), (4, 400, False), (4, 600, True)]:
+    """theta's partial correlations join the regression where 10 replicates per coefficient of its quadratic fit
+    remain (2 components of xi: 5 in theta, 210 replicates), else they keep their prior box (3 components: 9, 550;
+    4: 14, 1200), and the model is then independent."""
+    for p, replicates, fit_them in [(2, 400, True), (2, 200, False), (3, 400, False), (3, 600, True), (4, 600, False)]:
         ends = np.zeros(p, dtype=bool)
         box = indirect.prior_box(np.ones(2 * p), ends, np.zeros(p), np.ones(p), 2.5)
         fit = identification.fitted(box, ends, replicates)
