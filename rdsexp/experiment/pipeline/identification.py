@@ -184,10 +184,11 @@ def simulated_moments(exp: Experiment, stages: Stages, ident: Trajectories, iden
         xi_part = xi_of(draws)
         correlated = fit[indirect.correlation_columns(ends)].all()
         if model.p > 1 and not correlated:
-            info["correlations"] = (f"not fitted: the replicates afford {model.p * (model.p - 1) // 2} more components "
-                                    "of theta from twice the quadratic fit's minimum; their interval is the prior "
-                                    "box's, the model independent (identification.replicates="
-                                    f"{2 * indirect.quadratic_replicates(len(prior[0]))} fits them)")
+            info["correlations"] = (f"not fitted: {model.p * (model.p - 1) // 2} partial correlations would take theta "
+                                    f"to {len(prior[0])} components, for which {settings.replicates} replicates are "
+                                    "less than twice the quadratic fit's minimum (identification.replicates="
+                                    f"{2 * indirect.quadratic_replicates(len(prior[0]))} fits them); their interval "
+                                    "is the prior box's, the model independent")
         mean, cov = indirect.posterior_moments(xi_part, w, ends, low, high, correlated)
         spread = None
         if settings.resamples:          # the uncertainty: identification.resamples draws of the posterior
