@@ -133,10 +133,11 @@ def main(argv=None):
     box = indirect.prior_box(s_star[:2 * p], ends, low, high, exp.identification.prior_width)
     centred = indirect.prior_box(np.concatenate([truth[:p], s_star[p:2 * p]]), ends, low, high,
                                  exp.identification.prior_width)
+    fit = lambda prior: ident.fitted(prior, ends, exp.identification.replicates)
     last = None
     for label, prior in (("the run's prior box", box), ("the box centred on the true means", centred)):
         (draws, w), usable, _ = ident.posterior_rounds(exp, exp.filter.enkf, replay, s_star, paths, prior,
-                                                       (ends, low, high))
+                                                       (ends, low, high), fit(prior))
         mean = w @ draws / w.sum()
         sd = np.sqrt(w @ (draws - mean) ** 2 / w.sum())
         print(f"   {label:36s} means {np.round(mean[:p], 3).tolist()} (sd {np.round(sd[:p], 3).tolist()}), "
@@ -167,7 +168,7 @@ def main(argv=None):
     def estimate(summary: np.ndarray) -> np.ndarray:            # the posterior mean from the run's prior box
         prior = indirect.prior_box(summary[:2 * p], ends, low, high, exp.identification.prior_width)
         (draws, w), _, _ = ident.posterior_rounds(exp, exp.filter.enkf, replay, summary, paths, prior,
-                                                  (ends, low, high))
+                                                  (ends, low, high), fit(prior))
         return w @ draws / w.sum()
     noisy = at(truth, 3, 1004)
     print("4. one bias correction by simulation at the estimate: theta^ -> 2 theta^ - theta^^ (means | stds)")

@@ -136,6 +136,10 @@ def one_data_run(name: str, seed: int, where: Path, overrides: list[str]) -> dic
         row[what] = np.asarray(s[f"xi_{what}"]) - truth
         row[f"{what}_sd"] = np.asarray(u.get(f"xi_{what}_sd", [np.nan] * 2))
     row["true_std"] = user_data.TRUE_STD
+    noise = (s.get("modeling_estimator") or {}).get("noise_scale")
+    if noise:           # the estimated noise scale's 95% interval against the data's (sd^2 over what the EnKF assumes)
+        row["noise"] = [noise["low"], noise["median"], noise["high"]]
+        row["noise_truth"] = user_data.SD ** 2 / exp.filter.enkf.Q[0, 0]
     if "xi_corr" in s:              # the law's components are independent
         row["corr"], row["corr_sd"] = np.asarray(s["xi_corr"]), np.asarray(u.get("xi_corr_sd", [np.nan]))
     truth = AffineRandomSystem(exp.model.A, exp.model.B, exp.model.C, exp.model.D,
@@ -183,6 +187,10 @@ def summarize(rows: list[dict]) -> dict:
     out["corr_components"] = int(err.size)
     out["corr_cover"] = float(np.mean(np.abs(err) <= 1.96 * sd)) if err.size else np.nan
     out["corr_err"] = float(np.median(np.abs(err))) if err.size else np.nan
+    noise = np.array([[*r["noise"], r["noise_truth"]] for r in rows if "noise" in r]).reshape(-1, 4)
+    out["noise_runs"] = len(noise)       # (data runs) the noise scale's interval against the data's
+    out["noise_hits"] = int(np.sum((noise[:, 0] <= noise[:, 3]) & (noise[:, 3] <= noise[:, 2])))
+    out["noise_ratio"] = float(np.median(noise[:, 1] / noise[:, 3])) if len(noise) else np.nan
     e2e = [r["e2e"] for r in rows if "e2e" in r]
     out["e2e_kind"] = next((r["e2e_kind"] for r in rows if "e2e_kind" in r), "")
     out["e2e"] = np.asarray(e2e)
@@ -220,6 +228,10 @@ def print_table(results: dict[str, dict]) -> None:
         print(f"correlations: cover {share('corr_cover', 'corr_components'):.3f} over "
               f"{sum(r['corr_components'] for r in correlated)} pairs, median |error| "
               f"{np.median([r['corr_err'] for r in correlated]):.3f} over plants")
+    for name, r in results.items():
+        if r.get("noise_runs"):
+            print(f"{name}: the noise scale's 95% interval holds the data's in {r['noise_hits']} of "
+                  f"{r['noise_runs']} runs; median estimate / truth {r['noise_ratio']:.2f}")
     for kind in sorted({r["e2e_kind"] for r in results.values()} - {""}):
         e2e = np.concatenate([r["e2e"] for r in results.values() if r["e2e_kind"] == kind])
         print(f"end to end over every run ({kind}): median {np.median(e2e):.3f}, q90 {np.quantile(e2e, 0.9):.3f} "

@@ -23,6 +23,7 @@ import yaml
 A0, E, B = np.array([[0.9, 0.2], [-0.1, 0.8]]), np.array([[1.0, 0.0], [0.0, 0.0]]), np.array([1.0, 0.5])
 TRUE_LAW = {"family": "independent", "components": [{"family": "uniform", "low": [-0.1], "high": [0.1]},
                                                     {"family": "bernoulli", "prob": [0.75]}]}
+SD = 0.01                   # the process and output noise's sd (write's default)
 TRUE_MEAN, TRUE_STD = np.array([0.0, 0.75]), np.array([0.2 / np.sqrt(12), np.sqrt(0.75 * 0.25)])
 
 
@@ -34,7 +35,7 @@ def model(outputs: int = 2) -> dict:
                                                             {"family": "bernoulli", "prob": [0.5]}]}}
 
 
-def write(path, seed: int, paths: int = 80, steps: int = 101, sd: float = 0.01, outputs: int = 2) -> Path:
+def write(path, seed: int, paths: int = 80, steps: int = 101, sd: float = SD, outputs: int = 2) -> Path:
     """The recorded (u, y) of `paths` paths x `steps` steps in rdsexp's data format (CSV), from default_rng(seed)."""
     rng = np.random.default_rng(seed)
     u = rng.choice([-1.0, 1.0], (paths, steps))
@@ -68,7 +69,7 @@ def main(argv=None):
     parser.add_argument("out", type=Path)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--paths", type=int, default=80)
-    parser.add_argument("--sd", type=float, default=0.01)
+    parser.add_argument("--sd", type=float, default=SD)
     parser.add_argument("--outputs", type=int, default=2, choices=(1, 2))
     args = parser.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)

@@ -253,10 +253,12 @@ def emulator(theta: np.ndarray, s: np.ndarray, lo: np.ndarray, hi: np.ndarray):
 
 
 def synthetic_posterior(theta: np.ndarray, s: np.ndarray, s_obs: np.ndarray, lo: np.ndarray, hi: np.ndarray,
-                        ratio: float, count: int = 10000, seed=0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                        ratio: float, count: int = 10000, seed=0, squared=None
+                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Draws of theta given s_obs under the uniform prior on the box [lo, hi] (d,), by a Gaussian synthetic
     likelihood (Wood 2010) whose mean and covariance are the `emulator`'s regression on a round's replicates
-    theta (R, d), s (R, ds) (rows with a non-finite s left out: their identification failed): s_obs ~ N(mu(theta),
+    theta (R, d), s (R, ds) (rows with a non-finite s left out: their identification failed), in theta's
+    components or, where squared (d,) bool says, their squares (of components >= 0): s_obs ~ N(mu(theta),
     (ratio + h(theta)) Sigma), ratio = the observed summary's covariance over a replicate's (its paths are
     averaged over more or fewer runs), h the regression's own error at theta. The likelihood of the summary given
     the law, not of the law given the summary, so that its maximum is where the law's expected summary is s_obs,
@@ -270,7 +272,9 @@ def synthetic_posterior(theta: np.ndarray, s: np.ndarray, s_obs: np.ndarray, lo:
     (count,), and s_obs's place among the summaries of the posterior mean's law ((s_obs - mu) / sd per component,
     of order 1 where the model reproduces the data)."""
     ok = np.all(np.isfinite(s), axis=1)
-    mu, h, W = emulator(theta[ok], s[ok], lo, hi)
+    g = (lambda t: t) if squared is None else (lambda t: np.where(squared, t * t, t))
+    mu_g, h_g, W = emulator(g(theta[ok]), s[ok], g(lo), g(hi))
+    mu, h = lambda t: mu_g(g(t)), lambda t: h_g(g(t))
     k, free = W.shape[1], hi > lo
     span = np.where(free, hi - lo, 0.0)
 

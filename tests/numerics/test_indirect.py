@@ -178,6 +178,30 @@ def test_a_linear_summary_gives_the_exact_posterior():
     assert np.all(np.abs(z) < 4)
 
 
+def test_a_summary_quadratic_in_a_components_square_gives_its_exact_posterior():
+    """s = (1 + t^2)^2 + e, t in [0, 3]: flat at t = 0, then quartic, as a data run's summary in its noise's sd.
+    Regressed on t^2 (squared), the emulator holds it exactly, and the posterior's quantiles are those of the
+    exact posterior, uniform prior times N(s_obs; (1 + t^2)^2, ratio sigma^2), on a grid, within the importance
+    sampling's and the regression's error; regressed on t, the quartic bends it (its median is off by more)."""
+    rng = np.random.default_rng(7)
+    lo, hi, R, ratio, sigma = np.zeros(1), np.full(1, 3.0), 2000, 1 / 16, 0.5
+    theta = lo + (hi - lo) * rng.random((R, 1))
+    response = lambda t: (1 + t ** 2) ** 2
+    s = response(theta) + sigma * rng.standard_normal((R, 1))
+    s_obs = np.array([response(1.0) + np.sqrt(ratio) * sigma * 0.3])
+    grid = np.linspace(0, 3, 30001)
+    density = np.exp(-0.5 * (s_obs[0] - response(grid)) ** 2 / (ratio * sigma ** 2))
+    cdf = np.cumsum(density) / density.sum()
+    exact = grid[np.searchsorted(cdf, [0.025, 0.5, 0.975])]
+    def q(squared):
+        draws, w, _ = indirect.synthetic_posterior(theta, s, s_obs, lo, hi, ratio=ratio, count=8000, seed=2,
+                                                   squared=squared)
+        return indirect.weighted_quantiles(draws[:, 0], w, [0.025, 0.5, 0.975])
+    width = exact[2] - exact[0]
+    np.testing.assert_allclose(q(np.array([True])), exact, atol=0.05 * width)
+    assert abs(q(None)[1] - exact[1]) > 0.05 * width
+
+
 def test_failed_and_outlying_replicates_are_left_out():
     """Replicates whose summary is not finite (their identification failed) or far off the regression (an estimate
     near divergence) do not move the posterior."""

@@ -40,8 +40,12 @@ POSTERIOR_ROUNDS = 2, 4  # the simulated estimator's rounds with a posterior whe
                         # replicates of one path are averaged to its recorded paths' mean, which pins the law down
                         # far inside the box of two rounds (a user's simulator, 80 paths: median errors 0.09 / 0.18
                         # with 2 rounds, 0.06 / 0.11 with 4)
-NOISE_BOX = (-6.0, 1.0)  # a data run's prior on log10 of the noise scale (`Replay.noisy`): 1e-6 to 10 times the
-                        # noise the EnKF assumes
+NOISE_BOX = (0.0, 10 ** 0.5)  # a data run's prior on the noise's sd over the sd the EnKF assumes (`Replay.noisy`):
+                        # uniform, so the noise scale (its square) from 0 to 10. Not log10 of the scale: below the
+                        # outputs' own spread the summary hardly moves with the noise, a plateau the quadratic
+                        # emulator bent into a false mode at the box's low edge (its interval excluded the truth by
+                        # 1e5 on a data set whose noise the EnKF assumed). Uniform in the sd, not the variance: a
+                        # noise the data cannot tell from none keeps 0 in its interval
 MISFIT = 4.0, 1e-3     # status misfit: the data's summary off the posterior mean law's (`indirect.synthetic_posterior`)
                        # by more than 4 sds in a component, or in a summary of k components read, where the larger,
                        # than the normal's two-sided 1 - 1e-3 / k quantile: at most that level for the whole summary
@@ -83,8 +87,8 @@ class Replay:
     """How the simulated estimator's replicates repeat the identification: the input d, (K+1, m) or one per
     recorded path (K+1, P_rec, m), replicate r replaying recorded path r mod P_rec; the feedback F (m, n) (None:
     the inputs as they are); the plant's initial state q0 (n,). noisy (a data run): the replicates' plant carries
-    enkf.Q's x block and enkf.R as process and output noise, times a scale theta's last component estimates
-    (log10, in NOISE_BOX): recorded outputs are noisy by an amount nobody states, and the summary depends on it.
+    enkf.Q's x block and enkf.R as process and output noise, times a scale whose square root theta's last component
+    estimates (in NOISE_BOX): recorded outputs are noisy by an amount nobody states, and the summary depends on it.
     paths: the identification runs of each replicate, every one with its own draws of the replicate's law, whose
     summaries it averages as the observed one averages those of its identification.paths runs."""
 
@@ -160,7 +164,7 @@ def simulated_moments(exp: Experiment, stages: Stages, ident: Trajectories, iden
         planned = sum(planned_paths(r, rounds, replay.paths) for r in range(1, rounds + 1))
         with stages.progress("modeling", settings.replicates * planned) as progress:
             posterior, info["usable"], z = posterior_rounds(exp, enkf, replay, s_obs, len(per_path), prior,
-                                                            (ends, low, high), progress)
+                                                            (ends, low, high), fit, progress)
         xi_of = lambda draws: draws[:, :len(prior[0]) - replay.noisy]      # theta's xi part (not a noise scale)
         spread_of = lambda xi, over: Uncertainty(*indirect.moments_of(xi, ends, low, high), settings.resamples, 0, over)
         # where no posterior matched the summary, the window's moments are kept with the prior box as their
@@ -199,7 +203,7 @@ def simulated_moments(exp: Experiment, stages: Stages, ident: Trajectories, iden
 
 
 def posterior_rounds(exp: Experiment, enkf, replay: Replay, s_obs: np.ndarray, paths: int, box,
-                     laws, progress=None) -> tuple[tuple | None, list[int], np.ndarray | None]:
+                     laws, fit: np.ndarray, progress=None) -> tuple[tuple | None, list[int], np.ndarray | None]:
     """The replicate rounds of `simulated_moments`: (draws (N, d), weights (N,)) of the posterior, or None where no
     round identified enough replicates to regress on (10 per regressor), each round's count of identified
     replicates, and where s_obs lies among the summaries of the posterior mean's law (`indirect.synthetic_posterior`).
@@ -210,18 +214,19 @@ def posterior_rounds(exp: Experiment, enkf, replay: Replay, s_obs: np.ndarray, p
     and the likelihood's covariance scales by the ratio. Replicates of replay.paths > 1 paths (a simulated run's
     identification.paths) run that many only once a first posterior has placed the box: the rounds before run one
     path each, which places the box well enough (four paths on the calibration plants: the same errors and coverage
-    as two rounds of every path after it, in two thirds of the time). `laws`: (ends, low, high). progress(paths,
-    more=0): called as each chunk is done, and with `more` where a round runs other paths than the bar's total
-    counted (`planned_paths`)."""
+    as two rounds of every path after it, in two thirds of the time). `laws`: (ends, low, high); `fit`: the
+    components of theta the regression fits (`fitted`). progress(paths, more=0): called as each chunk is done, and
+    with `more` where a round runs other paths than the bar's total counted (`planned_paths`)."""
     settings = exp.identification
     posterior, rounds, usable, z, prior = None, 0, [], None, box
     wanted = POSTERIOR_ROUNDS[paths > replay.paths]
-    fit = fitted(box, laws[0], settings.replicates)
     # the window's correlations of xi are read where theta's are fitted (else they only hold the replicates' random
     # correlations, which the regression leaves in its residual)
-    read = np.ones(s_obs.size, dtype=bool)
-    read[2 * exp.model.p:2 * exp.model.p + exp.model.p * (exp.model.p - 1) // 2] = fit[
-        indirect.correlation_columns(laws[0])].all()
+    correlated = fit[indirect.correlation_columns(laws[0])].all()
+    read = np.array([correlated or not name.startswith("window correlation") for name in summary_names(exp.model)])
+    # a noisy replay's noise sd: the emulator regresses on its square, the noise's variance, in which the summary
+    # moves smoothly from the plateau of noise below the outputs' own spread (`NOISE_BOX`)
+    squared = np.arange(fit.sum()) == fit.sum() - 1 if replay.noisy else None
     for round_ in range(1, wanted + 3):
         theta = indirect.uniform_draws(*box, settings.replicates, [exp.seed, REPLICATE_STREAM, round_])
         runs = replay if posterior is not None else dataclasses.replace(replay, paths=1)
@@ -232,10 +237,13 @@ def posterior_rounds(exp: Experiment, enkf, replay: Replay, s_obs: np.ndarray, p
         ok = np.all(np.isfinite(s), axis=1)
         usable.append(int(ok.sum()))
         if ok.sum() >= 10 * (fit.sum() + 1):
-            # s_obs is the mean of `paths` runs' summaries, a replicate's of runs.paths
+            # s_obs is the mean of `paths` runs' summaries, a replicate's of runs.paths. A noisy replay's first
+            # posterior only places the box, by an emulator of the whole noise range, where the summary bends (a
+            # plateau, then a rise): read at one path's precision, its bias does not place the box off the truth
+            ratio = 1.0 if replay.noisy and posterior is None else runs.paths / paths
             draws, w, z_read = indirect.synthetic_posterior(theta[:, fit], s, s_obs[read], box[0][fit], box[1][fit],
-                                                            runs.paths / paths,
-                                                            seed=[exp.seed, REPLICATE_STREAM, round_, 1])
+                                                            ratio, seed=[exp.seed, REPLICATE_STREAM, round_, 1],
+                                                            squared=squared)
             z = np.zeros(s_obs.size)        # (a summary not read: no evidence of a misfit)
             z[read] = z_read
             # the components not fitted keep their prior, the box
@@ -288,8 +296,8 @@ def diagnostics(draws: np.ndarray, w: np.ndarray, prior, ends: np.ndarray, noisy
     """The posterior's account for the summary and the status: its effective number of replicates, how much the
     data narrowed each component's prior box (`indirect.narrowed`), and the components of xi's law at the box's
     edge (`at_prior_edge`) or hardly narrowed (`weakly_identified`, above `indirect.WEAK`). noisy: the last
-    component is a data run's log10 noise scale, reported (`noise_scale`: its posterior median and 95% interval,
-    times the noise the EnKF assumes), not a status (its box's low end is noise too small to matter)."""
+    component is a data run's noise sd ratio, reported (`noise_scale`: its posterior median and 95% interval,
+    times the noise the EnKF assumes), not a status (its box's low end is no noise at all)."""
     p = ends.size
     names = [f"xi mean {i + 1}" for i in range(p)] + [f"xi std {i + 1}" for i in np.flatnonzero(~ends)]
     ratio = indirect.narrowed(draws, w, *prior)
@@ -303,8 +311,8 @@ def diagnostics(draws: np.ndarray, w: np.ndarray, prior, ends: np.ndarray, noisy
         out["weakly_identified"] = [names[i] for i in np.flatnonzero(weak)]
     if noisy:
         q = indirect.weighted_quantiles(draws[:, -1], w, [0.025, 0.5, 0.975])
-        out["noise_scale"] = {"median": float(10 ** q[1]), "low": float(10 ** q[0]), "high": float(10 ** q[2]),
-                              "box": [10 ** prior[0][-1], 10 ** prior[1][-1]]}
+        out["noise_scale"] = {"median": float(q[1] ** 2), "low": float(q[0] ** 2), "high": float(q[2] ** 2),
+                              "box": [prior[0][-1] ** 2, prior[1][-1] ** 2]}
     return out
 
 
@@ -326,7 +334,7 @@ def replicate_summaries(exp: Experiment, enkf, replay: Replay, theta: np.ndarray
                         round_: int, progress=None) -> np.ndarray:
     """(R, S): the `summary_statistics` of R replicates of the identification of the model as `replay` says,
     replicate r's replay.paths runs drawing xi from theta[r] (`indirect.path_laws`: its means, stds and
-    correlations; a noisy replay's last column is its log10 noise scale) in one law of random shape
+    correlations; a noisy replay's last column is its noise sd ratio) in one law of random shape
     (identification.replicate_laws = random_shapes, `indirect.random_shapes`, from [seed, REPLICATE_STREAM, round_,
     2]) with `enkf`, averaged over the runs that did not fail; NaN where every run failed. In chunks of paths within
     the Monte Carlo's memory budget (each path its own streams); progress(paths) after each chunk."""
@@ -354,7 +362,7 @@ def replicate_summaries(exp: Experiment, enkf, replay: Replay, theta: np.ndarray
         chunk = dataclasses.replace(sim, plant=plant, d=d if d.ndim == 2 else d[:, part])
         noise = None
         if replay.noisy:
-            scale = 10.0 ** theta[part, -1, None, None]
+            scale = theta[part, -1, None, None] ** 2
             noise = PlantNoise(scale * enkf.Q[:n, :n], scale * enkf.R)
         out.append(summary_statistics(exp, chunk.run(first, len(laws[part]), keep_xi_cov=total, plant_noise=noise)))
         if progress is not None:
