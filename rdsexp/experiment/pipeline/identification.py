@@ -224,9 +224,9 @@ def posterior_rounds(exp: Experiment, enkf, replay: Replay, s_obs: np.ndarray, p
     # correlations, which the regression leaves in its residual)
     correlated = fit[indirect.correlation_columns(laws[0])].all()
     read = np.array([correlated or not name.startswith("window correlation") for name in summary_names(exp.model)])
-    # a noisy replay's noise sd: the emulator regresses on its square, the noise's variance, in which the summary
-    # moves smoothly from the plateau of noise below the outputs' own spread (`NOISE_BOX`)
-    squared = np.arange(fit.sum()) == fit.sum() - 1 if replay.noisy else None
+    # a noisy replay's noise sd (theta's last component): the emulator regresses on its square, the noise's
+    # variance, in which the summary moves smoothly from the plateau of noise below the outputs' own spread
+    squared = (np.arange(fit.size) == fit.size - 1)[fit] if replay.noisy else None
     for round_ in range(1, wanted + 3):
         theta = indirect.uniform_draws(*box, settings.replicates, [exp.seed, REPLICATE_STREAM, round_])
         runs = replay if posterior is not None else dataclasses.replace(replay, paths=1)
