@@ -59,13 +59,20 @@ def test_the_stated_interval_holds_the_law(tmp_path):
     assert paper_hits < hits
 
 
+def chunks_of_seven_paths(monkeypatch) -> None:
+    """The identification's replicates and recorded paths simulated 7 paths a chunk: a replicate of 3 paths then
+    falls into two chunks now and then, and the chunks end inside a round."""
+    monkeypatch.setattr(identification, "bytes_per_path", lambda *args, **kwargs: 1)
+    monkeypatch.setattr(identification, "MEMORY_BUDGET", 3 * 7)
+
+
 def test_the_same_numbers_whatever_the_chunks(tmp_path, monkeypatch):
-    """Replicates of several identification paths each (identification.paths) give the same bytes in chunks of one
-    path, where a replicate's paths fall in different chunks."""
+    """Replicates of several identification paths each (identification.paths) give the same bytes in chunks of 7
+    paths, where a replicate's paths fall in different chunks."""
     exp = experiment(tmp_path, "seed=3", "identification.paths=3", "identification.replicates=60")
     whole, whole_draws = modeled(exp)
     assert whole.estimator["replicate_paths"] == 3 and "fallback" not in whole.estimator
-    monkeypatch.setattr(identification, "MEMORY_BUDGET", 1)          # one replicate path per chunk
+    chunks_of_seven_paths(monkeypatch)
     parts, parts_draws = modeled(exp)
     np.testing.assert_array_equal(whole.moments.mean, parts.moments.mean)
     np.testing.assert_array_equal(whole.moments.cov, parts.moments.cov)
@@ -151,7 +158,7 @@ def test_a_data_runs_replicates_are_the_same_whatever_the_chunks(tmp_path, monke
     small = ("identification.replicates=80", "identification.horizon=50",
              "identification.K0=10", "identification.K1=40")
     _, whole, _ = data_run(tmp_path, 1, *small, paths=12, steps=51)
-    monkeypatch.setattr(identification, "MEMORY_BUDGET", 1)          # one replicate path per chunk
+    chunks_of_seven_paths(monkeypatch)
     _, parts, _ = data_run(tmp_path, 1, *small, paths=12, steps=51)
     assert whole["xi_mean"] == parts["xi_mean"] and whole["xi_std"] == parts["xi_std"]
     assert whole["modeling_estimator"]["noise_scale"] == parts["modeling_estimator"]["noise_scale"]
