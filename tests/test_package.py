@@ -212,6 +212,17 @@ def test_fast_help_is_hydras_help(tmp_path, capsys):
         [0, 1, 2, 130] == [int(code) for code in Exit]
 
 
+@pytest.mark.parametrize("argv", [["--help"], ["-sc", "query=bash"]], ids=["help", "completion"])
+def test_help_and_completion_import_no_numerics(tmp_path, argv):
+    """`rdsexp --help` and a shell completion (each tab press) load Hydra, not the pipeline and its numerics
+    (2.5 s of imports)."""
+    code = ("import sys; from rdsexp.experiment.cli import main; sys.argv = ['rdsexp', *sys.argv[1:]]; main(); "
+            "print('numerics' if 'rdsexp.numerics' in sys.modules else 'none', file=sys.stderr)")
+    proc = subprocess.run([sys.executable, "-c", code, *argv], cwd=tmp_path, capture_output=True, text=True,
+                          env=dict(os.environ, COMP_LINE="rdsexp gain="), check=True)
+    assert proc.stderr.strip().splitlines()[-1] == "none", proc.stderr
+
+
 def test_bash_completion_of_gain_lists_the_methods(tmp_path):
     script = ('eval "$(rdsexp --shell-completion install=bash)"; COMP_LINE="rdsexp gain="; '
               'COMP_POINT=${#COMP_LINE}; COMP_WORDS=(rdsexp gain=); COMP_CWORD=1; hydra_bash_completion; '

@@ -39,15 +39,21 @@ if not OmegaConf.has_resolver("rdsexp_exit_codes"):      # the exit codes in `rd
 RUNNING: dict[str, Path | None] = {}      # the run (and sweep) directory of the job started last, for Ctrl-C
 
 
+STAGE_LINES = {"on": None}         # `main`'s choice: a line per stage on stderr (True), progress bars (False)
+
+
 @hydra.main(config_path=CONF_PACKAGE, config_name="config", version_base="1.3")
 def hydra_main(cfg: DictConfig) -> dict | float:
     """One job: its run.json content, or with `objective: METRIC` that metric as a float (what an
     optimizing sweeper such as Optuna's reads; `runner.objective_value`): its mean over `objective_seeds`
     seeds, the job's and the ones after it, each a run beside the job's (`runner.trial_seeds`)."""
     # imported here: `rdsexp --help` and shell completion need Hydra only, not the numerics
+    from .pipeline.stage import announce_stages
     from .runner import execute, objective_over, objective_seeds, objective_value, trial_seeds
     from .store import write_sweep_summary
     from .summary import summary_text
+    if STAGE_LINES["on"] is not None:    # this process ran `main` (a launcher's worker keeps the default: none)
+        announce_stages(STAGE_LINES["on"])
     hc = HydraConfig.get()
     run_dir = Path(hc.runtime.output_dir)
     multirun = hc.mode == RunMode.MULTIRUN
@@ -146,8 +152,9 @@ def _main() -> None:
     # an ignored SIGINT): Python's default handler raises KeyboardInterrupt, which ends the run
     # with run.json "interrupted" (`hydra_main`) and every finished file complete
     signal.signal(signal.SIGINT, signal.default_int_handler)
-    from .pipeline.stage import announce_stages
-    announce_stages(not sys.stderr.isatty())        # a terminal has the progress bars; elsewhere, a line per stage
+    # a terminal has the progress bars; elsewhere, a line per stage (applied by hydra_main: importing the pipeline
+    # here would cost `rdsexp --help` and every shell completion its 2.5 s)
+    STAGE_LINES["on"] = not sys.stderr.isatty()
     for arg in sys.argv[1:]:
         # enkf.Q's default is the mapping {x, xi, matrix}: Hydra cannot merge a list into it and
         # would end with a stack of merge errors; say in one line where a matrix goes
