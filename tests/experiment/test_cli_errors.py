@@ -180,7 +180,6 @@ def test_ctrl_c_during_a_sweep_leaves_a_store_that_passes_check_and_resumes(tmp_
     jobs = search(tmp_path / "outputs", f"sweep_id == '{new.name}'")
     assert sorted(jobs["seed"]) == list(range(8)) and set(jobs["status"]) == {"complete"}
     assert set(jobs["resumes"]) == {sweep.name}
-    assert jobs["reused_from"].notna().sum() == done             # the completed jobs, not run again
     assert jobs["reused_from"].notna().sum() == done           # the completed jobs were not computed again
     store_passes_check(tmp_path)
 
